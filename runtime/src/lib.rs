@@ -1,0 +1,5 @@
+//! softc runtime: meshes (I/O, meshing, validation), devices, the time loop, optimizers and
+//! outputs, plus the `softc` command line.
+
+pub mod cli;
+pub mod mesh;

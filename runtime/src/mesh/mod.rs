@@ -1,0 +1,1 @@
+//! Tetrahedral meshes: model, readers/writers, mesher, validation (issue 3).
