@@ -1,2 +1,58 @@
 //! softc compiler: front end (pest grammar → AST with spans), semantic analysis (names, types,
-//! units, bounds), and later the kernel IR, passes and backends.
+//! units, bounds) and the formatter; later the kernel IR, passes and backends.
+
+pub mod diag;
+pub mod fmt;
+pub mod front;
+pub mod sema;
+
+use diag::Diagnostic;
+use sema::{CheckOptions, CheckedScript};
+use std::borrow::Cow;
+
+/// The outcome of checking one script.
+#[derive(Debug)]
+pub struct Checked {
+    /// Errors and warnings, sorted by position.
+    pub diagnostics: Vec<Diagnostic>,
+    /// What the checker learned; `None` when the script did not parse.
+    pub script: Option<CheckedScript>,
+}
+
+impl Checked {
+    pub fn has_errors(&self) -> bool {
+        self.diagnostics.iter().any(Diagnostic::is_error)
+    }
+}
+
+/// Parse and check a script given as raw bytes. Returns the text to render diagnostics against
+/// (invalid UTF-8 is replaced, which keeps the offsets of the valid prefix).
+pub fn check_bytes<'a>(bytes: &'a [u8], options: &CheckOptions) -> (Cow<'a, str>, Checked) {
+    match front::decode(bytes) {
+        Ok(text) => (Cow::Borrowed(text), check_source(text, options)),
+        Err(d) => (
+            String::from_utf8_lossy(bytes),
+            Checked {
+                diagnostics: vec![d],
+                script: None,
+            },
+        ),
+    }
+}
+
+/// Parse and check a script.
+pub fn check_source(text: &str, options: &CheckOptions) -> Checked {
+    match front::parse(text) {
+        Err(d) => Checked {
+            diagnostics: vec![d],
+            script: None,
+        },
+        Ok(ast) => {
+            let (script, diagnostics) = sema::check(&ast, options);
+            Checked {
+                diagnostics,
+                script: Some(script),
+            }
+        }
+    }
+}

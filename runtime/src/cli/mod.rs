@@ -1,2 +1,322 @@
 //! The `softc` command line.
-pub fn main_with_args(_args: Vec<String>) -> i32 { 0 }
+//!
+//! Exit status: 0 success, 1 a problem in the user's input (script, mesh), 2 a usage error
+//! (bad flags, unreadable file, a command that is not implemented yet).
+
+use clap::{Parser, Subcommand, ValueEnum};
+use softc_compiler::diag::{Diagnostic, SourceFile};
+use softc_compiler::sema::CheckOptions;
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "softc",
+    version,
+    about = "Compiler and runtime for differentiable simulation of soft pressure actuators",
+    long_about = None
+)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Check scripts for errors without running them.
+    Check {
+        /// Scripts to check (`-` reads standard input).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// How to print diagnostics.
+        #[arg(long, value_enum, default_value_t = MessageFormat::Human)]
+        message_format: MessageFormat,
+        /// Treat warnings as errors (exit status 1).
+        #[arg(long)]
+        deny_warnings: bool,
+    },
+    /// Format scripts in place (canonical layout, comments kept).
+    Fmt {
+        /// Scripts to format (`-` formats standard input to standard output).
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// Do not write; exit with status 1 if a file is not formatted.
+        #[arg(long)]
+        check: bool,
+    },
+    /// Compile a script and print its kernels (not implemented yet).
+    Compile {
+        file: PathBuf,
+        #[arg(long)]
+        emit: Option<String>,
+    },
+    /// Simulate or optimize a script (not implemented yet).
+    Run {
+        file: PathBuf,
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true, hide = true)]
+        rest: Vec<String>,
+    },
+    /// Generate, inspect and convert tetrahedral meshes (not implemented yet).
+    Mesh {
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true, hide = true)]
+        rest: Vec<String>,
+    },
+}
+
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum MessageFormat {
+    /// `FILE:LINE:COL: error[CODE]: message`, the source line, and a hint.
+    Human,
+    /// One JSON object per diagnostic and line, for editors and tools.
+    Json,
+}
+
+/// Run the command line with explicit output streams (tests call this in-process).
+pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    let cli = match Cli::try_parse_from(args) {
+        Ok(cli) => cli,
+        Err(e) => {
+            let code = if e.use_stderr() { 2 } else { 0 };
+            let _ = if e.use_stderr() {
+                write!(err, "{e}")
+            } else {
+                write!(out, "{e}")
+            };
+            return code;
+        }
+    };
+    match cli.command {
+        Command::Check {
+            files,
+            message_format,
+            deny_warnings,
+        } => check_files(&files, message_format, deny_warnings, out, err),
+        Command::Fmt { files, check } => fmt_files(&files, check, out, err),
+        Command::Compile { .. } => not_implemented("compile", err),
+        Command::Run { .. } => not_implemented("run", err),
+        Command::Mesh { .. } => not_implemented("mesh", err),
+    }
+}
+
+/// Entry point of the binary: runs the front end on a thread with a large stack, so that even
+/// pathological scripts (deep nesting near the parser's limits) cannot overflow it.
+pub fn main_with_args(args: Vec<String>) -> i32 {
+    let worker = std::thread::Builder::new()
+        .name("softc".into())
+        .stack_size(64 << 20)
+        .spawn(move || {
+            let stdout = std::io::stdout();
+            let stderr = std::io::stderr();
+            run(&args, &mut stdout.lock(), &mut stderr.lock())
+        });
+    match worker.map(|h| h.join()) {
+        Ok(Ok(code)) => code,
+        _ => {
+            eprintln!(
+                "softc: internal error (this is a bug in softc; please report it with the input)"
+            );
+            101
+        }
+    }
+}
+
+fn not_implemented(what: &str, err: &mut dyn Write) -> i32 {
+    let _ = writeln!(err, "softc {what}: not implemented yet");
+    2
+}
+
+/// Read a file (or standard input for `-`), reporting failures as usage errors.
+fn read_input(path: &Path, err: &mut dyn Write) -> Option<Vec<u8>> {
+    let result = if path == Path::new("-") {
+        let mut buf = Vec::new();
+        std::io::stdin().read_to_end(&mut buf).map(|_| buf)
+    } else {
+        std::fs::read(path)
+    };
+    match result {
+        Ok(b) => Some(b),
+        Err(e) => {
+            let _ = writeln!(err, "softc: cannot read `{}`: {e}", path.display());
+            None
+        }
+    }
+}
+
+fn display_name(path: &Path) -> String {
+    if path == Path::new("-") {
+        "<stdin>".into()
+    } else {
+        path.display().to_string()
+    }
+}
+
+fn check_files(
+    files: &[PathBuf],
+    format: MessageFormat,
+    deny_warnings: bool,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
+    let mut status = 0;
+    for path in files {
+        let Some(bytes) = read_input(path, err) else {
+            status = 2;
+            continue;
+        };
+        let options = CheckOptions {
+            base_dir: if path == Path::new("-") {
+                std::env::current_dir().ok()
+            } else {
+                let dir = path
+                    .parent()
+                    .filter(|p| !p.as_os_str().is_empty())
+                    .unwrap_or(Path::new("."));
+                Some(dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf()))
+            },
+        };
+        let (text, checked) = softc_compiler::check_bytes(&bytes, &options);
+        let name = display_name(path);
+        let file = SourceFile::new(&name, &text);
+        report(&file, &checked.diagnostics, format, out, err);
+        let errors = checked.diagnostics.iter().filter(|d| d.is_error()).count();
+        let warnings = checked.diagnostics.len() - errors;
+        if format == MessageFormat::Human {
+            let summary = match (errors, warnings) {
+                (0, 0) => format!("{name}: ok"),
+                (0, w) => format!("{name}: ok, {w} warning{}", plural(w)),
+                (e, 0) => format!("{name}: {e} error{}", plural(e)),
+                (e, w) => format!("{name}: {e} error{}, {w} warning{}", plural(e), plural(w)),
+            };
+            let _ = writeln!(err, "{summary}");
+        }
+        if (errors > 0 || (deny_warnings && warnings > 0)) && status == 0 {
+            status = 1;
+        }
+    }
+    status
+}
+
+fn plural(n: usize) -> &'static str {
+    if n == 1 { "" } else { "s" }
+}
+
+fn report(
+    file: &SourceFile,
+    diags: &[Diagnostic],
+    format: MessageFormat,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) {
+    for d in diags {
+        match format {
+            MessageFormat::Human => {
+                let _ = writeln!(err, "{}", file.render(d));
+            }
+            MessageFormat::Json => {
+                let _ = writeln!(out, "{}", file.render_json(d));
+            }
+        }
+    }
+}
+
+fn fmt_files(files: &[PathBuf], check: bool, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    let mut status = 0;
+    for path in files {
+        let Some(bytes) = read_input(path, err) else {
+            status = 2;
+            continue;
+        };
+        let name = display_name(path);
+        let text = match softc_compiler::front::decode(&bytes) {
+            Ok(t) => t,
+            Err(d) => {
+                let lossy = String::from_utf8_lossy(&bytes);
+                report(
+                    &SourceFile::new(&name, &lossy),
+                    &[d],
+                    MessageFormat::Human,
+                    out,
+                    err,
+                );
+                status = status.max(1);
+                continue;
+            }
+        };
+        let formatted = match softc_compiler::fmt::format_source(text) {
+            Ok(f) => f,
+            Err(d) => {
+                let file = SourceFile::new(&name, text);
+                report(&file, &[d], MessageFormat::Human, out, err);
+                let _ = writeln!(err, "{name}: not formatted (fix the syntax error first)");
+                status = status.max(1);
+                continue;
+            }
+        };
+        if path == Path::new("-") {
+            let _ = out.write_all(formatted.as_bytes());
+            continue;
+        }
+        if formatted == text {
+            continue;
+        }
+        if check {
+            let _ = writeln!(err, "{name}: not formatted");
+            if let Some((line, old, new)) = first_difference(text, &formatted) {
+                let _ = writeln!(
+                    err,
+                    "  first difference at line {line}:\n  - {old}\n  + {new}"
+                );
+            }
+            status = status.max(1);
+            continue;
+        }
+        if let Err(e) = write_atomically(path, formatted.as_bytes()) {
+            let _ = writeln!(err, "softc: cannot write `{name}`: {e}");
+            status = 2;
+        } else {
+            let _ = writeln!(err, "{name}: formatted");
+        }
+    }
+    status
+}
+
+fn first_difference<'a>(a: &'a str, b: &'a str) -> Option<(usize, &'a str, &'a str)> {
+    let mut la = a.lines();
+    let mut lb = b.lines();
+    let mut n = 0;
+    loop {
+        n += 1;
+        match (la.next(), lb.next()) {
+            (None, None) => return None,
+            (x, y) if x != y => return Some((n, x.unwrap_or(""), y.unwrap_or(""))),
+            _ => {}
+        }
+    }
+}
+
+/// Replace `path` with `bytes` through a temporary file in the same directory and a rename, so
+/// an interrupted write never leaves a truncated file.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let tmp = dir.join(format!(".{file_name}.{}.tmp", std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        if let Ok(meta) = std::fs::metadata(path) {
+            let _ = std::fs::set_permissions(&tmp, meta.permissions());
+        }
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}

@@ -1,0 +1,5 @@
+//! Front end: the pest grammar and the AST with source spans.
+pub mod ast;
+pub mod parser;
+
+pub use parser::{decode, parse};

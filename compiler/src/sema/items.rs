@@ -1,0 +1,1577 @@
+//! Declarations, the sim block, the loss and the optimize block.
+
+use super::expr::{shapes_fit, unit_suggestion};
+use super::types::{Len, Obj, Ty, Typed, Var};
+use super::units::{self, Dim};
+use super::{Checker, GState, Global, ParamInfo, SigParam, Signature, SymKind, reserved_name};
+use crate::diag::{Diagnostic, did_you_mean};
+use crate::front::ast::*;
+use std::collections::HashMap;
+
+/// What the sim block fixed, for later checks (windows, `t_end`, chambers with pressure).
+#[derive(Debug, Default)]
+pub(super) struct SimInfo {
+    pub duration: Option<f64>,
+    /// `window(t, width)` uses: width and span.
+    pub windows: Vec<(f64, Span)>,
+    pub pressured: Vec<String>,
+    pub seen: bool,
+}
+
+const SIM_SETTINGS: &[&str] = &[
+    "dt",
+    "steps",
+    "duration",
+    "integrator",
+    "damping",
+    "model",
+    "gravity",
+    "mass_scaling",
+    "precision",
+];
+
+const OPTIMIZE_SETTINGS: &[&str] = &[
+    "batch",
+    "seed",
+    "gradient_scale",
+    "normalize",
+    "clip",
+    "lr_schedule",
+    "memory_budget",
+    "checkpoint",
+    "truncate",
+];
+
+impl Checker {
+    /// Collect the global declarations of a script (pass 1).
+    pub(super) fn register(&mut self, items: &[Item], prelude: bool) {
+        if prelude {
+            self.prelude_items = items.to_vec();
+        } else {
+            self.user_items = items.to_vec();
+        }
+        for (index, item) in items.iter().enumerate() {
+            let (name, kind) = match &item.kind {
+                ItemKind::Decl { kind, name, .. } => (
+                    name,
+                    match kind {
+                        DeclKind::Mesh => SymKind::Mesh,
+                        DeclKind::Region => SymKind::Region,
+                        DeclKind::Chamber => SymKind::Chamber,
+                        DeclKind::Nodes => SymKind::Nodes,
+                        DeclKind::Elements => SymKind::Elements,
+                    },
+                ),
+                ItemKind::Material(m) => (
+                    &m.name,
+                    if m.params.is_some() {
+                        SymKind::MaterialTemplate
+                    } else {
+                        SymKind::Material
+                    },
+                ),
+                ItemKind::Param(p) => (&p.name, SymKind::Param),
+                ItemKind::Input(i) => (&i.name, SymKind::Input),
+                ItemKind::Let(l) => (&l.name, SymKind::Let),
+                ItemKind::Fn(f) => (
+                    &f.name,
+                    if f.is_controller {
+                        SymKind::Controller
+                    } else {
+                        SymKind::Fn
+                    },
+                ),
+                ItemKind::Sim(_) | ItemKind::Loss(_) | ItemKind::Optimize(_) => continue,
+            };
+            if super::RESERVED_NAMES.contains(&name.name.as_str()) {
+                self.err(reserved_name(&name.name, name.span));
+                continue;
+            }
+            // Declarations may shadow built-in functions (`region clamp`), not constants.
+            if super::builtins::CONSTANTS
+                .iter()
+                .any(|(n, _)| *n == name.name)
+            {
+                let msg = format!("`{}` is a built-in name and cannot be declared", name.name);
+                self.err(
+                    Diagnostic::error("E0111", name.span, msg).with_hint("choose another name"),
+                );
+                continue;
+            }
+            if let Some(&prev) = self.globals.get(&name.name) {
+                let p = &self.syms[prev];
+                let d = if p.prelude {
+                    Diagnostic::error(
+                        "E0111",
+                        name.span,
+                        format!(
+                            "`{}` is a built-in {} from the prelude",
+                            name.name,
+                            p.kind.describe()
+                        ),
+                    )
+                    .with_hint("choose another name")
+                } else {
+                    Diagnostic::error(
+                        "E0102",
+                        name.span,
+                        format!("`{}` is declared twice", name.name),
+                    )
+                    .with_note(p.span, "first declared here")
+                };
+                self.err(d);
+                continue;
+            }
+            self.globals.insert(name.name.clone(), self.syms.len());
+            self.syms.push(Global {
+                name: name.name.clone(),
+                kind,
+                span: name.span,
+                prelude,
+                used: false,
+                item: index,
+                state: GState::Unchecked,
+            });
+        }
+    }
+
+    /// Check every item (pass 2). The sim block goes first: the loss needs its duration.
+    pub(super) fn check_items(&mut self, items: &[Item], prelude: bool) {
+        let ids: Vec<usize> = (0..self.syms.len())
+            .filter(|&i| self.syms[i].prelude == prelude)
+            .collect();
+        let mut sims = Vec::new();
+        let mut losses = Vec::new();
+        let mut optimizes = Vec::new();
+        for item in items {
+            match &item.kind {
+                ItemKind::Sim(s) => sims.push((item.span, s)),
+                ItemKind::Loss(l) => losses.push((item.span, l)),
+                ItemKind::Optimize(o) => optimizes.push((item.span, o)),
+                _ => {}
+            }
+        }
+        for (i, (span, stmts)) in sims.iter().enumerate() {
+            if i > 0 {
+                self.err(duplicate_block("sim", *span, sims[0].0));
+                continue;
+            }
+            self.check_sim(stmts, *span);
+        }
+        for id in ids {
+            self.global_typed(id);
+        }
+        for (i, (span, loss)) in losses.iter().enumerate() {
+            if i > 0 {
+                self.err(duplicate_block("loss", *span, losses[0].0));
+                continue;
+            }
+            self.check_loss(loss);
+        }
+        for (i, (span, opt)) in optimizes.iter().enumerate() {
+            if i > 0 {
+                self.err(duplicate_block("optimize", *span, optimizes[0].0));
+                continue;
+            }
+            self.check_optimize(opt, *span, !losses.is_empty());
+        }
+    }
+
+    /// Check one global declaration; records signatures of functions and templates.
+    pub(super) fn check_decl(&mut self, id: usize, item: &Item) -> Typed {
+        match &item.kind {
+            ItemKind::Decl { kind, value, .. } => {
+                let t = self.check_expr(value);
+                let (want, what) = match kind {
+                    DeclKind::Mesh => (Obj::Mesh, "`load(\"file.msh\")`"),
+                    DeclKind::Region => (Obj::Region, "`box(min: …, max: …)` or `sphere(…)`"),
+                    DeclKind::Chamber => (Obj::Surface, "`surface(mesh, \"name\")`"),
+                    DeclKind::Nodes | DeclKind::Elements => (
+                        Obj::Selection,
+                        "`select(mesh, condition)`, `named(mesh, \"name\")`, `tagged(mesh, tag)` or `inside(mesh, region)`",
+                    ),
+                };
+                let ok = t.ty.is_error() || t.ty == Ty::Obj(want);
+                if !ok {
+                    let msg = format!(
+                        "a {} is declared with {what}, found {}",
+                        kind.keyword(),
+                        t.ty
+                    );
+                    self.err(Diagnostic::error("E0203", value.span, msg));
+                    return Typed::error();
+                }
+                let obj = match kind {
+                    DeclKind::Mesh => Obj::Mesh,
+                    DeclKind::Region => Obj::Region,
+                    DeclKind::Chamber => Obj::Surface,
+                    DeclKind::Nodes => Obj::NodeSet,
+                    DeclKind::Elements => Obj::ElementSet,
+                };
+                Typed::of(Ty::Obj(obj), Var::Const)
+            }
+            ItemKind::Material(m) => self.check_material(id, m),
+            ItemKind::Param(p) => self.check_param(p),
+            ItemKind::Input(i) => self.check_input(i),
+            ItemKind::Let(l) => {
+                // A top-level let may name a derived quantity of the run (`t`, node state); its
+                // variability says where it may be used.
+                self.ctx.time = true;
+                self.ctx.state = true;
+                let t = self.check_expr(&l.value);
+                self.ctx = Default::default();
+                self.check_let_type(l, &t);
+                if matches!(t.ty, Ty::Obj(Obj::StateField | Obj::Node | Obj::Element)) {
+                    return Typed::error();
+                }
+                t
+            }
+            ItemKind::Fn(f) => self.check_fn(id, f),
+            _ => Typed::error(),
+        }
+    }
+
+    fn check_let_type(&mut self, l: &LetDecl, t: &Typed) {
+        if let Some(te) = &l.ty {
+            if let Some(want) = self.resolve_type(te, false) {
+                self.expect_type(t, &want, &l.value, &format!("`{}`", l.name.name));
+            }
+        }
+    }
+
+    /// Turn a written type into a [`Ty`]; `template` allows `*` lengths.
+    pub(super) fn resolve_type(&mut self, te: &TypeExpr, template: bool) -> Option<Ty> {
+        let dim = self.resolve_dim(&te.dim)?;
+        let mut shape = Vec::new();
+        for s in &te.shape {
+            shape.push(match s {
+                ShapeItem::Any(sp) => {
+                    if !template {
+                        self.err(
+                            Diagnostic::error(
+                                "E0204",
+                                *sp,
+                                "`*` lengths are only allowed in material template parameters",
+                            )
+                            .with_hint("give the length, e.g. `pressure[3]`"),
+                        );
+                        return None;
+                    }
+                    Len::Any
+                }
+                ShapeItem::Len(text, sp) => match text.parse::<usize>() {
+                    Ok(n) if (1..=1_000_000).contains(&n) => Len::Fixed(n),
+                    _ => {
+                        let msg = format!("a length must lie between 1 and 1000000, found {text}");
+                        self.err(Diagnostic::error("E0204", *sp, msg));
+                        return None;
+                    }
+                },
+                ShapeItem::Set(id) => {
+                    match self.globals.get(&id.name).map(|&g| (g, self.syms[g].kind)) {
+                        Some((g, SymKind::Elements)) => {
+                            self.syms[g].used = true;
+                            Len::PerElement(id.name.clone())
+                        }
+                        Some((_, k)) => {
+                            let msg = format!(
+                                "a per-element shape names an element set, but `{}` is a {}",
+                                id.name,
+                                k.describe()
+                            );
+                            self.err(Diagnostic::error("E0110", id.span, msg));
+                            return None;
+                        }
+                        None => {
+                            let d = self.unknown_name(&id.name, id.span);
+                            self.err(d);
+                            return None;
+                        }
+                    }
+                }
+            });
+        }
+        Some(Ty::Num {
+            dim,
+            shape,
+            int: false,
+        })
+    }
+
+    fn resolve_dim(&mut self, d: &DimExpr) -> Option<Dim> {
+        let mut acc = self.resolve_dim_factor(&d.first)?;
+        for (op, f) in &d.rest {
+            let x = self.resolve_dim_factor(f)?;
+            acc = match op {
+                DimOp::Mul => acc.mul(x),
+                DimOp::Div => acc.div(x),
+            };
+        }
+        Some(acc)
+    }
+
+    fn resolve_dim_factor(&mut self, f: &DimFactor) -> Option<Dim> {
+        let base = match &f.base {
+            DimBase::One => Dim::NONE,
+            DimBase::Group(g) => self.resolve_dim(g)?,
+            DimBase::Named(id) => match units::named_dim(&id.name) {
+                Some(d) => d,
+                None => {
+                    let mut d = Diagnostic::error(
+                        "E0101",
+                        id.span,
+                        format!("unknown dimension `{}`", id.name),
+                    );
+                    let names: Vec<&str> = units::NAMED_DIMS.iter().map(|(n, _)| *n).collect();
+                    if let Some((_, dim)) = units::unit(&id.name) {
+                        d = d.with_hint(format!(
+                            "types name dimensions, not units: write `{}`",
+                            dim.name()
+                        ));
+                    } else if let Some(s) = did_you_mean(&id.name, names.iter().copied()) {
+                        d = d.with_hint(format!("did you mean `{s}`?"));
+                    } else {
+                        d = d.with_hint(format!("the dimensions are: {}", names.join(", ")));
+                    }
+                    self.err(d);
+                    return None;
+                }
+            },
+        };
+        match &f.power {
+            None => Some(base),
+            Some((text, sp)) => match text.parse::<i32>().ok().and_then(|p| base.powi(p)) {
+                Some(d) => Some(d),
+                None => {
+                    self.err(Diagnostic::error(
+                        "E0004",
+                        *sp,
+                        "dimension power out of range",
+                    ));
+                    None
+                }
+            },
+        }
+    }
+
+    fn check_param(&mut self, p: &ParamDecl) -> Typed {
+        let Some(ty) = self.resolve_type(&p.ty, false) else {
+            self.check_expr(&p.init);
+            return Typed::error();
+        };
+        let what = format!("the initial value of `{}`", p.name.name);
+        let init = self.check_expr(&p.init);
+        let mut ok = self.expect_init(&init, &ty, &p.init, &what);
+        ok &= self.expect_const(&init, &p.init, &what);
+        let dim = ty.dim().unwrap();
+        let scalar = Ty::scalar(dim);
+        let mut lower = None;
+        let mut upper = None;
+        if let Some(b) = &p.bounds {
+            for (end, slot, name) in [
+                (&b.lower, &mut lower, "lower"),
+                (&b.upper, &mut upper, "upper"),
+            ] {
+                if let Some(e) = end {
+                    let t = self.check_expr(e);
+                    let what = format!("the {name} bound of `{}`", p.name.name);
+                    if self.expect_type(&t, &scalar, e, &what) && self.expect_const(&t, e, &what) {
+                        *slot = t.num();
+                    } else {
+                        ok = false;
+                    }
+                }
+            }
+            if b.lower.is_none() && b.upper.is_none() {
+                self.err(
+                    Diagnostic::error("E0302", b.span, "bounds `[.., ..]` bound nothing")
+                        .with_hint("remove them, or give at least one end"),
+                );
+            }
+            if let (Some(lo), Some(hi)) = (lower, upper) {
+                if lo >= hi {
+                    self.err(
+                        Diagnostic::error(
+                            "E0302",
+                            b.span,
+                            format!("the bounds of `{}` are empty: the lower bound is not below the upper bound", p.name.name),
+                        )
+                        .with_hint("write `in [lower, upper]` with lower < upper"),
+                    );
+                    ok = false;
+                }
+            }
+        }
+        let mut init_values = Vec::new();
+        if let Some(v) = &init.value {
+            v.flatten(&mut init_values);
+        }
+        if ok && p.bounds.is_some() {
+            let si = dim.si_unit();
+            for v in &init_values {
+                let below = lower.is_some_and(|lo| *v <= lo);
+                let above = upper.is_some_and(|hi| *v >= hi);
+                if below || above {
+                    let fmt_b =
+                        |b: Option<f64>| b.map(|x| format!("{x} {si}")).unwrap_or("..".into());
+                    let msg = format!(
+                        "the initial value of `{}` ({v} {si}) is not strictly inside its bounds [{}, {}]",
+                        p.name.name,
+                        fmt_b(lower),
+                        fmt_b(upper)
+                    );
+                    self.err(
+                        Diagnostic::error("E0301", p.init.span, msg).with_hint(
+                            "bounded params are optimized through a smooth transform that never reaches the bounds; start strictly inside them",
+                        ),
+                    );
+                    break;
+                }
+            }
+        }
+        self.out.params.push(ParamInfo {
+            name: p.name.name.clone(),
+            ty: ty.clone(),
+            init: init_values,
+            lower,
+            upper,
+        });
+        Typed::of(ty, Var::Param)
+    }
+
+    /// A param's initial value: its declared type, or a scalar broadcast over its shape.
+    fn expect_init(&mut self, init: &Typed, ty: &Ty, e: &Expr, what: &str) -> bool {
+        if init.ty.is_scalar_num() && !ty.shape().is_empty() {
+            return self.expect_type(init, &Ty::scalar(ty.dim().unwrap()), e, what);
+        }
+        self.expect_type(init, ty, e, what)
+    }
+
+    fn check_input(&mut self, i: &InputDecl) -> Typed {
+        let ty = self.resolve_type(&i.ty, false);
+        self.check_batch_source(&i.source, ty.as_ref(), &i.name.name);
+        match ty {
+            Some(ty) => Typed::of(ty, Var::Param),
+            None => Typed::error(),
+        }
+    }
+
+    /// A batch of scene inputs: an array with one entry per scene, or a generator.
+    pub(super) fn check_batch_source(&mut self, source: &Expr, ty: Option<&Ty>, name: &str) {
+        let t = self.check_expr(source);
+        let Some(ty) = ty else { return };
+        if t.ty.is_error() {
+            return;
+        }
+        if t.ty == Ty::Obj(Obj::BatchSource) {
+            if *ty != Ty::vec3(Dim::LENGTH) {
+                let msg =
+                    format!("`circle_quadrants` yields length[3] points, but `{name}` is {ty}");
+                self.err(Diagnostic::error("E0202", source.span, msg));
+            }
+            return;
+        }
+        self.expect_const(&t, source, &format!("the values of `{name}`"));
+        let fits = match &t.ty {
+            Ty::Num { dim, shape, .. } => {
+                Some(*dim) == ty.dim() && !shape.is_empty() && shapes_fit(&shape[1..], ty.shape())
+            }
+            _ => false,
+        };
+        if !fits {
+            let msg = format!(
+                "`{name}` takes one {ty} per scene, so its values must be an array of {ty}, found {}",
+                self.describe(source, &t.ty)
+            );
+            let mut d = Diagnostic::error("E0202", source.span, msg);
+            if let Some(h) = ty.dim().and_then(unit_suggestion) {
+                d = d.with_hint(h);
+            }
+            self.err(d);
+        }
+    }
+
+    fn check_fn(&mut self, id: usize, f: &FnDecl) -> Typed {
+        self.push_scope();
+        let mut params = Vec::new();
+        let mut ok = true;
+        for p in &f.params {
+            let ty = self.resolve_type(&p.ty, false);
+            if let Some(d) = &p.default {
+                let t = self.check_expr(d);
+                if let Some(ty) = &ty {
+                    self.expect_type(&t, ty, d, &format!("the default of `{}`", p.name.name));
+                }
+            }
+            let ty = ty.unwrap_or(Ty::Error);
+            ok &= !ty.is_error();
+            self.declare_local(
+                &p.name.name,
+                p.name.span,
+                Typed::of(ty.clone(), Var::Const),
+                false,
+            );
+            params.push(SigParam {
+                name: p.name.name.clone(),
+                ty,
+                has_default: p.default.is_some(),
+            });
+        }
+        self.ctx.time = f.is_controller;
+        self.ctx.state = f.is_controller;
+        self.ctx.in_controller = f.is_controller;
+        let body = self.check_expr(&f.body);
+        self.ctx = Default::default();
+        let mut ret = body.ty.clone();
+        if let Some(rt) = &f.ret {
+            match self.resolve_type(rt, false) {
+                Some(want) => {
+                    self.expect_type(
+                        &body,
+                        &want,
+                        &f.body,
+                        &format!("the result of `{}`", f.name.name),
+                    );
+                    ret = want;
+                }
+                None => ret = Ty::Error,
+            }
+        }
+        if matches!(ret, Ty::Obj(_)) {
+            let msg = format!(
+                "functions return numbers or conditions, but `{}` returns {ret}",
+                f.name.name
+            );
+            self.err(Diagnostic::error("E0203", f.body.span, msg));
+            ret = Ty::Error;
+        }
+        // Parameters were declared Const, so the body's variability is what it reads besides them.
+        self.pop_scope();
+        self.sigs.insert(
+            id,
+            Signature {
+                params,
+                ret: if ok { ret } else { Ty::Error },
+                body_var: body.var,
+            },
+        );
+        Typed::error()
+    }
+
+    fn check_material(&mut self, id: usize, m: &MaterialDecl) -> Typed {
+        if let Some(params) = &m.params {
+            // A template: check the body once with typed parameters.
+            self.push_scope();
+            let mut sig = Vec::new();
+            for p in params {
+                let ty = self.resolve_type(&p.ty, true).unwrap_or(Ty::Error);
+                if let Some(d) = &p.default {
+                    let t = self.check_expr(d);
+                    self.expect_type(&t, &ty, d, &format!("the default of `{}`", p.name.name));
+                }
+                self.declare_local(
+                    &p.name.name,
+                    p.name.span,
+                    Typed::of(ty.clone(), Var::Const),
+                    false,
+                );
+                sig.push(SigParam {
+                    name: p.name.name.clone(),
+                    ty,
+                    has_default: p.default.is_some(),
+                });
+            }
+            match &m.body {
+                MaterialBody::Block(stmts) => self.check_material_block(&m.name, stmts),
+                MaterialBody::Expr(e) => {
+                    self.err(Diagnostic::error(
+                        "E0315",
+                        e.span,
+                        "a material template needs a body `{ density = …; W(…) = … }`",
+                    ));
+                }
+            }
+            self.pop_scope();
+            self.sigs.insert(
+                id,
+                Signature {
+                    params: sig,
+                    ret: Ty::Obj(Obj::Material),
+                    body_var: Var::Const,
+                },
+            );
+            return Typed::of(Ty::Obj(Obj::MaterialTemplate), Var::Const);
+        }
+        match &m.body {
+            MaterialBody::Expr(e) => {
+                let t = self.check_expr(e);
+                match &t.ty {
+                    Ty::Error | Ty::Obj(Obj::Material) => {}
+                    other => {
+                        let msg = format!(
+                            "a material is a built-in material like `yeoh(…)` or a block `{{ density = …; W(…) = … }}`, found {other}"
+                        );
+                        self.err(Diagnostic::error("E0203", e.span, msg));
+                    }
+                }
+                if t.var > Var::Param {
+                    self.err(Diagnostic::error(
+                        "E0321",
+                        e.span,
+                        "material constants may depend on params, not on time or state",
+                    ));
+                }
+            }
+            MaterialBody::Block(stmts) => {
+                self.push_scope();
+                self.check_material_block(&m.name, stmts);
+                self.pop_scope();
+            }
+        }
+        Typed::of(Ty::Obj(Obj::Material), Var::Const)
+    }
+
+    fn check_material_block(&mut self, name: &Ident, stmts: &[Stmt]) {
+        let mut density = None;
+        let mut energy = None;
+        for s in stmts {
+            match &s.kind {
+                StmtKind::Let(l) => {
+                    let t = self.check_expr(&l.value);
+                    self.check_let_type(l, &t);
+                    self.declare_local(&l.name.name, l.name.span, t, true);
+                }
+                StmtKind::Assign {
+                    name: setting,
+                    value,
+                } if setting.name == "density" => {
+                    if let Some(prev) = density.replace(setting.span) {
+                        self.err(duplicate_setting("density", setting.span, prev));
+                    }
+                    let t = self.check_expr(value);
+                    let want = Ty::scalar(units::named_dim("density").unwrap());
+                    if self.expect_type(&t, &want, value, "`density`") {
+                        if t.var > Var::Param {
+                            self.err(Diagnostic::error(
+                                "E0321",
+                                value.span,
+                                "the density must not depend on time or state",
+                            ));
+                        }
+                        if t.num().is_some_and(|v| v <= 0.0) {
+                            self.err(Diagnostic::error(
+                                "E0321",
+                                value.span,
+                                "the density must be positive",
+                            ));
+                        }
+                    }
+                }
+                StmtKind::Assign {
+                    name: setting,
+                    value,
+                } => {
+                    self.check_expr(value);
+                    let mut d = Diagnostic::error(
+                        "E0108",
+                        setting.span,
+                        format!("unknown material setting `{}`", setting.name),
+                    )
+                    .with_hint("a material block has `density = …` and `W(I1bar, I2bar, J) = …`");
+                    if let Some(sug) = did_you_mean(&setting.name, ["density"]) {
+                        d = d.with_hint(format!("did you mean `{sug}`?"));
+                    }
+                    self.err(d);
+                }
+                StmtKind::Energy {
+                    name: w,
+                    args,
+                    body,
+                } => {
+                    if let Some(prev) = energy.replace(w.span) {
+                        self.err(duplicate_setting("W", w.span, prev));
+                    }
+                    if w.name != "W" {
+                        let msg = format!("the strain energy is named `W`, found `{}`", w.name);
+                        self.err(Diagnostic::error("E0315", w.span, msg));
+                    }
+                    self.push_scope();
+                    for a in args {
+                        if !["I1bar", "I2bar", "J"].contains(&a.name.as_str()) {
+                            let msg = format!("`{}` is not an invariant", a.name);
+                            self.err(Diagnostic::error("E0315", a.span, msg).with_hint(
+                                "W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13)",
+                            ));
+                            continue;
+                        }
+                        if self.scopes.last().unwrap().contains_key(&a.name) {
+                            let msg = format!("`{}` is listed twice", a.name);
+                            self.err(Diagnostic::error("E0102", a.span, msg));
+                            continue;
+                        }
+                        self.scopes.last_mut().unwrap().insert(
+                            a.name.clone(),
+                            super::Local {
+                                typed: Typed::of(Ty::scalar(Dim::NONE), Var::State),
+                                span: a.span,
+                                used: false,
+                                warn_unused: true,
+                            },
+                        );
+                    }
+                    let t = self.check_expr(body);
+                    self.pop_scope();
+                    let pressure = Ty::scalar(units::named_dim("pressure").unwrap());
+                    self.expect_type(&t, &pressure, body, "the strain energy density W");
+                }
+                _ => {
+                    self.err(Diagnostic::error(
+                        "E0315",
+                        s.span,
+                        "only `let`, `density = …` and `W(…) = …` belong in a material block",
+                    ));
+                }
+            }
+        }
+        if density.is_none() {
+            let msg = format!("the material `{}` has no density", name.name);
+            self.err(
+                Diagnostic::error("E0315", name.span, msg)
+                    .with_hint("add `density = 1070 kg/m^3` (or the material's density)"),
+            );
+        }
+        if energy.is_none() {
+            let msg = format!("the material `{}` has no strain energy", name.name);
+            self.err(
+                Diagnostic::error("E0315", name.span, msg)
+                    .with_hint("add `W(I1bar, I2bar, J) = …`, or use a built-in such as `yeoh(…)`"),
+            );
+        }
+    }
+
+    fn check_sim(&mut self, stmts: &[Stmt], span: Span) {
+        self.sim.seen = true;
+        let mut seen: HashMap<&str, Span> = HashMap::new();
+        let mut assigns = Vec::new();
+        // Durations first: pressures and windows refer to them.
+        for s in stmts {
+            if let StmtKind::Assign { name, value } = &s.kind {
+                if let Some(prev) = seen.insert(name.name.as_str(), name.span) {
+                    self.err(duplicate_setting(&name.name, name.span, prev));
+                    continue;
+                }
+                assigns.push((name, value));
+            }
+        }
+        let mut dt = None;
+        let mut steps = None;
+        self.push_scope();
+        for (name, value) in &assigns {
+            match name.name.as_str() {
+                "dt" => {
+                    let t = self.check_expr(value);
+                    if t.ty == Ty::Obj(Obj::Auto) {
+                        continue;
+                    }
+                    if self.expect_type(&t, &Ty::scalar(Dim::TIME), value, "`dt`")
+                        && self.expect_const(&t, value, "`dt`")
+                    {
+                        match t.num() {
+                            Some(v) if v <= 0.0 => self.err(Diagnostic::error(
+                                "E0321",
+                                value.span,
+                                "`dt` must be positive",
+                            )),
+                            v => dt = v,
+                        }
+                    }
+                }
+                "steps" => {
+                    steps = self.check_count(value, "`steps`");
+                }
+                "duration" => {
+                    let t = self.check_expr(value);
+                    if self.expect_type(&t, &Ty::scalar(Dim::TIME), value, "`duration`")
+                        && self.expect_const(&t, value, "`duration`")
+                    {
+                        match t.num() {
+                            Some(v) if v <= 0.0 => self.err(Diagnostic::error(
+                                "E0321",
+                                value.span,
+                                "`duration` must be positive",
+                            )),
+                            v => self.sim.duration = v,
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        if let (Some(n), Some(dt)) = (steps, dt) {
+            self.sim.duration = Some(n * dt);
+        }
+        match (seen.get("steps"), seen.get("duration")) {
+            (Some(&a), Some(&b)) => self.err(
+                Diagnostic::error(
+                    "E0312",
+                    a.max_by_start(b),
+                    "give either `steps` or `duration`, not both",
+                )
+                .with_hint("`duration = steps × dt`"),
+            ),
+            (None, None) => self.err(
+                Diagnostic::error(
+                    "E0312",
+                    Span::new(span.start, span.start + 3),
+                    "the sim block sets neither `steps` nor `duration`",
+                )
+                .with_hint("add e.g. `duration = 2 s`"),
+            ),
+            _ => {}
+        }
+        if !seen.contains_key("dt") {
+            self.err(
+                Diagnostic::error(
+                    "E0312",
+                    Span::new(span.start, span.start + 3),
+                    "the sim block has no time step `dt`",
+                )
+                .with_hint(
+                    "add `dt = auto` (the largest stable step, estimated) or e.g. `dt = 20 us`",
+                ),
+            );
+        }
+        // The remaining settings and statements, in order, with `t` in scope.
+        self.ctx.time = true;
+        self.ctx.state = true;
+        let mut materials_used = false;
+        for s in stmts {
+            match &s.kind {
+                StmtKind::Assign { name, value } => {
+                    if seen.get(name.name.as_str()) != Some(&name.span) {
+                        continue; // duplicate, already reported
+                    }
+                    self.check_sim_setting(name, value);
+                }
+                StmtKind::Let(l) => {
+                    let t = self.check_expr(&l.value);
+                    self.check_let_type(l, &t);
+                    self.declare_local(&l.name.name, l.name.span, t, true);
+                }
+                StmtKind::Fix(names) => {
+                    for n in names {
+                        match self.global_kind(n) {
+                            Some(SymKind::Region | SymKind::Nodes) | None => {}
+                            Some(k) => {
+                                let msg = format!(
+                                    "`fix` takes regions or node sets, but `{}` is a {}",
+                                    n.name,
+                                    k.describe()
+                                );
+                                self.err(Diagnostic::error("E0110", n.span, msg));
+                            }
+                        }
+                    }
+                }
+                StmtKind::Pressure { chamber, value } => {
+                    match self.global_kind(chamber) {
+                        Some(SymKind::Chamber) => {
+                            if self.sim.pressured.contains(&chamber.name) {
+                                let msg =
+                                    format!("the pressure of `{}` is set twice", chamber.name);
+                                self.err(Diagnostic::error("E0317", chamber.span, msg));
+                            }
+                            self.sim.pressured.push(chamber.name.clone());
+                        }
+                        Some(k) => {
+                            let msg = format!(
+                                "`pressure` applies to chambers, but `{}` is a {}",
+                                chamber.name,
+                                k.describe()
+                            );
+                            self.err(Diagnostic::error("E0110", chamber.span, msg).with_hint(
+                                "declare it with `chamber NAME = surface(mesh, \"name\")`",
+                            ));
+                        }
+                        None => {}
+                    }
+                    let t = self.check_expr(value);
+                    let p = Ty::scalar(units::named_dim("pressure").unwrap());
+                    self.expect_type(
+                        &t,
+                        &p,
+                        value,
+                        &format!("the pressure of `{}`", chamber.name),
+                    );
+                }
+                StmtKind::Use { material, set } => {
+                    materials_used = true;
+                    match self.global_kind(material) {
+                        Some(SymKind::Material) | None => {}
+                        Some(SymKind::MaterialTemplate) => {
+                            let msg = format!(
+                                "`{}` is a material template; give its constants first",
+                                material.name
+                            );
+                            self.err(Diagnostic::error("E0110", material.span, msg).with_hint(
+                                format!(
+                                    "declare `material silicone = {}(…)` and `use silicone`",
+                                    material.name
+                                ),
+                            ));
+                        }
+                        Some(k) => {
+                            let msg = format!(
+                                "`use` takes a material, but `{}` is a {}",
+                                material.name,
+                                k.describe()
+                            );
+                            self.err(Diagnostic::error("E0110", material.span, msg));
+                        }
+                    }
+                    if let Some(set) = set {
+                        match self.global_kind(set) {
+                            Some(SymKind::Elements) | None => {}
+                            Some(k) => {
+                                let msg = format!(
+                                    "materials are assigned to element sets, but `{}` is a {}",
+                                    set.name,
+                                    k.describe()
+                                );
+                                self.err(Diagnostic::error("E0110", set.span, msg).with_hint(
+                                    "declare it with `elements NAME = select(mesh, …)`",
+                                ));
+                            }
+                        }
+                    }
+                }
+                StmtKind::Output { what, every, steps } => {
+                    let t = self.check_expr(what);
+                    if !t.ty.is_error() && t.ty != Ty::Obj(Obj::OutputKind) {
+                        let msg =
+                            format!("`output` takes `vtk` or `csv(node_set)`, found {}", t.ty);
+                        self.err(Diagnostic::error("E0203", what.span, msg));
+                    }
+                    if *steps {
+                        self.check_count(every, "the output interval");
+                    } else {
+                        let t = self.check_expr(every);
+                        if t.ty.is_int_scalar() {
+                            self.err(
+                                Diagnostic::error(
+                                    "E0202",
+                                    every.span,
+                                    "an output interval needs a unit",
+                                )
+                                .with_hint("write `every 100 steps` or `every 10 ms`"),
+                            );
+                        } else if self.expect_type(
+                            &t,
+                            &Ty::scalar(Dim::TIME),
+                            every,
+                            "the output interval",
+                        ) && self.expect_const(&t, every, "the output interval")
+                            && t.num().is_some_and(|v| v <= 0.0)
+                        {
+                            self.err(Diagnostic::error(
+                                "E0321",
+                                every.span,
+                                "the output interval must be positive",
+                            ));
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+        self.ctx = Default::default();
+        self.pop_scope();
+        if !materials_used {
+            let materials: Vec<usize> = (0..self.syms.len())
+                .filter(|&i| !self.syms[i].prelude && self.syms[i].kind == SymKind::Material)
+                .collect();
+            match materials.len() {
+                1 => self.syms[materials[0]].used = true,
+                0 => self.err(
+                    Diagnostic::error("E0318", Span::new(span.start, span.start + 3), "no material is declared")
+                        .with_hint("declare one, e.g. `material silicone = yeoh(c10: 0.11 MPa, d1: 1.0 /MPa, density: 1070 kg/m^3)`"),
+                ),
+                _ => self.err(
+                    Diagnostic::error("E0318", Span::new(span.start, span.start + 3), "several materials are declared but the sim block assigns none")
+                        .with_hint("add `use NAME` for the whole mesh and `use NAME in SET` for element sets"),
+                ),
+            }
+        }
+        // Windowed schedules must cover the simulated time.
+        let windows = std::mem::take(&mut self.sim.windows);
+        if let Some(duration) = self.sim.duration {
+            for (width, sp) in &windows {
+                let count = (duration / width - 1e-9).ceil().max(1.0) as usize;
+                self.check_window_lengths(count, *width, *sp);
+            }
+        }
+    }
+
+    /// Every param vector indexed by `window(t, width)` must have one entry per window.
+    fn check_window_lengths(&mut self, count: usize, width: f64, sp: Span) {
+        for s in &self.user_items.clone() {
+            let ItemKind::Sim(stmts) = &s.kind else {
+                continue;
+            };
+            for st in stmts {
+                let exprs: Vec<&Expr> = match &st.kind {
+                    StmtKind::Assign { value, .. } | StmtKind::Pressure { value, .. } => {
+                        vec![value]
+                    }
+                    _ => vec![],
+                };
+                for e in exprs {
+                    self.find_windowed(e, count, width, sp);
+                }
+            }
+        }
+    }
+
+    fn find_windowed(&mut self, e: &Expr, count: usize, width: f64, sp: Span) {
+        if let ExprKind::Index { base, indices } = &e.kind {
+            if let (ExprKind::Name(id), [idx]) = (&base.kind, indices.as_slice()) {
+                let is_this_window = matches!(&idx.kind, ExprKind::Call { callee, args }
+                    if matches!(&callee.kind, ExprKind::Name(c) if c.name == "window")
+                    && args.len() == 2 && args[1].value.span == sp);
+                if is_this_window {
+                    if let Some(&g) = self.globals.get(&id.name) {
+                        if let GState::Done(t) = &self.syms[g].state {
+                            if let Some(Len::Fixed(n)) = t.ty.shape().first() {
+                                if *n != count {
+                                    let msg = format!(
+                                        "`{}` has {n} entries, but the simulation spans {count} windows of {} s",
+                                        id.name, width
+                                    );
+                                    self.err(Diagnostic::error("E0316", e.span, msg).with_hint(format!(
+                                        "declare `{}` with {count} entries, or change the window width or the duration",
+                                        id.name
+                                    )));
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        let mut children = Vec::new();
+        e.for_each_child(|c| children.push(c));
+        for c in children {
+            self.find_windowed(c, count, width, sp);
+        }
+    }
+
+    fn check_sim_setting(&mut self, name: &Ident, value: &Expr) {
+        let obj_setting = |want: Obj| move |t: &Typed| t.ty.is_error() || t.ty == Ty::Obj(want);
+        match name.name.as_str() {
+            "dt" | "steps" | "duration" => {}
+            "integrator" | "model" | "precision" => {
+                let t = self.check_expr(value);
+                let (want, options) = match name.name.as_str() {
+                    "integrator" => (Obj::Integrator, "`semi_implicit_euler` or `quasi_static`"),
+                    "model" => (Obj::ForceModel, "`fem` or `springs(volume_stiffness: …)`"),
+                    _ => (Obj::Precision, "`f32` or `f64`"),
+                };
+                if !obj_setting(want)(&t) {
+                    let msg = format!("`{}` must be {options}, found {}", name.name, t.ty);
+                    self.err(Diagnostic::error("E0203", value.span, msg));
+                }
+            }
+            "damping" => {
+                let t = self.check_expr(value);
+                self.expect_type(
+                    &t,
+                    &Ty::scalar(Dim::TIME.inv()),
+                    value,
+                    "`damping` (β, thesis eq. 2.17)",
+                );
+                if t.num().is_some_and(|v| v < 0.0) {
+                    self.err(Diagnostic::error(
+                        "E0321",
+                        value.span,
+                        "`damping` must not be negative",
+                    ));
+                }
+            }
+            "gravity" => {
+                let t = self.check_expr(value);
+                let acc = Dim::LENGTH.div(Dim::TIME.powi(2).unwrap());
+                if self.expect_type(&t, &Ty::vec3(acc), value, "`gravity`") {
+                    self.expect_const(&t, value, "`gravity`");
+                }
+            }
+            "mass_scaling" => {
+                if let Some(v) = self.check_fraction(value, "`mass_scaling`", false) {
+                    if v < 1.0 {
+                        self.err(
+                            Diagnostic::error(
+                                "E0321",
+                                value.span,
+                                "`mass_scaling` must be at least 1",
+                            )
+                            .with_hint(
+                                "mass scaling multiplies the masses to allow a larger stable dt",
+                            ),
+                        );
+                    }
+                }
+            }
+            other => {
+                self.check_expr(value);
+                let mut d =
+                    Diagnostic::error("E0108", name.span, format!("unknown sim setting `{other}`"));
+                d = match did_you_mean(other, SIM_SETTINGS.iter().copied()) {
+                    Some(s) => d.with_hint(format!("did you mean `{s}`?")),
+                    None if other == "pressure" => {
+                        d.with_hint("chamber pressures are written `pressure CHAMBER = …`")
+                    }
+                    None => {
+                        d.with_hint(format!("the sim settings are: {}", SIM_SETTINGS.join(", ")))
+                    }
+                };
+                self.err(d);
+            }
+        }
+    }
+
+    fn global_kind(&mut self, id: &Ident) -> Option<SymKind> {
+        match self.globals.get(&id.name) {
+            Some(&g) => {
+                self.syms[g].used = true;
+                self.global_typed(g);
+                Some(self.syms[g].kind)
+            }
+            None => {
+                let d = self.unknown_name(&id.name, id.span);
+                self.err(d);
+                None
+            }
+        }
+    }
+
+    fn check_loss(&mut self, loss: &LossDecl) {
+        self.ctx.time = true;
+        self.ctx.state = true;
+        let t = self.check_expr(&loss.value);
+        self.ctx = Default::default();
+        match &t.ty {
+            Ty::Error => {}
+            Ty::Num { shape, .. } if shape.is_empty() => self.loss_ty = Some(t.ty.clone()),
+            other => {
+                let msg = format!("the loss must be a scalar, found {other}");
+                self.err(
+                    Diagnostic::error("E0204", loss.value.span, msg)
+                        .with_hint("reduce it with `sum(n in set) …` or `norm(…)`"),
+                );
+            }
+        }
+        if let LossWhen::Over { from, to, span } = &loss.when {
+            let mut ends = Vec::new();
+            for e in [from, to] {
+                let t = self.check_expr(e);
+                if self.expect_type(&t, &Ty::scalar(Dim::TIME), e, "the loss window")
+                    && self.expect_const(&t, e, "the loss window")
+                {
+                    ends.push(t.num());
+                }
+            }
+            if let [Some(a), Some(b)] = ends[..] {
+                if a > b {
+                    self.err(Diagnostic::error(
+                        "E0321",
+                        *span,
+                        "the loss window ends before it starts",
+                    ));
+                } else if let Some(d) = self.sim.duration {
+                    if a > d * (1.0 + 1e-12) {
+                        let msg = format!(
+                            "the loss window starts at {a} s, after the simulation ends ({d} s)"
+                        );
+                        self.err(
+                            Diagnostic::error("E0321", *span, msg)
+                                .with_hint("use `t_end` to refer to the end of the run"),
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    fn check_optimize(&mut self, opt: &OptimizeDecl, span: Span, has_loss: bool) {
+        if !has_loss {
+            self.err(
+                Diagnostic::error(
+                    "E0313",
+                    Span::new(span.start, span.start + 8),
+                    "`optimize` needs a loss",
+                )
+                .with_hint(
+                    "declare it, e.g. `loss = sum(n in tip) (x[n].z - x0[n].z + 10 mm)^2 at end`",
+                ),
+            );
+        }
+        for t in &opt.targets {
+            match self.globals.get(&t.name).map(|&g| (g, self.syms[g].kind)) {
+                Some((g, SymKind::Param)) => {
+                    self.syms[g].used = true;
+                    if self.optimized.contains(&t.name) {
+                        let msg = format!("`{}` is listed twice", t.name);
+                        self.err(Diagnostic::error("E0305", t.span, msg));
+                    }
+                    self.optimized.push(t.name.clone());
+                }
+                Some((g, k)) => {
+                    self.syms[g].used = true;
+                    let msg = format!(
+                        "only params can be optimized, but `{}` is a {}",
+                        t.name,
+                        k.describe()
+                    );
+                    self.err(Diagnostic::error("E0304", t.span, msg).with_hint(format!(
+                        "declare it as `param {}: TYPE = VALUE in [LOWER, UPPER]`",
+                        t.name
+                    )));
+                }
+                None => {
+                    let d = self.unknown_name(&t.name, t.span);
+                    self.err(d);
+                }
+            }
+        }
+        let o = self.check_expr(&opt.optimizer);
+        if !o.ty.is_error() && o.ty != Ty::Obj(Obj::Optimizer) {
+            let msg = format!(
+                "expected an optimizer (`gd`, `sgd`, `adam` or `nadam`), found {}",
+                o.ty
+            );
+            self.err(Diagnostic::error("E0203", opt.optimizer.span, msg));
+        }
+        if let Some(it) = &opt.iterations {
+            self.check_count(it, "the iteration count");
+        }
+        let Some(body) = &opt.body else { return };
+        let mut seen: HashMap<&str, Span> = HashMap::new();
+        for s in body {
+            match &s.kind {
+                StmtKind::Assign { name, value } => {
+                    if let Some(prev) = seen.insert(name.name.as_str(), name.span) {
+                        self.err(duplicate_setting(&name.name, name.span, prev));
+                        continue;
+                    }
+                    self.check_optimize_setting(name, value);
+                }
+                StmtKind::Stop(cond) => {
+                    self.push_scope();
+                    let loss_ty = self.loss_ty.clone().unwrap_or(Ty::Error);
+                    for (n, ty) in [
+                        ("loss", loss_ty),
+                        ("grad_norm", Ty::scalar(Dim::NONE)),
+                        ("iteration", Ty::int()),
+                    ] {
+                        self.scopes.last_mut().unwrap().insert(
+                            n.to_string(),
+                            super::Local {
+                                typed: Typed::of(ty, Var::State),
+                                span: s.span,
+                                used: false,
+                                warn_unused: false,
+                            },
+                        );
+                    }
+                    let t = self.check_expr(cond);
+                    self.pop_scope();
+                    if !matches!(t.ty, Ty::Bool | Ty::Error) {
+                        let msg = format!(
+                            "`stop when` needs a condition such as `loss < 0.01 mm^2`, found {}",
+                            t.ty
+                        );
+                        self.err(Diagnostic::error("E0207", cond.span, msg));
+                    }
+                }
+                StmtKind::Validate { input, source } => {
+                    match self
+                        .globals
+                        .get(&input.name)
+                        .map(|&g| (g, self.syms[g].kind))
+                    {
+                        Some((g, SymKind::Input)) => {
+                            let ty = self.global_typed(g).ty;
+                            let ty = (!ty.is_error()).then_some(ty);
+                            self.check_batch_source(source, ty.as_ref(), &input.name);
+                        }
+                        Some((_, k)) => {
+                            let msg = format!(
+                                "`validate` takes an input, but `{}` is a {}",
+                                input.name,
+                                k.describe()
+                            );
+                            self.err(Diagnostic::error("E0110", input.span, msg));
+                        }
+                        None => {
+                            let d = self.unknown_name(&input.name, input.span);
+                            self.err(d);
+                        }
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+
+    fn check_optimize_setting(&mut self, name: &Ident, value: &Expr) {
+        match name.name.as_str() {
+            "batch" | "truncate" => {
+                self.check_count(value, &format!("`{}`", name.name));
+            }
+            "seed" => {
+                let t = self.check_expr(value);
+                if self.expect_type(&t, &Ty::int(), value, "`seed`") {
+                    self.expect_const(&t, value, "`seed`");
+                }
+            }
+            "gradient_scale" => {
+                if let Some(s) =
+                    self.check_fraction(value, "`gradient_scale` (s, thesis eq. 5.4)", false)
+                {
+                    if s > 1.0 {
+                        self.err(Diagnostic::error(
+                            "E0321",
+                            value.span,
+                            "`gradient_scale` must lie in (0, 1]",
+                        ));
+                    } else if s < 1.0 {
+                        self.err(
+                            Diagnostic::warning(
+                                "W0003",
+                                value.span,
+                                format!("`gradient_scale = {s}` does not rescale the gradient: it forgets adjoint contributions older than about {:.0} steps", 1.0 / (1.0 - s)),
+                            )
+                            .with_hint("the default 1 gives the exact gradient; to tame its magnitude use `normalize = magnitude(m: …)` or `clip`"),
+                        );
+                    }
+                }
+            }
+            "clip" => {
+                self.check_fraction(value, "`clip` (global gradient norm)", false);
+            }
+            "normalize" | "lr_schedule" | "checkpoint" => {
+                let t = self.check_expr(value);
+                let (ok, options) = match name.name.as_str() {
+                    "normalize" => (
+                        matches!(t.ty, Ty::Obj(Obj::Normalizer | Obj::Auto | Obj::None)),
+                        "`magnitude(m: …)`, `auto` or `none`",
+                    ),
+                    "lr_schedule" => (
+                        t.ty == Ty::Obj(Obj::Schedule),
+                        "`constant`, `exponential(gamma: …)`, `step_decay(every: …, gamma: …)` or `cosine(floor: …)`",
+                    ),
+                    _ => (
+                        matches!(t.ty, Ty::Obj(Obj::Checkpoint | Obj::Auto)),
+                        "`auto`, `store_all`, `every(steps: …)` or `revolve(snapshots: …)`",
+                    ),
+                };
+                if !ok && !t.ty.is_error() {
+                    let msg = format!("`{}` must be {options}, found {}", name.name, t.ty);
+                    self.err(Diagnostic::error("E0203", value.span, msg));
+                }
+            }
+            "memory_budget" => {
+                let t = self.check_expr(value);
+                if self.expect_type(&t, &Ty::scalar(Dim::MEMORY), value, "`memory_budget`")
+                    && self.expect_const(&t, value, "`memory_budget`")
+                    && t.num().is_some_and(|v| v <= 0.0)
+                {
+                    self.err(Diagnostic::error(
+                        "E0321",
+                        value.span,
+                        "`memory_budget` must be positive",
+                    ));
+                }
+            }
+            other => {
+                self.check_expr(value);
+                let mut d = Diagnostic::error(
+                    "E0108",
+                    name.span,
+                    format!("unknown optimize setting `{other}`"),
+                );
+                d = match did_you_mean(other, OPTIMIZE_SETTINGS.iter().copied()) {
+                    Some(s) => d.with_hint(format!("did you mean `{s}`?")),
+                    None => d.with_hint(format!(
+                        "the optimize settings are: {}",
+                        OPTIMIZE_SETTINGS.join(", ")
+                    )),
+                };
+                self.err(d);
+            }
+        }
+    }
+
+    pub(super) fn check_mesh_path(&mut self, path: &str, span: Span) {
+        let Some(base) = self.options.base_dir.clone() else {
+            return;
+        };
+        let full = base.join(path);
+        if !full.is_file() {
+            let msg = format!(
+                "mesh file `{path}` not found (looked for {})",
+                full.display()
+            );
+            self.err(Diagnostic::error("E0319", span, msg).with_hint(
+                "paths are relative to the script; generate meshes with `softc mesh generate SPEC.toml -o FILE.msh`",
+            ));
+            return;
+        }
+        let known = ["msh", "vtk", "vtu", "node", "ele", "inp"];
+        let ext = full.extension().and_then(|e| e.to_str()).unwrap_or("");
+        if !known.contains(&ext) {
+            let msg = format!("unsupported mesh format `.{ext}`");
+            let hint = if ext.eq_ignore_ascii_case("stl") {
+                "an STL file is a surface: make a tet mesh with `softc mesh generate`".to_string()
+            } else {
+                format!("softc reads {}", known.map(|k| format!(".{k}")).join(", "))
+            };
+            self.err(Diagnostic::error("E0319", span, msg).with_hint(hint));
+        }
+    }
+
+    /// Checks that need the whole script: the mesh, the sim block, unused declarations.
+    pub(super) fn finish(&mut self, items: &[Item]) {
+        let meshes: Vec<Span> = self
+            .syms
+            .iter()
+            .filter(|g| !g.prelude && g.kind == SymKind::Mesh)
+            .map(|g| g.span)
+            .collect();
+        let start = Span::new(0, 0);
+        if meshes.is_empty() {
+            self.err(
+                Diagnostic::error(
+                    "E0310",
+                    items
+                        .first()
+                        .map_or(start, |i| Span::new(i.span.start, i.span.start)),
+                    "the script declares no mesh",
+                )
+                .with_hint("add `mesh body = load(\"meshes/cuboid.msh\")`"),
+            );
+        }
+        for extra in meshes.iter().skip(1) {
+            self.err(
+                Diagnostic::error("E0310", *extra, "only one mesh per script is supported")
+                    .with_note(meshes[0], "the first mesh")
+                    .with_hint("put all bodies into one mesh file; select parts with element sets"),
+            );
+        }
+        if !self.sim.seen {
+            self.err(
+                Diagnostic::error(
+                    "E0311",
+                    items
+                        .first()
+                        .map_or(start, |i| Span::new(i.span.start, i.span.start)),
+                    "the script has no sim block",
+                )
+                .with_hint("add `sim { dt = auto; duration = 1 s; fix …; pressure … = … }`"),
+            );
+        }
+        if let Some(d) = self.sim.duration {
+            self.out.duration = Some(d);
+        }
+        for g in 0..self.syms.len() {
+            let s = &self.syms[g];
+            if s.prelude || s.used || s.name.starts_with('_') {
+                continue;
+            }
+            let d = match s.kind {
+                SymKind::Mesh => continue,
+                SymKind::Chamber => {
+                    if self.sim.pressured.contains(&s.name) {
+                        continue;
+                    }
+                    Diagnostic::warning(
+                        "W0002",
+                        s.span,
+                        format!("the chamber `{}` has no pressure; it stays at 0 Pa", s.name),
+                    )
+                    .with_hint(format!(
+                        "set it in the sim block: `pressure {} = …`",
+                        s.name
+                    ))
+                }
+                SymKind::Param => Diagnostic::warning(
+                    "W0001",
+                    s.span,
+                    format!("the param `{}` is neither used nor optimized", s.name),
+                )
+                .with_hint("use it in an expression or list it after `optimize`"),
+                k => Diagnostic::warning(
+                    "W0001",
+                    s.span,
+                    format!(
+                        "the {} `{}` is declared but never used",
+                        k.describe(),
+                        s.name
+                    ),
+                )
+                .with_hint("remove it, or prefix the name with `_` to keep it"),
+            };
+            self.err(d);
+        }
+        for g in 0..self.syms.len() {
+            let s = &self.syms[g];
+            if !s.prelude
+                && s.kind == SymKind::Chamber
+                && s.used
+                && !self.sim.pressured.contains(&s.name)
+            {
+                let d = Diagnostic::warning(
+                    "W0002",
+                    s.span,
+                    format!("the chamber `{}` has no pressure; it stays at 0 Pa", s.name),
+                )
+                .with_hint(format!(
+                    "set it in the sim block: `pressure {} = …`",
+                    s.name
+                ));
+                self.err(d);
+            }
+        }
+    }
+}
+
+trait SpanExt {
+    fn max_by_start(self, other: Span) -> Span;
+}
+
+impl SpanExt for Span {
+    fn max_by_start(self, other: Span) -> Span {
+        if self.start >= other.start {
+            self
+        } else {
+            other
+        }
+    }
+}
+
+fn duplicate_block(what: &str, span: Span, first: Span) -> Diagnostic {
+    Diagnostic::error(
+        "E0311",
+        Span::new(span.start, span.start + what.len()),
+        format!("a second `{what}` block"),
+    )
+    .with_note(
+        Span::new(first.start, first.start + what.len()),
+        "the first one",
+    )
+    .with_hint(format!("a script has at most one `{what}`; merge them"))
+}
+
+fn duplicate_setting(name: &str, span: Span, first: Span) -> Diagnostic {
+    Diagnostic::error("E0109", span, format!("`{name}` is set twice"))
+        .with_note(first, "first set here")
+}

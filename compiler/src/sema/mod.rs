@@ -1,0 +1,371 @@
+//! Semantic analysis: name resolution, types, dimensional analysis, parameter bounds, settings,
+//! and everything else a user can get wrong in a script that parses.
+//!
+//! The checker walks the prelude (built-in materials written in .soft) and then the user's
+//! script. Global declarations may appear in any order; each is checked on first use, and a
+//! declaration defined through itself is reported. Every problem becomes a [`Diagnostic`]; one
+//! mistake gives one diagnostic, because a failed expression gets the `Error` type, which is
+//! accepted everywhere.
+
+mod builtins;
+mod expr;
+mod items;
+pub mod types;
+pub mod units;
+
+use crate::diag::{Diagnostic, did_you_mean};
+use crate::front::ast::{Item, Script, Span};
+use std::collections::HashMap;
+use std::path::PathBuf;
+use types::{Ty, Typed, Var};
+
+/// The prelude's source: built-in materials and helper functions.
+pub const PRELUDE: &str = include_str!("prelude.soft");
+
+/// What the checker learned about a script (consumed by lowering in later stages).
+#[derive(Debug, Default)]
+pub struct CheckedScript {
+    /// Declared parameters in source order: name, type, initial value (SI, flattened).
+    pub params: Vec<ParamInfo>,
+    /// The simulated duration in seconds, when the script fixes it.
+    pub duration: Option<f64>,
+}
+
+#[derive(Debug, Clone)]
+pub struct ParamInfo {
+    pub name: String,
+    pub ty: Ty,
+    pub init: Vec<f64>,
+    pub lower: Option<f64>,
+    pub upper: Option<f64>,
+}
+
+/// Options for checking: where relative paths (meshes) are resolved.
+#[derive(Debug, Default, Clone)]
+pub struct CheckOptions {
+    /// Directory of the script; `None` skips file-existence checks (editors, fuzzing).
+    pub base_dir: Option<PathBuf>,
+}
+
+/// Check a parsed script. Diagnostics come back sorted by position.
+pub fn check(script: &Script, options: &CheckOptions) -> (CheckedScript, Vec<Diagnostic>) {
+    let prelude = prelude_ast();
+    let mut c = Checker::new(options.clone());
+    c.register(&prelude.items, true);
+    c.check_items(&prelude.items, true);
+    c.prelude_diags = c.diags.len();
+    c.register(&script.items, false);
+    c.check_items(&script.items, false);
+    c.finish(&script.items);
+    debug_assert_eq!(
+        c.prelude_diags,
+        0,
+        "prelude has diagnostics: {:?}",
+        &c.diags[..c.prelude_diags]
+    );
+    let mut diags = c.diags;
+    diags.sort_by_key(|d| (d.span.start, d.span.end, d.code));
+    diags.dedup();
+    (c.out, diags)
+}
+
+fn prelude_ast() -> &'static Script {
+    static PRELUDE_AST: std::sync::OnceLock<Script> = std::sync::OnceLock::new();
+    PRELUDE_AST.get_or_init(|| crate::front::parse(PRELUDE).expect("the prelude parses"))
+}
+
+/// Names with a fixed meaning inside expressions; declarations may not take them.
+pub const RESERVED_NAMES: &[&str] = &[
+    "t",
+    "t_end",
+    "dt",
+    "x",
+    "y",
+    "z",
+    "x0",
+    "v",
+    "I1bar",
+    "I2bar",
+    "J",
+    "loss",
+    "grad_norm",
+    "iteration",
+    "pi",
+];
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SymKind {
+    Mesh,
+    Material,
+    MaterialTemplate,
+    Region,
+    Chamber,
+    Nodes,
+    Elements,
+    Param,
+    Input,
+    Let,
+    Fn,
+    Controller,
+}
+
+impl SymKind {
+    fn describe(self) -> &'static str {
+        match self {
+            SymKind::Mesh => "mesh",
+            SymKind::Material => "material",
+            SymKind::MaterialTemplate => "material template",
+            SymKind::Region => "region",
+            SymKind::Chamber => "chamber",
+            SymKind::Nodes => "node set",
+            SymKind::Elements => "element set",
+            SymKind::Param => "param",
+            SymKind::Input => "input",
+            SymKind::Let => "let binding",
+            SymKind::Fn => "function",
+            SymKind::Controller => "controller",
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+enum GState {
+    Unchecked,
+    InProgress,
+    Done(Typed),
+}
+
+#[derive(Clone, Debug)]
+struct Global {
+    name: String,
+    kind: SymKind,
+    span: Span,
+    prelude: bool,
+    used: bool,
+    /// Index into the prelude's or the script's items.
+    item: usize,
+    state: GState,
+}
+
+/// A function-like signature: user `fn`/`controller` or a material template.
+#[derive(Clone, Debug)]
+struct Signature {
+    params: Vec<SigParam>,
+    ret: Ty,
+    /// Variability of the body apart from its arguments (globals it reads, `t`, state).
+    body_var: Var,
+}
+
+#[derive(Clone, Debug)]
+struct SigParam {
+    name: String,
+    ty: Ty,
+    has_default: bool,
+}
+
+#[derive(Clone, Debug)]
+struct Local {
+    typed: Typed,
+    span: Span,
+    used: bool,
+    /// Warn when unused (sim/material lets); binders and parameters are exempt.
+    warn_unused: bool,
+}
+
+/// Implicit names visible in the expression being checked.
+#[derive(Clone, Copy, Debug, Default)]
+struct Ctx {
+    /// `t` (pressure, damping, controllers).
+    time: bool,
+    /// `x[n]`, `x0[n]`, `v[n]` (loss, controllers).
+    state: bool,
+    /// `x`, `y`, `z` as coordinates (inside `select`).
+    coords: bool,
+    /// The expression must not depend on params/inputs (geometry), reported by the caller.
+    in_controller: bool,
+}
+
+struct Checker {
+    options: CheckOptions,
+    diags: Vec<Diagnostic>,
+    prelude_diags: usize,
+    globals: HashMap<String, usize>,
+    syms: Vec<Global>,
+    sigs: HashMap<usize, Signature>,
+    scopes: Vec<HashMap<String, Local>>,
+    ctx: Ctx,
+    /// Items of the prelude and of the script, for on-demand checking.
+    prelude_items: Vec<Item>,
+    user_items: Vec<Item>,
+    sim: items::SimInfo,
+    loss_ty: Option<Ty>,
+    optimized: Vec<String>,
+    out: CheckedScript,
+}
+
+impl Checker {
+    fn new(options: CheckOptions) -> Self {
+        Checker {
+            options,
+            diags: Vec::new(),
+            prelude_diags: 0,
+            globals: HashMap::new(),
+            syms: Vec::new(),
+            sigs: HashMap::new(),
+            scopes: Vec::new(),
+            ctx: Ctx::default(),
+            prelude_items: Vec::new(),
+            user_items: Vec::new(),
+            sim: items::SimInfo::default(),
+            loss_ty: None,
+            optimized: Vec::new(),
+            out: CheckedScript::default(),
+        }
+    }
+
+    fn err(&mut self, d: Diagnostic) {
+        self.diags.push(d);
+    }
+
+    fn item(&self, prelude: bool, index: usize) -> Item {
+        if prelude {
+            self.prelude_items[index].clone()
+        } else {
+            self.user_items[index].clone()
+        }
+    }
+
+    /// Look a name up in the local scopes, innermost first, marking it used.
+    fn lookup_local(&mut self, name: &str) -> Option<Typed> {
+        for scope in self.scopes.iter_mut().rev() {
+            if let Some(l) = scope.get_mut(name) {
+                l.used = true;
+                return Some(l.typed.clone());
+            }
+        }
+        None
+    }
+
+    fn push_scope(&mut self) {
+        self.scopes.push(HashMap::new());
+    }
+
+    fn pop_scope(&mut self) {
+        if let Some(scope) = self.scopes.pop() {
+            let mut unused: Vec<_> = scope
+                .into_iter()
+                .filter(|(n, l)| l.warn_unused && !l.used && !n.starts_with('_'))
+                .collect();
+            unused.sort_by_key(|(_, l)| l.span.start);
+            for (name, l) in unused {
+                self.err(
+                    Diagnostic::warning(
+                        "W0001",
+                        l.span,
+                        format!("`{name}` is declared but never used"),
+                    )
+                    .with_hint("remove it, or prefix the name with `_` to keep it"),
+                );
+            }
+        }
+    }
+
+    fn declare_local(&mut self, name: &str, span: Span, typed: Typed, warn_unused: bool) {
+        if RESERVED_NAMES.contains(&name) {
+            self.err(reserved_name(name, span));
+        }
+        let scope = self.scopes.last_mut().expect("a scope");
+        if let Some(prev) = scope.get(name) {
+            let prev_span = prev.span;
+            self.err(
+                Diagnostic::error("E0102", span, format!("`{name}` is declared twice"))
+                    .with_note(prev_span, "first declared here"),
+            );
+            return;
+        }
+        scope.insert(
+            name.to_string(),
+            Local {
+                typed,
+                span,
+                used: false,
+                warn_unused,
+            },
+        );
+    }
+
+    /// All names visible now, for "did you mean".
+    fn visible_names(&self) -> Vec<String> {
+        let mut names: Vec<String> = self.globals.keys().cloned().collect();
+        for s in &self.scopes {
+            names.extend(s.keys().cloned());
+        }
+        names.extend(builtins::CONSTANTS.iter().map(|(n, _)| n.to_string()));
+        names.extend(builtins::FUNCTIONS.iter().map(|n| n.to_string()));
+        if self.ctx.time {
+            names.push("t".into());
+        }
+        names.sort();
+        names
+    }
+
+    fn unknown_name(&self, name: &str, span: Span) -> Diagnostic {
+        let names = self.visible_names();
+        let mut d = Diagnostic::error("E0101", span, format!("unknown name `{name}`"));
+        if let Some(s) = did_you_mean(name, names.iter().map(|s| s.as_str())) {
+            d = d.with_hint(format!("did you mean `{s}`?"));
+        } else if crate::sema::units::unit(name).is_some() {
+            d = d.with_hint(format!(
+                "`{name}` is a unit: write it right after a number, e.g. `1 {name}`"
+            ));
+        }
+        d
+    }
+
+    /// Type of a global, checking its declaration on first use.
+    fn global_typed(&mut self, id: usize) -> Typed {
+        match self.syms[id].state.clone() {
+            GState::Done(t) => t,
+            GState::InProgress => {
+                let g = &self.syms[id];
+                let d = Diagnostic::error(
+                    "E0120",
+                    g.span,
+                    format!("`{}` is defined in terms of itself", g.name),
+                )
+                .with_hint("break the cycle: a declaration cannot depend on its own value");
+                self.err(d);
+                self.syms[id].state = GState::Done(Typed::error());
+                Typed::error()
+            }
+            GState::Unchecked => {
+                self.syms[id].state = GState::InProgress;
+                let saved_scopes = std::mem::take(&mut self.scopes);
+                let saved_ctx = std::mem::take(&mut self.ctx);
+                let item = self.item(self.syms[id].prelude, self.syms[id].item);
+                let t = self.check_decl(id, &item);
+                self.scopes = saved_scopes;
+                self.ctx = saved_ctx;
+                if matches!(self.syms[id].state, GState::InProgress) {
+                    self.syms[id].state = GState::Done(t.clone());
+                }
+                match &self.syms[id].state {
+                    GState::Done(t) => t.clone(),
+                    _ => t,
+                }
+            }
+        }
+    }
+}
+
+fn reserved_name(name: &str, span: Span) -> Diagnostic {
+    Diagnostic::error(
+        "E0111",
+        span,
+        format!("`{name}` is a built-in name and cannot be declared"),
+    )
+    .with_hint(format!(
+        "the reserved names are {}; choose another name",
+        RESERVED_NAMES.join(", ")
+    ))
+}
