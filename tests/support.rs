@@ -1,1 +1,41 @@
 //! Shared helpers for the cross-cutting tests.
+
+use std::path::{Path, PathBuf};
+
+/// The repository root.
+pub fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+/// Run the `softc` command line in-process; returns (exit status, stdout, stderr).
+pub fn softc(args: &[&str]) -> (i32, String, String) {
+    let mut argv = vec!["softc".to_string()];
+    argv.extend(args.iter().map(|s| s.to_string()));
+    let mut out = Vec::new();
+    let mut err = Vec::new();
+    let code = softc::cli::run(&argv, &mut out, &mut err);
+    (
+        code,
+        String::from_utf8_lossy(&out).into_owned(),
+        String::from_utf8_lossy(&err).into_owned(),
+    )
+}
+
+/// Whether golden files should be rewritten instead of compared (`SOFTC_BLESS=1`).
+pub fn bless() -> bool {
+    std::env::var_os("SOFTC_BLESS").is_some_and(|v| v != "0")
+}
+
+/// Files with the given extension in a directory, sorted.
+pub fn files_with_ext(dir: &Path, ext: &str) -> Vec<PathBuf> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == ext))
+        .collect();
+    v.sort();
+    v
+}

@@ -208,7 +208,8 @@ pub fn is_keyword(s: &str) -> bool {
 fn rule_description(r: Rule) -> Option<&'static str> {
     use Rule::*;
     Some(match r {
-        ident | setting_name => "a name",
+        ident => "a name",
+        setting_name => "a statement",
         expr | if_expr | or_expr | and_expr | not_expr | cmp_expr | range_expr | add_expr
         | mul_expr | unary_expr | pow_expr | postfix_expr | quantity | array | string
         | bool_lit | paren | reduction | reduce_op | not_op | neg_op | number | array_body
@@ -275,9 +276,14 @@ fn describe_expected(positives: &[Rule]) -> String {
             }
         }
     }
-    // Operators are always possible after a complete expression; they only add noise there.
+    // Operators, postfixes and `;` are always possible after a complete expression or
+    // statement; listing them only adds noise.
     if seen.len() > 1 {
-        seen.retain(|d| *d != "an operator" && *d != "a unit");
+        let noise = ["an operator", "a unit", "`(`", "`[`", "`;`"];
+        seen.retain(|d| !noise.contains(d));
+    }
+    if seen.contains(&"a statement") || seen.contains(&"a declaration") {
+        seen.retain(|d| *d != "`let`");
     }
     match seen.len() {
         0 => String::new(),
@@ -304,7 +310,7 @@ fn hint_for(text: &str, pos: usize, positives: &[Rule]) -> Option<String> {
     if rest.starts_with('\'') {
         return Some("strings use double quotes: \"…\"".into());
     }
-    if rest.starts_with("**") {
+    if rest.starts_with("**") || (rest.starts_with('*') && text[..pos].ends_with('*')) {
         return Some("powers are written with `^`, e.g. `x^2`".into());
     }
     if positives.contains(&Rule::eq) && rest.starts_with(':') {

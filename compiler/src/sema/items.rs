@@ -119,6 +119,8 @@ impl Checker {
                     )
                     .with_note(p.span, "first declared here")
                 };
+                // One report for the clash; no "unused" warning for the first declaration.
+                self.syms[prev].used = true;
                 self.err(d);
                 continue;
             }
@@ -1417,13 +1419,11 @@ impl Checker {
         };
         let full = base.join(path);
         if !full.is_file() {
-            let msg = format!(
-                "mesh file `{path}` not found (looked for {})",
+            let msg = format!("mesh file `{path}` not found");
+            self.err(Diagnostic::error("E0319", span, msg).with_hint(format!(
+                "looked for {}; paths are relative to the script's folder. Generate meshes with `softc mesh generate SPEC.toml -o FILE.msh`",
                 full.display()
-            );
-            self.err(Diagnostic::error("E0319", span, msg).with_hint(
-                "paths are relative to the script; generate meshes with `softc mesh generate SPEC.toml -o FILE.msh`",
-            ));
+            )));
             return;
         }
         let known = ["msh", "vtk", "vtu", "node", "ele", "inp"];
