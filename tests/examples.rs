@@ -1,1 +1,136 @@
+//! The examples are the user's first contact: each must check clean (no errors, no warnings),
+//! be a fixed point of `softc fmt`, and formatting must never change what a script means.
 
+use softc_compiler::front::parse;
+use softc_compiler::sema::CheckOptions;
+use softc_tests::{files_with_ext, root, softc};
+
+fn examples() -> Vec<std::path::PathBuf> {
+    let v = files_with_ext(&root().join("examples"), "soft");
+    assert!(v.len() >= 4, "the four studies are missing from examples/");
+    v
+}
+
+#[test]
+fn every_example_checks_clean() {
+    for path in examples() {
+        let (code, _, err) = softc(&["check", "--deny-warnings", path.to_str().unwrap()]);
+        assert_eq!(code, 0, "{}:\n{err}", path.display());
+    }
+}
+
+#[test]
+fn every_example_is_a_fixed_point_of_fmt() {
+    for path in examples() {
+        let (code, _, err) = softc(&["fmt", "--check", path.to_str().unwrap()]);
+        assert_eq!(code, 0, "{} is not formatted:\n{err}", path.display());
+    }
+}
+
+/// The AST without source positions, for comparing a script with its formatted self.
+fn shape(text: &str) -> String {
+    let ast = parse(text).expect("parses");
+    let dbg = format!("{ast:?}");
+    let mut out = String::with_capacity(dbg.len());
+    let mut rest = dbg.as_str();
+    while let Some(i) = rest.find("Span {") {
+        out.push_str(&rest[..i]);
+        let j = rest[i..].find('}').unwrap();
+        rest = &rest[i + j + 1..];
+    }
+    out.push_str(rest);
+    out
+}
+
+fn corpus() -> Vec<(String, String)> {
+    let mut v: Vec<(String, String)> = examples()
+        .into_iter()
+        .map(|p| (p.display().to_string(), std::fs::read_to_string(&p).unwrap()))
+        .collect();
+    v.push(("prelude".into(), softc_compiler::sema::PRELUDE.to_string()));
+    for p in files_with_ext(&root().join("tests/diagnostics"), "soft") {
+        let bytes = std::fs::read(&p).unwrap();
+        if let Ok(t) = String::from_utf8(bytes) {
+            if parse(&t).is_ok() {
+                v.push((p.display().to_string(), t));
+            }
+        }
+    }
+    v
+}
+
+#[test]
+fn fmt_preserves_meaning_and_comments_and_is_idempotent() {
+    for (name, text) in corpus() {
+        let once = softc_compiler::fmt::format_source(&text).unwrap();
+        let twice = softc_compiler::fmt::format_source(&once).unwrap();
+        assert_eq!(once, twice, "{name}: fmt is not idempotent");
+        assert_eq!(shape(&text), shape(&once), "{name}: fmt changed the meaning");
+        let comments = |s: &str| s.lines().filter_map(|l| l.find('#').map(|i| l[i..].trim_end().to_string())).collect::<Vec<_>>();
+        let mut a = comments(&text);
+        let mut b = comments(&once);
+        a.sort();
+        b.sort();
+        assert_eq!(a, b, "{name}: fmt lost or changed a comment");
+    }
+}
+
+#[test]
+fn fmt_canonicalizes_layout() {
+    let messy = "# head\nmesh   body=load( \"tet.msh\" )  # the body\n\n\n\nsim{dt=20 us;duration=1 s\n# fixes\nfix  clamp}\nregion clamp=box(min:[0,0,0]mm,max:[1,1,1] mm)\nlet a=-(1+2)^2*3 kPa/2\n";
+    let want = "# head\nmesh body = load(\"tet.msh\")  # the body\n\nsim {\n  dt = 20 us\n  duration = 1 s\n  # fixes\n  fix clamp\n}\nregion clamp = box(min: [0, 0, 0] mm, max: [1, 1, 1] mm)\nlet a = -(1 + 2)^2 * 3 kPa / 2\n";
+    assert_eq!(softc_compiler::fmt::format_source(messy).unwrap(), want);
+}
+
+#[test]
+fn fmt_rewrites_files_in_place_and_refuses_broken_ones() {
+    let dir = std::env::temp_dir().join(format!("softc-fmt-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let good = dir.join("good.soft");
+    std::fs::write(&good, "let   a = 1 mm").unwrap();
+    let (code, _, err) = softc(&["fmt", "--check", good.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("not formatted"), "{err}");
+    let (code, _, err) = softc(&["fmt", good.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(std::fs::read_to_string(&good).unwrap(), "let a = 1 mm\n");
+    let broken = dir.join("broken.soft");
+    std::fs::write(&broken, "let a = (1 mm").unwrap();
+    let (code, _, err) = softc(&["fmt", broken.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("error[E0003]"), "{err}");
+    assert_eq!(std::fs::read_to_string(&broken).unwrap(), "let a = (1 mm");
+    // No temporary files are left behind.
+    let leftovers: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(leftovers.len(), 2, "{leftovers:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn usage_errors_exit_with_status_2() {
+    let (code, _, _) = softc(&["check"]);
+    assert_eq!(code, 2);
+    let (code, _, _) = softc(&["frobnicate"]);
+    assert_eq!(code, 2);
+    let (code, _, err) = softc(&["check", "/nonexistent/x.soft"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("cannot read"), "{err}");
+    for cmd in [&["run", "x.soft"][..], &["compile", "x.soft"], &["mesh", "info", "x.msh"]] {
+        let (code, _, err) = softc(cmd);
+        assert_eq!(code, 2, "{cmd:?}");
+        assert!(err.contains("not implemented yet"), "{err}");
+    }
+    let (code, out, _) = softc(&["--help"]);
+    assert_eq!(code, 0);
+    assert!(out.contains("check") && out.contains("fmt"));
+}
+
+#[test]
+fn check_uses_the_script_folder_for_relative_paths() {
+    // A script that checks clean apart from the mesh path, run from another working directory.
+    let script = root().join("tests/diagnostics/mesh_file_not_found.soft");
+    let (code, _, err) = softc(&["check", script.to_str().unwrap()]);
+    assert_eq!(code, 1);
+    assert!(err.contains("missing.msh"), "{err}");
+    let _ = CheckOptions::default();
+}

@@ -1,1 +1,147 @@
+//! No input may panic the front end, hang it, or take long to diagnose: random bytes, random
+//! token soups, and the classic pathological inputs (deep nesting, huge numbers, long chains,
+//! invalid UTF-8, binary garbage).
 
+use proptest::prelude::*;
+use softc_compiler::sema::CheckOptions;
+use std::time::{Duration, Instant};
+
+/// Check and format an input; both must return (diagnostics or a result), never panic.
+fn front_end(bytes: &[u8]) -> usize {
+    let (text, checked) = softc_compiler::check_bytes(bytes, &CheckOptions::default());
+    let file = softc_compiler::diag::SourceFile::new("fuzz.soft", &text);
+    for d in &checked.diagnostics {
+        // Rendering must cope with any span the checker produces.
+        let _ = file.render(d);
+        let _ = file.render_json(d);
+    }
+    if let Ok(t) = std::str::from_utf8(bytes) {
+        if let Ok(formatted) = softc_compiler::fmt::format_source(t) {
+            // What fmt prints must parse again, to the same canonical text.
+            let again = softc_compiler::fmt::format_source(&formatted)
+                .expect("formatted output parses");
+            assert_eq!(again, formatted, "fmt is not idempotent on {t:?}");
+        }
+    }
+    checked.diagnostics.len()
+}
+
+/// Tokens of the language, valid and nearly valid, for token-soup inputs.
+const TOKENS: &[&str] = &[
+    "mesh", "material", "region", "chamber", "nodes", "elements", "param", "input", "let", "fn",
+    "controller", "sim", "loss", "optimize", "with", "for", "iterations", "in", "from", "at",
+    "end", "over", "fix", "pressure", "use", "output", "every", "steps", "stop", "when",
+    "validate", "if", "then", "else", "and", "or", "not", "true", "false", "body", "tip", "p",
+    "x", "t", "v", "x0", "W", "I1bar", "J", "yeoh", "load", "box", "select", "sum", "mean",
+    "ramp", "window", "sigmoid", "auto", "=", "==", "<", ">=", "+", "-", "*", "/", "^", "@",
+    "..", ".", ",", ":", ";", "->", "(", ")", "[", "]", "{", "}", "0", "1", "3.5", "1e3",
+    "1e999", "kPa", "mm", "/s", "kg/m^3", "\"tet.msh\"", "\"", "#", "\n", " ", "µm",
+];
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 3000, .. ProptestConfig::default() })]
+
+    #[test]
+    fn random_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..400)) {
+        front_end(&bytes);
+    }
+
+    #[test]
+    fn random_token_sequences_never_panic(
+        picks in proptest::collection::vec((0..TOKENS.len(), any::<bool>()), 0..80)
+    ) {
+        let mut s = String::new();
+        for (i, space) in picks {
+            s.push_str(TOKENS[i]);
+            if space { s.push(' '); }
+        }
+        front_end(s.as_bytes());
+    }
+}
+
+/// Runs a pathological input and checks it is diagnosed (with an error) quickly.
+fn diagnosed_quickly(name: &str, bytes: &[u8]) {
+    let start = Instant::now();
+    let n = front_end(bytes);
+    let took = start.elapsed();
+    assert!(n > 0, "{name}: no diagnostic");
+    // The target is well under a second; the bound is loose so slow CI machines do not flake.
+    assert!(took < Duration::from_secs(5), "{name}: took {took:?}");
+    eprintln!("{name}: {} bytes diagnosed in {took:?}", bytes.len());
+}
+
+#[test]
+fn one_megabyte_of_nested_parentheses() {
+    let mut s = String::from("let a = ");
+    s.push_str(&"(".repeat(1 << 20));
+    diagnosed_quickly("nested parens", s.as_bytes());
+}
+
+#[test]
+fn one_megabyte_of_balanced_nesting() {
+    let depth = 1 << 19;
+    let s = format!("let a = {}1{}", "(".repeat(depth), ")".repeat(depth));
+    diagnosed_quickly("balanced nesting", s.as_bytes());
+}
+
+#[test]
+fn long_operator_chains() {
+    let s = format!("let a = 1{}", " + 1".repeat(250_000));
+    diagnosed_quickly("long sum", s.as_bytes());
+    let s = format!("let a = 2{}", "^2".repeat(250_000));
+    diagnosed_quickly("long power tower", s.as_bytes());
+    let s = format!("let a = {}1", "-".repeat(1 << 20));
+    diagnosed_quickly("many minus signs", s.as_bytes());
+    let s = format!("let a = {}true", "not ".repeat(200_000));
+    diagnosed_quickly("many nots", s.as_bytes());
+}
+
+#[test]
+fn huge_numbers_and_powers() {
+    diagnosed_quickly("1e999999", b"let a = 1e999999");
+    diagnosed_quickly("unit power", b"let a = 1 m^99999999999");
+    let digits = "9".repeat(1 << 20);
+    diagnosed_quickly("a million digits", format!("let a = {digits}").as_bytes());
+}
+
+#[test]
+fn invalid_utf8_and_binary_garbage() {
+    diagnosed_quickly("invalid utf-8", b"mesh body = load(\"a\xff\xfe.msh\")");
+    let mut garbage = Vec::with_capacity(1 << 20);
+    let mut x: u32 = 12345;
+    for _ in 0..(1 << 20) {
+        x = x.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        garbage.push((x >> 24) as u8);
+    }
+    diagnosed_quickly("binary garbage", &garbage);
+    diagnosed_quickly("NUL bytes", &[0u8; 4096]);
+}
+
+#[test]
+fn empty_and_whitespace_only_files_are_diagnosed() {
+    diagnosed_quickly("empty", b"");
+    diagnosed_quickly("whitespace", b"   \n\n\t  # just a comment\n");
+}
+
+#[test]
+fn many_declarations() {
+    let mut s = String::new();
+    for i in 0..50_000 {
+        s.push_str(&format!("let a{i} = {i} mm\n"));
+    }
+    diagnosed_quickly("50k lets", s.as_bytes());
+}
+
+#[test]
+fn the_binary_survives_pathological_input() {
+    // The real binary runs the front end on a large-stack thread; in-process runs use the test
+    // thread's stack, so this also shows the limits keep recursion shallow.
+    let dir = std::env::temp_dir().join(format!("softc-robust-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("deep.soft");
+    std::fs::write(&path, format!("let a = {}", "[".repeat(100_000))).unwrap();
+    let (code, _, err) = softc_tests::softc(&["check", path.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("E0002"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -321,9 +321,51 @@ fn hint_for(text: &str, pos: usize, positives: &[Rule]) -> Option<String> {
 
 // ---------------------------------------------------------------- AST building
 
+/// The span of a pair without trailing whitespace and comments, which pest includes when a
+/// rule ends in a repetition (`a ~ b*`).
 fn span(p: &Pair<Rule>) -> Span {
     let s = p.as_span();
-    Span::new(s.start(), s.end())
+    let text = s.get_input();
+    Span::new(s.start(), trim_trivia_end(text, s.start(), s.end()))
+}
+
+fn trim_trivia_end(text: &str, start: usize, mut end: usize) -> usize {
+    let bytes = text.as_bytes();
+    // Trivia that pest swallowed ends in whitespace (the newline after a comment), except at
+    // the end of the file; anything else ends in a token.
+    if end > start && end < text.len() && !bytes[end - 1].is_ascii_whitespace() {
+        return end;
+    }
+    loop {
+        while end > start && bytes[end - 1].is_ascii_whitespace() {
+            end -= 1;
+        }
+        let line_start = text[start..end].rfind('\n').map_or(start, |i| start + i + 1);
+        let line = &text[line_start..end];
+        if !line.contains('#') {
+            return end;
+        }
+        match comment_start(line) {
+            Some(h) => end = line_start + h,
+            None => return end,
+        }
+    }
+}
+
+/// Byte index of the first `#` outside a string in one line of code.
+fn comment_start(line: &str) -> Option<usize> {
+    let mut in_string = false;
+    let mut escaped = false;
+    for (i, b) in line.bytes().enumerate() {
+        match b {
+            _ if escaped => escaped = false,
+            b'\\' if in_string => escaped = true,
+            b'"' => in_string = !in_string,
+            b'#' if !in_string => return Some(i),
+            _ => {}
+        }
+    }
+    None
 }
 
 /// Inner pairs without punctuation and keywords: only the parts that carry content.
