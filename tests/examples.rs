@@ -45,15 +45,20 @@ fn shape(text: &str) -> String {
 fn corpus() -> Vec<(String, String)> {
     let mut v: Vec<(String, String)> = examples()
         .into_iter()
-        .map(|p| (p.display().to_string(), std::fs::read_to_string(&p).unwrap()))
+        .map(|p| {
+            (
+                p.display().to_string(),
+                std::fs::read_to_string(&p).unwrap(),
+            )
+        })
         .collect();
     v.push(("prelude".into(), softc_compiler::sema::PRELUDE.to_string()));
     for p in files_with_ext(&root().join("tests/diagnostics"), "soft") {
         let bytes = std::fs::read(&p).unwrap();
-        if let Ok(t) = String::from_utf8(bytes) {
-            if parse(&t).is_ok() {
-                v.push((p.display().to_string(), t));
-            }
+        if let Ok(t) = String::from_utf8(bytes)
+            && parse(&t).is_ok()
+        {
+            v.push((p.display().to_string(), t));
         }
     }
     v
@@ -65,8 +70,16 @@ fn fmt_preserves_meaning_and_comments_and_is_idempotent() {
         let once = softc_compiler::fmt::format_source(&text).unwrap();
         let twice = softc_compiler::fmt::format_source(&once).unwrap();
         assert_eq!(once, twice, "{name}: fmt is not idempotent");
-        assert_eq!(shape(&text), shape(&once), "{name}: fmt changed the meaning");
-        let comments = |s: &str| s.lines().filter_map(|l| l.find('#').map(|i| l[i..].trim_end().to_string())).collect::<Vec<_>>();
+        assert_eq!(
+            shape(&text),
+            shape(&once),
+            "{name}: fmt changed the meaning"
+        );
+        let comments = |s: &str| {
+            s.lines()
+                .filter_map(|l| l.find('#').map(|i| l[i..].trim_end().to_string()))
+                .collect::<Vec<_>>()
+        };
         let mut a = comments(&text);
         let mut b = comments(&once);
         a.sort();
@@ -101,7 +114,10 @@ fn fmt_rewrites_files_in_place_and_refuses_broken_ones() {
     assert!(err.contains("error[E0003]"), "{err}");
     assert_eq!(std::fs::read_to_string(&broken).unwrap(), "let a = (1 mm");
     // No temporary files are left behind.
-    let leftovers: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let leftovers: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
     assert_eq!(leftovers.len(), 2, "{leftovers:?}");
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -115,7 +131,11 @@ fn usage_errors_exit_with_status_2() {
     let (code, _, err) = softc(&["check", "/nonexistent/x.soft"]);
     assert_eq!(code, 2);
     assert!(err.contains("cannot read"), "{err}");
-    for cmd in [&["run", "x.soft"][..], &["compile", "x.soft"], &["mesh", "info", "x.msh"]] {
+    for cmd in [
+        &["run", "x.soft"][..],
+        &["compile", "x.soft"],
+        &["mesh", "info", "x.msh"],
+    ] {
         let (code, _, err) = softc(cmd);
         assert_eq!(code, 2, "{cmd:?}");
         assert!(err.contains("not implemented yet"), "{err}");

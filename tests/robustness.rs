@@ -15,27 +15,115 @@ fn front_end(bytes: &[u8]) -> usize {
         let _ = file.render(d);
         let _ = file.render_json(d);
     }
-    if let Ok(t) = std::str::from_utf8(bytes) {
-        if let Ok(formatted) = softc_compiler::fmt::format_source(t) {
-            // What fmt prints must parse again, to the same canonical text.
-            let again = softc_compiler::fmt::format_source(&formatted)
-                .expect("formatted output parses");
-            assert_eq!(again, formatted, "fmt is not idempotent on {t:?}");
-        }
+    if let Ok(t) = std::str::from_utf8(bytes)
+        && let Ok(formatted) = softc_compiler::fmt::format_source(t)
+    {
+        // What fmt prints must parse again, to the same canonical text.
+        let again =
+            softc_compiler::fmt::format_source(&formatted).expect("formatted output parses");
+        assert_eq!(again, formatted, "fmt is not idempotent on {t:?}");
     }
     checked.diagnostics.len()
 }
 
 /// Tokens of the language, valid and nearly valid, for token-soup inputs.
 const TOKENS: &[&str] = &[
-    "mesh", "material", "region", "chamber", "nodes", "elements", "param", "input", "let", "fn",
-    "controller", "sim", "loss", "optimize", "with", "for", "iterations", "in", "from", "at",
-    "end", "over", "fix", "pressure", "use", "output", "every", "steps", "stop", "when",
-    "validate", "if", "then", "else", "and", "or", "not", "true", "false", "body", "tip", "p",
-    "x", "t", "v", "x0", "W", "I1bar", "J", "yeoh", "load", "box", "select", "sum", "mean",
-    "ramp", "window", "sigmoid", "auto", "=", "==", "<", ">=", "+", "-", "*", "/", "^", "@",
-    "..", ".", ",", ":", ";", "->", "(", ")", "[", "]", "{", "}", "0", "1", "3.5", "1e3",
-    "1e999", "kPa", "mm", "/s", "kg/m^3", "\"tet.msh\"", "\"", "#", "\n", " ", "µm",
+    "mesh",
+    "material",
+    "region",
+    "chamber",
+    "nodes",
+    "elements",
+    "param",
+    "input",
+    "let",
+    "fn",
+    "controller",
+    "sim",
+    "loss",
+    "optimize",
+    "with",
+    "for",
+    "iterations",
+    "in",
+    "from",
+    "at",
+    "end",
+    "over",
+    "fix",
+    "pressure",
+    "use",
+    "output",
+    "every",
+    "steps",
+    "stop",
+    "when",
+    "validate",
+    "if",
+    "then",
+    "else",
+    "and",
+    "or",
+    "not",
+    "true",
+    "false",
+    "body",
+    "tip",
+    "p",
+    "x",
+    "t",
+    "v",
+    "x0",
+    "W",
+    "I1bar",
+    "J",
+    "yeoh",
+    "load",
+    "box",
+    "select",
+    "sum",
+    "mean",
+    "ramp",
+    "window",
+    "sigmoid",
+    "auto",
+    "=",
+    "==",
+    "<",
+    ">=",
+    "+",
+    "-",
+    "*",
+    "/",
+    "^",
+    "@",
+    "..",
+    ".",
+    ",",
+    ":",
+    ";",
+    "->",
+    "(",
+    ")",
+    "[",
+    "]",
+    "{",
+    "}",
+    "0",
+    "1",
+    "3.5",
+    "1e3",
+    "1e999",
+    "kPa",
+    "mm",
+    "/s",
+    "kg/m^3",
+    "\"tet.msh\"",
+    "\"",
+    "#",
+    "\n",
+    " ",
+    "µm",
 ];
 
 proptest! {

@@ -270,10 +270,10 @@ fn rule_description(r: Rule) -> Option<&'static str> {
 fn describe_expected(positives: &[Rule]) -> String {
     let mut seen: Vec<&str> = Vec::new();
     for r in positives {
-        if let Some(d) = rule_description(*r) {
-            if !seen.contains(&d) {
-                seen.push(d);
-            }
+        if let Some(d) = rule_description(*r)
+            && !seen.contains(&d)
+        {
+            seen.push(d);
         }
     }
     // Operators, postfixes and `;` are always possible after a complete expression or
@@ -340,7 +340,9 @@ fn trim_trivia_end(text: &str, start: usize, mut end: usize) -> usize {
         while end > start && bytes[end - 1].is_ascii_whitespace() {
             end -= 1;
         }
-        let line_start = text[start..end].rfind('\n').map_or(start, |i| start + i + 1);
+        let line_start = text[start..end]
+            .rfind('\n')
+            .map_or(start, |i| start + i + 1);
         let line = &text[line_start..end];
         if !line.contains('#') {
             return end;

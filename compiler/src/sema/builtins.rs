@@ -266,7 +266,7 @@ impl Checker {
                     self.err(Diagnostic::error("E0204", e.span, msg));
                     return Typed::error();
                 }
-                let dim = ta.ty.dim().unwrap().mul(tb.ty.dim().unwrap());
+                let dim = ta.ty.dim().unwrap().times(tb.ty.dim().unwrap());
                 let ty = if name == "dot" {
                     Ty::scalar(dim)
                 } else {
@@ -306,10 +306,10 @@ impl Checker {
                 } else {
                     Ty::scalar(Dim::NONE)
                 };
-                if name == "window" {
-                    if let Some(width) = w.num() {
-                        self.sim.windows.push((width, s[1].unwrap().span));
-                    }
+                if name == "window"
+                    && let Some(width) = w.num()
+                {
+                    self.sim.windows.push((width, s[1].unwrap().span));
                 }
                 Typed::of(ty, t.var.max(w.var))
             }
@@ -318,10 +318,10 @@ impl Checker {
                     return Typed::error();
                 };
                 let p = self.check_expr(s[0].unwrap());
-                if self.expect_type(&p, &Ty::Str, s[0].unwrap(), "the mesh path") {
-                    if let Some(Value::Str(path)) = &p.value {
-                        self.check_mesh_path(path, s[0].unwrap().span);
-                    }
+                if self.expect_type(&p, &Ty::Str, s[0].unwrap(), "the mesh path")
+                    && let Some(Value::Str(path)) = &p.value
+                {
+                    self.check_mesh_path(path, s[0].unwrap().span);
                 }
                 if let Some(u) = s[1] {
                     let t = self.check_expr(u);
@@ -366,29 +366,28 @@ impl Checker {
                         (&vals[0].0.value, &vals[1].0.value)
                     {
                         for (axis, (a, b)) in ["x", "y", "z"].iter().zip(lo.iter().zip(hi)) {
-                            if let (Some(a), Some(b)) = (a.as_f64(), b.as_f64()) {
-                                if a >= b {
-                                    let msg = format!(
-                                        "the box is empty: min.{axis} is not below max.{axis}"
-                                    );
-                                    self.err(
-                                        Diagnostic::error("E0321", e.span, msg)
-                                            .with_hint("swap min and max, or widen the box"),
-                                    );
-                                    break;
-                                }
+                            if let (Some(a), Some(b)) = (a.as_f64(), b.as_f64())
+                                && a >= b
+                            {
+                                let msg =
+                                    format!("the box is empty: min.{axis} is not below max.{axis}");
+                                self.err(
+                                    Diagnostic::error("E0321", e.span, msg)
+                                        .with_hint("swap min and max, or widen the box"),
+                                );
+                                break;
                             }
                         }
                     }
-                } else if let Some(r) = vals.last().and_then(|(t, _)| t.num()) {
-                    if r <= 0.0 {
-                        let arg = vals.last().unwrap().1;
-                        self.err(Diagnostic::error(
-                            "E0321",
-                            arg.span,
-                            "the radius must be positive",
-                        ));
-                    }
+                } else if let Some(r) = vals.last().and_then(|(t, _)| t.num())
+                    && r <= 0.0
+                {
+                    let arg = vals.last().unwrap().1;
+                    self.err(Diagnostic::error(
+                        "E0321",
+                        arg.span,
+                        "the radius must be positive",
+                    ));
                 }
                 Typed::of(Ty::Obj(Obj::Region), Var::Const)
             }
@@ -574,16 +573,15 @@ impl Checker {
                 }
                 if let Some(p) = s[1] {
                     let t = self.check_expr(p);
-                    if self.expect_type(&t, &Ty::Str, p, "`plane`") {
-                        if let Some(Value::Str(v)) = &t.value {
-                            if !["xy", "xz", "yz"].contains(&v.as_str()) {
-                                let msg = format!("unknown plane \"{v}\"");
-                                self.err(
-                                    Diagnostic::error("E0321", p.span, msg)
-                                        .with_hint("the planes are \"xy\", \"xz\" and \"yz\""),
-                                );
-                            }
-                        }
+                    if self.expect_type(&t, &Ty::Str, p, "`plane`")
+                        && let Some(Value::Str(v)) = &t.value
+                        && !["xy", "xz", "yz"].contains(&v.as_str())
+                    {
+                        let msg = format!("unknown plane \"{v}\"");
+                        self.err(
+                            Diagnostic::error("E0321", p.span, msg)
+                                .with_hint("the planes are \"xy\", \"xz\" and \"yz\""),
+                        );
                     }
                 }
                 if let Some(c) = s[2] {

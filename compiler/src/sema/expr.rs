@@ -170,7 +170,7 @@ impl Checker {
             match units::unit(&f.name) {
                 Some((k, d)) => {
                     factor *= k.powi(f.power);
-                    dim = dim.mul(d.powi(f.power).unwrap_or(Dim::NONE));
+                    dim = dim.times(d.powi(f.power).unwrap_or(Dim::NONE));
                 }
                 None => {
                     ok = false;
@@ -225,11 +225,12 @@ impl Checker {
                 failed = true;
                 continue;
             }
-            if unit.is_some() && !matches!(t.ty.dim(), Some(d) if d.is_none()) {
+            if let Some(u) = unit
+                && !matches!(t.ty.dim(), Some(d) if d.is_none())
+            {
                 let msg = format!(
-                    "this entry already has a unit ({}), and the array has the unit `{}`",
+                    "this entry already has a unit ({}), and the array has the unit `{u}`",
                     self.describe(it, &t.ty),
-                    unit.unwrap()
                 );
                 self.err(
                     Diagnostic::error("E0201", it.span, msg)
@@ -542,9 +543,9 @@ impl Checker {
                     return Typed::error();
                 }
                 let dim = if op == BinOp::Mul {
-                    ld.mul(rd)
+                    ld.times(rd)
                 } else {
-                    ld.div(rd)
+                    ld.per(rd)
                 };
                 let value = fold2(&l, &r, |a, b| if op == BinOp::Mul { a * b } else { a / b });
                 Typed {
@@ -576,7 +577,7 @@ impl Checker {
                 }
                 Typed {
                     ty: Ty::Num {
-                        dim: ld.mul(rd),
+                        dim: ld.times(rd),
                         shape,
                         int: false,
                     },
@@ -691,7 +692,7 @@ impl Checker {
                 return Typed::error();
             }
             let dim = if name == "v" {
-                Dim::LENGTH.div(Dim::TIME)
+                Dim::LENGTH.per(Dim::TIME)
             } else {
                 Dim::LENGTH
             };
@@ -737,15 +738,15 @@ impl Checker {
                 self.err(Diagnostic::error("E0322", ie.span, msg));
                 return Typed::error();
             }
-            if let (Len::Fixed(n), Some(i)) = (&shape[k], t.num()) {
-                if i < 0.0 || i >= *n as f64 {
-                    let msg = format!("index {i} is out of range for length {n}");
-                    self.err(
-                        Diagnostic::error("E0206", ie.span, msg)
-                            .with_hint(format!("indices start at 0; the last is {}", n - 1)),
-                    );
-                    return Typed::error();
-                }
+            if let (Len::Fixed(n), Some(i)) = (&shape[k], t.num())
+                && (i < 0.0 || i >= *n as f64)
+            {
+                let msg = format!("index {i} is out of range for length {n}");
+                self.err(
+                    Diagnostic::error("E0206", ie.span, msg)
+                        .with_hint(format!("indices start at 0; the last is {}", n - 1)),
+                );
+                return Typed::error();
             }
             value = match (value, t.num()) {
                 (Some(Value::Array(items)), Some(i)) => items.get(i as usize).cloned(),

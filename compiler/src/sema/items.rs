@@ -234,10 +234,10 @@ impl Checker {
     }
 
     fn check_let_type(&mut self, l: &LetDecl, t: &Typed) {
-        if let Some(te) = &l.ty {
-            if let Some(want) = self.resolve_type(te, false) {
-                self.expect_type(t, &want, &l.value, &format!("`{}`", l.name.name));
-            }
+        if let Some(te) = &l.ty
+            && let Some(want) = self.resolve_type(te, false)
+        {
+            self.expect_type(t, &want, &l.value, &format!("`{}`", l.name.name));
         }
     }
 
@@ -305,8 +305,8 @@ impl Checker {
         for (op, f) in &d.rest {
             let x = self.resolve_dim_factor(f)?;
             acc = match op {
-                DimOp::Mul => acc.mul(x),
-                DimOp::Div => acc.div(x),
+                DimOp::Mul => acc.times(x),
+                DimOp::Div => acc.per(x),
             };
         }
         Some(acc)
@@ -390,9 +390,10 @@ impl Checker {
                         .with_hint("remove them, or give at least one end"),
                 );
             }
-            if let (Some(lo), Some(hi)) = (lower, upper) {
-                if lo >= hi {
-                    self.err(
+            if let (Some(lo), Some(hi)) = (lower, upper)
+                && lo >= hi
+            {
+                self.err(
                         Diagnostic::error(
                             "E0302",
                             b.span,
@@ -400,8 +401,7 @@ impl Checker {
                         )
                         .with_hint("write `in [lower, upper]` with lower < upper"),
                     );
-                    ok = false;
-                }
+                ok = false;
             }
         }
         let mut init_values = Vec::new();
@@ -1035,29 +1035,26 @@ impl Checker {
     }
 
     fn find_windowed(&mut self, e: &Expr, count: usize, width: f64, sp: Span) {
-        if let ExprKind::Index { base, indices } = &e.kind {
-            if let (ExprKind::Name(id), [idx]) = (&base.kind, indices.as_slice()) {
-                let is_this_window = matches!(&idx.kind, ExprKind::Call { callee, args }
+        if let ExprKind::Index { base, indices } = &e.kind
+            && let (ExprKind::Name(id), [idx]) = (&base.kind, indices.as_slice())
+        {
+            let is_this_window = matches!(&idx.kind, ExprKind::Call { callee, args }
                     if matches!(&callee.kind, ExprKind::Name(c) if c.name == "window")
                     && args.len() == 2 && args[1].value.span == sp);
-                if is_this_window {
-                    if let Some(&g) = self.globals.get(&id.name) {
-                        if let GState::Done(t) = &self.syms[g].state {
-                            if let Some(Len::Fixed(n)) = t.ty.shape().first() {
-                                if *n != count {
-                                    let msg = format!(
-                                        "`{}` has {n} entries, but the simulation spans {count} windows of {} s",
-                                        id.name, width
-                                    );
-                                    self.err(Diagnostic::error("E0316", e.span, msg).with_hint(format!(
-                                        "declare `{}` with {count} entries, or change the window width or the duration",
-                                        id.name
-                                    )));
-                                }
-                            }
-                        }
-                    }
-                }
+            if is_this_window
+                && let Some(&g) = self.globals.get(&id.name)
+                && let GState::Done(t) = &self.syms[g].state
+                && let Some(Len::Fixed(n)) = t.ty.shape().first()
+                && *n != count
+            {
+                let msg = format!(
+                    "`{}` has {n} entries, but the simulation spans {count} windows of {} s",
+                    id.name, width
+                );
+                self.err(Diagnostic::error("E0316", e.span, msg).with_hint(format!(
+                    "declare `{}` with {count} entries, or change the window width or the duration",
+                    id.name
+                )));
             }
         }
         let mut children = Vec::new();
@@ -1101,25 +1098,21 @@ impl Checker {
             }
             "gravity" => {
                 let t = self.check_expr(value);
-                let acc = Dim::LENGTH.div(Dim::TIME.powi(2).unwrap());
+                let acc = Dim::LENGTH.per(Dim::TIME.powi(2).unwrap());
                 if self.expect_type(&t, &Ty::vec3(acc), value, "`gravity`") {
                     self.expect_const(&t, value, "`gravity`");
                 }
             }
             "mass_scaling" => {
-                if let Some(v) = self.check_fraction(value, "`mass_scaling`", false) {
-                    if v < 1.0 {
-                        self.err(
-                            Diagnostic::error(
-                                "E0321",
-                                value.span,
-                                "`mass_scaling` must be at least 1",
-                            )
+                if let Some(v) = self.check_fraction(value, "`mass_scaling`", false)
+                    && v < 1.0
+                {
+                    self.err(
+                        Diagnostic::error("E0321", value.span, "`mass_scaling` must be at least 1")
                             .with_hint(
                                 "mass scaling multiplies the masses to allow a larger stable dt",
                             ),
-                        );
-                    }
+                    );
                 }
             }
             other => {
@@ -1188,16 +1181,16 @@ impl Checker {
                         *span,
                         "the loss window ends before it starts",
                     ));
-                } else if let Some(d) = self.sim.duration {
-                    if a > d * (1.0 + 1e-12) {
-                        let msg = format!(
-                            "the loss window starts at {a} s, after the simulation ends ({d} s)"
-                        );
-                        self.err(
-                            Diagnostic::error("E0321", *span, msg)
-                                .with_hint("use `t_end` to refer to the end of the run"),
-                        );
-                    }
+                } else if let Some(d) = self.sim.duration
+                    && a > d * (1.0 + 1e-12)
+                {
+                    let msg = format!(
+                        "the loss window starts at {a} s, after the simulation ends ({d} s)"
+                    );
+                    self.err(
+                        Diagnostic::error("E0321", *span, msg)
+                            .with_hint("use `t_end` to refer to the end of the run"),
+                    );
                 }
             }
         }

@@ -22,14 +22,14 @@ impl Dim {
     pub fn is_none(self) -> bool {
         self == Dim::NONE
     }
-    pub fn mul(self, o: Dim) -> Dim {
+    pub fn times(self, o: Dim) -> Dim {
         Dim(std::array::from_fn(|i| self.0[i].saturating_add(o.0[i])))
     }
-    pub fn div(self, o: Dim) -> Dim {
+    pub fn per(self, o: Dim) -> Dim {
         Dim(std::array::from_fn(|i| self.0[i].saturating_sub(o.0[i])))
     }
     pub fn inv(self) -> Dim {
-        Dim::NONE.div(self)
+        Dim::NONE.per(self)
     }
     pub fn powi(self, p: i32) -> Option<Dim> {
         let mut out = [0i16; 4];
