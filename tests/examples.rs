@@ -5,9 +5,11 @@ use softc_compiler::front::parse;
 use softc_compiler::sema::CheckOptions;
 use softc_tests::{files_with_ext, root, softc};
 
+/// The examples and the valid-feature scripts in tests/valid.
 fn examples() -> Vec<std::path::PathBuf> {
-    let v = files_with_ext(&root().join("examples"), "soft");
+    let mut v = files_with_ext(&root().join("examples"), "soft");
     assert!(v.len() >= 4, "the four studies are missing from examples/");
+    v.extend(files_with_ext(&root().join("tests/valid"), "soft"));
     v
 }
 

@@ -47,6 +47,17 @@ pub enum DeclKind {
 }
 
 impl DeclKind {
+    /// What the declaration declares, for messages.
+    pub fn noun(self) -> &'static str {
+        match self {
+            DeclKind::Mesh => "mesh",
+            DeclKind::Region => "region",
+            DeclKind::Chamber => "chamber",
+            DeclKind::Nodes => "node set",
+            DeclKind::Elements => "element set",
+        }
+    }
+
     pub fn keyword(self) -> &'static str {
         match self {
             DeclKind::Mesh => "mesh",

@@ -124,6 +124,16 @@ fn syntax_error(text: &str, e: pest::error::Error<Rule>) -> Diagnostic {
         }
     };
     let end = (pos + found_len(text, pos)).min(text.len());
+    let rest = &text[pos.min(text.len())..];
+    let line = rest.split('\n').next().unwrap_or("");
+    if line.starts_with('"') && !line[1..].contains('"') {
+        return Diagnostic::error(
+            "E0005",
+            Span::new(pos, pos + 1),
+            "this string is not closed",
+        )
+        .with_hint("strings must end with `\"` on the same line");
+    }
     let mut d = Diagnostic::error("E0003", Span::new(pos, end), message);
     d.hint = hint;
     d
@@ -150,8 +160,7 @@ fn describe_found(text: &str, pos: usize) -> String {
         Some('\n') | Some('\r') => "end of line".into(),
         Some(c) if c.is_control() => format!("the control character U+{:04X}", c as u32),
         Some(_) => {
-            let tok: String = rest.chars().take(found_len(text, pos).min(40)).collect();
-            let tok: String = tok.chars().take(40).collect();
+            let tok: String = rest[..found_len(text, pos)].chars().take(40).collect();
             if is_keyword(&tok) {
                 format!("keyword `{tok}`")
             } else {
@@ -208,7 +217,7 @@ pub fn is_keyword(s: &str) -> bool {
 fn rule_description(r: Rule) -> Option<&'static str> {
     use Rule::*;
     Some(match r {
-        ident => "a name",
+        ident | arg_name => "a name",
         setting_name => "a statement",
         expr | if_expr | or_expr | and_expr | not_expr | cmp_expr | range_expr | add_expr
         | mul_expr | unary_expr | pow_expr | postfix_expr | quantity | array | string
@@ -301,7 +310,10 @@ fn hint_for(text: &str, pos: usize, positives: &[Rule]) -> Option<String> {
     if is_keyword(&word) && positives.contains(&Rule::ident) {
         return Some(format!("`{word}` is a keyword; choose another name"));
     }
-    if rest.starts_with("//") || rest.starts_with("/*") {
+    if rest.starts_with("//")
+        || rest.starts_with("/*")
+        || (rest.starts_with(['/', '*']) && text[..pos].ends_with('/'))
+    {
         return Some("comments start with `#`".into());
     }
     if rest.starts_with('"') {
@@ -945,7 +957,7 @@ fn expr(p: Pair<Rule>) -> Result<Built> {
                             let mut value = None;
                             for part in content(a) {
                                 match part.as_rule() {
-                                    Rule::ident => name = Some(ident(part)),
+                                    Rule::arg_name => name = Some(ident(part)),
                                     _ => value = Some(expr(part)?),
                                 }
                             }
@@ -1072,7 +1084,18 @@ fn expr(p: Pair<Rule>) -> Result<Built> {
 }
 
 fn parse_number(text: &str, sp: Span) -> Result<f64> {
+    let mantissa = text.split(['e', 'E']).next().unwrap_or("");
+    let nonzero = mantissa.bytes().any(|b| (b'1'..=b'9').contains(&b));
     match text.parse::<f64>() {
+        Ok(v) if v == 0.0 && nonzero => Err(Diagnostic::error(
+            "E0004",
+            sp,
+            format!(
+                "the number `{}` is too small: it rounds to 0",
+                truncate(text, 40)
+            ),
+        )
+        .with_hint("numbers must be 0 or larger in magnitude than about 4.9e-324")),
         Ok(v) if v.is_finite() => Ok(v),
         _ => Err(Diagnostic::error(
             "E0004",

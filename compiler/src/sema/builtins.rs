@@ -68,10 +68,20 @@ pub const FUNCTIONS: &[&str] = &[
     "exponential",
     "step_decay",
     "cosine",
-    "every",
+    "periodic",
     "revolve",
     "circle_quadrants",
 ];
+
+/// Allowed range of a dimensionless constant argument.
+#[derive(Clone, Copy)]
+pub(super) enum Interval {
+    Positive,
+    /// [0, 1): momentum, Adam betas.
+    BelowOne,
+    /// (0, 1]: safety factors, decay rates.
+    UpToOne,
+}
 
 fn length() -> Ty {
     Ty::scalar(Dim::LENGTH)
@@ -424,7 +434,11 @@ impl Checker {
                         Diagnostic::error(
                             "E0106",
                             e.span,
-                            "`surface` needs the surface's name or its tag, not both",
+                            if given == 0 {
+                                "`surface` needs the surface's name or its tag"
+                            } else {
+                                "`surface` takes the surface's name or its tag, not both"
+                            },
                         )
                         .with_hint("e.g. `surface(body, \"cavity\")` or `surface(body, tag: 2)`"),
                     );
@@ -464,7 +478,7 @@ impl Checker {
                 let Some(s) = self.bind(name, sp, &[("safety", true)], args) else {
                     return Typed::error();
                 };
-                self.check_fraction(s[0].unwrap(), "`safety`", false);
+                self.check_fraction(s[0].unwrap(), "`safety`", Interval::UpToOne);
                 Typed::constant(Ty::Obj(Obj::Auto), Value::Str("auto".into()))
             }
             "springs" => {
@@ -504,8 +518,12 @@ impl Checker {
                 };
                 for ((pname, _), slot) in params.iter().zip(&s) {
                     if let Some(arg) = slot {
-                        let below_one = matches!(*pname, "momentum" | "beta1" | "beta2");
-                        self.check_fraction(arg, &format!("`{pname}`"), below_one);
+                        let range = if matches!(*pname, "momentum" | "beta1" | "beta2") {
+                            Interval::BelowOne
+                        } else {
+                            Interval::Positive
+                        };
+                        self.check_fraction(arg, &format!("`{pname}`"), range);
                     }
                 }
                 Typed::of(Ty::Obj(Obj::Optimizer), Var::Const)
@@ -514,7 +532,11 @@ impl Checker {
                 let Some(s) = self.bind(name, sp, &[("m", true)], args) else {
                     return Typed::error();
                 };
-                self.check_fraction(s[0].unwrap(), "the threshold `m` (thesis eq. 5.5)", false);
+                self.check_fraction(
+                    s[0].unwrap(),
+                    "the threshold `m` (thesis eq. 5.5)",
+                    Interval::Positive,
+                );
                 Typed::of(Ty::Obj(Obj::Normalizer), Var::Const)
             }
             "exponential" | "cosine" => {
@@ -527,7 +549,12 @@ impl Checker {
                     return Typed::error();
                 };
                 if let Some(arg) = s[0] {
-                    self.check_fraction(arg, &format!("`{pname}`"), false);
+                    let range = if name == "exponential" {
+                        Interval::UpToOne
+                    } else {
+                        Interval::BelowOne
+                    };
+                    self.check_fraction(arg, &format!("`{pname}`"), range);
                 }
                 Typed::of(Ty::Obj(Obj::Schedule), Var::Const)
             }
@@ -536,11 +563,11 @@ impl Checker {
                     return Typed::error();
                 };
                 self.check_count(s[0].unwrap(), "`every`");
-                self.check_fraction(s[1].unwrap(), "`gamma`", false);
+                self.check_fraction(s[1].unwrap(), "`gamma`", Interval::UpToOne);
                 Typed::of(Ty::Obj(Obj::Schedule), Var::Const)
             }
-            "every" | "revolve" => {
-                let pname = if name == "every" {
+            "periodic" | "revolve" => {
+                let pname = if name == "periodic" {
                     "steps"
                 } else {
                     "snapshots"
@@ -664,7 +691,7 @@ impl Checker {
         &mut self,
         arg: &Expr,
         what: &str,
-        below_one: bool,
+        range: Interval,
     ) -> Option<f64> {
         let t = self.check_expr(arg);
         if !self.expect_type(&t, &Ty::scalar(Dim::NONE), arg, what)
@@ -673,17 +700,13 @@ impl Checker {
             return None;
         }
         let v = t.num()?;
-        let bad = if below_one {
-            !(0.0..1.0).contains(&v)
-        } else {
-            v <= 0.0
+        let (bad, rule) = match range {
+            Interval::Positive => (v <= 0.0, "be positive"),
+            Interval::BelowOne => (!(0.0..1.0).contains(&v), "lie in [0, 1)"),
+            Interval::UpToOne => (!(v > 0.0 && v <= 1.0), "lie in (0, 1]"),
         };
         if bad {
-            let msg = if below_one {
-                format!("{what} must lie in [0, 1), found {v}")
-            } else {
-                format!("{what} must be positive, found {v}")
-            };
+            let msg = format!("{what} must {rule}, found {v}");
             self.err(Diagnostic::error("E0321", arg.span, msg));
             return None;
         }

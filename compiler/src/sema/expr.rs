@@ -7,7 +7,40 @@ use crate::diag::{Diagnostic, did_you_mean};
 use crate::front::ast::*;
 
 impl Checker {
+    /// Check an expression. A constant that overflows or is undefined (`1e308 * 10`,
+    /// `(-8)^(1/3)`) is an error here, so no infinity or NaN reaches the simulation.
     pub(super) fn check_expr(&mut self, e: &Expr) -> Typed {
+        let t = self.check_expr_kind(e);
+        if let Some(v) = &t.value {
+            let mut xs = Vec::new();
+            v.flatten(&mut xs);
+            if xs.iter().any(|x| !x.is_finite()) {
+                let what = if xs.iter().any(|x| x.is_nan()) {
+                    "is undefined (NaN)"
+                } else {
+                    "overflows to infinity"
+                };
+                self.err(
+                    Diagnostic::error("E0004", e.span, format!("this constant {what}"))
+                        .with_hint("check the magnitudes and signs of the values involved"),
+                );
+                return Typed::error();
+            }
+        }
+        if let Some(d) = t.ty.dim()
+            && d.is_extreme()
+        {
+            self.err(Diagnostic::error(
+                "E0205",
+                e.span,
+                "the unit of this expression has an exponent beyond ±64",
+            ));
+            return Typed::error();
+        }
+        t
+    }
+
+    fn check_expr_kind(&mut self, e: &Expr) -> Typed {
         match &e.kind {
             ExprKind::Number {
                 value,
@@ -176,11 +209,15 @@ impl Checker {
                     ok = false;
                     let mut d =
                         Diagnostic::error("E0103", f.span, format!("unknown unit `{}`", f.name));
+                    let digits = f.name.trim_start_matches(|c: char| !c.is_ascii_digit());
+                    let stem = &f.name[..f.name.len() - digits.len()];
                     if let Some(h) = units::unit_hint(&f.name) {
                         d = d.with_hint(h);
-                    } else if let Some(s) = did_you_mean(&f.name, units::UNIT_NAMES.iter().copied())
+                    } else if !digits.is_empty()
+                        && digits.bytes().all(|b| b.is_ascii_digit())
+                        && units::unit(stem).is_some()
                     {
-                        d = d.with_hint(format!("did you mean `{s}`?"));
+                        d = d.with_hint(format!("powers of units need `^`: `{stem}^{digits}`"));
                     } else if self.globals.contains_key(&f.name)
                         || super::builtins::FUNCTIONS.contains(&f.name.as_str())
                         || super::RESERVED_NAMES.contains(&f.name.as_str())
@@ -189,6 +226,9 @@ impl Checker {
                             "a name right after a number is read as a unit; to multiply, write `* {}`",
                             f.name
                         ));
+                    } else if let Some(s) = did_you_mean(&f.name, units::UNIT_NAMES.iter().copied())
+                    {
+                        d = d.with_hint(format!("did you mean `{s}`?"));
                     } else {
                         d = d.with_hint(format!("known units: {}", units::UNIT_NAMES.join(", ")));
                     }
@@ -228,6 +268,9 @@ impl Checker {
             if let Some(u) = unit
                 && !matches!(t.ty.dim(), Some(d) if d.is_none())
             {
+                if failed {
+                    continue; // one report for the whole array
+                }
                 let msg = format!(
                     "this entry already has a unit ({}), and the array has the unit `{u}`",
                     self.describe(it, &t.ty),
@@ -307,6 +350,21 @@ impl Checker {
             "x" | "x0" | "v" if self.ctx.state => {
                 return Typed::of(Ty::Obj(Obj::StateField), Var::State);
             }
+            "t_end" | "dt" if self.sim.defining_duration => {
+                let msg =
+                    format!("`{name}` is defined by the sim block's `dt`, `steps` and `duration`");
+                self.err(
+                    Diagnostic::error("E0120", id.span, msg)
+                        .with_hint("give `dt`, `steps` and `duration` as plain values"),
+                );
+                return Typed::error();
+            }
+            "dt" => {
+                return match self.sim.dt {
+                    Some(d) => Typed::constant(Ty::scalar(Dim::TIME), Value::Num(d)),
+                    None => Typed::of(Ty::scalar(Dim::TIME), Var::Const),
+                };
+            }
             "t_end" => {
                 return match self.sim.duration {
                     Some(d) => Typed::constant(Ty::scalar(Dim::TIME), Value::Num(d)),
@@ -326,7 +384,7 @@ impl Checker {
                     self.err(Diagnostic::error("E0110", id.span, msg));
                     Typed::error()
                 }
-                _ => self.global_typed(gid),
+                _ => self.global_typed_at(gid, Some(id.span)),
             };
         }
         if let Some((_, obj)) = super::builtins::CONSTANTS.iter().find(|(n, _)| *n == name) {
@@ -336,14 +394,15 @@ impl Checker {
             "t" => Diagnostic::error(
                 "E0320",
                 id.span,
-                "the time `t` is only available in pressures, damping and controllers",
+                "the time `t` cannot be used here: it changes during the simulation",
             )
-            .with_hint("geometry, settings and parameter values must be constants"),
+            .with_hint("`t` is read in the sim block, the loss, `let`s and controllers; geometry, materials and parameter values are fixed before the run"),
             "x" | "x0" | "v" => Diagnostic::error(
                 "E0320",
                 id.span,
-                format!("the node state `{name}` is only available in the loss and in controllers"),
-            ),
+                format!("the node state `{name}` cannot be used here: it belongs to the simulation"),
+            )
+            .with_hint("node state is read in the sim block, the loss, `let`s and controllers, as `x[n]` with `n` bound by `sum(n in set)`"),
             "y" | "z" => Diagnostic::error(
                 "E0320",
                 id.span,
@@ -449,11 +508,8 @@ impl Checker {
             BinOp::Range => {
                 for (t, x) in [(&l, lhs), (&r, rhs)] {
                     if !t.ty.is_int_scalar() {
-                        let msg = format!(
-                            "range ends must be integers, found {}",
-                            self.describe(x, &t.ty)
-                        );
-                        self.err(Diagnostic::error("E0322", x.span, msg));
+                        let d = self.integer_error(x, t, "a range end");
+                        self.err(d);
                         return Typed::error();
                     }
                 }
@@ -724,18 +780,16 @@ impl Checker {
                 t.ty.is_int_scalar()
             };
             if !ok {
-                let msg = if per_element {
-                    format!(
+                let d = if per_element {
+                    let msg = format!(
                         "a per-element field is indexed by an element bound in `sum(e in {})`, found {}",
                         shape[k], t.ty
-                    )
+                    );
+                    Diagnostic::error("E0322", ie.span, msg)
                 } else {
-                    format!(
-                        "indices must be integers, found {}",
-                        self.describe(ie, &t.ty)
-                    )
+                    self.integer_error(ie, t, "an index")
                 };
-                self.err(Diagnostic::error("E0322", ie.span, msg));
+                self.err(d);
                 return Typed::error();
             }
             if let (Len::Fixed(n), Some(i)) = (&shape[k], t.num())
@@ -804,11 +858,15 @@ impl Checker {
 
     fn check_call(&mut self, e: &Expr, callee: &Expr, args: &[Arg]) -> Typed {
         let ExprKind::Name(id) = &callee.kind else {
-            self.err(Diagnostic::error(
-                "E0110",
-                callee.span,
-                "only named functions can be called",
-            ));
+            // Report the callee's own mistake first (`3 kPa*ramp(…)` reads `kPa*ramp` as a unit).
+            let t = self.check_expr(callee);
+            if !t.ty.is_error() {
+                self.err(Diagnostic::error(
+                    "E0110",
+                    callee.span,
+                    "only named functions can be called",
+                ));
+            }
             return Typed::error();
         };
         let name = id.name.as_str();
@@ -825,7 +883,7 @@ impl Checker {
                     self.check_user_call(e, gid, args)
                 }
                 k => {
-                    let msg = format!("`{name}` is a {}, not a function", k.describe());
+                    let msg = format!("`{name}` is {}, not a function", k.with_article());
                     self.err(Diagnostic::error("E0110", id.span, msg));
                     Typed::error()
                 }
@@ -975,6 +1033,7 @@ impl Checker {
                 "the controller `{name}` can only be called in the sim block, the loss or another controller"
             );
             self.err(Diagnostic::error("E0320", e.span, msg));
+            return Typed::error();
         }
         let params: Vec<(&str, bool)> = sig
             .params
@@ -990,12 +1049,20 @@ impl Checker {
             let Some(arg) = slot else { continue };
             let t = self.check_expr(arg);
             var = var.max(t.var);
-            if !self.expect_type(
-                &t,
-                &p.ty,
-                arg,
-                &format!("argument `{}` of `{name}`", p.name),
-            ) {
+            // A material constant may vary per element: a per-element field (`param mu:
+            // pressure[core]`) fits a scalar material parameter.
+            let per_element = kind == SymKind::MaterialTemplate
+                && p.ty.is_scalar_num()
+                && matches!(t.ty.shape(), [Len::PerElement(_)])
+                && t.ty.dim() == p.ty.dim();
+            if !per_element
+                && !self.expect_type(
+                    &t,
+                    &p.ty,
+                    arg,
+                    &format!("argument `{}` of `{name}`", p.name),
+                )
+            {
                 failed = true;
             }
         }
@@ -1031,11 +1098,8 @@ impl Checker {
                     return false;
                 }
                 if *i2 && !t.ty.is_int_scalar() {
-                    let msg = format!(
-                        "{what} must be an integer, found {}",
-                        self.describe(e, &t.ty)
-                    );
-                    self.err(Diagnostic::error("E0322", e.span, msg));
+                    let d = self.integer_error(e, t, what);
+                    self.err(d);
                     return false;
                 }
                 shapes_fit(s1, s2)
@@ -1054,6 +1118,15 @@ impl Checker {
         if t.ty.is_error() || t.var == Var::Const {
             return true;
         }
+        // Point at the name that makes it vary, when there is one.
+        if let Some((span, why)) = self.varying_name(e) {
+            let msg = format!("{what} must be a constant, but {why}");
+            self.err(
+                Diagnostic::error("E0321", span, msg)
+                    .with_hint("it is fixed before the simulation starts"),
+            );
+            return false;
+        }
         let why = match t.var {
             Var::Param => "depends on a param or input",
             Var::Time => "depends on the time `t`",
@@ -1065,6 +1138,65 @@ impl Checker {
                 .with_hint("it is fixed before the simulation starts"),
         );
         false
+    }
+
+    /// The first name in `e` that is not constant: a param, an input, `t` or the node state.
+    fn varying_name(&self, e: &Expr) -> Option<(Span, String)> {
+        let mut stack = vec![e];
+        while let Some(x) = stack.pop() {
+            if let ExprKind::Name(id) = &x.kind {
+                let local = self.scopes.iter().any(|s| s.contains_key(&id.name));
+                if !local {
+                    match id.name.as_str() {
+                        "t" => return Some((id.span, "`t` is the simulation time".into())),
+                        "x" | "v" => {
+                            return Some((id.span, format!("`{}` is the node state", id.name)));
+                        }
+                        _ => {}
+                    }
+                    if let Some(&g) = self.globals.get(&id.name) {
+                        let k = self.syms[g].kind;
+                        if matches!(k, SymKind::Param | SymKind::Input) {
+                            let msg = format!("`{}` is {}", id.name, k.with_article());
+                            return Some((id.span, msg));
+                        }
+                    }
+                }
+            }
+            let mut children = Vec::new();
+            x.for_each_child(|c| children.push(c));
+            stack.extend(children.into_iter().rev());
+        }
+        None
+    }
+
+    /// "must be an integer" with what was written instead.
+    pub(super) fn integer_error(&self, e: &Expr, t: &Typed, what: &str) -> Diagnostic {
+        match (t.num(), t.ty.dim()) {
+            (Some(v), Some(d)) if d.is_none() && t.ty.is_scalar_num() => {
+                let d = Diagnostic::error(
+                    "E0322",
+                    e.span,
+                    format!("{what} must be an integer, found the decimal number {v}"),
+                );
+                if v.fract() == 0.0 && v.abs() < 1e15 {
+                    d.with_hint(format!(
+                        "write it without a decimal point or exponent: `{}`",
+                        v as i64
+                    ))
+                } else {
+                    d.with_hint("use a whole number")
+                }
+            }
+            _ => Diagnostic::error(
+                "E0322",
+                e.span,
+                format!(
+                    "{what} must be an integer, found {}",
+                    self.describe(e, &t.ty)
+                ),
+            ),
+        }
     }
 }
 
@@ -1113,5 +1245,11 @@ pub(super) fn unit_suggestion(d: Dim) -> Option<String> {
     examples
         .iter()
         .find(|(n, _)| *n == name)
-        .map(|(_, ex)| format!("write a {name} with its unit, e.g. `{ex}`"))
+        .map(|(_, ex)| format!("write {} with its unit, e.g. `{ex}`", with_article(&name)))
+}
+
+/// "a length", "an acceleration".
+pub(super) fn with_article(noun: &str) -> String {
+    let vowel = noun.starts_with(['a', 'e', 'i', 'o', 'u']);
+    format!("{} {noun}", if vowel { "an" } else { "a" })
 }

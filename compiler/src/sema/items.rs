@@ -1,5 +1,6 @@
 //! Declarations, the sim block, the loss and the optimize block.
 
+use super::builtins::Interval;
 use super::expr::{shapes_fit, unit_suggestion};
 use super::types::{Len, Obj, Ty, Typed, Var};
 use super::units::{self, Dim};
@@ -12,11 +13,17 @@ use std::collections::HashMap;
 #[derive(Debug, Default)]
 pub(super) struct SimInfo {
     pub duration: Option<f64>,
+    pub dt: Option<f64>,
+    /// Set while `dt`, `steps` and `duration` are checked: they may not refer to `t_end`/`dt`.
+    pub defining_duration: bool,
     /// `window(t, width)` uses: width and span.
     pub windows: Vec<(f64, Span)>,
     pub pressured: Vec<String>,
     pub seen: bool,
 }
+
+/// Largest number of entries of a fixed-shape value (params, inputs, lets).
+const MAX_ENTRIES: usize = 10_000_000;
 
 const SIM_SETTINGS: &[&str] = &[
     "dt",
@@ -196,8 +203,8 @@ impl Checker {
                 let ok = t.ty.is_error() || t.ty == Ty::Obj(want);
                 if !ok {
                     let msg = format!(
-                        "a {} is declared with {what}, found {}",
-                        kind.keyword(),
+                        "{} is declared with {what}, found {}",
+                        super::expr::with_article(kind.noun()),
                         t.ty
                     );
                     self.err(Diagnostic::error("E0203", value.span, msg));
@@ -222,22 +229,34 @@ impl Checker {
                 self.ctx.state = true;
                 let t = self.check_expr(&l.value);
                 self.ctx = Default::default();
-                self.check_let_type(l, &t);
                 if matches!(t.ty, Ty::Obj(Obj::StateField | Obj::Node | Obj::Element)) {
+                    let msg = format!(
+                        "`{}` would name {}, which only exists inside an expression",
+                        l.name.name, t.ty
+                    );
+                    self.err(Diagnostic::error("E0314", l.value.span, msg).with_hint(
+                        "index the node state with a node bound by a reduction, e.g. `let dz = mean(n in tip) (x[n].z - x0[n].z)`",
+                    ));
                     return Typed::error();
                 }
-                t
+                self.check_let_type(l, t)
             }
             ItemKind::Fn(f) => self.check_fn(id, f),
             _ => Typed::error(),
         }
     }
 
-    fn check_let_type(&mut self, l: &LetDecl, t: &Typed) {
-        if let Some(te) = &l.ty
-            && let Some(want) = self.resolve_type(te, false)
-        {
-            self.expect_type(t, &want, &l.value, &format!("`{}`", l.name.name));
+    /// Check a let's value against its declared type; the let takes the declared type either
+    /// way, so a mismatch is reported once, here, and not again at every use.
+    fn check_let_type(&mut self, l: &LetDecl, t: Typed) -> Typed {
+        let Some(te) = &l.ty else { return t };
+        let Some(want) = self.resolve_type(te, false) else {
+            return Typed::error();
+        };
+        if self.expect_type(&t, &want, &l.value, &format!("`{}`", l.name.name)) {
+            Typed { ty: want, ..t }
+        } else {
+            Typed::of(want, t.var)
         }
     }
 
@@ -275,11 +294,12 @@ impl Checker {
                             self.syms[g].used = true;
                             Len::PerElement(id.name.clone())
                         }
-                        Some((_, k)) => {
+                        Some((g, k)) => {
+                            self.syms[g].used = true;
                             let msg = format!(
-                                "a per-element shape names an element set, but `{}` is a {}",
+                                "a per-element shape names an element set, but `{}` is {}",
                                 id.name,
-                                k.describe()
+                                k.with_article()
                             );
                             self.err(Diagnostic::error("E0110", id.span, msg));
                             return None;
@@ -292,6 +312,17 @@ impl Checker {
                     }
                 }
             });
+        }
+        let total = shape.iter().try_fold(1usize, |acc, l| match l {
+            Len::Fixed(n) => acc.checked_mul(*n),
+            _ => Some(acc),
+        });
+        if total.is_none_or(|n| n > MAX_ENTRIES) {
+            let msg = format!("this type has more than {MAX_ENTRIES} entries");
+            self.err(Diagnostic::error("E0204", te.span, msg).with_hint(
+                "for one value per element use a per-element shape, e.g. `pressure[core]`",
+            ));
+            return None;
         }
         Some(Ty::Num {
             dim,
@@ -640,7 +671,7 @@ impl Checker {
             match &s.kind {
                 StmtKind::Let(l) => {
                     let t = self.check_expr(&l.value);
-                    self.check_let_type(l, &t);
+                    let t = self.check_let_type(l, t);
                     self.declare_local(&l.name.name, l.name.span, t, true);
                 }
                 StmtKind::Assign {
@@ -699,12 +730,18 @@ impl Checker {
                     }
                     self.push_scope();
                     for a in args {
-                        if !["I1bar", "I2bar", "J"].contains(&a.name.as_str()) {
+                        let invariants = ["I1bar", "I2bar", "J"];
+                        if !invariants.contains(&a.name.as_str()) {
                             let msg = format!("`{}` is not an invariant", a.name);
-                            self.err(Diagnostic::error("E0315", a.span, msg).with_hint(
-                                "W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13)",
-                            ));
-                            continue;
+                            let hint = match did_you_mean(&a.name, invariants) {
+                                Some(s) => format!(
+                                    "did you mean `{s}`? W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13)"
+                                ),
+                                None => "W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13)"
+                                    .into(),
+                            };
+                            self.err(Diagnostic::error("E0315", a.span, msg).with_hint(hint));
+                            // Still declare it, so its uses in W are not reported again.
                         }
                         if self.scopes.last().unwrap().contains_key(&a.name) {
                             let msg = format!("`{}` is listed twice", a.name);
@@ -717,7 +754,8 @@ impl Checker {
                                 typed: Typed::of(Ty::scalar(Dim::NONE), Var::State),
                                 span: a.span,
                                 used: false,
-                                warn_unused: true,
+                                // Listing all three invariants and using two is fine.
+                                warn_unused: false,
                             },
                         );
                     }
@@ -768,6 +806,7 @@ impl Checker {
         let mut dt = None;
         let mut steps = None;
         self.push_scope();
+        self.sim.defining_duration = true;
         for (name, value) in &assigns {
             match name.name.as_str() {
                 "dt" => {
@@ -809,9 +848,22 @@ impl Checker {
                 _ => {}
             }
         }
+        self.sim.defining_duration = false;
+        self.sim.dt = dt;
         if let (Some(n), Some(dt)) = (steps, dt) {
             self.sim.duration = Some(n * dt);
         }
+        // A misspelt setting (`durration`) is reported as unknown with a suggestion; do not also
+        // report the setting it was meant to be as missing.
+        let misspelt = |want: &[&str]| {
+            assigns.iter().any(|(n, _)| {
+                !SIM_SETTINGS.contains(&n.name.as_str())
+                    && did_you_mean(&n.name, SIM_SETTINGS.iter().copied())
+                        .is_some_and(|s| want.contains(&s))
+            })
+        };
+        let steps_misspelt = misspelt(&["steps", "duration"]);
+        let dt_misspelt = misspelt(&["dt"]);
         match (seen.get("steps"), seen.get("duration")) {
             (Some(&a), Some(&b)) => self.err(
                 Diagnostic::error(
@@ -821,7 +873,7 @@ impl Checker {
                 )
                 .with_hint("`duration = steps × dt`"),
             ),
-            (None, None) => self.err(
+            (None, None) if !steps_misspelt => self.err(
                 Diagnostic::error(
                     "E0312",
                     Span::new(span.start, span.start + 3),
@@ -831,7 +883,7 @@ impl Checker {
             ),
             _ => {}
         }
-        if !seen.contains_key("dt") {
+        if !seen.contains_key("dt") && !dt_misspelt {
             self.err(
                 Diagnostic::error(
                     "E0312",
@@ -847,6 +899,7 @@ impl Checker {
         self.ctx.time = true;
         self.ctx.state = true;
         let mut materials_used = false;
+        let mut whole_mesh_use = false;
         for s in stmts {
             match &s.kind {
                 StmtKind::Assign { name, value } => {
@@ -857,7 +910,7 @@ impl Checker {
                 }
                 StmtKind::Let(l) => {
                     let t = self.check_expr(&l.value);
-                    self.check_let_type(l, &t);
+                    let t = self.check_let_type(l, t);
                     self.declare_local(&l.name.name, l.name.span, t, true);
                 }
                 StmtKind::Fix(names) => {
@@ -866,9 +919,9 @@ impl Checker {
                             Some(SymKind::Region | SymKind::Nodes) | None => {}
                             Some(k) => {
                                 let msg = format!(
-                                    "`fix` takes regions or node sets, but `{}` is a {}",
+                                    "`fix` takes regions or node sets, but `{}` is {}",
                                     n.name,
-                                    k.describe()
+                                    k.with_article()
                                 );
                                 self.err(Diagnostic::error("E0110", n.span, msg));
                             }
@@ -887,9 +940,9 @@ impl Checker {
                         }
                         Some(k) => {
                             let msg = format!(
-                                "`pressure` applies to chambers, but `{}` is a {}",
+                                "`pressure` applies to chambers, but `{}` is {}",
                                 chamber.name,
-                                k.describe()
+                                k.with_article()
                             );
                             self.err(Diagnostic::error("E0110", chamber.span, msg).with_hint(
                                 "declare it with `chamber NAME = surface(mesh, \"name\")`",
@@ -908,6 +961,7 @@ impl Checker {
                 }
                 StmtKind::Use { material, set } => {
                     materials_used = true;
+                    whole_mesh_use |= set.is_none();
                     match self.global_kind(material) {
                         Some(SymKind::Material) | None => {}
                         Some(SymKind::MaterialTemplate) => {
@@ -924,9 +978,9 @@ impl Checker {
                         }
                         Some(k) => {
                             let msg = format!(
-                                "`use` takes a material, but `{}` is a {}",
+                                "`use` takes a material, but `{}` is {}",
                                 material.name,
-                                k.describe()
+                                k.with_article()
                             );
                             self.err(Diagnostic::error("E0110", material.span, msg));
                         }
@@ -936,9 +990,9 @@ impl Checker {
                             Some(SymKind::Elements) | None => {}
                             Some(k) => {
                                 let msg = format!(
-                                    "materials are assigned to element sets, but `{}` is a {}",
+                                    "materials are assigned to element sets, but `{}` is {}",
                                     set.name,
-                                    k.describe()
+                                    k.with_article()
                                 );
                                 self.err(Diagnostic::error("E0110", set.span, msg).with_hint(
                                     "declare it with `elements NAME = select(mesh, …)`",
@@ -988,20 +1042,51 @@ impl Checker {
         }
         self.ctx = Default::default();
         self.pop_scope();
+        let sim_kw = Span::new(span.start, span.start + 3);
+        if materials_used && !whole_mesh_use {
+            self.err(
+                Diagnostic::warning(
+                    "W0004",
+                    sim_kw,
+                    "materials are assigned only to element sets; elements outside them get none",
+                )
+                .with_hint("add `use NAME` (the whole mesh) before the `use NAME in SET` lines"),
+            );
+        }
         if !materials_used {
             let materials: Vec<usize> = (0..self.syms.len())
                 .filter(|&i| !self.syms[i].prelude && self.syms[i].kind == SymKind::Material)
                 .collect();
+            let declared = self
+                .user_items
+                .iter()
+                .filter(|i| matches!(&i.kind, ItemKind::Material(m) if m.params.is_none()))
+                .count();
             match materials.len() {
                 1 => self.syms[materials[0]].used = true,
+                // A material whose declaration failed was reported already.
+                0 if declared > 0 => {}
                 0 => self.err(
-                    Diagnostic::error("E0318", Span::new(span.start, span.start + 3), "no material is declared")
-                        .with_hint("declare one, e.g. `material silicone = yeoh(c10: 0.11 MPa, d1: 1.0 /MPa, density: 1070 kg/m^3)`"),
+                    Diagnostic::error("E0318", sim_kw, "no material is declared").with_hint(
+                        "declare one, e.g. `material silicone = yeoh(c10: 0.11 MPa, d1: 1.0 /MPa, density: 1070 kg/m^3)`",
+                    ),
                 ),
-                _ => self.err(
-                    Diagnostic::error("E0318", Span::new(span.start, span.start + 3), "several materials are declared but the sim block assigns none")
-                        .with_hint("add `use NAME` for the whole mesh and `use NAME in SET` for element sets"),
-                ),
+                _ => {
+                    self.err(
+                        Diagnostic::error(
+                            "E0318",
+                            sim_kw,
+                            "several materials are declared but the sim block assigns none",
+                        )
+                        .with_hint(
+                            "add `use NAME` for the whole mesh and `use NAME in SET` for element sets",
+                        ),
+                    );
+                    // The error says it; no "unused" warning per material.
+                    for m in materials {
+                        self.syms[m].used = true;
+                    }
+                }
             }
         }
         // Windowed schedules must cover the simulated time.
@@ -1014,53 +1099,71 @@ impl Checker {
         }
     }
 
-    /// Every param vector indexed by `window(t, width)` must have one entry per window.
+    /// Every param vector indexed by `window(t, width)` — directly or through `let`s — must
+    /// have one entry per window of the simulated time.
     fn check_window_lengths(&mut self, count: usize, width: f64, sp: Span) {
-        for s in &self.user_items.clone() {
-            let ItemKind::Sim(stmts) = &s.kind else {
-                continue;
-            };
-            for st in stmts {
-                let exprs: Vec<&Expr> = match &st.kind {
-                    StmtKind::Assign { value, .. } | StmtKind::Pressure { value, .. } => {
-                        vec![value]
+        let mut roots: Vec<Expr> = Vec::new();
+        let mut lets: HashMap<String, Expr> = HashMap::new();
+        for item in &self.user_items {
+            match &item.kind {
+                ItemKind::Sim(stmts) => {
+                    for st in stmts {
+                        match &st.kind {
+                            StmtKind::Assign { value, .. } | StmtKind::Pressure { value, .. } => {
+                                roots.push(value.clone())
+                            }
+                            StmtKind::Let(l) => {
+                                roots.push(l.value.clone());
+                                lets.insert(l.name.name.clone(), l.value.clone());
+                            }
+                            _ => {}
+                        }
                     }
-                    _ => vec![],
-                };
-                for e in exprs {
-                    self.find_windowed(e, count, width, sp);
                 }
+                ItemKind::Let(l) => {
+                    roots.push(l.value.clone());
+                    lets.insert(l.name.name.clone(), l.value.clone());
+                }
+                ItemKind::Fn(f) => roots.push(f.body.clone()),
+                _ => {}
+            }
+        }
+        let mut reported = Vec::new();
+        for root in &roots {
+            let mut stack = vec![root];
+            while let Some(e) = stack.pop() {
+                if let ExprKind::Index { base, indices } = &e.kind
+                    && let (ExprKind::Name(id), [idx]) = (&base.kind, indices.as_slice())
+                    && is_window_index(idx, sp, &lets, 0)
+                    && !reported.contains(&e.span)
+                {
+                    reported.push(e.span);
+                    self.check_window_param(id, e.span, count, width);
+                }
+                e.for_each_child(|c| stack.push(c));
             }
         }
     }
 
-    fn find_windowed(&mut self, e: &Expr, count: usize, width: f64, sp: Span) {
-        if let ExprKind::Index { base, indices } = &e.kind
-            && let (ExprKind::Name(id), [idx]) = (&base.kind, indices.as_slice())
+    fn check_window_param(&mut self, id: &Ident, span: Span, count: usize, width: f64) {
+        let Some(&g) = self.globals.get(&id.name) else {
+            return;
+        };
+        let GState::Done(t) = &self.syms[g].state else {
+            return;
+        };
+        if let Some(Len::Fixed(n)) = t.ty.shape().first()
+            && *n != count
         {
-            let is_this_window = matches!(&idx.kind, ExprKind::Call { callee, args }
-                    if matches!(&callee.kind, ExprKind::Name(c) if c.name == "window")
-                    && args.len() == 2 && args[1].value.span == sp);
-            if is_this_window
-                && let Some(&g) = self.globals.get(&id.name)
-                && let GState::Done(t) = &self.syms[g].state
-                && let Some(Len::Fixed(n)) = t.ty.shape().first()
-                && *n != count
-            {
-                let msg = format!(
-                    "`{}` has {n} entries, but the simulation spans {count} windows of {} s",
-                    id.name, width
-                );
-                self.err(Diagnostic::error("E0316", e.span, msg).with_hint(format!(
-                    "declare `{}` with {count} entries, or change the window width or the duration",
-                    id.name
-                )));
-            }
-        }
-        let mut children = Vec::new();
-        e.for_each_child(|c| children.push(c));
-        for c in children {
-            self.find_windowed(c, count, width, sp);
+            let n = *n;
+            let msg = format!(
+                "`{}` has {n} entries, but the simulation spans {count} windows of {} s",
+                id.name, width
+            );
+            self.err(Diagnostic::error("E0316", span, msg).with_hint(format!(
+                "declare `{}` with {count} entries, or change the window width or the duration",
+                id.name
+            )));
         }
     }
 
@@ -1069,6 +1172,14 @@ impl Checker {
         match name.name.as_str() {
             "dt" | "steps" | "duration" => {}
             "integrator" | "model" | "precision" => {
+                let options: &[&str] = match name.name.as_str() {
+                    "integrator" => &["semi_implicit_euler", "quasi_static"],
+                    "model" => &["fem", "springs"],
+                    _ => &["f32", "f64"],
+                };
+                if self.unknown_option(value, &name.name, options) {
+                    return;
+                }
                 let t = self.check_expr(value);
                 let (want, options) = match name.name.as_str() {
                     "integrator" => (Obj::Integrator, "`semi_implicit_euler` or `quasi_static`"),
@@ -1081,6 +1192,7 @@ impl Checker {
                 }
             }
             "damping" => {
+                self.check_damping_param_bounds(value);
                 let t = self.check_expr(value);
                 self.expect_type(
                     &t,
@@ -1104,7 +1216,7 @@ impl Checker {
                 }
             }
             "mass_scaling" => {
-                if let Some(v) = self.check_fraction(value, "`mass_scaling`", false)
+                if let Some(v) = self.check_fraction(value, "`mass_scaling`", Interval::Positive)
                     && v < 1.0
                 {
                     self.err(
@@ -1133,12 +1245,76 @@ impl Checker {
         }
     }
 
+    /// A setting given a bare name that means nothing: list the setting's options.
+    fn unknown_option(&mut self, value: &Expr, setting: &str, options: &[&str]) -> bool {
+        let ExprKind::Name(id) = &value.kind else {
+            return false;
+        };
+        let known = self.globals.contains_key(&id.name)
+            || super::builtins::CONSTANTS
+                .iter()
+                .any(|(n, _)| *n == id.name)
+            || super::builtins::FUNCTIONS.contains(&id.name.as_str());
+        if known {
+            return false;
+        }
+        let list = options
+            .iter()
+            .map(|o| format!("`{o}`"))
+            .collect::<Vec<_>>()
+            .join(", ");
+        let mut d = Diagnostic::error("E0101", id.span, format!("unknown {setting} `{}`", id.name));
+        d = match did_you_mean(&id.name, options.iter().copied()) {
+            Some(s) => d.with_hint(format!("did you mean `{s}`? The options are {list}")),
+            None => d.with_hint(format!("the options are {list}")),
+        };
+        self.err(d);
+        true
+    }
+
+    /// A damping param that the optimizer could drive below zero would make the run blow up.
+    fn check_damping_param_bounds(&mut self, value: &Expr) {
+        let name = match &value.kind {
+            ExprKind::Name(id) => id,
+            ExprKind::Index { base, .. } => match &base.kind {
+                ExprKind::Name(id) => id,
+                _ => return,
+            },
+            _ => return,
+        };
+        let Some(&g) = self.globals.get(&name.name) else {
+            return;
+        };
+        if self.syms[g].kind != SymKind::Param {
+            return;
+        }
+        self.global_typed(g);
+        let Some(p) = self.out.params.iter().find(|p| p.name == name.name) else {
+            return;
+        };
+        let negative_start = p.init.iter().any(|v| *v < 0.0);
+        if negative_start || p.lower.is_none_or(|lo| lo < 0.0) {
+            let msg = format!("the damping param `{}` may become negative", name.name);
+            self.err(Diagnostic::error("E0303", name.span, msg).with_hint(format!(
+                "negative damping adds energy and the run blows up: bound it, e.g. `param {}: rate = 20 /s in [0 /s, 200 /s]`",
+                name.name
+            )));
+        }
+    }
+
     fn global_kind(&mut self, id: &Ident) -> Option<SymKind> {
         match self.globals.get(&id.name) {
             Some(&g) => {
                 self.syms[g].used = true;
-                self.global_typed(g);
-                Some(self.syms[g].kind)
+                let t = self.global_typed_at(g, Some(id.span));
+                // A let naming a region, a set or a material stands for it (`let s = clamp`).
+                Some(match (self.syms[g].kind, &t.ty) {
+                    (SymKind::Let, Ty::Obj(Obj::Region)) => SymKind::Region,
+                    (SymKind::Let, Ty::Obj(Obj::NodeSet)) => SymKind::Nodes,
+                    (SymKind::Let, Ty::Obj(Obj::ElementSet)) => SymKind::Elements,
+                    (SymKind::Let, Ty::Obj(Obj::Material)) => SymKind::Material,
+                    (k, _) => k,
+                })
             }
             None => {
                 let d = self.unknown_name(&id.name, id.span);
@@ -1182,10 +1358,10 @@ impl Checker {
                         "the loss window ends before it starts",
                     ));
                 } else if let Some(d) = self.sim.duration
-                    && a > d * (1.0 + 1e-12)
+                    && b > d * (1.0 + 1e-12)
                 {
                     let msg = format!(
-                        "the loss window starts at {a} s, after the simulation ends ({d} s)"
+                        "the loss window [{a} s, {b} s] reaches past the end of the simulation ({d} s)"
                     );
                     self.err(
                         Diagnostic::error("E0321", *span, msg)
@@ -1222,9 +1398,9 @@ impl Checker {
                 Some((g, k)) => {
                     self.syms[g].used = true;
                     let msg = format!(
-                        "only params can be optimized, but `{}` is a {}",
+                        "only params can be optimized, but `{}` is {}",
                         t.name,
-                        k.describe()
+                        k.with_article()
                     );
                     self.err(Diagnostic::error("E0304", t.span, msg).with_hint(format!(
                         "declare it as `param {}: TYPE = VALUE in [LOWER, UPPER]`",
@@ -1300,9 +1476,9 @@ impl Checker {
                         }
                         Some((_, k)) => {
                             let msg = format!(
-                                "`validate` takes an input, but `{}` is a {}",
+                                "`validate` takes an input, but `{}` is {}",
                                 input.name,
-                                k.describe()
+                                k.with_article()
                             );
                             self.err(Diagnostic::error("E0110", input.span, msg));
                         }
@@ -1329,21 +1505,23 @@ impl Checker {
                 }
             }
             "gradient_scale" => {
-                if let Some(s) =
-                    self.check_fraction(value, "`gradient_scale` (s, thesis eq. 5.4)", false)
-                {
-                    if s > 1.0 {
-                        self.err(Diagnostic::error(
-                            "E0321",
-                            value.span,
-                            "`gradient_scale` must lie in (0, 1]",
-                        ));
-                    } else if s < 1.0 {
+                if let Some(s) = self.check_fraction(
+                    value,
+                    "`gradient_scale` (s, thesis eq. 5.4)",
+                    Interval::UpToOne,
+                ) {
+                    if s < 1.0 {
                         self.err(
                             Diagnostic::warning(
                                 "W0003",
                                 value.span,
-                                format!("`gradient_scale = {s}` does not rescale the gradient: it forgets adjoint contributions older than about {:.0} steps", 1.0 / (1.0 - s)),
+                                {
+                                    let window = (1.0 / (1.0 - s)).round().max(1.0);
+                                    format!(
+                                        "`gradient_scale = {s}` does not rescale the gradient: it forgets adjoint contributions older than about {window} step{}",
+                                        if window == 1.0 { "" } else { "s" }
+                                    )
+                                },
                             )
                             .with_hint("the default 1 gives the exact gradient; to tame its magnitude use `normalize = magnitude(m: …)` or `clip`"),
                         );
@@ -1351,7 +1529,7 @@ impl Checker {
                 }
             }
             "clip" => {
-                self.check_fraction(value, "`clip` (global gradient norm)", false);
+                self.check_fraction(value, "`clip` (global gradient norm)", Interval::Positive);
             }
             "normalize" | "lr_schedule" | "checkpoint" => {
                 let t = self.check_expr(value);
@@ -1366,7 +1544,7 @@ impl Checker {
                     ),
                     _ => (
                         matches!(t.ty, Ty::Obj(Obj::Checkpoint | Obj::Auto)),
-                        "`auto`, `store_all`, `every(steps: …)` or `revolve(snapshots: …)`",
+                        "`auto`, `store_all`, `periodic(steps: …)` or `revolve(snapshots: …)`",
                     ),
                 };
                 if !ok && !t.ty.is_error() {
@@ -1411,6 +1589,14 @@ impl Checker {
             return;
         };
         let full = base.join(path);
+        if full.is_dir() {
+            let msg = format!("`{path}` is a folder, not a mesh file");
+            self.err(
+                Diagnostic::error("E0319", span, msg)
+                    .with_hint("name the mesh file, e.g. \"meshes/cuboid.msh\""),
+            );
+            return;
+        }
         if !full.is_file() {
             let msg = format!("mesh file `{path}` not found");
             self.err(Diagnostic::error("E0319", span, msg).with_hint(format!(
@@ -1567,4 +1753,21 @@ fn duplicate_block(what: &str, span: Span, first: Span) -> Diagnostic {
 fn duplicate_setting(name: &str, span: Span, first: Span) -> Diagnostic {
     Diagnostic::error("E0109", span, format!("`{name}` is set twice"))
         .with_note(first, "first set here")
+}
+
+/// Whether an index expression is the `window(t, width)` call whose width argument is at `sp`,
+/// possibly through `let`s.
+fn is_window_index(idx: &Expr, sp: Span, lets: &HashMap<String, Expr>, depth: usize) -> bool {
+    match &idx.kind {
+        ExprKind::Paren(inner) => is_window_index(inner, sp, lets, depth),
+        ExprKind::Call { callee, args } => {
+            matches!(&callee.kind, ExprKind::Name(c) if c.name == "window")
+                && args.len() == 2
+                && args[1].value.span == sp
+        }
+        ExprKind::Name(n) if depth < 16 => lets
+            .get(&n.name)
+            .is_some_and(|v| is_window_index(v, sp, lets, depth + 1)),
+        _ => false,
+    }
 }

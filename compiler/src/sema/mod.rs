@@ -110,6 +110,10 @@ pub enum SymKind {
 }
 
 impl SymKind {
+    fn with_article(self) -> String {
+        expr::with_article(self.describe())
+    }
+
     fn describe(self) -> &'static str {
         match self {
             SymKind::Mesh => "mesh",
@@ -262,7 +266,7 @@ impl Checker {
                     Diagnostic::warning(
                         "W0001",
                         l.span,
-                        format!("`{name}` is declared but never used"),
+                        format!("the let binding `{name}` is declared but never used"),
                     )
                     .with_hint("remove it, or prefix the name with `_` to keep it"),
                 );
@@ -312,28 +316,47 @@ impl Checker {
     fn unknown_name(&self, name: &str, span: Span) -> Diagnostic {
         let names = self.visible_names();
         let mut d = Diagnostic::error("E0101", span, format!("unknown name `{name}`"));
-        if let Some(s) = did_you_mean(name, names.iter().map(|s| s.as_str())) {
-            d = d.with_hint(format!("did you mean `{s}`?"));
-        } else if crate::sema::units::unit(name).is_some() {
+        if crate::sema::units::unit(name).is_some() {
             d = d.with_hint(format!(
-                "`{name}` is a unit: write it right after a number, e.g. `1 {name}`"
+                "`{name}` is a unit: write it right after a number without spaces inside the unit, e.g. `8 /{name}` or `1 {name}`"
             ));
+        } else if let Some(s) = did_you_mean(name, names.iter().map(|s| s.as_str())) {
+            d = d.with_hint(format!("did you mean `{s}`?"));
         }
         d
     }
 
     /// Type of a global, checking its declaration on first use.
     fn global_typed(&mut self, id: usize) -> Typed {
+        self.global_typed_at(id, None)
+    }
+
+    /// Like [`Self::global_typed`], reporting a cycle at `use_span` (the reference).
+    fn global_typed_at(&mut self, id: usize, use_span: Option<Span>) -> Typed {
         match self.syms[id].state.clone() {
             GState::Done(t) => t,
             GState::InProgress => {
                 let g = &self.syms[id];
-                let d = Diagnostic::error(
+                let mesh_part = matches!(
+                    g.kind,
+                    SymKind::Nodes | SymKind::Elements | SymKind::Chamber | SymKind::Region
+                );
+                let mut d = Diagnostic::error(
                     "E0120",
-                    g.span,
-                    format!("`{}` is defined in terms of itself", g.name),
-                )
-                .with_hint("break the cycle: a declaration cannot depend on its own value");
+                    use_span.unwrap_or(g.span),
+                    format!("`{}` is used in its own definition", g.name),
+                );
+                if use_span.is_some() {
+                    d = d.with_note(g.span, "declared here");
+                }
+                d = if mesh_part {
+                    d.with_hint(format!(
+                        "to name a part of the mesh, quote it: \"{}\"",
+                        g.name
+                    ))
+                } else {
+                    d.with_hint("break the cycle: a declaration cannot depend on its own value")
+                };
                 self.err(d);
                 self.syms[id].state = GState::Done(Typed::error());
                 Typed::error()

@@ -19,6 +19,10 @@ impl Dim {
     pub const TIME: Dim = Dim([0, 0, DEN, 0]);
     pub const MEMORY: Dim = Dim([0, 0, 0, DEN]);
 
+    /// Exponents beyond ±64: no physical quantity; guards the saturating arithmetic.
+    pub fn is_extreme(self) -> bool {
+        self.0.iter().any(|e| e.unsigned_abs() > 64 * DEN as u16)
+    }
     pub fn is_none(self) -> bool {
         self == Dim::NONE
     }
