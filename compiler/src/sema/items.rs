@@ -1509,9 +1509,9 @@ impl Checker {
                     value,
                     "`gradient_scale` (s, thesis eq. 5.4)",
                     Interval::UpToOne,
-                ) {
-                    if s < 1.0 {
-                        self.err(
+                ) && s < 1.0
+                {
+                    self.err(
                             Diagnostic::warning(
                                 "W0003",
                                 value.span,
@@ -1525,7 +1525,6 @@ impl Checker {
                             )
                             .with_hint("the default 1 gives the exact gradient; to tame its magnitude use `normalize = magnitude(m: …)` or `clip`"),
                         );
-                    }
                 }
             }
             "clip" => {
