@@ -701,35 +701,36 @@ pub fn to_string(mesh: &Mesh, unit: LengthUnit) -> Result<String, MeshError> {
         );
     }
     o.push_str("$EndNodes\n");
+    // One block per run of equal tags, so element order survives a round trip.
+    fn runs(tags: &[i32]) -> Vec<(i32, usize, usize)> {
+        let mut out: Vec<(i32, usize, usize)> = Vec::new();
+        for (i, &t) in tags.iter().enumerate() {
+            match out.last_mut() {
+                Some(r) if r.0 == t => r.2 = i + 1,
+                _ => out.push((t, i, i + 1)),
+            }
+        }
+        out
+    }
+    let tri_runs = runs(&mesh.tri_tags);
+    let tet_runs = runs(&mesh.tet_tags);
     let ne = mesh.tets.len() + mesh.tris.len();
     let _ = writeln!(
         o,
         "$Elements\n{} {ne} 1 {ne}",
-        regions.len() + surfaces.len()
+        tri_runs.len() + tet_runs.len()
     );
     let mut id = 1usize;
-    for &t in &surfaces {
-        let n = mesh.tri_tags.iter().filter(|g| **g == t).count();
-        let _ = writeln!(o, "2 {t} 2 {n}");
-        for (f, _) in mesh
-            .tris
-            .iter()
-            .zip(&mesh.tri_tags)
-            .filter(|(_, g)| **g == t)
-        {
+    for (t, a, b) in tri_runs {
+        let _ = writeln!(o, "2 {t} 2 {}", b - a);
+        for f in &mesh.tris[a..b] {
             let _ = writeln!(o, "{id} {} {} {}", f[0] + 1, f[1] + 1, f[2] + 1);
             id += 1;
         }
     }
-    for &t in &regions {
-        let n = mesh.tet_tags.iter().filter(|g| **g == t).count();
-        let _ = writeln!(o, "3 {t} 4 {n}");
-        for (f, _) in mesh
-            .tets
-            .iter()
-            .zip(&mesh.tet_tags)
-            .filter(|(_, g)| **g == t)
-        {
+    for (t, a, b) in tet_runs {
+        let _ = writeln!(o, "3 {t} 4 {}", b - a);
+        for f in &mesh.tets[a..b] {
             let _ = writeln!(
                 o,
                 "{id} {} {} {} {}",
