@@ -2,6 +2,8 @@
 //! real gmsh, round trips, and malformed input that must be refused with a message (no
 //! panic).
 
+#![allow(clippy::sliced_string_as_bytes)]
+
 use std::path::{Path, PathBuf};
 
 use softc::mesh::{LengthUnit, Mesh, MeshErrorKind, load, read, save};

@@ -23,9 +23,14 @@ pub enum MeshErrorKind {
     Spec,
 }
 
-/// A mesh error with enough context for a person to fix the input.
+/// A mesh error with enough context for a person to fix the input. Boxed to keep `Result`s
+/// small; the fields are reached through `Deref` (`err.kind`, `err.line`, ...).
 #[derive(Debug, Clone)]
-pub struct MeshError {
+pub struct MeshError(Box<MeshErrorData>);
+
+/// The contents of a [`MeshError`].
+#[derive(Debug, Clone)]
+pub struct MeshErrorData {
     pub kind: MeshErrorKind,
     /// The file concerned, when there is one.
     pub file: Option<PathBuf>,
@@ -43,7 +48,7 @@ pub struct MeshError {
 
 impl MeshError {
     pub fn new(kind: MeshErrorKind, message: impl Into<String>) -> Self {
-        MeshError {
+        MeshError(Box::new(MeshErrorData {
             kind,
             file: None,
             line: None,
@@ -51,7 +56,7 @@ impl MeshError {
             message: message.into(),
             fix: None,
             issues: Vec::new(),
-        }
+        }))
     }
     pub fn parse(message: impl Into<String>) -> Self {
         Self::new(MeshErrorKind::Parse, message)
@@ -82,6 +87,19 @@ impl MeshError {
     pub fn with_fix(mut self, fix: impl Into<String>) -> Self {
         self.fix = Some(fix.into());
         self
+    }
+}
+
+impl std::ops::Deref for MeshError {
+    type Target = MeshErrorData;
+    fn deref(&self) -> &MeshErrorData {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for MeshError {
+    fn deref_mut(&mut self) -> &mut MeshErrorData {
+        &mut self.0
     }
 }
 

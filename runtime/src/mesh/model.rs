@@ -344,8 +344,7 @@ impl Mesh {
             tag,
             name: name.to_string(),
         });
-        self.names
-            .sort_by(|a, b| (a.dim, a.tag).cmp(&(b.dim, b.tag)));
+        self.names.sort_by_key(|a| (a.dim, a.tag));
     }
 
     /// Distinct region tags, sorted.

@@ -114,6 +114,7 @@ pub fn inverse3(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
 impl Precomputed {
     /// Build from a mesh and one density (kg/m³) per tet. Fails on a density count mismatch
     /// or a non-positive / singular tet (validate the mesh first).
+    #[allow(clippy::needless_range_loop)]
     pub fn new(mesh: &Mesh, density: &[f64]) -> Result<Self, MeshError> {
         let ne = mesh.tets.len();
         if density.len() != ne {
@@ -176,7 +177,7 @@ impl Precomputed {
                 raw.push(([a.min(b), a.max(b)], rest_volume[e]));
             }
         }
-        raw.sort_by(|x, y| x.0.cmp(&y.0));
+        raw.sort_by_key(|x| x.0);
         let mut edges: Vec<Edge> = Vec::new();
         for (k, v) in raw {
             match edges.last_mut() {

@@ -22,6 +22,9 @@ pub const ALPHA_LONG: f64 = 0.24999;
 /// Warp threshold on short (diagonal, length √3/2·h) lattice edges.
 pub const ALPHA_SHORT: f64 = 0.41189;
 
+/// Receives each output tet with the current node list and the tet list.
+type Emit<'a> = dyn FnMut([u32; 4], &[[f64; 3]], &mut Vec<[u32; 4]>) + 'a;
+
 /// Output of stuffing: nodes and positively oriented tets in the input units.
 pub struct Stuffed {
     pub nodes: Vec<[f64; 3]>,
@@ -284,7 +287,7 @@ fn stencil(
     get_v: &mut dyn FnMut(u32, &mut Vec<[f64; 3]>) -> u32,
     cut_id: &mut HashMap<(u32, u32), u32>,
     tets: &mut Vec<[u32; 4]>,
-    emit: &mut dyn FnMut([u32; 4], &[[f64; 3]], &mut Vec<[u32; 4]>),
+    emit: &mut Emit,
 ) {
     let mut neg = Vec::with_capacity(4);
     let mut zer = Vec::with_capacity(4);
@@ -393,12 +396,7 @@ fn centroid(p: [[f64; 3]; 4]) -> [f64; 3] {
 
 /// Split the prism with triangles (v0,v1,v2), (v3,v4,v5) (v_i joined to v_{i+3}) into three
 /// tets, every quad split along the diagonal through its smallest vertex id.
-fn prism(
-    v: [u32; 6],
-    out: &[[f64; 3]],
-    tets: &mut Vec<[u32; 4]>,
-    emit: &mut dyn FnMut([u32; 4], &[[f64; 3]], &mut Vec<[u32; 4]>),
-) {
+fn prism(v: [u32; 6], out: &[[f64; 3]], tets: &mut Vec<[u32; 4]>, emit: &mut Emit) {
     let mi = (0..6).min_by_key(|&i| v[i]).unwrap_or(0);
     // Bring the minimum to position 0 (swap top/bottom, then rotate).
     let mut w = if mi >= 3 {

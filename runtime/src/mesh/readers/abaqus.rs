@@ -40,7 +40,8 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
     let mut elsets: BTreeMap<String, Vec<i64>> = BTreeMap::new();
     let mut nsets: BTreeMap<String, Vec<i64>> = BTreeMap::new();
     // (surface name, [(elset name or element id, face number, line)])
-    let mut surfaces: Vec<(String, Vec<(String, usize, usize)>)> = Vec::new();
+    type Entries = Vec<(String, usize, usize)>;
+    let mut surfaces: Vec<(String, Entries)> = Vec::new();
     enum Mode {
         Skip,
         Node,

@@ -342,7 +342,7 @@ fn elems_v2_bin(c: &mut Cursor, b: &mut Bin, raw: &mut RawMesh) -> Result<(), Me
         let t = b.i32(c, "element block header")? as i64;
         let follow = b.i32(c, "element block header")?;
         let ntags = b.i32(c, "element block header")?;
-        if follow <= 0 || ntags < 0 || ntags > 64 || follow as usize > n - done {
+        if follow <= 0 || !(0..=64).contains(&ntags) || follow as usize > n - done {
             return Err(c.err_bin(format!(
                 "bad binary element block header (type {t}, {follow} elements, {ntags} tags)"
             )));

@@ -92,8 +92,8 @@ impl RawMesh {
         let mut elem_index: HashMap<i64, u32> = HashMap::with_capacity(self.tets.len());
         for t in &self.tets {
             let mut v = [0u32; 4];
-            for k in 0..4 {
-                v[k] = look(t.nodes[k], "element", t.id, t.line)?;
+            for (vk, &id) in v.iter_mut().zip(&t.nodes) {
+                *vk = look(id, "element", t.id, t.line)?;
             }
             elem_index.insert(t.id, tets.len() as u32);
             tets.push(v);
@@ -103,8 +103,8 @@ impl RawMesh {
         let mut tri_tags = Vec::with_capacity(self.tris.len());
         for t in &self.tris {
             let mut v = [0u32; 3];
-            for k in 0..3 {
-                v[k] = look(t.nodes[k], "surface triangle", t.id, t.line)?;
+            for (vk, &id) in v.iter_mut().zip(&t.nodes) {
+                *vk = look(id, "surface triangle", t.id, t.line)?;
             }
             tris.push(v);
             tri_tags.push(t.tag);
@@ -135,7 +135,7 @@ impl RawMesh {
             element_sets.insert(name, v);
         }
         let mut names = self.names;
-        names.sort_by(|a, b| (a.dim, a.tag).cmp(&(b.dim, b.tag)));
+        names.sort_by_key(|a| (a.dim, a.tag));
         names.dedup_by(|a, b| a.dim == b.dim && a.tag == b.tag);
         let mut mesh = Mesh {
             nodes,
@@ -160,19 +160,32 @@ pub(crate) struct Cursor<'a> {
     pub data: &'a [u8],
     pub pos: usize,
     pub path: &'a Path,
+    /// `(offset, line at offset)` of the last line lookup, so sequential lookups are O(1)
+    /// amortized.
+    line_cache: std::cell::Cell<(usize, usize)>,
 }
 
 impl<'a> Cursor<'a> {
     pub fn new(data: &'a [u8], path: &'a Path) -> Self {
-        Cursor { data, pos: 0, path }
+        Cursor {
+            data,
+            pos: 0,
+            path,
+            line_cache: std::cell::Cell::new((0, 1)),
+        }
     }
 
     /// 1-based line of byte offset `pos`.
     pub fn line_at(&self, pos: usize) -> usize {
-        1 + self.data[..pos.min(self.data.len())]
-            .iter()
-            .filter(|&&b| b == b'\n')
-            .count()
+        let pos = pos.min(self.data.len());
+        let (mut from, mut line) = self.line_cache.get();
+        if pos < from {
+            from = 0;
+            line = 1;
+        }
+        line += self.data[from..pos].iter().filter(|&&b| b == b'\n').count();
+        self.line_cache.set((pos, line));
+        line
     }
 
     pub fn err(&self, msg: impl Into<String>) -> MeshError {

@@ -8,8 +8,11 @@ use std::path::Path;
 use super::{Cursor, read_bytes};
 use crate::mesh::error::MeshError;
 
+/// Welded vertices and triangles of a surface.
+pub type Surface = (Vec<[f64; 3]>, Vec<[u32; 3]>);
+
 /// Read an STL file into welded vertices and triangles (file units).
-pub fn read(path: &Path) -> Result<(Vec<[f64; 3]>, Vec<[u32; 3]>), MeshError> {
+pub fn read(path: &Path) -> Result<Surface, MeshError> {
     let data = read_bytes(path)?;
     let mut soup: Vec<[[f64; 3]; 3]> = Vec::new();
     let is_binary = data.len() >= 84 && {
@@ -103,7 +106,7 @@ pub fn read(path: &Path) -> Result<(Vec<[f64; 3]>, Vec<[u32; 3]>), MeshError> {
 
 /// Read an STL surface and check it is closed and manifold (every edge in exactly two
 /// triangles, traversed once in each direction).
-pub fn read_closed(path: &Path) -> Result<(Vec<[f64; 3]>, Vec<[u32; 3]>), MeshError> {
+pub fn read_closed(path: &Path) -> Result<Surface, MeshError> {
     let (v, t) = read(path)?;
     let mut edges: Vec<(u32, u32, i32)> = Vec::new();
     for f in &t {

@@ -148,7 +148,7 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
                     for _ in 0..n {
                         off.push(c.num::<usize>("offset")?);
                     }
-                    if c.need("CONNECTIVITY")?.to_ascii_uppercase() != "CONNECTIVITY" {
+                    if !c.need("CONNECTIVITY")?.eq_ignore_ascii_case("CONNECTIVITY") {
                         return Err(c.err("expected CONNECTIVITY"));
                     }
                     c.need("connectivity type")?;
