@@ -358,11 +358,9 @@ fn malformed_other_formats_are_refused() {
         vtk.replace("\n1 1 1\n", "\n1 NaN 1\n").as_bytes(),
         &["non-finite"],
     );
-    refuse(
-        "bin.vtk",
-        vtk.replace("ASCII", "BINARY").as_bytes(),
-        &["binary", "fix:"],
-    );
+    let bin = std::fs::read(fx("cube_binary.vtk")).unwrap();
+    refuse("trunc_bin.vtk", &bin[..bin.len() - 40], &["truncated"]);
+    refuse("kind.vtk", vtk.replace("ASCII", "HEX").as_bytes(), &["HEX"]);
     let vtu = fixture_text("cube_ascii.vtu");
     refuse("trunc.vtu", vtu[..vtu.len() * 2 / 3].as_bytes(), &[]);
     refuse(
@@ -407,6 +405,17 @@ fn malformed_other_formats_are_refused() {
     let e = load(&d.join("cube.ele"), LengthUnit::Millimetre).unwrap_err();
     assert!(
         e.to_string().contains("cube.ele") && e.to_string().contains("60"),
+        "{e}"
+    );
+    std::fs::write(d.join("cube.ele"), fixture_text("cube.ele")).unwrap();
+    std::fs::write(
+        d.join("cube.node"),
+        fixture_text("cube.node").replace("3 0 1 0", "3 0 nan 0"),
+    )
+    .unwrap();
+    let e = load(&d.join("cube.face"), LengthUnit::Millimetre).unwrap_err();
+    assert!(
+        e.to_string().contains("cube.node:5") && e.to_string().contains("node 3"),
         "{e}"
     );
     std::fs::remove_dir_all(&d).unwrap();

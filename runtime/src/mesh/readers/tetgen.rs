@@ -113,6 +113,14 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
             tok.float(t, 2, *line, "y coordinate")?,
             tok.float(t, 3, *line, "z coordinate")?,
         ];
+        if !p.iter().all(|x| x.is_finite()) {
+            return Err(
+                MeshError::parse(format!("node {id} has a non-finite coordinate {p:?}"))
+                    .in_file(&node_p)
+                    .at_line(*line)
+                    .with_fix("replace NaN/inf coordinates with real numbers"),
+            );
+        }
         raw.add_node(id, p, *line);
     }
     // .ele

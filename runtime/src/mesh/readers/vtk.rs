@@ -1,11 +1,11 @@
-//! Legacy VTK (`.vtk`) reader: ASCII `UNSTRUCTURED_GRID`, both the classic `CELLS n size`
+//! Legacy VTK (`.vtk`) reader: ASCII or BINARY (big-endian) `UNSTRUCTURED_GRID`, both the classic `CELLS n size`
 //! layout and the 5.1 `OFFSETS`/`CONNECTIVITY` layout. Tets (type 10) become elements,
 //! triangles (type 5) tagged surfaces; the cell tag comes from an integer cell array named
 //! `tag`, `gmsh:physical`, `CellEntityIds`, `region`, `cell_tags` or `MaterialIds` (else 1).
 
 use std::path::Path;
 
-use super::{Cursor, RawElem, RawMesh, cap, read_bytes, truncate};
+use super::{Cursor, RawElem, RawMesh, read_bytes, truncate};
 use crate::mesh::error::MeshError;
 use crate::mesh::model::{LengthUnit, Mesh};
 
@@ -89,7 +89,7 @@ pub(crate) fn assemble(
     Ok(raw)
 }
 
-/// Read a legacy `.vtk` file.
+/// Read a legacy `.vtk` file (ASCII or BINARY, i.e. big-endian raw arrays).
 pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
     let data = read_bytes(path)?;
     let mut c = Cursor::new(&data, path);
@@ -101,14 +101,16 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
     }
     c.rest_of_line(); // title
     let fmt = c.need("ASCII or BINARY")?;
-    if fmt.eq_ignore_ascii_case("BINARY") {
-        return Err(c
-            .err("binary legacy VTK is not supported")
-            .with_fix("save as ASCII legacy VTK, or as .vtu"));
-    }
-    if !fmt.eq_ignore_ascii_case("ASCII") {
-        return Err(c.err(format!("expected ASCII, found `{}`", truncate(fmt))));
-    }
+    let binary = if fmt.eq_ignore_ascii_case("BINARY") {
+        true
+    } else if fmt.eq_ignore_ascii_case("ASCII") {
+        false
+    } else {
+        return Err(c.err(format!(
+            "expected ASCII or BINARY, found `{}`",
+            truncate(fmt)
+        )));
+    };
     let mut points: Vec<[f64; 3]> = Vec::new();
     let mut cells: Vec<Vec<i64>> = Vec::new();
     let mut types: Vec<i64> = Vec::new();
@@ -128,12 +130,9 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
             }
             "POINTS" => {
                 let n: usize = c.num("number of points")?;
-                c.need("point data type")?;
-                points.reserve(cap(n, data.len()));
-                for _ in 0..n {
-                    let p = [c.float("x")?, c.float("y")?, c.float("z")?];
-                    points.push(p);
-                }
+                let ty = c.need("point data type")?;
+                let v = values(&mut c, n.saturating_mul(3), ty, binary)?;
+                points = v.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect();
             }
             "CELLS" => {
                 let n: usize = c.num("number of cells")?;
@@ -143,49 +142,43 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
                 let next = c.token();
                 if next.is_some_and(|t| t.eq_ignore_ascii_case("OFFSETS")) {
                     // 5.1 layout: n = number of offsets, size = connectivity length.
-                    c.need("offsets type")?;
-                    let mut off = Vec::with_capacity(cap(n, data.len()));
-                    for _ in 0..n {
-                        off.push(c.num::<usize>("offset")?);
-                    }
+                    let ty = c.need("offsets type")?;
+                    let off = values(&mut c, n, ty, binary)?;
                     if !c.need("CONNECTIVITY")?.eq_ignore_ascii_case("CONNECTIVITY") {
                         return Err(c.err("expected CONNECTIVITY"));
                     }
-                    c.need("connectivity type")?;
-                    let mut conn = Vec::with_capacity(cap(size, data.len()));
-                    for _ in 0..size {
-                        conn.push(c.num::<i64>("node index")?);
-                    }
+                    let ty = c.need("connectivity type")?;
+                    let conn = values(&mut c, size, ty, binary)?;
                     for w in off.windows(2) {
-                        if w[0] > w[1] || w[1] > conn.len() {
+                        let (a, b) = (w[0] as usize, w[1] as usize);
+                        if a > b || b > conn.len() {
                             return Err(c.err("OFFSETS are not increasing or exceed CONNECTIVITY"));
                         }
-                        cells.push(conn[w[0]..w[1]].to_vec());
+                        cells.push(conn[a..b].iter().map(|x| *x as i64).collect());
                     }
                 } else {
                     c.pos = save;
-                    let mut used = 0;
-                    for i in 0..n {
-                        let k: usize = c.num("cell size")?;
-                        used += k + 1;
-                        if k > 64 || used > size {
+                    let list = values(&mut c, size, "int", binary)?;
+                    let mut i = 0;
+                    for k in 0..n {
+                        let len = list.get(i).copied().unwrap_or(-1.0);
+                        if !(0.0..=64.0).contains(&len) || i + 1 + len as usize > list.len() {
                             return Err(c.err(format!(
-                                "cell {i} claims {k} nodes; counts do not match CELLS {n} {size}"
+                                "cell {k}: bad node count {len}; counts do not match CELLS {n} {size}"
                             )));
                         }
-                        let mut v = Vec::with_capacity(k);
-                        for _ in 0..k {
-                            v.push(c.num::<i64>("node index")?);
-                        }
-                        cells.push(v);
+                        let len = len as usize;
+                        cells.push(list[i + 1..i + 1 + len].iter().map(|x| *x as i64).collect());
+                        i += len + 1;
                     }
                 }
             }
             "CELL_TYPES" => {
                 let n: usize = c.num("number of cell types")?;
-                for _ in 0..n {
-                    types.push(c.num::<i64>("cell type")?);
-                }
+                types = values(&mut c, n, "int", binary)?
+                    .iter()
+                    .map(|x| *x as i64)
+                    .collect();
             }
             "CELL_DATA" => {
                 cell_data = true;
@@ -197,7 +190,7 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
             }
             "SCALARS" => {
                 let name = c.need("array name")?.to_string();
-                c.need("data type")?;
+                let ty = c.need("data type")?;
                 let rest = c.rest_of_line();
                 let ncomp: usize = rest.trim().parse().unwrap_or(1);
                 c.skip_ws();
@@ -210,7 +203,7 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
                     c.pos = save;
                 }
                 let count = if cell_data { ncells_data } else { points.len() } * ncomp.max(1);
-                let vals = read_values(&mut c, count)?;
+                let vals = values(&mut c, count, ty, binary)?;
                 consider(cell_data, &name, ncomp, vals, &mut tags, &mut tag_rank);
             }
             "FIELD" => {
@@ -220,16 +213,16 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
                     let name = c.need("array name")?.to_string();
                     let ncomp: usize = c.num("number of components")?;
                     let ntup: usize = c.num("number of tuples")?;
-                    c.need("data type")?;
-                    let vals = read_values(&mut c, ncomp.saturating_mul(ntup))?;
+                    let ty = c.need("data type")?;
+                    let vals = values(&mut c, ncomp.saturating_mul(ntup), ty, binary)?;
                     consider(cell_data, &name, ncomp, vals, &mut tags, &mut tag_rank);
                 }
             }
             "VECTORS" | "NORMALS" => {
                 c.need("array name")?;
-                c.need("data type")?;
+                let ty = c.need("data type")?;
                 let count = if cell_data { ncells_data } else { points.len() } * 3;
-                read_values(&mut c, count)?;
+                values(&mut c, count, ty, binary)?;
             }
             "METADATA" => {
                 // Skip to the blank line that ends a metadata block.
@@ -243,28 +236,62 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
             other => {
                 return Err(c
                     .err(format!("unexpected `{}` in legacy VTK", truncate(other)))
-                    .with_fix("softc reads ASCII UNSTRUCTURED_GRID files"));
+                    .with_fix("softc reads UNSTRUCTURED_GRID files"));
             }
         }
     }
-    let tags = tags.map(|t| t.into_iter().collect::<Vec<_>>());
-    let mut raw = assemble(&c, points, cells, types, tags)?;
-    // Node ids are 0-based indices; keep them so error messages match the file.
-    raw.node_lines.iter_mut().for_each(|l| *l = 0);
+    let raw = assemble(&c, points, cells, types, tags)?;
     raw.finish(path, unit)
 }
 
-fn read_values(c: &mut Cursor, count: usize) -> Result<Vec<f64>, MeshError> {
+/// `count` numbers of VTK type `ty`: whitespace-separated text, or big-endian raw data
+/// starting on the line after the header.
+fn values(c: &mut Cursor, count: usize, ty: &str, binary: bool) -> Result<Vec<f64>, MeshError> {
     if count > c.data.len() {
         return Err(c.err(format!(
             "array claims {count} values, more than the file holds"
         )));
     }
-    let mut v = Vec::with_capacity(count);
-    for _ in 0..count {
-        v.push(c.float("array value")?);
+    if !binary {
+        let mut v = Vec::with_capacity(count);
+        for _ in 0..count {
+            v.push(c.float("array value")?);
+        }
+        return Ok(v);
     }
-    Ok(v)
+    let t = ty.to_ascii_lowercase();
+    let size = match t.as_str() {
+        "bit" => {
+            return Err(c.err("binary arrays of type bit are not supported"));
+        }
+        "char" | "unsigned_char" | "int8" | "uint8" | "vtktypeint8" | "vtktypeuint8" => 1,
+        "short" | "unsigned_short" | "vtktypeint16" | "vtktypeuint16" => 2,
+        "int" | "unsigned_int" | "float" | "vtktypeint32" | "vtktypeuint32" | "vtktypefloat32" => 4,
+        "long" | "unsigned_long" | "double" | "vtktypeint64" | "vtktypeuint64"
+        | "vtktypefloat64" | "vtkidtype" => 8,
+        _ => return Err(c.err(format!("unknown VTK data type `{}`", truncate(ty)))),
+    };
+    c.end_header_line();
+    let bytes = c.bytes(count * size, "binary VTK array")?;
+    let signed = !t.starts_with("unsigned") && !t.contains("uint");
+    let float = t == "float" || t == "double" || t.contains("float");
+    Ok(bytes
+        .chunks_exact(size)
+        .map(|ch| {
+            let mut b = [0u8; 8];
+            b[8 - size..].copy_from_slice(ch);
+            let u = u64::from_be_bytes(b);
+            match (size, float, signed) {
+                (4, true, _) => f32::from_bits(u as u32) as f64,
+                (8, true, _) => f64::from_bits(u),
+                (1, _, true) => u as u8 as i8 as f64,
+                (2, _, true) => u as u16 as i16 as f64,
+                (4, _, true) => u as u32 as i32 as f64,
+                (8, _, true) => u as i64 as f64,
+                _ => u as f64,
+            }
+        })
+        .collect())
 }
 
 fn consider(
