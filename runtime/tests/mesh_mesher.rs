@@ -477,3 +477,55 @@ fn shipped_cuboid_is_exact() {
     assert_eq!(g.mesh.tag_name(3, 1), Some("solid"));
     assert!(g.mesh.node_sets.contains_key("base") && g.mesh.node_sets.contains_key("tip"));
 }
+
+#[test]
+fn subregions_assign_region_tags_for_materials() {
+    let text = format!(
+        "{ALIGNED}\n[[subregion]]\ntag = 3\nname = \"stiff\"\nshape = \"box\"\nmin = [6, -1, -1]\nmax = [13, 7, 7]\n"
+    );
+    let g = gen_(&text, None);
+    let m = &g.mesh;
+    check_sound(m, "subregion");
+    assert_eq!(m.region_tags(), vec![1, 3]);
+    assert_eq!(m.resolve_region("stiff"), Ok(3));
+    assert_eq!(m.resolve_region("solid"), Ok(1));
+    assert!(
+        m.resolve_region("rubber")
+            .unwrap_err()
+            .contains("3 (stiff)")
+    );
+    // Tets are assigned by centroid, so the interface is jagged at lattice scale: the stiff
+    // part holds about half of the solid, and every stiff tet's centroid has x > 6 mm.
+    let v3: f64 = (0..m.tets.len())
+        .filter(|e| m.tet_tags[*e] == 3)
+        .map(|e| m.tet_volume(e))
+        .sum();
+    assert!(
+        (v3 - g.reference_volume / 2.0).abs() < 0.05 * g.reference_volume,
+        "{v3}"
+    );
+    for e in 0..m.tets.len() {
+        let p = m.tet_points(e);
+        let cx = (p[0][0] + p[1][0] + p[2][0] + p[3][0]) / 4.0;
+        assert_eq!(m.tet_tags[e] == 3, cx > 6e-3, "tet {e}");
+    }
+    // Kuhn grids take subregions too.
+    let k = shipped_text("bench_1k.toml")
+        + "\n[[subregion]]\ntag = 2\nname = \"tipmat\"\nshape = \"box\"\nmin = [50, -1, -1]\nmax = [61, 11, 11]\n";
+    let g = gen_(&k, None);
+    assert_eq!(g.mesh.region_tags(), vec![1, 2]);
+    assert_eq!(
+        // x ∈ [50, 60]: 2 × 4 × 4 cells minus 2 cavity cells.
+        g.mesh.tet_tags.iter().filter(|t| **t == 2).count(),
+        (2 * 4 * 4 - 2) * 6
+    );
+}
+
+fn shipped_text(name: &str) -> String {
+    std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../meshes")
+            .join(name),
+    )
+    .unwrap()
+}

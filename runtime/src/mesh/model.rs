@@ -402,6 +402,31 @@ impl Mesh {
         ))
     }
 
+    /// Resolve a region given by name or number (`"solid"` or `"1"`), with an error that lists
+    /// the regions the mesh has.
+    pub fn resolve_region(&self, name_or_tag: &str) -> Result<i32, String> {
+        if let Some(t) = self.tag_by_name(3, name_or_tag) {
+            return Ok(t);
+        }
+        if let Ok(t) = name_or_tag.trim().parse::<i32>()
+            && self.tet_tags.contains(&t)
+        {
+            return Ok(t);
+        }
+        let avail: Vec<String> = self
+            .region_tags()
+            .iter()
+            .map(|t| match self.tag_name(3, *t) {
+                Some(n) => format!("{t} ({n})"),
+                None => t.to_string(),
+            })
+            .collect();
+        Err(format!(
+            "unknown region `{name_or_tag}`; this mesh has region tags: {}",
+            avail.join(", ")
+        ))
+    }
+
     /// Nodes of the surface with tag `tag`, sorted and unique.
     pub fn surface_nodes(&self, tag: i32) -> Vec<u32> {
         let mut n: Vec<u32> = self.surface(tag).into_iter().flatten().collect();

@@ -24,6 +24,12 @@
 //! [tip]                  # optional: body faces on the plane x = max x of the body
 //! tag = 11
 //! name = "tip"
+//! [[subregion]]          # optional, any number: tets whose centroid is inside get this
+//! tag = 2                # region tag (a second material); later entries win
+//! name = "stiff"
+//! shape = "box"
+//! min = [0, 0, 0]
+//! max = [10, 10, 10]
 //! # [kuhn] n = [12, 4, 4]  → structured Kuhn grid instead (box body, ≤ 1 box cavity)
 //! ```
 
@@ -84,6 +90,10 @@ pub struct MeshSpec {
     pub base: Option<TagSpec>,
     pub tip: Option<TagSpec>,
     pub kuhn: Option<KuhnSection>,
+    /// Parts of the solid with their own region tag (materials): tets whose centroid lies
+    /// inside the shape get `tag`; later entries win.
+    #[serde(default)]
+    pub subregion: Vec<ShapeSpec>,
 }
 
 /// A generated mesh with what is known about its input geometry.
@@ -215,6 +225,19 @@ pub fn generate(
         let name = c.name.clone().unwrap_or_else(|| format!("chamber{tag}"));
         cavities.push((shape, tag, name));
     }
+    let mut subregions = Vec::new();
+    for (i, r) in spec.subregion.iter().enumerate() {
+        let what = format!("subregion {}", i + 1);
+        let shape = shape_of(r, &what, base_dir, unit)?;
+        let tag = r
+            .tag
+            .ok_or_else(|| MeshError::spec(format!("{what}: needs a `tag`")))?;
+        if tag <= 0 {
+            return Err(MeshError::spec(format!("{what}: tag must be ≥ 1")));
+        }
+        let name = r.name.clone().unwrap_or_else(|| format!("region{tag}"));
+        subregions.push((shape, tag, name));
+    }
     let reference_volume =
         (body.volume() - cavities.iter().map(|c| c.0.volume()).sum::<f64>()) * s * s * s;
     let cavity_volumes: Vec<(i32, f64)> = cavities
@@ -254,6 +277,7 @@ pub fn generate(
         }
         retag_all(&mut mesh, &map);
         retag_region(&mut mesh, &region);
+        apply_subregions(&mut mesh, &subregions, s);
         return Ok(Generated {
             mesh,
             reference_volume,
@@ -328,6 +352,7 @@ pub fn generate(
         mesh.set_name(2, b.tag, &b.name);
     }
     mesh.scale(s);
+    apply_subregions(&mut mesh, &subregions, s);
     for sel in [&spec.base, &spec.tip].into_iter().flatten() {
         let nodes = mesh.surface_nodes(sel.tag);
         mesh.node_sets.insert(sel.name.clone(), nodes);
@@ -362,6 +387,27 @@ fn retag_all(mesh: &mut Mesh, map: &[(i32, i32, String)]) {
             mesh.node_sets.insert(name.clone(), nodes);
         }
     }
+}
+
+/// Give tets whose centroid (metres) lies inside a subregion shape (spec units, scale `s`
+/// metres per unit) that subregion's tag and name.
+fn apply_subregions(mesh: &mut Mesh, subs: &[(Shape, i32, String)], s: f64) {
+    for (shape, tag, name) in subs {
+        let mut any = false;
+        for e in 0..mesh.tets.len() {
+            let p = mesh.tet_points(e);
+            let c = [0, 1, 2].map(|k| (p[0][k] + p[1][k] + p[2][k] + p[3][k]) / (4.0 * s));
+            if shape.sdf(c) < 0.0 {
+                mesh.tet_tags[e] = *tag;
+                any = true;
+            }
+        }
+        if any {
+            mesh.set_name(3, *tag, name);
+        }
+    }
+    let used = mesh.region_tags();
+    mesh.names.retain(|p| p.dim != 3 || used.contains(&p.tag));
 }
 
 fn retag_region(mesh: &mut Mesh, region: &TagSpec) {
