@@ -501,3 +501,41 @@ fn every_truncation_of_the_small_fixtures_is_handled() {
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+#[test]
+fn vtu_binary_and_ascii_encodings_read_back_identically() {
+    use softc::mesh::writers::{Field, VtuEncoding, vtu_document};
+    let m = load(&fx("gmsh_cube_v41.msh"), LengthUnit::Millimetre).unwrap();
+    let d = tmpdir("vtuenc");
+    let e: Vec<f64> = (0..m.tets.len()).map(|i| i as f64 * 0.5).collect();
+    let mut back = Vec::new();
+    for (enc, name) in [
+        (VtuEncoding::Ascii, "a.vtu"),
+        (VtuEncoding::Binary, "b.vtu"),
+    ] {
+        let doc = vtu_document(
+            &m,
+            LengthUnit::Millimetre,
+            None,
+            &[],
+            &[("energy", Field::Scalar(&e))],
+            enc,
+        );
+        if enc == VtuEncoding::Binary {
+            assert!(doc.contains("format=\"binary\"") && !doc.contains("format=\"ascii\""));
+        }
+        std::fs::write(d.join(name), doc).unwrap();
+        back.push(load(&d.join(name), LengthUnit::Millimetre).unwrap());
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+    assert_eq!(back[0].tets, m.tets);
+    assert_eq!(back[1].tets, m.tets);
+    assert_eq!(back[1].tri_tags, m.tri_tags);
+    assert_eq!(back[1].tet_tags, m.tet_tags);
+    // Binary keeps coordinates to the rounding of the mm→m conversion.
+    for (p, q) in back[1].nodes.iter().zip(&m.nodes) {
+        for k in 0..3 {
+            assert!((p[k] - q[k]).abs() <= 1e-17, "{p:?} {q:?}");
+        }
+    }
+}

@@ -114,3 +114,34 @@ fn edges_and_surfaces() {
     assert_eq!(cav.tris, m.surface(CAVITY_TAG));
     assert!(!p.surface(10).unwrap().chamber);
 }
+
+#[test]
+fn min_altitude_is_the_shortest_height() {
+    // Corner tet of the unit cube: the height over the slanted face is 1/√3.
+    let m = softc::mesh::Mesh::from_tets(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ],
+        vec![[0, 1, 2, 3]],
+    );
+    let p = Precomputed::with_uniform_density(&m, 1.0).unwrap();
+    assert!((p.min_altitude[0] - 1.0 / 3f64.sqrt()).abs() < 1e-15);
+    let m = kuhn_grid(&KuhnSpec::benchmark(12, 4, 4), LengthUnit::Millimetre).unwrap();
+    let p = Precomputed::with_uniform_density(&m, 1.0).unwrap();
+    let p2 = Precomputed::with_uniform_density(&m, 1.0).unwrap();
+    assert_eq!(p, p2, "deterministic");
+    for e in 0..m.tets.len() {
+        let x = m.tet_points(e);
+        let shortest = softc::mesh::model::TET_EDGES
+            .iter()
+            .map(|ed| {
+                let d = [0, 1, 2].map(|k| x[ed[0]][k] - x[ed[1]][k]);
+                (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+            })
+            .fold(f64::INFINITY, f64::min);
+        assert!(p.min_altitude[e] > 0.0 && p.min_altitude[e] <= shortest);
+    }
+}

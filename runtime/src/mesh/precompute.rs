@@ -70,6 +70,9 @@ pub struct SurfaceTris {
 pub struct Precomputed {
     /// Rest volume per tet, m³.
     pub rest_volume: Vec<f64>,
+    /// Smallest altitude per tet, `3V / (largest face area)`, m — the element length of the
+    /// explicit stable-time-step estimate `dt ≈ h_min / c_d`.
+    pub min_altitude: Vec<f64>,
     /// `Dm⁻¹` per tet, row-major, with `Dm = [x1−x0, x2−x0, x3−x0]` (columns).
     pub dm_inv: Vec<[[f64; 3]; 3]>,
     /// Lumped mass per node, kg: `ρ_e·V_e/4` from each adjacent tet.
@@ -126,6 +129,7 @@ impl Precomputed {
         let nn = mesh.nodes.len();
         let mut rest_volume = Vec::with_capacity(ne);
         let mut dm_inv = Vec::with_capacity(ne);
+        let mut min_altitude = Vec::with_capacity(ne);
         let mut mass = vec![0.0; nn];
         for e in 0..ne {
             if mesh.tets[e].iter().any(|&n| n as usize >= nn) {
@@ -150,7 +154,12 @@ impl Precomputed {
             ];
             let inv = inverse3(dm)
                 .ok_or_else(|| MeshError::parse(format!("element {e} has a singular Dm matrix")))?;
+            let amax = super::model::TET_FACES
+                .iter()
+                .map(|f| norm(super::model::area_vector(p[f[0]], p[f[1]], p[f[2]])))
+                .fold(0.0, f64::max);
             rest_volume.push(v);
+            min_altitude.push(3.0 * v / amax);
             dm_inv.push(inv);
             let m = density[e] * v / 4.0;
             for &n in &mesh.tets[e] {
@@ -191,6 +200,7 @@ impl Precomputed {
         }
         Ok(Precomputed {
             rest_volume,
+            min_altitude,
             dm_inv,
             mass,
             node_elements,

@@ -47,6 +47,75 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MeshError> {
     Ok(())
 }
 
+/// How `.vtu` data arrays are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum VtuEncoding {
+    /// Text: readable, about 3× larger and slower to write.
+    Ascii,
+    /// Inline base64 of little-endian binary with a UInt64 byte-count header (ParaView's
+    /// default "binary" mode, uncompressed).
+    #[default]
+    Binary,
+}
+
+fn b64_encode(data: &[u8], out: &mut String) {
+    const T: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    for ch in data.chunks(3) {
+        let b = [ch[0], *ch.get(1).unwrap_or(&0), *ch.get(2).unwrap_or(&0)];
+        let n = ((b[0] as u32) << 16) | ((b[1] as u32) << 8) | b[2] as u32;
+        for k in 0..4 {
+            if k <= ch.len() {
+                out.push(T[((n >> (18 - 6 * k)) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+}
+
+/// One binary DataArray: `type` name, values as little-endian bytes.
+fn push_binary(o: &mut String, ty: &str, name: &str, ncomp: usize, bytes: &[u8]) {
+    let nc = if ncomp > 1 {
+        format!(" NumberOfComponents=\"{ncomp}\"")
+    } else {
+        String::new()
+    };
+    let nm = if name.is_empty() {
+        String::new()
+    } else {
+        format!(" Name=\"{name}\"")
+    };
+    let _ = write!(
+        o,
+        "        <DataArray type=\"{ty}\"{nm}{nc} format=\"binary\">"
+    );
+    let mut buf = (bytes.len() as u64).to_le_bytes().to_vec();
+    buf.extend_from_slice(bytes);
+    b64_encode(&buf, o);
+    o.push_str("</DataArray>\n");
+}
+
+fn push_field_bin(o: &mut String, name: &str, f: &Field, pad_to: usize) {
+    let name = name.replace(['"', '<', '>', '&'], "_");
+    match f {
+        Field::Scalar(v) => {
+            let mut b: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+            b.resize(8 * pad_to.max(v.len()), 0);
+            push_binary(o, "Float64", &name, 1, &b);
+        }
+        Field::Vector(v) => {
+            let mut b: Vec<u8> = v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+            b.resize(24 * pad_to.max(v.len()), 0);
+            push_binary(o, "Float64", &name, 3, &b);
+        }
+        Field::Int(v) => {
+            let mut b: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+            b.resize(4 * pad_to.max(v.len()), 0);
+            push_binary(o, "Int32", &name, 1, &b);
+        }
+    }
+}
+
 fn push_field(o: &mut String, name: &str, f: &Field, pad_to: usize) {
     let name = name.replace(['"', '<', '>', '&'], "_");
     match f {
@@ -90,10 +159,7 @@ fn push_field(o: &mut String, name: &str, f: &Field, pad_to: usize) {
     o.push_str("        </DataArray>\n");
 }
 
-/// A `.vtu` document: tets (VTK type 10) followed by the tagged triangles (type 5). Cell
-/// array `tag` holds the region tag of tets and the surface tag of triangles. `positions`
-/// replaces the rest positions (deformed state; metres, written in `unit`); point fields are
-/// written as given (SI), cell fields are per tet (triangles get 0).
+/// A `.vtu` document with ASCII arrays (see [`vtu_document`]).
 pub fn vtu_string(
     mesh: &Mesh,
     unit: LengthUnit,
@@ -101,9 +167,32 @@ pub fn vtu_string(
     point_data: &[(&str, Field)],
     cell_data: &[(&str, Field)],
 ) -> String {
+    vtu_document(
+        mesh,
+        unit,
+        positions,
+        point_data,
+        cell_data,
+        VtuEncoding::Ascii,
+    )
+}
+
+/// A `.vtu` document: tets (VTK type 10) followed by the tagged triangles (type 5). Cell
+/// array `tag` holds the region tag of tets and the surface tag of triangles. `positions`
+/// replaces the rest positions (deformed state; metres, written in `unit`); point fields are
+/// written as given (SI), cell fields are per tet (triangles get 0).
+pub fn vtu_document(
+    mesh: &Mesh,
+    unit: LengthUnit,
+    positions: Option<&[[f64; 3]]>,
+    point_data: &[(&str, Field)],
+    cell_data: &[(&str, Field)],
+    encoding: VtuEncoding,
+) -> String {
     let s = 1.0 / unit.to_metres();
     let pos = positions.unwrap_or(&mesh.nodes);
     let nc = mesh.tets.len() + mesh.tris.len();
+    let bin = encoding == VtuEncoding::Binary;
     let mut o = String::with_capacity(nc * 40 + pos.len() * 60);
     o.push_str("<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\" header_type=\"UInt64\">\n  <UnstructuredGrid>\n");
     let _ = writeln!(
@@ -112,46 +201,82 @@ pub fn vtu_string(
         pos.len()
     );
     let _ = writeln!(o, "      <!-- length unit: {unit} -->");
-    o.push_str("      <Points>\n        <DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n");
-    for p in pos {
-        let _ = writeln!(
-            o,
-            "{} {} {}",
-            fmt_coord(p[0] * s),
-            fmt_coord(p[1] * s),
-            fmt_coord(p[2] * s)
-        );
-    }
-    o.push_str("        </DataArray>\n      </Points>\n      <Cells>\n");
-    o.push_str("        <DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n");
-    for t in &mesh.tets {
-        let _ = writeln!(o, "{} {} {} {}", t[0], t[1], t[2], t[3]);
-    }
-    for t in &mesh.tris {
-        let _ = writeln!(o, "{} {} {}", t[0], t[1], t[2]);
-    }
-    o.push_str("        </DataArray>\n        <DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n");
+    o.push_str("      <Points>\n");
+    let conn: Vec<i64> = mesh
+        .tets
+        .iter()
+        .flat_map(|t| t.iter().map(|&v| v as i64))
+        .chain(mesh.tris.iter().flat_map(|t| t.iter().map(|&v| v as i64)))
+        .collect();
+    let mut offs: Vec<i64> = Vec::with_capacity(nc);
     let mut off = 0;
     for _ in &mesh.tets {
         off += 4;
-        let _ = writeln!(o, "{off}");
+        offs.push(off);
     }
     for _ in &mesh.tris {
         off += 3;
-        let _ = writeln!(o, "{off}");
+        offs.push(off);
     }
-    o.push_str("        </DataArray>\n        <DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n");
-    for _ in &mesh.tets {
-        o.push_str("10\n");
+    let types: Vec<u8> = std::iter::repeat_n(10u8, mesh.tets.len())
+        .chain(std::iter::repeat_n(5u8, mesh.tris.len()))
+        .collect();
+    if bin {
+        let b: Vec<u8> = pos
+            .iter()
+            .flat_map(|p| [p[0] * s, p[1] * s, p[2] * s])
+            .flat_map(|x| x.to_le_bytes())
+            .collect();
+        push_binary(&mut o, "Float64", "", 3, &b);
+        o.push_str("      </Points>\n      <Cells>\n");
+        let b: Vec<u8> = conn.iter().flat_map(|x| x.to_le_bytes()).collect();
+        push_binary(&mut o, "Int64", "connectivity", 1, &b);
+        let b: Vec<u8> = offs.iter().flat_map(|x| x.to_le_bytes()).collect();
+        push_binary(&mut o, "Int64", "offsets", 1, &b);
+        push_binary(&mut o, "UInt8", "types", 1, &types);
+    } else {
+        o.push_str(
+            "        <DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n",
+        );
+        for p in pos {
+            let _ = writeln!(
+                o,
+                "{} {} {}",
+                fmt_coord(p[0] * s),
+                fmt_coord(p[1] * s),
+                fmt_coord(p[2] * s)
+            );
+        }
+        o.push_str("        </DataArray>\n      </Points>\n      <Cells>\n");
+        o.push_str("        <DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n");
+        for t in &mesh.tets {
+            let _ = writeln!(o, "{} {} {} {}", t[0], t[1], t[2], t[3]);
+        }
+        for t in &mesh.tris {
+            let _ = writeln!(o, "{} {} {}", t[0], t[1], t[2]);
+        }
+        o.push_str("        </DataArray>\n        <DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n");
+        for x in &offs {
+            let _ = writeln!(o, "{x}");
+        }
+        o.push_str("        </DataArray>\n        <DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n");
+        for x in &types {
+            let _ = writeln!(o, "{x}");
+        }
+        o.push_str("        </DataArray>\n");
     }
-    for _ in &mesh.tris {
-        o.push_str("5\n");
-    }
-    o.push_str("        </DataArray>\n      </Cells>\n");
+    o.push_str("      </Cells>\n");
+    let field = |o: &mut String, n: &str, f: &Field, pad: usize| {
+        if bin {
+            push_field_bin(o, n, f, pad)
+        } else {
+            push_field(o, n, f, pad)
+        }
+    };
     if !point_data.is_empty() {
         o.push_str("      <PointData>\n");
         for (n, f) in point_data {
-            push_field(&mut o, n, f, pos.len().max(f.len()));
+            field(&mut o, n, f, pos.len().max(f.len()));
         }
         o.push_str("      </PointData>\n");
     }
@@ -162,9 +287,9 @@ pub fn vtu_string(
         .chain(&mesh.tri_tags)
         .copied()
         .collect();
-    push_field(&mut o, "tag", &Field::Int(&tags), nc);
+    field(&mut o, "tag", &Field::Int(&tags), nc);
     for (n, f) in cell_data {
-        push_field(&mut o, n, f, nc);
+        field(&mut o, n, f, nc);
     }
     o.push_str("      </CellData>\n    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n");
     o
@@ -194,6 +319,7 @@ pub struct PvdSeries {
     dir: PathBuf,
     name: String,
     unit: LengthUnit,
+    encoding: VtuEncoding,
     entries: Vec<(f64, String)>,
 }
 
@@ -203,8 +329,15 @@ impl PvdSeries {
             dir: dir.to_path_buf(),
             name: name.to_string(),
             unit,
+            encoding: VtuEncoding::Binary,
             entries: Vec::new(),
         }
+    }
+
+    /// Choose how the `.vtu` steps store their arrays (binary by default).
+    pub fn with_encoding(mut self, encoding: VtuEncoding) -> Self {
+        self.encoding = encoding;
+        self
     }
 
     /// Path of the `.pvd` file.
@@ -224,7 +357,14 @@ impl PvdSeries {
     ) -> Result<PathBuf, MeshError> {
         let file = format!("{}_{:06}.vtu", self.name, self.entries.len());
         let path = self.dir.join(&file);
-        let doc = vtu_string(mesh, self.unit, Some(positions), point_data, cell_data);
+        let doc = vtu_document(
+            mesh,
+            self.unit,
+            Some(positions),
+            point_data,
+            cell_data,
+            self.encoding,
+        );
         write_atomic(&path, doc.as_bytes())?;
         self.entries.push((time, file));
         write_atomic(&self.pvd_path(), pvd_string(&self.entries).as_bytes())?;
