@@ -529,3 +529,40 @@ fn shipped_text(name: &str) -> String {
     )
     .unwrap()
 }
+
+#[test]
+fn base_and_tip_along_another_axis() {
+    let text = r#"
+resolution = 1.0
+[body]
+shape = "cylinder"
+start = [0, 0, 0]
+end = [0, 0, 8]
+radius = 3
+[base]
+tag = 10
+name = "clamp"
+axis = "z"
+[tip]
+tag = 11
+name = "tip"
+axis = "z"
+"#;
+    let g = gen_(text, None);
+    let m = &g.mesh;
+    assert!(m.surface(10).len() > 10 && m.surface(11).len() > 10);
+    assert!(
+        m.node_sets["clamp"]
+            .iter()
+            .all(|&n| m.nodes[n as usize][2] == 0.0)
+    );
+    assert!(
+        m.node_sets["tip"]
+            .iter()
+            .all(|&n| (m.nodes[n as usize][2] - 8e-3).abs() < 1e-15)
+    );
+    assert!(m.validate().is_empty(), "{:?}", m.validate());
+    let bad = text.replace("axis = \"z\"\n[tip]", "axis = \"w\"\n[tip]");
+    let e = generate(&spec(&bad), None, Path::new(".")).unwrap_err();
+    assert!(e.to_string().contains("axis `w`"), "{e}");
+}

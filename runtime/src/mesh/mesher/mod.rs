@@ -19,6 +19,7 @@
 //! min = [5, 2.5, 4]
 //! max = [55, 7.5, 8]
 //! [base]                 # optional: body faces on the plane x = min x of the body
+//! axis = "x"             # or "y", "z" (base: min plane, tip: max plane of that axis)
 //! tag = 10
 //! name = "base"
 //! [tip]                  # optional: body faces on the plane x = max x of the body
@@ -67,6 +68,24 @@ pub struct ShapeSpec {
 pub struct TagSpec {
     pub tag: i32,
     pub name: String,
+    /// `[base]`/`[tip]` only: the axis whose min (base) or max (tip) plane of the body's
+    /// bounding box selects the faces: "x" (default), "y" or "z".
+    #[serde(default)]
+    pub axis: Option<String>,
+}
+
+impl TagSpec {
+    fn axis_index(&self) -> Result<usize, MeshError> {
+        match self.axis.as_deref().unwrap_or("x") {
+            "x" => Ok(0),
+            "y" => Ok(1),
+            "z" => Ok(2),
+            a => Err(MeshError::spec(format!(
+                "[base]/[tip] `{}`: axis `{a}` must be x, y or z",
+                self.name
+            ))),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -212,7 +231,10 @@ pub fn generate(
     let region = spec.region.clone().unwrap_or(TagSpec {
         tag: 1,
         name: "solid".into(),
+        axis: None,
     });
+    let base_axis = spec.base.as_ref().map(TagSpec::axis_index).transpose()?;
+    let tip_axis = spec.tip.as_ref().map(TagSpec::axis_index).transpose()?;
     let body = shape_of(&spec.body, "body", base_dir, unit)?;
     let mut cavities = Vec::new();
     for (i, c) in spec.cavity.iter().enumerate() {
@@ -325,16 +347,18 @@ pub fn generate(
         let inward = [bf.nodes[0], bf.nodes[2], bf.nodes[1]];
         let tag = if best.1 != 0 {
             Some(best.1)
-        } else if let Some(b) = spec
-            .base
-            .as_ref()
-            .filter(|_| p.iter().all(|q| (q[0] - lo[0]).abs() < tol))
-        {
+        } else if let Some(b) = spec.base.as_ref().filter(|_| {
+            let a = base_axis.unwrap_or(0);
+            p.iter().all(|q| (q[a] - lo[a]).abs() < tol)
+        }) {
             Some(b.tag)
         } else {
             spec.tip
                 .as_ref()
-                .filter(|_| p.iter().all(|q| (q[0] - hi[0]).abs() < tol))
+                .filter(|_| {
+                    let a = tip_axis.unwrap_or(0);
+                    p.iter().all(|q| (q[a] - hi[a]).abs() < tol)
+                })
                 .map(|t| t.tag)
         };
         if let Some(t) = tag {
