@@ -25,6 +25,9 @@ pub enum IssueKind {
     NonFiniteNode { node: usize },
     /// A face shared by more than two tets.
     NonManifoldFace { nodes: [u32; 3], tets: usize },
+    /// A boundary edge shared by more than two boundary faces: the solid is pinched there
+    /// (two parts touch along an edge, e.g. a wall thinner than the mesh size).
+    NonManifoldBoundaryEdge { edge: [u32; 2], faces: usize },
     /// A chamber surface with an edge used by one triangle only (a hole).
     OpenChamber { tag: i32, edge: [u32; 2] },
     /// A chamber surface with an edge used by more than two triangles.
@@ -249,6 +252,44 @@ impl Mesh {
                 }
             }
             i = j;
+        }
+        // Boundary edges: a closed 2-manifold boundary uses each edge in exactly two faces.
+        {
+            let mut be: Vec<[u32; 2]> = Vec::new();
+            for f in self.boundary_faces() {
+                for k in 0..3 {
+                    let (a, b) = (f.nodes[k], f.nodes[(k + 1) % 3]);
+                    be.push([a.min(b), a.max(b)]);
+                }
+            }
+            be.sort_unstable();
+            let mut i = 0;
+            let mut n_bad = 0;
+            while i < be.len() {
+                let mut j = i + 1;
+                while j < be.len() && be[j] == be[i] {
+                    j += 1;
+                }
+                if j - i > 2 {
+                    n_bad += 1;
+                    if n_bad <= MAX_PER_KIND {
+                        out.push(issue(
+                            Severity::Error,
+                            IssueKind::NonManifoldBoundaryEdge {
+                                edge: be[i],
+                                faces: j - i,
+                            },
+                            format!(
+                                "the boundary is pinched at the edge between nodes {} and {}                                  ({} boundary faces meet there): two parts of the solid touch                                  along an edge — a wall thinner than the mesh size?",
+                                be[i][0],
+                                be[i][1],
+                                j - i
+                            ),
+                        ));
+                    }
+                }
+                i = j;
+            }
         }
         // Tagged surfaces.
         let bmap = self.boundary_face_map();
