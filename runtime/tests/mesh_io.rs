@@ -486,7 +486,11 @@ fn every_truncation_of_the_small_fixtures_is_handled() {
         let orig = std::fs::read(fx(n)).unwrap();
         let p = d.join(n);
         let mut accepted = 0;
-        for cut in 0..orig.len() {
+        // Every third byte, and every byte of the last 64 (closing sections).
+        let cuts = (0..orig.len())
+            .step_by(3)
+            .chain(orig.len().saturating_sub(64)..orig.len());
+        for cut in cuts {
             std::fs::write(&p, &orig[..cut]).unwrap();
             if read(&p, LengthUnit::Millimetre).is_ok() {
                 accepted += 1;

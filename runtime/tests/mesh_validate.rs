@@ -352,3 +352,49 @@ fn load_refuses_disconnected_mesh_listing_the_issue() {
         "{s}"
     );
 }
+
+#[test]
+fn pinched_boundary_edge_and_node_are_reported() {
+    // Two unit tets sharing only an edge, and two sharing only a node.
+    let edge = Mesh::from_tets(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [0.0, -1.0, 0.0],
+            [0.0, 0.0, -1.0],
+        ],
+        vec![[0, 1, 2, 3], [0, 1, 5, 4]],
+    );
+    let issues = edge.validate();
+    let i = find(&issues, |k| {
+        matches!(
+            k,
+            IssueKind::NonManifoldBoundaryEdge {
+                edge: [0, 1],
+                faces: 4
+            }
+        )
+    });
+    assert!(i.message.contains("nodes 0 and 1"), "{}", i.message);
+    let node = Mesh::from_tets(
+        vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+            [-1.0, 0.0, 0.0],
+            [0.0, -1.0, 0.0],
+            [0.0, 0.0, -1.0],
+        ],
+        vec![[0, 1, 2, 3], [0, 4, 5, 6]],
+    );
+    let mut node = node;
+    node.orient_tets();
+    let issues = node.validate();
+    let i = find(&issues, |k| {
+        matches!(k, IssueKind::NonManifoldBoundaryNode { node: 0, sheets: 2 })
+    });
+    assert!(i.message.contains("node 0"), "{}", i.message);
+}

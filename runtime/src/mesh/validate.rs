@@ -28,6 +28,9 @@ pub enum IssueKind {
     /// A boundary edge shared by more than two boundary faces: the solid is pinched there
     /// (two parts touch along an edge, e.g. a wall thinner than the mesh size).
     NonManifoldBoundaryEdge { edge: [u32; 2], faces: usize },
+    /// A boundary node where separate sheets of the boundary meet (two parts of the solid
+    /// touch at a single point).
+    NonManifoldBoundaryNode { node: u32, sheets: usize },
     /// A chamber surface with an edge used by one triangle only (a hole).
     OpenChamber { tag: i32, edge: [u32; 2] },
     /// A chamber surface with an edge used by more than two triangles.
@@ -291,6 +294,7 @@ impl Mesh {
                 i = j;
             }
         }
+        out.extend(self.pinched_nodes());
         // Tagged surfaces.
         let bmap = self.boundary_face_map();
         let chambers = self.chamber_tags();
@@ -400,6 +404,63 @@ impl Mesh {
         }
         // Tags and names.
         out.extend(self.tag_issues());
+        out
+    }
+
+    /// Boundary nodes whose incident boundary faces form more than one fan.
+    fn pinched_nodes(&self) -> Vec<MeshIssue> {
+        let bfs = self.boundary_faces();
+        // (node, face) incidences sorted by node.
+        let mut inc: Vec<(u32, usize)> = Vec::with_capacity(bfs.len() * 3);
+        for (i, f) in bfs.iter().enumerate() {
+            for &n in &f.nodes {
+                inc.push((n, i));
+            }
+        }
+        inc.sort_unstable();
+        let mut out = Vec::new();
+        let mut i = 0;
+        while i < inc.len() {
+            let mut j = i + 1;
+            while j < inc.len() && inc[j].0 == inc[i].0 {
+                j += 1;
+            }
+            let v = inc[i].0;
+            let faces: Vec<usize> = inc[i..j].iter().map(|x| x.1).collect();
+            // Faces around v are connected when they share an edge (v, w).
+            let mut uf = UnionFind::new(faces.len());
+            let mut by_other: Vec<(u32, usize)> = Vec::new();
+            for (k, &f) in faces.iter().enumerate() {
+                for &w in &bfs[f].nodes {
+                    if w != v {
+                        by_other.push((w, k));
+                    }
+                }
+            }
+            by_other.sort_unstable();
+            for w in by_other.windows(2) {
+                if w[0].0 == w[1].0 {
+                    uf.union(w[0].1, w[1].1);
+                }
+            }
+            let mut roots: Vec<usize> = (0..faces.len()).map(|k| uf.find(k)).collect();
+            roots.sort_unstable();
+            roots.dedup();
+            if roots.len() > 1 && out.len() < MAX_PER_KIND {
+                out.push(issue(
+                    Severity::Error,
+                    IssueKind::NonManifoldBoundaryNode {
+                        node: v,
+                        sheets: roots.len(),
+                    },
+                    format!(
+                        "the boundary is pinched at node {v} ({} separate surface sheets meet                          there): two parts of the solid touch at a point — a wall thinner than                          the mesh size?",
+                        roots.len()
+                    ),
+                ));
+            }
+            i = j;
+        }
         out
     }
 
