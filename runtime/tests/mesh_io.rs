@@ -492,15 +492,16 @@ fn every_truncation_of_the_small_fixtures_is_handled() {
             .chain(orig.len().saturating_sub(64)..orig.len());
         for cut in cuts {
             std::fs::write(&p, &orig[..cut]).unwrap();
-            if read(&p, LengthUnit::Millimetre).is_ok() {
+            // The closing tags of XML / trailing newlines may be missing without loss.
+            if read(&p, LengthUnit::Millimetre).is_ok() && cut + 64 < orig.len() {
                 accepted += 1;
             }
         }
-        // Only cuts in the last few bytes (closing tags / trailing newlines) may still load —
-        // except Abaqus, whose format has no counts: a file cut after its elements is a
-        // valid smaller model.
+        // Earlier cuts must be refused, except a cut exactly before an optional trailing
+        // section (legacy VTK without its CELL_DATA is a valid file) — and Abaqus, whose
+        // format has no counts: a file cut after its elements is a valid smaller model.
         if !n.ends_with(".inp") {
-            assert!(accepted < 40, "{n}: {accepted} truncated versions accepted");
+            assert!(accepted <= 2, "{n}: {accepted} truncated versions accepted");
         }
     }
     std::fs::remove_dir_all(&d).unwrap();
