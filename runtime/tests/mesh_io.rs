@@ -544,3 +544,14 @@ fn vtu_binary_and_ascii_encodings_read_back_identically() {
         }
     }
 }
+
+#[test]
+fn gmsh_named_point_groups_become_node_sets() {
+    // Hand-written: point elements on nodes 1 and 3 in physical group 7 "anchor"; a point
+    // element in no named group is ignored. (Five of the six Kuhn tets: it loads, with a
+    // warning for the base triangle whose tet is missing.)
+    let m = load(&fx("cube_points_v22.msh"), LengthUnit::Millimetre).unwrap();
+    assert_eq!(m.node_sets.len(), 1);
+    assert_eq!(m.node_sets["anchor"], vec![0, 2]);
+    assert_eq!(m.report.ignored_elements.get("point"), Some(&3));
+}

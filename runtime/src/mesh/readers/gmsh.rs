@@ -61,7 +61,12 @@ fn add_elem(
             tag,
             line,
         }),
-        1 | 8 | 15 | 3 | 9 | 10 | 16 => {
+        15 => {
+            // Point elements: members of a 0-D physical group become a node set.
+            raw.point_tags.push((nodes[0], tag));
+            *raw.ignored.entry("point".to_string()).or_insert(0) += 1;
+        }
+        1 | 8 | 3 | 9 | 10 | 16 => {
             *raw.ignored
                 .entry(elem_info(t).map(|x| x.1).unwrap_or("?").to_string())
                 .or_insert(0) += 1;

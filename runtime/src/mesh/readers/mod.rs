@@ -29,6 +29,8 @@ pub(crate) struct RawMesh {
     /// Element sets by element id.
     pub elem_sets: BTreeMap<String, Vec<i64>>,
     pub ignored: BTreeMap<String, usize>,
+    /// gmsh point elements `(node id, tag)`: named 0-D physical groups become node sets.
+    pub point_tags: Vec<(i64, i32)>,
 }
 
 #[derive(Debug, Clone)]
@@ -110,7 +112,13 @@ impl RawMesh {
             tri_tags.push(t.tag);
         }
         let mut node_sets = BTreeMap::new();
-        for (name, ids) in self.node_sets {
+        let mut raw_sets = self.node_sets;
+        for (id, tag) in &self.point_tags {
+            if let Some(p) = self.names.iter().find(|p| p.dim == 0 && p.tag == *tag) {
+                raw_sets.entry(p.name.clone()).or_default().push(*id);
+            }
+        }
+        for (name, ids) in raw_sets {
             let mut v = Vec::with_capacity(ids.len());
             for id in ids {
                 v.push(index.get(&id).copied().ok_or_else(|| {
