@@ -513,6 +513,7 @@ fn vtu_binary_and_ascii_encodings_read_back_identically() {
     let m = load(&fx("gmsh_cube_v41.msh"), LengthUnit::Millimetre).unwrap();
     let d = tmpdir("vtuenc");
     let e: Vec<f64> = (0..m.tets.len()).map(|i| i as f64 * 0.5).collect();
+    let stress: Vec<[f64; 9]> = (0..m.tets.len()).map(|i| [i as f64; 9]).collect();
     let mut back = Vec::new();
     for (enc, name) in [
         (VtuEncoding::Ascii, "a.vtu"),
@@ -523,9 +524,16 @@ fn vtu_binary_and_ascii_encodings_read_back_identically() {
             LengthUnit::Millimetre,
             None,
             &[],
-            &[("energy", Field::Scalar(&e))],
+            &[
+                ("energy", Field::Scalar(&e)),
+                ("stress", Field::Tensor(&stress)),
+            ],
             enc,
         );
+        assert!(doc.contains("Name=\"stress\" NumberOfComponents=\"9\""));
+        if enc == VtuEncoding::Ascii {
+            assert!(doc.contains("\n2e0 2e0 2e0 2e0 2e0 2e0 2e0 2e0 2e0\n"));
+        }
         if enc == VtuEncoding::Binary {
             assert!(doc.contains("format=\"binary\"") && !doc.contains("format=\"ascii\""));
         }

@@ -1,2 +1,4 @@
 //! The `softc` command line.
-pub fn main_with_args(_args: Vec<String>) -> i32 { 0 }
+pub fn main_with_args(_args: Vec<String>) -> i32 {
+    0
+}

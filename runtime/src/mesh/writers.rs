@@ -13,6 +13,8 @@ use super::readers::gmsh::fmt_coord;
 pub enum Field<'a> {
     Scalar(&'a [f64]),
     Vector(&'a [[f64; 3]]),
+    /// A 3×3 tensor per entry, row-major (e.g. Cauchy or first Piola stress per tet).
+    Tensor(&'a [[f64; 9]]),
     Int(&'a [i32]),
 }
 
@@ -21,6 +23,7 @@ impl Field<'_> {
         match self {
             Field::Scalar(v) => v.len(),
             Field::Vector(v) => v.len(),
+            Field::Tensor(v) => v.len(),
             Field::Int(v) => v.len(),
         }
     }
@@ -108,6 +111,11 @@ fn push_field_bin(o: &mut String, name: &str, f: &Field, pad_to: usize) {
             b.resize(24 * pad_to.max(v.len()), 0);
             push_binary(o, "Float64", &name, 3, &b);
         }
+        Field::Tensor(v) => {
+            let mut b: Vec<u8> = v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+            b.resize(72 * pad_to.max(v.len()), 0);
+            push_binary(o, "Float64", &name, 9, &b);
+        }
         Field::Int(v) => {
             let mut b: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
             b.resize(4 * pad_to.max(v.len()), 0);
@@ -141,6 +149,19 @@ fn push_field(o: &mut String, name: &str, f: &Field, pad_to: usize) {
             }
             for _ in v.len()..pad_to {
                 o.push_str("0 0 0\n");
+            }
+        }
+        Field::Tensor(v) => {
+            let _ = writeln!(
+                o,
+                "        <DataArray type=\"Float64\" Name=\"{name}\" NumberOfComponents=\"9\" format=\"ascii\">"
+            );
+            for x in v.iter() {
+                let row: Vec<String> = x.iter().map(|c| format!("{c:e}")).collect();
+                let _ = writeln!(o, "{}", row.join(" "));
+            }
+            for _ in v.len()..pad_to {
+                o.push_str("0 0 0 0 0 0 0 0 0\n");
             }
         }
         Field::Int(v) => {
