@@ -8,6 +8,23 @@
 //! Conventions: tets are positively oriented (`det[b−a, c−a, d−a] > 0`); tagged surface
 //! triangles are wound so that `(b−a) × (c−a)` points **into the solid**, i.e. the direction
 //! in which a positive chamber pressure pushes the wall.
+//!
+//! ```
+//! use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
+//! use softc::mesh::{LengthUnit, Precomputed, check_selection, has_errors};
+//!
+//! // The 1k benchmark scene (or `softc::mesh::load(path, LengthUnit::Millimetre)?`).
+//! let mesh = kuhn_grid(&KuhnSpec::benchmark(12, 4, 4), LengthUnit::Millimetre)?;
+//! assert!(!has_errors(&mesh.validate()));
+//! let cavity = mesh.resolve_surface("cavity").map_err(|e| e.to_string()).unwrap();
+//! let clamp = mesh.nodes_in_box([-1e-3, -1.0, -1.0], [1e-6, 1.0, 1.0]);
+//! assert!(check_selection("clamp", &clamp).is_none());
+//! let pre = Precomputed::with_uniform_density(&mesh, 1070.0)?;
+//! let chamber = pre.surface(cavity).unwrap();
+//! assert!(chamber.chamber && !chamber.tris.is_empty());
+//! assert_eq!(pre.node_elements.of(0)[0], (0, 0)); // node 0 is corner 0 of tet 0
+//! # Ok::<(), softc::mesh::MeshError>(())
+//! ```
 
 pub mod commands;
 pub mod error;
