@@ -675,3 +675,15 @@ max = [7.826270559888136, 6.141387558702943, 4.941874564752922]
     assert!(!d.join("thin.msh").exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+#[test]
+fn resolution_override_on_a_kuhn_spec_sets_the_cell_size() {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../meshes/bench_1k.toml");
+    let spec = MeshSpec::from_file(&p).unwrap();
+    // h = 2.5 mm: 24 × 4 × 4 cells.
+    let g = generate(&spec, Some(2.5), Path::new(".")).unwrap();
+    let q = check_sound(&g.mesh, "kuhn h=2.5");
+    // Cavity cells: x centres in (5, 55): 20; y (2.5, 7.5): 2; z (4, 8): 1 (6.25).
+    assert_eq!(q.tets, (24 * 4 * 4 - 20 * 2) * 6);
+    assert!(generate(&spec, Some(-1.0), Path::new(".")).is_err());
+}

@@ -31,7 +31,8 @@
 //! shape = "box"
 //! min = [0, 0, 0]
 //! max = [10, 10, 10]
-//! # [kuhn] n = [12, 4, 4]  → structured Kuhn grid instead (box body, ≤ 1 box cavity)
+//! # [kuhn] n = [12, 4, 4]  → structured Kuhn grid instead (box body, ≤ 1 box cavity);
+//! #   a resolution override h then sets n = round(extent / h) per axis
 //! ```
 
 pub mod sdf;
@@ -277,9 +278,17 @@ pub fn generate(
             Some(_) => return Err(MeshError::spec("[kuhn] cavity must be a box")),
             None => ([f64::NAN; 3], [f64::NAN; 3]),
         };
+        // A resolution override sets the cell size: n = round(extent / h) per axis.
+        let n = match resolution {
+            Some(h) if h > 0.0 && h.is_finite() => {
+                [0, 1, 2].map(|a| (((max[a] - min[a]) / h).round() as usize).max(1))
+            }
+            Some(h) => return Err(MeshError::spec(format!("resolution {h} must be > 0"))),
+            None => k.n,
+        };
         let mut mesh = kuhn_grid(
             &KuhnSpec {
-                n: k.n,
+                n,
                 min: *min,
                 max: *max,
                 cavity_min: cmin,
