@@ -3,6 +3,8 @@
 //! Exit status: 0 success, 1 a problem in the user's input (script, mesh), 2 a usage error
 //! (bad flags, unreadable file, a command that is not implemented yet).
 
+pub mod mesh;
+
 use clap::{Parser, Subcommand, ValueEnum};
 use softc_compiler::diag::{Diagnostic, SourceFile};
 use softc_compiler::sema::CheckOptions;
@@ -56,10 +58,10 @@ pub enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true, hide = true)]
         rest: Vec<String>,
     },
-    /// Generate, inspect and convert tetrahedral meshes (not implemented yet).
+    /// Generate, inspect and convert tetrahedral meshes.
     Mesh {
-        #[arg(trailing_var_arg = true, allow_hyphen_values = true, hide = true)]
-        rest: Vec<String>,
+        #[command(subcommand)]
+        command: mesh::MeshCommand,
     },
 }
 
@@ -94,7 +96,7 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         Command::Fmt { files, check } => fmt_files(&files, check, out, err),
         Command::Compile { .. } => not_implemented("compile", err),
         Command::Run { .. } => not_implemented("run", err),
-        Command::Mesh { .. } => not_implemented("mesh", err),
+        Command::Mesh { command } => mesh::run(command),
     }
 }
 

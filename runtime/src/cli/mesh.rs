@@ -1,0 +1,93 @@
+//! `softc mesh ...`: generate, inspect, convert meshes, and build the benchmark grid.
+
+use std::path::PathBuf;
+
+use crate::mesh::{LengthUnit, commands};
+
+/// Mesh subcommands.
+#[derive(Debug, clap::Subcommand)]
+pub enum MeshCommand {
+    /// Mesh a TOML spec (primitives or closed STL surfaces; see meshes/README.md) into tets.
+    Generate {
+        /// The spec file (.toml).
+        spec: PathBuf,
+        /// Output mesh (.msh gmsh 4.1 or .vtu), written atomically.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Lattice spacing in the spec's length unit, overriding the spec's `resolution`.
+        #[arg(short, long)]
+        resolution: Option<f64>,
+    },
+    /// Print counts, tags, chamber volumes, quality and validation; exit 1 if invalid.
+    Info {
+        file: PathBuf,
+        /// Machine-readable output (SI units).
+        #[arg(long)]
+        json: bool,
+        /// Length unit of the file's coordinates.
+        #[arg(long, default_value = "mm")]
+        unit: String,
+    },
+    /// Convert any readable mesh (.msh .vtk .vtu .node/.ele .inp) to .msh or .vtu.
+    Convert {
+        input: PathBuf,
+        output: PathBuf,
+        /// Length unit of the files' coordinates.
+        #[arg(long, default_value = "mm")]
+        unit: String,
+    },
+    /// The structured Kuhn-split benchmark scene (BENCHMARK.md), e.g. 12 4 4 for "1k".
+    Kuhn {
+        nx: usize,
+        ny: usize,
+        nz: usize,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+fn unit(s: &str) -> Result<LengthUnit, i32> {
+    s.parse::<LengthUnit>().map_err(|e| {
+        eprintln!("error: --unit: {e}");
+        2
+    })
+}
+
+/// Run a mesh subcommand: 0 ok, 1 bad input (message on stderr naming file and problem),
+/// 2 usage.
+pub fn run(cmd: MeshCommand) -> i32 {
+    let mut out = std::io::stdout();
+    let mut err = std::io::stderr();
+    match cmd {
+        MeshCommand::Generate {
+            spec,
+            output,
+            resolution,
+        } => {
+            if resolution.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
+                eprintln!("error: --resolution must be a positive number");
+                return 2;
+            }
+            commands::generate(&spec, &output, resolution, &mut out, &mut err)
+        }
+        MeshCommand::Info {
+            file,
+            json,
+            unit: u,
+        } => match unit(&u) {
+            Ok(u) => commands::info(&file, u, json, &mut out, &mut err),
+            Err(c) => c,
+        },
+        MeshCommand::Convert {
+            input,
+            output,
+            unit: u,
+        } => match unit(&u) {
+            Ok(u) => commands::convert(&input, &output, u, &mut out, &mut err),
+            Err(c) => c,
+        },
+        MeshCommand::Kuhn { nx, ny, nz, output } => {
+            commands::kuhn([nx, ny, nz], &output, &mut out, &mut err)
+        }
+    }
+}

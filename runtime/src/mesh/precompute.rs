@@ -1,0 +1,221 @@
+//! Data the simulation kernels need, computed once from a mesh and per-element densities.
+
+use super::error::MeshError;
+use super::model::{Mesh, TET_EDGES, norm, sub};
+
+/// Node → element adjacency in CSR form: the incidences of node `n` are
+/// `entries[offsets[n]..offsets[n+1]]`, each `(element, corner)`, sorted by element then
+/// corner (deterministic gather order for force accumulation without atomics).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NodeElementCsr {
+    pub offsets: Vec<u32>,
+    pub entries: Vec<(u32, u8)>,
+}
+
+impl NodeElementCsr {
+    pub fn build(num_nodes: usize, tets: &[[u32; 4]]) -> Self {
+        let mut counts = vec![0u32; num_nodes + 1];
+        for t in tets {
+            for &n in t {
+                counts[n as usize + 1] += 1;
+            }
+        }
+        for i in 0..num_nodes {
+            counts[i + 1] += counts[i];
+        }
+        let offsets = counts.clone();
+        let mut fill = counts;
+        let mut entries = vec![(0u32, 0u8); tets.len() * 4];
+        // Elements in increasing order, corners in increasing order: each node's list ends up
+        // sorted by (element, corner) without a sort.
+        for (e, t) in tets.iter().enumerate() {
+            for (c, &n) in t.iter().enumerate() {
+                let slot = &mut fill[n as usize];
+                entries[*slot as usize] = (e as u32, c as u8);
+                *slot += 1;
+            }
+        }
+        NodeElementCsr { offsets, entries }
+    }
+
+    /// The `(element, corner)` incidences of node `n`.
+    pub fn of(&self, n: usize) -> &[(u32, u8)] {
+        &self.entries[self.offsets[n] as usize..self.offsets[n + 1] as usize]
+    }
+}
+
+/// A unique edge of the tet mesh (spring mesh, thesis eq. 2.3).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Edge {
+    /// Node indices, `nodes[0] < nodes[1]`.
+    pub nodes: [u32; 2],
+    /// Rest length, m.
+    pub rest_length: f64,
+    /// Sum of the rest volumes of the tets sharing the edge, m³.
+    pub volume: f64,
+}
+
+/// Triangles of one tagged surface, wound with normals into the solid.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SurfaceTris {
+    pub tag: i32,
+    pub name: Option<String>,
+    /// Whether the surface is a chamber (see [`Mesh::chamber_tags`]).
+    pub chamber: bool,
+    pub tris: Vec<[u32; 3]>,
+}
+
+/// Precomputed per-mesh data.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Precomputed {
+    /// Rest volume per tet, m³.
+    pub rest_volume: Vec<f64>,
+    /// Smallest altitude per tet, `3V / (largest face area)`, m — the element length of the
+    /// explicit stable-time-step estimate `dt ≈ h_min / c_d`.
+    pub min_altitude: Vec<f64>,
+    /// `Dm⁻¹` per tet, row-major, with `Dm = [x1−x0, x2−x0, x3−x0]` (columns).
+    pub dm_inv: Vec<[[f64; 3]; 3]>,
+    /// Lumped mass per node, kg: `ρ_e·V_e/4` from each adjacent tet.
+    pub mass: Vec<f64>,
+    /// Node → element adjacency.
+    pub node_elements: NodeElementCsr,
+    /// Tagged surfaces (chambers and others), sorted by tag.
+    pub surfaces: Vec<SurfaceTris>,
+    /// Unique edges sorted by node pair.
+    pub edges: Vec<Edge>,
+}
+
+/// Inverse of a 3×3 matrix (row-major), `None` if singular.
+pub fn inverse3(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let c00 = m[1][1] * m[2][2] - m[1][2] * m[2][1];
+    let c01 = m[1][2] * m[2][0] - m[1][0] * m[2][2];
+    let c02 = m[1][0] * m[2][1] - m[1][1] * m[2][0];
+    let det = m[0][0] * c00 + m[0][1] * c01 + m[0][2] * c02;
+    if det == 0.0 || !det.is_finite() {
+        return None;
+    }
+    let d = 1.0 / det;
+    Some([
+        [
+            c00 * d,
+            (m[0][2] * m[2][1] - m[0][1] * m[2][2]) * d,
+            (m[0][1] * m[1][2] - m[0][2] * m[1][1]) * d,
+        ],
+        [
+            c01 * d,
+            (m[0][0] * m[2][2] - m[0][2] * m[2][0]) * d,
+            (m[0][2] * m[1][0] - m[0][0] * m[1][2]) * d,
+        ],
+        [
+            c02 * d,
+            (m[0][1] * m[2][0] - m[0][0] * m[2][1]) * d,
+            (m[0][0] * m[1][1] - m[0][1] * m[1][0]) * d,
+        ],
+    ])
+}
+
+impl Precomputed {
+    /// Build from a mesh and one density (kg/m³) per tet. Fails on a density count mismatch
+    /// or a non-positive / singular tet (validate the mesh first).
+    #[allow(clippy::needless_range_loop)]
+    pub fn new(mesh: &Mesh, density: &[f64]) -> Result<Self, MeshError> {
+        let ne = mesh.tets.len();
+        if density.len() != ne {
+            return Err(MeshError::spec(format!(
+                "{} densities given for {ne} elements",
+                density.len()
+            )));
+        }
+        let nn = mesh.nodes.len();
+        let mut rest_volume = Vec::with_capacity(ne);
+        let mut dm_inv = Vec::with_capacity(ne);
+        let mut min_altitude = Vec::with_capacity(ne);
+        let mut mass = vec![0.0; nn];
+        for e in 0..ne {
+            if mesh.tets[e].iter().any(|&n| n as usize >= nn) {
+                return Err(MeshError::parse(format!(
+                    "element {e} uses a node index out of range ({nn} nodes)"
+                )));
+            }
+            let p = mesh.tet_points(e);
+            let v = mesh.tet_volume(e);
+            if v <= 0.0 || !v.is_finite() {
+                return Err(MeshError::parse(format!(
+                    "element {e} has volume {v:.3e} m³ ≤ 0; run validation and fix the mesh"
+                )));
+            }
+            let c1 = sub(p[1], p[0]);
+            let c2 = sub(p[2], p[0]);
+            let c3 = sub(p[3], p[0]);
+            let dm = [
+                [c1[0], c2[0], c3[0]],
+                [c1[1], c2[1], c3[1]],
+                [c1[2], c2[2], c3[2]],
+            ];
+            let inv = inverse3(dm)
+                .ok_or_else(|| MeshError::parse(format!("element {e} has a singular Dm matrix")))?;
+            let amax = super::model::TET_FACES
+                .iter()
+                .map(|f| norm(super::model::area_vector(p[f[0]], p[f[1]], p[f[2]])))
+                .fold(0.0, f64::max);
+            rest_volume.push(v);
+            min_altitude.push(3.0 * v / amax);
+            dm_inv.push(inv);
+            let m = density[e] * v / 4.0;
+            for &n in &mesh.tets[e] {
+                mass[n as usize] += m;
+            }
+        }
+        let node_elements = NodeElementCsr::build(nn, &mesh.tets);
+        let chambers = mesh.chamber_tags();
+        let surfaces = mesh
+            .surface_tags()
+            .into_iter()
+            .map(|tag| SurfaceTris {
+                tag,
+                name: mesh.tag_name(2, tag).map(str::to_string),
+                chamber: chambers.contains(&tag),
+                tris: mesh.surface(tag),
+            })
+            .collect();
+        let mut raw: Vec<([u32; 2], f64)> = Vec::with_capacity(ne * 6);
+        for (e, t) in mesh.tets.iter().enumerate() {
+            for ed in TET_EDGES {
+                let a = t[ed[0]];
+                let b = t[ed[1]];
+                raw.push(([a.min(b), a.max(b)], rest_volume[e]));
+            }
+        }
+        raw.sort_by_key(|x| x.0);
+        let mut edges: Vec<Edge> = Vec::new();
+        for (k, v) in raw {
+            match edges.last_mut() {
+                Some(last) if last.nodes == k => last.volume += v,
+                _ => edges.push(Edge {
+                    nodes: k,
+                    rest_length: norm(sub(mesh.nodes[k[0] as usize], mesh.nodes[k[1] as usize])),
+                    volume: v,
+                }),
+            }
+        }
+        Ok(Precomputed {
+            rest_volume,
+            min_altitude,
+            dm_inv,
+            mass,
+            node_elements,
+            surfaces,
+            edges,
+        })
+    }
+
+    /// Same density everywhere.
+    pub fn with_uniform_density(mesh: &Mesh, density: f64) -> Result<Self, MeshError> {
+        Self::new(mesh, &vec![density; mesh.tets.len()])
+    }
+
+    /// The surface with tag `tag`.
+    pub fn surface(&self, tag: i32) -> Option<&SurfaceTris> {
+        self.surfaces.iter().find(|s| s.tag == tag)
+    }
+}

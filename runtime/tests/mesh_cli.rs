@@ -1,0 +1,166 @@
+//! The work behind `softc mesh generate|info|convert|kuhn` (exit codes, messages, JSON).
+
+use std::path::{Path, PathBuf};
+
+use softc::mesh::LengthUnit;
+use softc::mesh::commands::{convert, generate, info, kuhn};
+
+fn tmp(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-mesh-cli-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn run(f: impl FnOnce(&mut Vec<u8>, &mut Vec<u8>) -> i32) -> (i32, String, String) {
+    let (mut o, mut e) = (Vec::new(), Vec::new());
+    let c = f(&mut o, &mut e);
+    (
+        c,
+        String::from_utf8(o).unwrap(),
+        String::from_utf8(e).unwrap(),
+    )
+}
+
+fn meshes() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../meshes")
+}
+
+#[test]
+fn generate_then_info_json_reports_si_quantities() {
+    let d = tmp("gen");
+    let out = d.join("endo.msh");
+    let (c, o, e) = run(|o, e| generate(&meshes().join("endoscope.toml"), &out, None, o, e));
+    assert_eq!(c, 0, "{e}");
+    assert!(o.contains("tets/s") && o.contains("dihedral"), "{o}");
+    let (c, o, e) = run(|o, e| info(&out, LengthUnit::Millimetre, true, o, e));
+    assert_eq!(c, 0, "{e}");
+    let j: serde_json::Value = serde_json::from_str(&o).unwrap();
+    assert!(j["nodes"].as_u64().unwrap() > 1000);
+    assert!(j["tets"].as_u64().unwrap() > 1000);
+    assert!(j["min_dihedral_deg"].as_f64().unwrap() > 10.0);
+    assert_eq!(j["valid"], true);
+    let ch = j["chambers"].as_array().unwrap();
+    assert_eq!(ch.len(), 3);
+    let names: Vec<&str> = ch.iter().map(|c| c["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["c1", "c2", "c3"]);
+    let vols: Vec<f64> = ch.iter().map(|c| c["volume"].as_f64().unwrap()).collect();
+    // m³: chambers of radius 2.5 mm and length 32 mm are ≈ 6.3e-7 m³.
+    for v in &vols {
+        assert!((*v - 6.28e-7).abs() < 0.05 * 6.28e-7, "{vols:?}");
+        assert!((*v - vols[0]).abs() < 0.01 * vols[0], "{vols:?}");
+    }
+    // The generated file equals the shipped one (the regeneration command is reproducible).
+    assert_eq!(
+        std::fs::read(&out).unwrap(),
+        std::fs::read(meshes().join("endoscope.msh")).unwrap()
+    );
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn shipped_meshes_are_reproducible_and_valid() {
+    let d = tmp("repro");
+    for name in ["cuboid", "bench_1k", "bench_10k", "bench_50k"] {
+        let out = d.join(format!("{name}.msh"));
+        let (c, _, e) =
+            run(|o, e| generate(&meshes().join(format!("{name}.toml")), &out, None, o, e));
+        assert_eq!(c, 0, "{name}: {e}");
+        assert_eq!(
+            std::fs::read(&out).unwrap(),
+            std::fs::read(meshes().join(format!("{name}.msh"))).unwrap(),
+            "{name}.msh differs from its spec's output: regenerate it (meshes/README.md)"
+        );
+        let (c, o, e) = run(|o, e| {
+            info(
+                &meshes().join(format!("{name}.msh")),
+                LengthUnit::Millimetre,
+                false,
+                o,
+                e,
+            )
+        });
+        assert_eq!(c, 0, "{name}: {e}");
+        assert!(o.contains("valid: no issues"), "{name}: {o}");
+    }
+    // `softc mesh kuhn 12 4 4` makes the same file as bench_1k.toml.
+    let out = d.join("k.msh");
+    let (c, _, e) = run(|o, e| kuhn([12, 4, 4], &out, o, e));
+    assert_eq!(c, 0, "{e}");
+    assert_eq!(
+        std::fs::read(&out).unwrap(),
+        std::fs::read(meshes().join("bench_1k.msh")).unwrap()
+    );
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn convert_between_formats() {
+    let d = tmp("conv");
+    let fx = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mesh");
+    let vtu = d.join("cube.vtu");
+    let (c, _, e) = run(|o, e| {
+        convert(
+            &fx.join("gmsh_cube_v22_bin.msh"),
+            &vtu,
+            LengthUnit::Millimetre,
+            o,
+            e,
+        )
+    });
+    assert_eq!(c, 0, "{e}");
+    let msh = d.join("cube.msh");
+    let (c, _, e) = run(|o, e| convert(&vtu, &msh, LengthUnit::Millimetre, o, e));
+    assert_eq!(c, 0, "{e}");
+    let a = softc::mesh::load(&fx.join("gmsh_cube_v22_bin.msh"), LengthUnit::Millimetre).unwrap();
+    let b = softc::mesh::load(&msh, LengthUnit::Millimetre).unwrap();
+    assert_eq!(a.tets, b.tets);
+    assert_eq!(a.tri_tags, b.tri_tags);
+    // Unsupported output format: exit 1, message names the file.
+    let (c, _, e) = run(|o, e| convert(&msh, &d.join("x.inp"), LengthUnit::Millimetre, o, e));
+    assert_eq!(c, 1);
+    assert!(e.contains("x.inp"), "{e}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn bad_inputs_exit_1_with_file_and_problem() {
+    let d = tmp("bad");
+    // Missing spec.
+    let (c, _, e) = run(|o, e| generate(&d.join("nope.toml"), &d.join("o.msh"), None, o, e));
+    assert_eq!(c, 1);
+    assert!(e.contains("nope.toml"), "{e}");
+    // Spec with an error.
+    std::fs::write(
+        d.join("bad.toml"),
+        "resolution = 1\n[body]\nshape = \"cone\"\n",
+    )
+    .unwrap();
+    let (c, _, e) = run(|o, e| generate(&d.join("bad.toml"), &d.join("o.msh"), None, o, e));
+    assert_eq!(c, 1);
+    assert!(e.contains("bad.toml") && e.contains("cone"), "{e}");
+    assert!(!d.join("o.msh").exists());
+    // Invalid mesh: info exits 1 and lists the issue.
+    let m = softc::mesh::kuhn::kuhn_grid(
+        &softc::mesh::kuhn::KuhnSpec::benchmark(12, 4, 4),
+        LengthUnit::Millimetre,
+    )
+    .unwrap();
+    let mut broken = m.clone();
+    let k = broken.tri_tags.iter().position(|t| *t == 2).unwrap();
+    broken.tris.remove(k);
+    broken.tri_tags.remove(k);
+    let p = d.join("open.msh");
+    softc::mesh::save(&broken, &p, LengthUnit::Millimetre).unwrap();
+    let (c, o, e) = run(|o, e| info(&p, LengthUnit::Millimetre, false, o, e));
+    assert_eq!(c, 1);
+    assert!(o.contains("is open") && e.contains("open.msh"), "{o}\n{e}");
+    let (c, o, _) = run(|o, e| info(&p, LengthUnit::Millimetre, true, o, e));
+    assert_eq!(c, 1);
+    let j: serde_json::Value = serde_json::from_str(&o).unwrap();
+    assert_eq!(j["valid"], false);
+    // Unreadable file.
+    let (c, _, e) = run(|o, e| info(&d.join("missing.vtu"), LengthUnit::Millimetre, false, o, e));
+    assert_eq!(c, 1);
+    assert!(e.contains("missing.vtu"));
+    std::fs::remove_dir_all(&d).unwrap();
+}
