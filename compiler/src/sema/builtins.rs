@@ -724,7 +724,7 @@ impl Checker {
         Some(v)
     }
 
-    fn check_count_or_zero(&mut self, arg: &Expr, what: &str) -> Option<f64> {
+    pub(super) fn check_count_or_zero(&mut self, arg: &Expr, what: &str) -> Option<f64> {
         let t = self.check_expr(arg);
         if !self.expect_type(&t, &Ty::int(), arg, what) || !self.expect_const(&t, arg, what) {
             return None;

@@ -1030,7 +1030,7 @@ impl Checker {
         let kind = self.syms[gid].kind;
         if kind == SymKind::Controller && !self.ctx.time {
             let msg = format!(
-                "the controller `{name}` can only be called in the sim block, the loss or another controller"
+                "the controller `{name}` runs with the simulation: call it in the sim block, the loss, a `let` or another controller"
             );
             self.err(Diagnostic::error("E0320", e.span, msg));
             return Typed::error();

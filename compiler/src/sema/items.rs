@@ -374,8 +374,8 @@ impl Checker {
         match &f.power {
             None => Some(base),
             Some((text, sp)) => match text.parse::<i32>().ok().and_then(|p| base.powi(p)) {
-                Some(d) => Some(d),
-                None => {
+                Some(d) if !d.is_extreme() => Some(d),
+                _ => {
                     self.err(Diagnostic::error(
                         "E0004",
                         *sp,
@@ -1125,6 +1125,7 @@ impl Checker {
                     lets.insert(l.name.name.clone(), l.value.clone());
                 }
                 ItemKind::Fn(f) => roots.push(f.body.clone()),
+                ItemKind::Loss(l) => roots.push(l.value.clone()),
                 _ => {}
             }
         }
@@ -1274,14 +1275,20 @@ impl Checker {
 
     /// A damping param that the optimizer could drive below zero would make the run blow up.
     fn check_damping_param_bounds(&mut self, value: &Expr) {
-        let name = match &value.kind {
-            ExprKind::Name(id) => id,
-            ExprKind::Index { base, .. } => match &base.kind {
-                ExprKind::Name(id) => id,
-                _ => return,
-            },
-            _ => return,
-        };
+        let mut names = Vec::new();
+        let mut stack = vec![value];
+        while let Some(e) = stack.pop() {
+            if let ExprKind::Name(id) = &e.kind {
+                names.push(id.clone());
+            }
+            e.for_each_child(|c| stack.push(c));
+        }
+        for name in names {
+            self.check_damping_param(&name);
+        }
+    }
+
+    fn check_damping_param(&mut self, name: &Ident) {
         let Some(&g) = self.globals.get(&name.name) else {
             return;
         };
@@ -1351,7 +1358,13 @@ impl Checker {
                 }
             }
             if let [Some(a), Some(b)] = ends[..] {
-                if a > b {
+                if a < 0.0 {
+                    self.err(Diagnostic::error(
+                        "E0321",
+                        *span,
+                        "the loss window starts before the simulation (t < 0)",
+                    ));
+                } else if a > b {
                     self.err(Diagnostic::error(
                         "E0321",
                         *span,
@@ -1499,10 +1512,7 @@ impl Checker {
                 self.check_count(value, &format!("`{}`", name.name));
             }
             "seed" => {
-                let t = self.check_expr(value);
-                if self.expect_type(&t, &Ty::int(), value, "`seed`") {
-                    self.expect_const(&t, value, "`seed`");
-                }
+                self.check_count_or_zero(value, "`seed`");
             }
             "gradient_scale" => {
                 if let Some(s) = self.check_fraction(
