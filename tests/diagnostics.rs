@@ -13,6 +13,7 @@ fn render(path: &std::path::Path) -> (String, bool) {
     let bytes = std::fs::read(path).unwrap();
     let options = CheckOptions {
         base_dir: Some(path.parent().unwrap().to_path_buf()),
+        mesh_probe: Some(std::sync::Arc::new(softc::mesh::probe::FileProbe)),
     };
     let (text, checked) = softc_compiler::check_bytes(&bytes, &options);
     let name = path.file_name().unwrap().to_string_lossy().into_owned();

@@ -327,24 +327,28 @@ impl Checker {
                 let Some(s) = self.bind(name, sp, &[("path", true), ("unit", false)], args) else {
                     return Typed::error();
                 };
-                let p = self.check_expr(s[0].unwrap());
-                if self.expect_type(&p, &Ty::Str, s[0].unwrap(), "the mesh path")
-                    && let Some(Value::Str(path)) = &p.value
-                {
-                    self.check_mesh_path(path, s[0].unwrap().span);
-                }
+                let mut unit = 1e-3;
                 if let Some(u) = s[1] {
                     let t = self.check_expr(u);
                     if self.expect_type(&t, &length(), u, "`unit`") {
                         self.expect_const(&t, u, "the mesh unit");
-                        if t.num().is_some_and(|v| v <= 0.0) {
-                            self.err(Diagnostic::error(
+                        match t.num() {
+                            Some(v) if v <= 0.0 => self.err(Diagnostic::error(
                                 "E0321",
                                 u.span,
                                 "the mesh unit must be positive",
-                            ));
+                            )),
+                            Some(v) => unit = v,
+                            None => {}
                         }
                     }
+                }
+                let p = self.check_expr(s[0].unwrap());
+                if self.expect_type(&p, &Ty::Str, s[0].unwrap(), "the mesh path")
+                    && let Some(Value::Str(path)) = &p.value
+                    && self.check_mesh_path(path, s[0].unwrap().span)
+                {
+                    self.probe_mesh(path, unit, s[0].unwrap().span);
                 }
                 Typed::of(Ty::Obj(Obj::Mesh), Var::Const)
             }
@@ -399,6 +403,8 @@ impl Checker {
                         "the radius must be positive",
                     ));
                 }
+                let values: Vec<_> = vals.iter().map(|(t, _)| t.value.clone()).collect();
+                self.last_shape = super::mesh_probe::Shape::from_call(name, &values);
                 Typed::of(Ty::Obj(Obj::Region), Var::Const)
             }
             "surface" => {
@@ -427,6 +433,10 @@ impl Checker {
                             t.ty
                         );
                         self.err(Diagnostic::error("E0203", arg.span, msg));
+                    } else if let Some(v) = &t.value
+                        && (is_name || is_tag)
+                    {
+                        self.check_surface_exists(arg, v);
                     }
                 }
                 if given != 1 {
@@ -469,8 +479,16 @@ impl Checker {
                     "tagged" => Ty::int(),
                     _ => Ty::Obj(Obj::Region),
                 };
-                if self.expect_type(&t, &want, arg, &format!("`{second}`")) {
-                    self.expect_const(&t, arg, "a selection");
+                if self.expect_type(&t, &want, arg, &format!("`{second}`"))
+                    && self.expect_const(&t, arg, "a selection")
+                {
+                    match (name, &t.value) {
+                        ("named", Some(Value::Str(n))) => self.check_name_exists(arg, n),
+                        ("tagged", Some(Value::Num(tag))) => {
+                            self.check_region_tag_exists(arg, *tag)
+                        }
+                        _ => {}
+                    }
                 }
                 Typed::of(Ty::Obj(Obj::Selection), Var::Const)
             }

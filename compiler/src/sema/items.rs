@@ -160,6 +160,12 @@ impl Checker {
                 _ => {}
             }
         }
+        // The mesh first: checks of surfaces, selections and fixed regions need it.
+        for &id in &ids {
+            if self.syms[id].kind == SymKind::Mesh {
+                self.global_typed(id);
+            }
+        }
         for (i, (span, stmts)) in sims.iter().enumerate() {
             if i > 0 {
                 self.err(duplicate_block("sim", *span, sims[0].0));
@@ -189,8 +195,10 @@ impl Checker {
     /// Check one global declaration; records signatures of functions and templates.
     pub(super) fn check_decl(&mut self, id: usize, item: &Item) -> Typed {
         match &item.kind {
-            ItemKind::Decl { kind, value, .. } => {
+            ItemKind::Decl { kind, name, value } => {
+                let errors_before = self.diags.len();
                 let t = self.check_expr(value);
+                let clean = self.diags.len() == errors_before;
                 let (want, what) = match kind {
                     DeclKind::Mesh => (Obj::Mesh, "`load(\"file.msh\")`"),
                     DeclKind::Region => (Obj::Region, "`box(min: …, max: …)` or `sphere(…)`"),
@@ -209,6 +217,17 @@ impl Checker {
                     );
                     self.err(Diagnostic::error("E0203", value.span, msg));
                     return Typed::error();
+                }
+                match kind {
+                    DeclKind::Region => {
+                        if let Some(shape) = self.last_shape.take() {
+                            self.regions.insert(name.name.clone(), shape);
+                        }
+                    }
+                    DeclKind::Nodes | DeclKind::Elements if clean => {
+                        self.check_selection_nonempty(name, *kind, value)
+                    }
+                    _ => {}
                 }
                 let obj = match kind {
                     DeclKind::Mesh => Obj::Mesh,
@@ -916,7 +935,8 @@ impl Checker {
                 StmtKind::Fix(names) => {
                     for n in names {
                         match self.global_kind(n) {
-                            Some(SymKind::Region | SymKind::Nodes) | None => {}
+                            Some(SymKind::Region) => self.check_region_nonempty(n),
+                            Some(SymKind::Nodes) | None => {}
                             Some(k) => {
                                 let msg = format!(
                                     "`fix` takes regions or node sets, but `{}` is {}",
@@ -1593,9 +1613,10 @@ impl Checker {
         }
     }
 
-    pub(super) fn check_mesh_path(&mut self, path: &str, span: Span) {
+    /// Whether the mesh file exists and has a known format (reported otherwise).
+    pub(super) fn check_mesh_path(&mut self, path: &str, span: Span) -> bool {
         let Some(base) = self.options.base_dir.clone() else {
-            return;
+            return false;
         };
         let full = base.join(path);
         if full.is_dir() {
@@ -1604,7 +1625,7 @@ impl Checker {
                 Diagnostic::error("E0319", span, msg)
                     .with_hint("name the mesh file, e.g. \"meshes/cuboid.msh\""),
             );
-            return;
+            return false;
         }
         if !full.is_file() {
             let msg = format!("mesh file `{path}` not found");
@@ -1612,7 +1633,7 @@ impl Checker {
                 "looked for {}; paths are relative to the script's folder. Generate meshes with `softc mesh generate SPEC.toml -o FILE.msh`",
                 full.display()
             )));
-            return;
+            return false;
         }
         let known = ["msh", "vtk", "vtu", "node", "ele", "inp"];
         let ext = full.extension().and_then(|e| e.to_str()).unwrap_or("");
@@ -1624,7 +1645,9 @@ impl Checker {
                 format!("softc reads {}", known.map(|k| format!(".{k}")).join(", "))
             };
             self.err(Diagnostic::error("E0319", span, msg).with_hint(hint));
+            return false;
         }
+        true
     }
 
     /// Checks that need the whole script: the mesh, the sim block, unused declarations.

@@ -10,6 +10,7 @@
 mod builtins;
 mod expr;
 mod items;
+pub mod mesh_probe;
 pub mod types;
 pub mod units;
 
@@ -40,11 +41,22 @@ pub struct ParamInfo {
     pub upper: Option<f64>,
 }
 
-/// Options for checking: where relative paths (meshes) are resolved.
-#[derive(Debug, Default, Clone)]
+/// Options for checking: where relative paths (meshes) are resolved, and how meshes are read.
+#[derive(Default, Clone)]
 pub struct CheckOptions {
     /// Directory of the script; `None` skips file-existence checks (editors, fuzzing).
     pub base_dir: Option<PathBuf>,
+    /// Reads the mesh so surfaces, tags and selections can be checked against it.
+    pub mesh_probe: Option<std::sync::Arc<dyn mesh_probe::MeshProbe>>,
+}
+
+impl std::fmt::Debug for CheckOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CheckOptions")
+            .field("base_dir", &self.base_dir)
+            .field("mesh_probe", &self.mesh_probe.is_some())
+            .finish()
+    }
 }
 
 /// Check a parsed script. Diagnostics come back sorted by position.
@@ -205,6 +217,12 @@ struct Checker {
     loss_ty: Option<Ty>,
     optimized: Vec<String>,
     out: CheckedScript,
+    /// The mesh, when a probe could read it.
+    mesh: Option<mesh_probe::MeshSummary>,
+    /// Region geometry by name (for "selects no node" checks).
+    regions: HashMap<String, mesh_probe::Shape>,
+    /// The shape of the region call checked last (picked up by its declaration).
+    last_shape: Option<mesh_probe::Shape>,
 }
 
 impl Checker {
@@ -224,6 +242,9 @@ impl Checker {
             loss_ty: None,
             optimized: Vec::new(),
             out: CheckedScript::default(),
+            mesh: None,
+            regions: HashMap::new(),
+            last_shape: None,
         }
     }
 

@@ -166,6 +166,7 @@ fn check_files(
             continue;
         };
         let options = CheckOptions {
+            mesh_probe: Some(std::sync::Arc::new(crate::mesh::probe::FileProbe)),
             base_dir: if path == Path::new("-") {
                 std::env::current_dir().ok()
             } else {

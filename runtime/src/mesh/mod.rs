@@ -32,6 +32,7 @@ pub mod kuhn;
 pub mod mesher;
 pub mod model;
 pub mod precompute;
+pub mod probe;
 pub mod quality;
 pub mod readers;
 pub mod validate;
