@@ -4,6 +4,8 @@
 pub mod diag;
 pub mod fmt;
 pub mod front;
+pub mod ir;
+pub mod lower;
 pub mod sema;
 
 use diag::Diagnostic;

@@ -81,7 +81,8 @@ pub fn check(script: &Script, options: &CheckOptions) -> (CheckedScript, Vec<Dia
     (c.out, diags)
 }
 
-fn prelude_ast() -> &'static Script {
+/// The parsed prelude (built-in materials and helpers).
+pub fn prelude_ast() -> &'static Script {
     static PRELUDE_AST: std::sync::OnceLock<Script> = std::sync::OnceLock::new();
     PRELUDE_AST.get_or_init(|| crate::front::parse(PRELUDE).expect("the prelude parses"))
 }

@@ -1,0 +1,149 @@
+//! Reverse-mode automatic differentiation of a straight-line body.
+//!
+//! [`gradient`] appends to a function the instructions that compute the derivatives of one
+//! value with respect to others, by one backward sweep over the instructions (the adjoint of
+//! each instruction is accumulated in a fixed order, so results are reproducible). Where a
+//! derivative does not exist (`abs`, `min`, `max`, comparisons at a tie) the one-sided value of
+//! the branch taken is used, as every AD tool does.
+
+use super::{BinOp, Builder, CmpOp, Func, Inst, UnOp, V};
+
+/// Derivatives of `y` with respect to each value in `wrt`, appended to `func`.
+pub fn gradient(func: Func, y: V, wrt: &[V]) -> (Func, Vec<V>) {
+    let n = y.0 as usize + 1;
+    let mut b = Builder::extend(func);
+    let mut adj: Vec<Option<V>> = vec![None; n];
+    adj[y.0 as usize] = Some(b.constant(1.0));
+    let add = |b: &mut Builder, adj: &mut Vec<Option<V>>, v: V, d: V| {
+        let slot = &mut adj[v.0 as usize];
+        *slot = Some(match *slot {
+            Some(acc) => b.add(acc, d),
+            None => d,
+        });
+    };
+    for i in (0..n).rev() {
+        let Some(g) = adj[i] else { continue };
+        let yv = V(i as u32);
+        match b.func.insts[i] {
+            Inst::Const(_) | Inst::Arg(_) | Inst::Cmp(..) => {}
+            Inst::Un(op, a) => {
+                let d = match op {
+                    UnOp::Neg => b.neg(g),
+                    UnOp::Abs => {
+                        let zero = b.constant(0.0);
+                        let negative = b.cmp(CmpOp::Lt, a, zero);
+                        let ng = b.neg(g);
+                        b.select(negative, ng, g)
+                    }
+                    UnOp::Sqrt => {
+                        let half = b.scale(0.5, g);
+                        b.div(half, yv)
+                    }
+                    UnOp::Exp => b.mul(g, yv),
+                    UnOp::Ln => b.div(g, a),
+                    UnOp::Sin => {
+                        let c = b.un(UnOp::Cos, a);
+                        b.mul(g, c)
+                    }
+                    UnOp::Cos => {
+                        let s = b.un(UnOp::Sin, a);
+                        let gs = b.mul(g, s);
+                        b.neg(gs)
+                    }
+                    UnOp::Tan => {
+                        let one = b.constant(1.0);
+                        let y2 = b.mul(yv, yv);
+                        let s = b.add(one, y2);
+                        b.mul(g, s)
+                    }
+                    UnOp::Tanh => {
+                        let one = b.constant(1.0);
+                        let y2 = b.mul(yv, yv);
+                        let s = b.sub(one, y2);
+                        b.mul(g, s)
+                    }
+                    UnOp::Floor | UnOp::Ceil => continue,
+                };
+                add(&mut b, &mut adj, a, d);
+            }
+            Inst::Bin(op, l, r) => match op {
+                BinOp::Add => {
+                    add(&mut b, &mut adj, l, g);
+                    add(&mut b, &mut adj, r, g);
+                }
+                BinOp::Sub => {
+                    add(&mut b, &mut adj, l, g);
+                    let ng = b.neg(g);
+                    add(&mut b, &mut adj, r, ng);
+                }
+                BinOp::Mul => {
+                    let dl = b.mul(g, r);
+                    let dr = b.mul(g, l);
+                    add(&mut b, &mut adj, l, dl);
+                    add(&mut b, &mut adj, r, dr);
+                }
+                BinOp::Div => {
+                    let dl = b.div(g, r);
+                    let q = b.div(yv, r);
+                    let gq = b.mul(g, q);
+                    let dr = b.neg(gq);
+                    add(&mut b, &mut adj, l, dl);
+                    add(&mut b, &mut adj, r, dr);
+                }
+                BinOp::Pow => {
+                    // d(l^r)/dl = r * l^(r-1); with a constant exponent that is all.
+                    let dl = match b.func.constant(r) {
+                        Some(p) => {
+                            let lp = b.powf(l, p - 1.0);
+                            let k = b.scale(p, lp);
+                            b.mul(g, k)
+                        }
+                        None => {
+                            let one = b.constant(1.0);
+                            let rm1 = b.sub(r, one);
+                            let lp = b.bin(BinOp::Pow, l, rm1);
+                            let k = b.mul(r, lp);
+                            b.mul(g, k)
+                        }
+                    };
+                    add(&mut b, &mut adj, l, dl);
+                    if b.func.constant(r).is_none() {
+                        let ln = b.un(UnOp::Ln, l);
+                        let k = b.mul(yv, ln);
+                        let dr = b.mul(g, k);
+                        add(&mut b, &mut adj, r, dr);
+                    }
+                }
+                BinOp::Min | BinOp::Max => {
+                    // The branch taken gets the adjoint (ties go to the left operand).
+                    let op = if op == BinOp::Min {
+                        CmpOp::Le
+                    } else {
+                        CmpOp::Ge
+                    };
+                    let left = b.cmp(op, l, r);
+                    let zero = b.constant(0.0);
+                    let dl = b.select(left, g, zero);
+                    let dr = b.select(left, zero, g);
+                    add(&mut b, &mut adj, l, dl);
+                    add(&mut b, &mut adj, r, dr);
+                }
+            },
+            Inst::Select(c, l, r) => {
+                let zero = b.constant(0.0);
+                let dl = b.select(c, g, zero);
+                let dr = b.select(c, zero, g);
+                add(&mut b, &mut adj, l, dl);
+                add(&mut b, &mut adj, r, dr);
+            }
+        }
+    }
+    let grads = wrt
+        .iter()
+        .map(|w| match adj.get(w.0 as usize).copied().flatten() {
+            Some(d) => d,
+            None => b.constant(0.0),
+        })
+        .collect();
+    (b.finish(), grads)
+}

@@ -1,0 +1,579 @@
+//! Lowering of checked expressions into kernel IR.
+//!
+//! The checker has already established types and units, so lowering works on SI numbers:
+//! arrays become lists of scalars, functions and lets are inlined, `if` becomes `select`,
+//! reductions over integer ranges are unrolled. Names resolve through an environment of local
+//! bindings, then through the script's and the prelude's declarations; params and inputs
+//! become uniforms of the kernel (`param.NAME[.i]`, `input.NAME[.i]`), `t` becomes the
+//! uniform `t`.
+
+use super::LowerError;
+use crate::front::ast::*;
+use crate::ir::{BinOp, CmpOp, KernelBuilder, UnOp, V};
+use crate::sema::units;
+use std::collections::HashMap;
+
+/// A lowered value: a scalar or an array of values (vectors, matrices).
+#[derive(Clone, Debug, PartialEq)]
+pub enum LVal {
+    S(V),
+    A(Vec<LVal>),
+}
+
+impl LVal {
+    pub fn scalar(&self) -> Result<V, LowerError> {
+        match self {
+            LVal::S(v) => Ok(*v),
+            LVal::A(_) => Err(LowerError::new("expected a scalar, found an array")),
+        }
+    }
+    fn items(&self) -> Result<&[LVal], LowerError> {
+        match self {
+            LVal::A(a) => Ok(a),
+            LVal::S(_) => Err(LowerError::new("expected an array, found a scalar")),
+        }
+    }
+}
+
+/// The declarations names resolve to: the user's script, then the prelude.
+pub struct Program<'a> {
+    pub items: Vec<&'a Item>,
+}
+
+impl<'a> Program<'a> {
+    pub fn new(user: &'a Script, prelude: &'a Script) -> Self {
+        Program {
+            items: user.items.iter().chain(prelude.items.iter()).collect(),
+        }
+    }
+
+    pub fn find(&self, name: &str) -> Option<&'a Item> {
+        self.items
+            .iter()
+            .copied()
+            .find(|i| item_name(i) == Some(name))
+    }
+}
+
+pub fn item_name(i: &Item) -> Option<&str> {
+    Some(match &i.kind {
+        ItemKind::Decl { name, .. } => &name.name,
+        ItemKind::Material(m) => &m.name.name,
+        ItemKind::Param(p) => &p.name.name,
+        ItemKind::Input(p) => &p.name.name,
+        ItemKind::Let(l) => &l.name.name,
+        ItemKind::Fn(f) => &f.name.name,
+        _ => return None,
+    })
+}
+
+/// Local bindings (function parameters, template parameters, invariants, reduction variables).
+pub type Env = HashMap<String, LVal>;
+
+/// Inlining depth bound: the checker rejects cycles, this only guards against surprises.
+const MAX_INLINE: usize = 64;
+
+pub struct ExprLowerer<'p, 'a> {
+    pub program: &'p Program<'a>,
+    /// Constants the scene fixes (e.g. `t_end`, `dt`), by name.
+    pub constants: HashMap<String, f64>,
+    depth: usize,
+}
+
+impl<'p, 'a> ExprLowerer<'p, 'a> {
+    pub fn new(program: &'p Program<'a>) -> Self {
+        ExprLowerer {
+            program,
+            constants: HashMap::new(),
+            depth: 0,
+        }
+    }
+
+    pub fn lower(
+        &mut self,
+        k: &mut KernelBuilder,
+        env: &Env,
+        e: &Expr,
+    ) -> Result<LVal, LowerError> {
+        match &e.kind {
+            ExprKind::Number { value, unit, .. } => {
+                let factor = match unit {
+                    Some(u) => unit_factor(u)?,
+                    None => 1.0,
+                };
+                Ok(LVal::S(k.b.constant(value * factor)))
+            }
+            ExprKind::Array { items, unit } => {
+                let factor = match unit {
+                    Some(u) => unit_factor(u)?,
+                    None => 1.0,
+                };
+                let mut out = Vec::with_capacity(items.len());
+                for it in items {
+                    let v = self.lower(k, env, it)?;
+                    out.push(map_scalars(k, &v, &mut |k, x| k.b.scale(factor, x))?);
+                }
+                Ok(LVal::A(out))
+            }
+            ExprKind::Bool(b) => Ok(LVal::S(k.b.constant(if *b { 1.0 } else { 0.0 }))),
+            ExprKind::Str(_) => Err(LowerError::new("strings have no value in a kernel")),
+            ExprKind::Paren(inner) => self.lower(k, env, inner),
+            ExprKind::Name(id) => self.name(k, env, &id.name),
+            ExprKind::Unary { op, operand } => {
+                let v = self.lower(k, env, operand)?;
+                map_scalars(k, &v, &mut |k, x| match op {
+                    UnaryOp::Neg => k.b.neg(x),
+                    UnaryOp::Not => {
+                        let zero = k.b.constant(0.0);
+                        k.b.cmp(CmpOp::Eq, x, zero)
+                    }
+                })
+            }
+            ExprKind::Binary { op, lhs, rhs } => {
+                let l = self.lower(k, env, lhs)?;
+                let r = self.lower(k, env, rhs)?;
+                self.binary(k, *op, &l, &r)
+            }
+            ExprKind::If {
+                cond,
+                then,
+                otherwise,
+            } => {
+                let c = self.lower(k, env, cond)?.scalar()?;
+                let a = self.lower(k, env, then)?;
+                let b = self.lower(k, env, otherwise)?;
+                zip_scalars(k, &a, &b, &mut |k, x, y| k.b.select(c, x, y))
+            }
+            ExprKind::Field { base, field } => {
+                let b = self.lower(k, env, base)?;
+                let i = match field.name.as_str() {
+                    "x" => 0,
+                    "y" => 1,
+                    _ => 2,
+                };
+                b.items()?
+                    .get(i)
+                    .cloned()
+                    .ok_or_else(|| LowerError::new("component of a vector shorter than 3"))
+            }
+            ExprKind::Index { base, indices } => {
+                let mut v = self.lower(k, env, base)?;
+                for ie in indices {
+                    let i = self.lower(k, env, ie)?.scalar()?;
+                    let Some(i) = k.b.func.constant(i) else {
+                        return Err(LowerError::new(
+                            "indices that vary at run time are not supported yet",
+                        ));
+                    };
+                    v = v
+                        .items()?
+                        .get(i as usize)
+                        .cloned()
+                        .ok_or_else(|| LowerError::new("index out of range"))?;
+                }
+                Ok(v)
+            }
+            ExprKind::Reduce {
+                op,
+                var,
+                domain,
+                body,
+            } => self.reduce(k, env, *op, var, domain, body),
+            ExprKind::Call { callee, args } => {
+                let ExprKind::Name(f) = &callee.kind else {
+                    return Err(LowerError::new("only named functions can be called"));
+                };
+                self.call(k, env, &f.name, args)
+            }
+        }
+    }
+
+    fn name(&mut self, k: &mut KernelBuilder, env: &Env, name: &str) -> Result<LVal, LowerError> {
+        if let Some(v) = env.get(name) {
+            return Ok(v.clone());
+        }
+        if let Some(c) = self.constants.get(name) {
+            return Ok(LVal::S(k.b.constant(*c)));
+        }
+        match name {
+            "t" | "dt" => return Ok(LVal::S(k.uniform(name))),
+            "pi" => return Ok(LVal::S(k.b.constant(std::f64::consts::PI))),
+            _ => {}
+        }
+        let item = self
+            .program
+            .find(name)
+            .ok_or_else(|| LowerError::new(format!("`{name}` has no value in a kernel")))?;
+        match &item.kind {
+            ItemKind::Let(l) => self.inline(k, &Env::new(), &l.value),
+            ItemKind::Param(p) => Ok(uniforms(k, &format!("param.{name}"), &p.ty)),
+            ItemKind::Input(i) => Ok(uniforms(k, &format!("input.{name}"), &i.ty)),
+            _ => Err(LowerError::new(format!(
+                "`{name}` has no value in a kernel"
+            ))),
+        }
+    }
+
+    fn inline(&mut self, k: &mut KernelBuilder, env: &Env, e: &Expr) -> Result<LVal, LowerError> {
+        if self.depth >= MAX_INLINE {
+            return Err(LowerError::new("definitions nested too deeply"));
+        }
+        self.depth += 1;
+        let r = self.lower(k, env, e);
+        self.depth -= 1;
+        r
+    }
+
+    fn binary(
+        &mut self,
+        k: &mut KernelBuilder,
+        op: BinOp_,
+        l: &LVal,
+        r: &LVal,
+    ) -> Result<LVal, LowerError> {
+        use crate::front::ast::BinOp as A;
+        let ir = match op {
+            A::Add => BinOp::Add,
+            A::Sub => BinOp::Sub,
+            A::Mul => BinOp::Mul,
+            A::Div => BinOp::Div,
+            A::Pow => BinOp::Pow,
+            A::MatMul => return matmul(k, l, r),
+            A::And | A::Or => {
+                let (a, b) = (l.scalar()?, r.scalar()?);
+                let zero = k.b.constant(0.0);
+                let na = k.b.cmp(CmpOp::Ne, a, zero);
+                let nb = k.b.cmp(CmpOp::Ne, b, zero);
+                return Ok(LVal::S(if op == A::And {
+                    k.b.mul(na, nb)
+                } else {
+                    k.b.bin(BinOp::Max, na, nb)
+                }));
+            }
+            A::Eq | A::Ne | A::Lt | A::Le | A::Gt | A::Ge => {
+                let c = match op {
+                    A::Eq => CmpOp::Eq,
+                    A::Ne => CmpOp::Ne,
+                    A::Lt => CmpOp::Lt,
+                    A::Le => CmpOp::Le,
+                    A::Gt => CmpOp::Gt,
+                    _ => CmpOp::Ge,
+                };
+                return Ok(LVal::S(k.b.cmp(c, l.scalar()?, r.scalar()?)));
+            }
+            A::Range => return Err(LowerError::new("a range has no value")),
+        };
+        zip_scalars(k, l, r, &mut |k, x, y| k.b.bin(ir, x, y))
+    }
+
+    fn reduce(
+        &mut self,
+        k: &mut KernelBuilder,
+        env: &Env,
+        op: ReduceOp,
+        var: &Ident,
+        domain: &Expr,
+        body: &Expr,
+    ) -> Result<LVal, LowerError> {
+        let ExprKind::Binary {
+            op: crate::front::ast::BinOp::Range,
+            lhs,
+            rhs,
+        } = &domain.kind
+        else {
+            return Err(LowerError::new(
+                "reductions over node or element sets are lowered by the loss, not here",
+            ));
+        };
+        let lo = self.lower(k, env, lhs)?.scalar()?;
+        let hi = self.lower(k, env, rhs)?.scalar()?;
+        let (Some(lo), Some(hi)) = (k.b.func.constant(lo), k.b.func.constant(hi)) else {
+            return Err(LowerError::new("a range reduction needs constant bounds"));
+        };
+        let mut terms = Vec::new();
+        for i in (lo as i64)..(hi as i64) {
+            let mut inner = env.clone();
+            inner.insert(var.name.clone(), LVal::S(k.b.constant(i as f64)));
+            terms.push(self.lower(k, &inner, body)?);
+        }
+        let Some(first) = terms.first().cloned() else {
+            return Ok(LVal::S(k.b.constant(0.0)));
+        };
+        let mut acc = first;
+        for t in &terms[1..] {
+            acc = zip_scalars(k, &acc, t, &mut |k, x, y| match op {
+                ReduceOp::Sum | ReduceOp::Mean => k.b.add(x, y),
+                ReduceOp::Max => k.b.bin(BinOp::Max, x, y),
+                ReduceOp::Min => k.b.bin(BinOp::Min, x, y),
+            })?;
+        }
+        if op == ReduceOp::Mean {
+            let n = terms.len() as f64;
+            acc = map_scalars(k, &acc, &mut |k, x| k.b.scale(1.0 / n, x))?;
+        }
+        Ok(acc)
+    }
+
+    fn call(
+        &mut self,
+        k: &mut KernelBuilder,
+        env: &Env,
+        name: &str,
+        args: &[Arg],
+    ) -> Result<LVal, LowerError> {
+        // User functions and controllers: inline with their parameters bound.
+        if let Some(item) = self.program.find(name)
+            && let ItemKind::Fn(f) = &item.kind
+        {
+            let params: Vec<(&str, Option<&Expr>)> = f
+                .params
+                .iter()
+                .map(|p| (p.name.name.as_str(), p.default.as_ref()))
+                .collect();
+            let bound = self.bind(k, env, &params, args)?;
+            return self.inline(k, &bound, &f.body);
+        }
+        let vals: Vec<LVal> = args
+            .iter()
+            .map(|a| self.lower(k, env, &a.value))
+            .collect::<Result<_, _>>()?;
+        let un = |k: &mut KernelBuilder, op: UnOp, v: &LVal| {
+            map_scalars(k, v, &mut |k, x| k.b.un(op, x))
+        };
+        Ok(match (name, vals.as_slice()) {
+            ("sqrt", [v]) => un(k, UnOp::Sqrt, v)?,
+            ("abs", [v]) => un(k, UnOp::Abs, v)?,
+            ("exp", [v]) => un(k, UnOp::Exp, v)?,
+            ("ln", [v]) => un(k, UnOp::Ln, v)?,
+            ("log10", [v]) => map_scalars(k, v, &mut |k, x| {
+                let l = k.b.un(UnOp::Ln, x);
+                k.b.scale(1.0 / std::f64::consts::LN_10, l)
+            })?,
+            ("sin", [v]) => un(k, UnOp::Sin, v)?,
+            ("cos", [v]) => un(k, UnOp::Cos, v)?,
+            ("tan", [v]) => un(k, UnOp::Tan, v)?,
+            ("tanh", [v]) => un(k, UnOp::Tanh, v)?,
+            ("floor", [v]) => un(k, UnOp::Floor, v)?,
+            ("ceil", [v]) => un(k, UnOp::Ceil, v)?,
+            ("sigmoid", [v]) => map_scalars(k, v, &mut |k, x| {
+                // 1 / (1 + exp(-x))
+                let nx = k.b.neg(x);
+                let e = k.b.un(UnOp::Exp, nx);
+                let one = k.b.constant(1.0);
+                let d = k.b.add(one, e);
+                k.b.div(one, d)
+            })?,
+            ("min", [a, b]) => zip_scalars(k, a, b, &mut |k, x, y| k.b.bin(BinOp::Min, x, y))?,
+            ("max", [a, b]) => zip_scalars(k, a, b, &mut |k, x, y| k.b.bin(BinOp::Max, x, y))?,
+            ("clamp", [x, lo, hi]) => {
+                let l = zip_scalars(k, x, lo, &mut |k, a, b| k.b.bin(BinOp::Max, a, b))?;
+                zip_scalars(k, &l, hi, &mut |k, a, b| k.b.bin(BinOp::Min, a, b))?
+            }
+            ("len", [v]) => LVal::S(k.b.constant(v.items()?.len() as f64)),
+            ("norm", [v]) => {
+                let xs = flatten(v);
+                let sq: Vec<V> = xs.iter().map(|&x| k.b.mul(x, x)).collect();
+                let s = k.b.sum(&sq);
+                LVal::S(k.b.un(UnOp::Sqrt, s))
+            }
+            ("dot", [a, b]) => {
+                let (xa, xb) = (flatten(a), flatten(b));
+                let prods: Vec<V> = xa.iter().zip(&xb).map(|(&x, &y)| k.b.mul(x, y)).collect();
+                LVal::S(k.b.sum(&prods))
+            }
+            ("cross", [a, b]) => {
+                let (a, b) = (flatten(a), flatten(b));
+                let c = |k: &mut KernelBuilder, i: usize, j: usize| {
+                    let p = k.b.mul(a[i], b[j]);
+                    let q = k.b.mul(a[j], b[i]);
+                    k.b.sub(p, q)
+                };
+                LVal::A(vec![
+                    LVal::S(c(k, 1, 2)),
+                    LVal::S(c(k, 2, 0)),
+                    LVal::S(c(k, 0, 1)),
+                ])
+            }
+            // ramp(t, T) = min(t / T, 1) for t ≥ 0.
+            ("ramp", [t, d]) => {
+                let q = k.b.div(t.scalar()?, d.scalar()?);
+                let one = k.b.constant(1.0);
+                let zero = k.b.constant(0.0);
+                let m = k.b.bin(BinOp::Min, q, one);
+                LVal::S(k.b.bin(BinOp::Max, m, zero))
+            }
+            ("window", [t, w]) => {
+                let q = k.b.div(t.scalar()?, w.scalar()?);
+                LVal::S(k.b.un(UnOp::Floor, q))
+            }
+            ("step", [t, at]) => LVal::S(k.b.cmp(CmpOp::Ge, t.scalar()?, at.scalar()?)),
+            _ => {
+                return Err(LowerError::new(format!(
+                    "`{name}` cannot be evaluated inside a kernel"
+                )));
+            }
+        })
+    }
+
+    /// Bind call arguments (positional, then named, then defaults) to parameter names.
+    pub fn bind(
+        &mut self,
+        k: &mut KernelBuilder,
+        env: &Env,
+        params: &[(&str, Option<&Expr>)],
+        args: &[Arg],
+    ) -> Result<Env, LowerError> {
+        let mut bound = Env::new();
+        let mut pos = 0;
+        for a in args {
+            let pname = match &a.name {
+                Some(n) => n.name.clone(),
+                None => {
+                    let p = params
+                        .get(pos)
+                        .ok_or_else(|| LowerError::new("too many arguments"))?;
+                    pos += 1;
+                    p.0.to_string()
+                }
+            };
+            let v = self.lower(k, env, &a.value)?;
+            bound.insert(pname, v);
+        }
+        for (p, default) in params {
+            if bound.contains_key(*p) {
+                continue;
+            }
+            let d = default.ok_or_else(|| LowerError::new(format!("missing argument `{p}`")))?;
+            let v = self.lower(k, &Env::new(), d)?;
+            bound.insert(p.to_string(), v);
+        }
+        Ok(bound)
+    }
+}
+
+type BinOp_ = crate::front::ast::BinOp;
+
+fn unit_factor(u: &Unit) -> Result<f64, LowerError> {
+    let mut f = 1.0;
+    for fac in &u.factors {
+        let (k, _) = units::unit(&fac.name)
+            .ok_or_else(|| LowerError::new(format!("unknown unit `{}`", fac.name)))?;
+        f *= k.powi(fac.power);
+    }
+    Ok(f)
+}
+
+/// Uniforms for a param or input of the given declared shape: `NAME` or `NAME.i.j`.
+fn uniforms(k: &mut KernelBuilder, prefix: &str, ty: &TypeExpr) -> LVal {
+    let dims: Vec<usize> = ty
+        .shape
+        .iter()
+        .map(|s| match s {
+            ShapeItem::Len(n, _) => n.parse().unwrap_or(0),
+            _ => 0,
+        })
+        .collect();
+    fn build(k: &mut KernelBuilder, prefix: &str, dims: &[usize]) -> LVal {
+        match dims.split_first() {
+            None => LVal::S(k.uniform(prefix)),
+            Some((&n, rest)) => LVal::A(
+                (0..n)
+                    .map(|i| build(k, &format!("{prefix}.{i}"), rest))
+                    .collect(),
+            ),
+        }
+    }
+    build(k, prefix, &dims)
+}
+
+pub fn flatten(v: &LVal) -> Vec<V> {
+    match v {
+        LVal::S(x) => vec![*x],
+        LVal::A(items) => items.iter().flat_map(flatten).collect(),
+    }
+}
+
+fn map_scalars(
+    k: &mut KernelBuilder,
+    v: &LVal,
+    f: &mut dyn FnMut(&mut KernelBuilder, V) -> V,
+) -> Result<LVal, LowerError> {
+    Ok(match v {
+        LVal::S(x) => LVal::S(f(k, *x)),
+        LVal::A(items) => LVal::A(
+            items
+                .iter()
+                .map(|i| map_scalars(k, i, f))
+                .collect::<Result<_, _>>()?,
+        ),
+    })
+}
+
+/// Elementwise with scalar broadcast.
+fn zip_scalars(
+    k: &mut KernelBuilder,
+    a: &LVal,
+    b: &LVal,
+    f: &mut dyn FnMut(&mut KernelBuilder, V, V) -> V,
+) -> Result<LVal, LowerError> {
+    Ok(match (a, b) {
+        (LVal::S(x), LVal::S(y)) => LVal::S(f(k, *x, *y)),
+        (LVal::A(xs), LVal::S(_)) => LVal::A(
+            xs.iter()
+                .map(|x| zip_scalars(k, x, b, f))
+                .collect::<Result<_, _>>()?,
+        ),
+        (LVal::S(_), LVal::A(ys)) => LVal::A(
+            ys.iter()
+                .map(|y| zip_scalars(k, a, y, f))
+                .collect::<Result<_, _>>()?,
+        ),
+        (LVal::A(xs), LVal::A(ys)) if xs.len() == ys.len() => LVal::A(
+            xs.iter()
+                .zip(ys)
+                .map(|(x, y)| zip_scalars(k, x, y, f))
+                .collect::<Result<_, _>>()?,
+        ),
+        _ => return Err(LowerError::new("shapes differ")),
+    })
+}
+
+fn matmul(k: &mut KernelBuilder, a: &LVal, b: &LVal) -> Result<LVal, LowerError> {
+    let rows: Vec<Vec<V>> = a.items()?.iter().map(flatten).collect();
+    match b {
+        LVal::A(items) if items.iter().all(|i| matches!(i, LVal::S(_))) => {
+            let x = flatten(b);
+            Ok(LVal::A(
+                rows.iter()
+                    .map(|r| {
+                        let p: Vec<V> = r.iter().zip(&x).map(|(&u, &w)| k.b.mul(u, w)).collect();
+                        LVal::S(k.b.sum(&p))
+                    })
+                    .collect(),
+            ))
+        }
+        LVal::A(brows) => {
+            let bm: Vec<Vec<V>> = brows.iter().map(flatten).collect();
+            let cols = bm.first().map_or(0, |r| r.len());
+            Ok(LVal::A(
+                rows.iter()
+                    .map(|r| {
+                        LVal::A(
+                            (0..cols)
+                                .map(|j| {
+                                    let p: Vec<V> = r
+                                        .iter()
+                                        .enumerate()
+                                        .map(|(i, &u)| k.b.mul(u, bm[i][j]))
+                                        .collect();
+                                    LVal::S(k.b.sum(&p))
+                                })
+                                .collect(),
+                        )
+                    })
+                    .collect(),
+            ))
+        }
+        LVal::S(_) => Err(LowerError::new("`@` needs a vector or matrix on the right")),
+    }
+}

@@ -1,0 +1,330 @@
+//! Tetrahedral FEM forces from a strain energy W(Ī1, Ī2, J).
+//!
+//! For a linear tet with rest edge matrix Dm (columns x1−x0, x2−x0, x3−x0 at rest) and current
+//! edge matrix Ds, the deformation gradient is F = Ds·Dm⁻¹ (thesis eq. 2.9), J = det F,
+//! C = FᵀF, I1 = tr C, I2 = ½(I1² − tr C²), Ī1 = J^(−2/3)·I1, Ī2 = J^(−4/3)·I2 (eq. 2.10–2.13).
+//! The compiler differentiates W (reverse mode on the IR) to W₁ = ∂W/∂Ī1, W₂ = ∂W/∂Ī2,
+//! W_J = ∂W/∂J and assembles the first Piola–Kirchhoff stress from the chain rule
+//!
+//!   P = W₁·J^(−2/3)·(2F − ⅔·I1·F⁻ᵀ) + W₂·J^(−4/3)·(2(I1·F − F·C) − ⁴⁄₃·I2·F⁻ᵀ) + W_J·J·F⁻ᵀ,
+//!
+//! (the thesis' eq. 2.14 states the Cauchy form with typos; this is derived directly from W).
+//! The nodal forces are f = −∂(V₀·W)/∂x: the columns of H = −V₀·P·Dm⁻ᵀ act on nodes 1–3 and
+//! node 0 takes minus their sum. Terms of W that a material does not have (no Ī2 in Yeoh) are
+//! not generated.
+
+use super::LowerError;
+use super::expr::{Env, ExprLowerer, LVal, Program};
+use crate::front::ast::*;
+use crate::ir::{ArgSource, BufferId, Builder, Domain, KernelBuilder, Module, V, ad};
+
+/// The buffers the element force kernel uses.
+pub struct FemBuffers {
+    /// Current node positions (node × 3).
+    pub x: BufferId,
+    /// Dm⁻¹ per element, row-major (element × 9).
+    pub dm_inv: BufferId,
+    /// Rest volume per element (element × 1).
+    pub vol0: BufferId,
+    /// Forces on the 4 corners per element, corner-major (element × 12).
+    pub force: BufferId,
+    /// Strain energy V₀·W per element (element × 1).
+    pub energy: BufferId,
+}
+
+impl FemBuffers {
+    pub fn declare(m: &mut Module) -> Self {
+        FemBuffers {
+            x: m.buffer("x", Domain::Node, 3, "node positions, m"),
+            dm_inv: m.buffer(
+                "dm_inv",
+                Domain::Element,
+                9,
+                "rest edge matrix inverse, 1/m",
+            ),
+            vol0: m.buffer("vol0", Domain::Element, 1, "rest volume, m^3"),
+            force: m.buffer(
+                "elem_force",
+                Domain::Element,
+                12,
+                "internal force per corner, N",
+            ),
+            energy: m.buffer("elem_energy", Domain::Element, 1, "strain energy V0*W, J"),
+        }
+    }
+}
+
+/// Build the element force kernel of one material.
+pub fn element_force_kernel(
+    program: &Program,
+    module: &mut Module,
+    material: &str,
+) -> Result<crate::ir::Kernel, LowerError> {
+    let bufs = FemBuffers::declare(module);
+    let mut k = KernelBuilder::new(
+        &format!("fem_{material}"),
+        Domain::Element,
+        &format!("material {material}"),
+    );
+    let xs: Vec<[V; 3]> = (0..4)
+        .map(|c| {
+            [0, 1, 2].map(|d| {
+                k.load(ArgSource::Corner {
+                    buffer: bufs.x,
+                    corner: c,
+                    component: d,
+                })
+            })
+        })
+        .collect();
+    let dmi: [[V; 3]; 3] = [0, 1, 2].map(|r| {
+        [0, 1, 2].map(|c| {
+            k.load(ArgSource::Own {
+                buffer: bufs.dm_inv,
+                component: 3 * r + c,
+            })
+        })
+    });
+    let vol0 = k.load(ArgSource::Own {
+        buffer: bufs.vol0,
+        component: 0,
+    });
+    // Ds[r][c] = x_{c+1}[r] − x_0[r]
+    let ds: [[V; 3]; 3] = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k.b.sub(xs[c + 1][r], xs[0][r])));
+    let f = matmul(&mut k.b, &ds, &dmi);
+    let (w, energy_terms) = energy_and_stress(program, &mut k, material, &f)?;
+    let p = energy_terms;
+    // H = −V0 · P · Dm⁻ᵀ: H[r][c] = −V0 Σ_k P[r][k] Dm⁻¹[c][k]
+    let nv0 = k.b.neg(vol0);
+    let mut h = [[V(0); 3]; 3];
+    for r in 0..3 {
+        for c in 0..3 {
+            let terms: Vec<V> = (0..3).map(|kk| k.b.mul(p[r][kk], dmi[c][kk])).collect();
+            let s = k.b.sum(&terms);
+            h[r][c] = k.b.mul(nv0, s);
+        }
+    }
+    for d in 0..3 {
+        let col_sum = k.b.sum(&[h[d][0], h[d][1], h[d][2]]);
+        let f0 = k.b.neg(col_sum);
+        k.store(bufs.force, d as u32, f0);
+    }
+    for c in 0..3 {
+        for d in 0..3 {
+            k.store(bufs.force, 3 * (c as u32 + 1) + d as u32, h[d][c]);
+        }
+    }
+    let e = k.b.mul(vol0, w);
+    k.store(bufs.energy, 0, e);
+    Ok(k.finish())
+}
+
+fn matmul(b: &mut Builder, a: &[[V; 3]; 3], c: &[[V; 3]; 3]) -> [[V; 3]; 3] {
+    [0, 1, 2].map(|r| {
+        [0, 1, 2].map(|col| {
+            let t: Vec<V> = (0..3).map(|k| b.mul(a[r][k], c[k][col])).collect();
+            b.sum(&t)
+        })
+    })
+}
+
+fn transpose(a: &[[V; 3]; 3]) -> [[V; 3]; 3] {
+    [0, 1, 2].map(|r| [0, 1, 2].map(|c| a[c][r]))
+}
+
+/// W and the first Piola–Kirchhoff stress P = ∂W/∂F of a material at deformation gradient F.
+fn energy_and_stress(
+    program: &Program,
+    k: &mut KernelBuilder,
+    material: &str,
+    f: &[[V; 3]; 3],
+) -> Result<(V, [[V; 3]; 3]), LowerError> {
+    let b = &mut k.b;
+    // Cofactor matrix: cof[r][c] = (F_{r+1,c+1} F_{r+2,c+2} − F_{r+1,c+2} F_{r+2,c+1}).
+    let mut cof = [[V(0); 3]; 3];
+    for (r, row) in cof.iter_mut().enumerate() {
+        for (c, cell) in row.iter_mut().enumerate() {
+            let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
+            let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
+            let p = b.mul(f[r1][c1], f[r2][c2]);
+            let q = b.mul(f[r1][c2], f[r2][c1]);
+            *cell = b.sub(p, q);
+        }
+    }
+    let jt: Vec<V> = (0..3).map(|c| b.mul(f[0][c], cof[0][c])).collect();
+    let j = b.sum(&jt);
+    // F⁻ᵀ = cof(F) / J
+    let finv_t = cof.map(|row| row.map(|x| b.div(x, j)));
+    let c = matmul(b, &transpose(f), f);
+    let i1 = b.sum(&[c[0][0], c[1][1], c[2][2]]);
+    let cc = matmul(b, &c, &c);
+    let tr_cc = b.sum(&[cc[0][0], cc[1][1], cc[2][2]]);
+    let i1sq = b.mul(i1, i1);
+    let diff = b.sub(i1sq, tr_cc);
+    let i2 = b.scale(0.5, diff);
+    let j23 = b.powf(j, -2.0 / 3.0);
+    let j43 = b.powf(j, -4.0 / 3.0);
+    let i1b = b.mul(j23, i1);
+    let i2b = b.mul(j43, i2);
+
+    // W and its partial derivatives in the invariants, built as a function of three
+    // independent arguments (differentiating inside the kernel would give total derivatives:
+    // Ī1 and Ī2 depend on J), then inlined at this element's invariants.
+    let mut sub = KernelBuilder::new("W", Domain::Element, material);
+    let inv = [sub.uniform("I1bar"), sub.uniform("I2bar"), sub.uniform("J")];
+    let w = material_energy(program, &mut sub, material, inv[0], inv[1], inv[2])?;
+    let (sub_args, func) = sub.into_parts();
+    let (mut func, g) = ad::gradient(func, w, &inv);
+    func.outputs = vec![w, g[0], g[1], g[2]];
+    let outs = k.inline(&sub_args, &func, &[i1b, i2b, j]);
+    let (w, w1, w2, wj) = (outs[0], outs[1], outs[2], outs[3]);
+    let b = &mut k.b;
+
+    let mut p = [[V(0); 3]; 3];
+    let used = |b: &Builder, v: V| b.func.constant(v) != Some(0.0);
+    let fc = matmul(b, f, &c);
+    for r in 0..3 {
+        for col in 0..3 {
+            let mut terms = Vec::new();
+            if used(b, w1) {
+                // W1 J^(-2/3) (2F − ⅔ I1 F⁻ᵀ)
+                let two_f = b.scale(2.0, f[r][col]);
+                let t = b.mul(i1, finv_t[r][col]);
+                let t = b.scale(2.0 / 3.0, t);
+                let d = b.sub(two_f, t);
+                let d = b.mul(j23, d);
+                terms.push(b.mul(w1, d));
+            }
+            if used(b, w2) {
+                // W2 J^(-4/3) (2(I1 F − F C) − ⁴⁄₃ I2 F⁻ᵀ)
+                let i1f = b.mul(i1, f[r][col]);
+                let s = b.sub(i1f, fc[r][col]);
+                let s = b.scale(2.0, s);
+                let t = b.mul(i2, finv_t[r][col]);
+                let t = b.scale(4.0 / 3.0, t);
+                let d = b.sub(s, t);
+                let d = b.mul(j43, d);
+                terms.push(b.mul(w2, d));
+            }
+            if used(b, wj) {
+                // WJ J F⁻ᵀ = WJ cof(F)
+                terms.push(b.mul(wj, cof[r][col]));
+            }
+            p[r][col] = b.sum(&terms);
+        }
+    }
+    Ok((w, p))
+}
+
+/// Lower a material's strain energy at the given invariants.
+pub fn material_energy(
+    program: &Program,
+    k: &mut KernelBuilder,
+    material: &str,
+    i1b: V,
+    i2b: V,
+    j: V,
+) -> Result<V, LowerError> {
+    let (stmts, env) = material_body(program, k, material)?;
+    let mut lw = ExprLowerer::new(program);
+    let mut env = env;
+    for s in stmts {
+        match &s.kind {
+            StmtKind::Let(l) => {
+                let v = lw.lower(k, &env, &l.value)?;
+                env.insert(l.name.name.clone(), v);
+            }
+            StmtKind::Energy { args, body, .. } => {
+                for a in args {
+                    let v = match a.name.as_str() {
+                        "I1bar" => i1b,
+                        "I2bar" => i2b,
+                        _ => j,
+                    };
+                    env.insert(a.name.clone(), LVal::S(v));
+                }
+                return lw.lower(k, &env, body)?.scalar();
+            }
+            _ => {}
+        }
+    }
+    Err(LowerError::new(format!(
+        "material `{material}` has no strain energy"
+    )))
+}
+
+/// A material's density in kg/m³ (a constant).
+pub fn material_density(program: &Program, material: &str) -> Result<f64, LowerError> {
+    let mut k = KernelBuilder::new("density", Domain::Single, material);
+    let (stmts, mut env) = material_body(program, &mut k, material)?;
+    let mut lw = ExprLowerer::new(program);
+    for s in stmts {
+        match &s.kind {
+            StmtKind::Let(l) => {
+                let v = lw.lower(&mut k, &env, &l.value)?;
+                env.insert(l.name.name.clone(), v);
+            }
+            StmtKind::Assign { name, value } if name.name == "density" => {
+                let v = lw.lower(&mut k, &env, value)?.scalar()?;
+                return k.b.func.constant(v).ok_or_else(|| {
+                    LowerError::new(format!("the density of `{material}` must be a constant"))
+                });
+            }
+            _ => {}
+        }
+    }
+    Err(LowerError::new(format!(
+        "material `{material}` has no density"
+    )))
+}
+
+/// The statements of a material's body and the bindings of its template parameters.
+fn material_body<'a>(
+    program: &Program<'a>,
+    k: &mut KernelBuilder,
+    material: &str,
+) -> Result<(&'a [Stmt], Env), LowerError> {
+    let item = program
+        .find(material)
+        .ok_or_else(|| LowerError::new(format!("unknown material `{material}`")))?;
+    let ItemKind::Material(m) = &item.kind else {
+        return Err(LowerError::new(format!("`{material}` is not a material")));
+    };
+    match &m.body {
+        MaterialBody::Block(stmts) => Ok((stmts, Env::new())),
+        MaterialBody::Expr(e) => {
+            let ExprKind::Call { callee, args } = &e.kind else {
+                return Err(LowerError::new(
+                    "a material is a call to a material template",
+                ));
+            };
+            let ExprKind::Name(t) = &callee.kind else {
+                return Err(LowerError::new(
+                    "a material is a call to a material template",
+                ));
+            };
+            let template = program.find(&t.name).ok_or_else(|| {
+                LowerError::new(format!("unknown material template `{}`", t.name))
+            })?;
+            let ItemKind::Material(tm) = &template.kind else {
+                return Err(LowerError::new(format!(
+                    "`{}` is not a material template",
+                    t.name
+                )));
+            };
+            let (Some(params), MaterialBody::Block(stmts)) = (&tm.params, &tm.body) else {
+                return Err(LowerError::new(format!(
+                    "`{}` is not a material template",
+                    t.name
+                )));
+            };
+            let ps: Vec<(&str, Option<&Expr>)> = params
+                .iter()
+                .map(|p| (p.name.name.as_str(), p.default.as_ref()))
+                .collect();
+            let mut lw = ExprLowerer::new(program);
+            let env = lw.bind(k, &Env::new(), &ps, args)?;
+            Ok((stmts, env))
+        }
+    }
+}
