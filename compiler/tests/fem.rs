@@ -1,3 +1,5 @@
+#![allow(clippy::needless_range_loop)] // small fixed-size loops read clearer with indices
+
 //! The element force kernel the compiler generates from a strain energy W must be the exact
 //! negative gradient of the element's energy V0·W (checked against central finite differences
 //! in f64), vanish at rest, and reproduce closed-form stresses.

@@ -160,16 +160,14 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 let mut v = self.lower(k, env, base)?;
                 for ie in indices {
                     let i = self.lower(k, env, ie)?.scalar()?;
-                    let Some(i) = k.b.func.constant(i) else {
-                        return Err(LowerError::new(
-                            "indices that vary at run time are not supported yet",
-                        ));
+                    v = match k.b.func.constant(i) {
+                        Some(c) => v
+                            .items()?
+                            .get(c as usize)
+                            .cloned()
+                            .ok_or_else(|| LowerError::new("index out of range"))?,
+                        None => select_index(k, v.items()?, i)?,
                     };
-                    v = v
-                        .items()?
-                        .get(i as usize)
-                        .cloned()
-                        .ok_or_else(|| LowerError::new("index out of range"))?;
                 }
                 Ok(v)
             }
@@ -206,7 +204,14 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             .ok_or_else(|| LowerError::new(format!("`{name}` has no value in a kernel")))?;
         match &item.kind {
             ItemKind::Let(l) => self.inline(k, &Env::new(), &l.value),
-            ItemKind::Param(p) => Ok(uniforms(k, &format!("param.{name}"), &p.ty)),
+            ItemKind::Param(p) => {
+                if p.ty.shape.iter().any(|s| matches!(s, ShapeItem::Set(_))) {
+                    return Err(LowerError::new(format!(
+                        "the per-element param `{name}` is not supported by the kernel lowering yet"
+                    )));
+                }
+                Ok(uniforms(k, &format!("param.{name}"), &p.ty))
+            }
             ItemKind::Input(i) => Ok(uniforms(k, &format!("input.{name}"), &i.ty)),
             _ => Err(LowerError::new(format!(
                 "`{name}` has no value in a kernel"
@@ -576,4 +581,19 @@ fn matmul(k: &mut KernelBuilder, a: &LVal, b: &LVal) -> Result<LVal, LowerError>
         }
         LVal::S(_) => Err(LowerError::new("`@` needs a vector or matrix on the right")),
     }
+}
+
+/// `items[i]` for an index known only at run time (a windowed schedule `beta[window(t, w)]`):
+/// a chain of selects, clamped to the last entry past the end.
+fn select_index(k: &mut KernelBuilder, items: &[LVal], i: V) -> Result<LVal, LowerError> {
+    let Some(last) = items.last() else {
+        return Err(LowerError::new("index into an empty array"));
+    };
+    let mut acc = last.clone();
+    for (j, item) in items.iter().enumerate().rev().skip(1) {
+        let jv = k.b.constant(j as f64);
+        let here = k.b.cmp(CmpOp::Le, i, jv);
+        acc = zip_scalars(k, item, &acc, &mut |k, a, b| k.b.select(here, a, b))?;
+    }
+    Ok(acc)
 }

@@ -104,14 +104,15 @@ pub fn element_force_kernel(
             h[r][c] = k.b.mul(nv0, s);
         }
     }
-    for d in 0..3 {
-        let col_sum = k.b.sum(&[h[d][0], h[d][1], h[d][2]]);
-        let f0 = k.b.neg(col_sum);
+    // Corner 0 takes minus the sum of the others (momentum balance); corner c+1 gets column c.
+    for (d, row) in h.iter().enumerate() {
+        let row_sum = k.b.sum(row);
+        let f0 = k.b.neg(row_sum);
         k.store(bufs.force, d as u32, f0);
     }
-    for c in 0..3 {
-        for d in 0..3 {
-            k.store(bufs.force, 3 * (c as u32 + 1) + d as u32, h[d][c]);
+    for c in 0..3u32 {
+        for (d, row) in h.iter().enumerate() {
+            k.store(bufs.force, 3 * (c + 1) + d as u32, row[c as usize]);
         }
     }
     let e = k.b.mul(vol0, w);

@@ -3,6 +3,7 @@
 
 pub mod expr;
 pub mod fem;
+pub mod scene;
 
 use std::fmt;
 

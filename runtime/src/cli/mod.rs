@@ -46,11 +46,12 @@ pub enum Command {
         #[arg(long)]
         check: bool,
     },
-    /// Compile a script and print its kernels (not implemented yet).
+    /// Compile a script and print its kernels.
     Compile {
         file: PathBuf,
-        #[arg(long)]
-        emit: Option<String>,
+        /// What to print: the kernel IR (`clif` and `wgsl` come with their backends).
+        #[arg(long, value_enum, default_value_t = Emit::Ir)]
+        emit: Emit,
     },
     /// Simulate or optimize a script (not implemented yet).
     Run {
@@ -63,6 +64,16 @@ pub enum Command {
         #[command(subcommand)]
         command: mesh::MeshCommand,
     },
+}
+
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Emit {
+    /// The kernel IR of every kernel of the scene.
+    Ir,
+    /// Cranelift IR (not implemented yet).
+    Clif,
+    /// WGSL (not implemented yet).
+    Wgsl,
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -94,7 +105,7 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             deny_warnings,
         } => check_files(&files, message_format, deny_warnings, out, err),
         Command::Fmt { files, check } => fmt_files(&files, check, out, err),
-        Command::Compile { .. } => not_implemented("compile", err),
+        Command::Compile { file, emit } => compile_file(&file, emit, out, err),
         Command::Run { .. } => not_implemented("run", err),
         Command::Mesh { command } => mesh::run(command),
     }
@@ -165,18 +176,7 @@ fn check_files(
             status = 2;
             continue;
         };
-        let options = CheckOptions {
-            mesh_probe: Some(std::sync::Arc::new(crate::mesh::probe::FileProbe)),
-            base_dir: if path == Path::new("-") {
-                std::env::current_dir().ok()
-            } else {
-                let dir = path
-                    .parent()
-                    .filter(|p| !p.as_os_str().is_empty())
-                    .unwrap_or(Path::new("."));
-                Some(dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf()))
-            },
-        };
+        let options = check_options(path);
         let (text, checked) = softc_compiler::check_bytes(&bytes, &options);
         let name = display_name(path);
         let file = SourceFile::new(&name, &text);
@@ -197,6 +197,63 @@ fn check_files(
         }
     }
     status
+}
+
+/// The options `check` and `compile` use for a script file.
+fn check_options(path: &Path) -> CheckOptions {
+    CheckOptions {
+        mesh_probe: Some(std::sync::Arc::new(crate::mesh::probe::FileProbe)),
+        base_dir: if path == Path::new("-") {
+            std::env::current_dir().ok()
+        } else {
+            let dir = path
+                .parent()
+                .filter(|p| !p.as_os_str().is_empty())
+                .unwrap_or(Path::new("."));
+            Some(dir.canonicalize().unwrap_or_else(|_| dir.to_path_buf()))
+        },
+    }
+}
+
+fn compile_file(path: &Path, emit: Emit, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    if emit != Emit::Ir {
+        let what = if emit == Emit::Clif {
+            "--emit clif"
+        } else {
+            "--emit wgsl"
+        };
+        return not_implemented(&format!("compile {what}"), err);
+    }
+    let Some(bytes) = read_input(path, err) else {
+        return 2;
+    };
+    let (text, checked) = softc_compiler::check_bytes(&bytes, &check_options(path));
+    let name = display_name(path);
+    let file = SourceFile::new(&name, &text);
+    if checked.has_errors() {
+        report(&file, &checked.diagnostics, MessageFormat::Human, out, err);
+        let _ = writeln!(err, "{name}: not compiled (fix the errors first)");
+        return 1;
+    }
+    let ast = match softc_compiler::front::parse(&text) {
+        Ok(a) => a,
+        Err(d) => {
+            report(&file, &[d], MessageFormat::Human, out, err);
+            return 1;
+        }
+    };
+    let program =
+        softc_compiler::lower::expr::Program::new(&ast, softc_compiler::sema::prelude_ast());
+    match softc_compiler::lower::scene::lower_scene(&program, &ast) {
+        Ok(scene) => {
+            let _ = write!(out, "{}", scene.module);
+            0
+        }
+        Err(e) => {
+            let _ = writeln!(err, "{name}: cannot compile: {e}");
+            1
+        }
+    }
 }
 
 fn plural(n: usize) -> &'static str {

@@ -1,0 +1,229 @@
+//! A scene's kernels: one element force kernel per material in use, one pressure kernel per
+//! chamber with a pressure, and the node kernel that gathers forces and integrates. Only what
+//! the scene uses is generated: no pressure code without chambers, damping and gravity folded
+//! away when absent, constants folded into the code.
+
+use super::LowerError;
+use super::expr::{Env, ExprLowerer, Program};
+use super::fem::{FemBuffers, element_force_kernel};
+use crate::front::ast::*;
+use crate::ir::{ArgSource, CmpOp, Domain, KernelBuilder, Module, V};
+
+/// The module of a scene plus what the host needs to run it.
+#[derive(Debug, Clone)]
+pub struct SceneModule {
+    pub module: Module,
+    /// Materials in kernel order (element kernel `i` runs over the elements of material `i`).
+    pub materials: Vec<String>,
+    /// Chambers in kernel order (pressure kernel `i` runs over the triangles of chamber `i`).
+    pub chambers: Vec<String>,
+}
+
+/// Lower the scene described by a checked script.
+pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, LowerError> {
+    let sim = script
+        .items
+        .iter()
+        .find_map(|i| match &i.kind {
+            ItemKind::Sim(s) => Some(s),
+            _ => None,
+        })
+        .ok_or_else(|| LowerError::new("the script has no sim block"))?;
+    let mut module = Module::default();
+    let mut materials: Vec<String> = Vec::new();
+    for s in sim {
+        if let StmtKind::Use { material, .. } = &s.kind
+            && !materials.contains(&material.name)
+        {
+            materials.push(material.name.clone());
+        }
+    }
+    if materials.is_empty() {
+        let declared: Vec<&str> = script
+            .items
+            .iter()
+            .filter_map(|i| match &i.kind {
+                ItemKind::Material(m) if m.params.is_none() => Some(m.name.name.as_str()),
+                _ => None,
+            })
+            .collect();
+        match declared.as_slice() {
+            [one] => materials.push(one.to_string()),
+            _ => return Err(LowerError::new("the sim block assigns no material")),
+        }
+    }
+    let fem = FemBuffers::declare(&mut module);
+    for m in &materials {
+        let k = element_force_kernel(program, &mut module, m)?;
+        module.kernels.push(k);
+    }
+    let mut chambers = Vec::new();
+    let tri_force = module.buffer(
+        "tri_force",
+        Domain::Triangle,
+        9,
+        "pressure force per triangle corner, N",
+    );
+    for s in sim {
+        if let StmtKind::Pressure { chamber, value } = &s.kind {
+            module.kernels.push(pressure_kernel(
+                program,
+                &fem,
+                tri_force,
+                &chamber.name,
+                value,
+            )?);
+            chambers.push(chamber.name.clone());
+        }
+    }
+    if chambers.is_empty() {
+        module.buffers.retain(|b| b.name != "tri_force");
+    }
+    let node = node_kernel(program, &mut module, sim, !chambers.is_empty())?;
+    module.kernels.push(node);
+    Ok(SceneModule {
+        module,
+        materials,
+        chambers,
+    })
+}
+
+/// Follower pressure load (thesis eq. 2.15): each corner of a chamber triangle gets
+/// p·A·n/3 = p/6 · (x1 − x0) × (x2 − x0), with triangles wound so the normal points into
+/// the solid. The pressure expression is evaluated in the kernel (it depends on `t` and params).
+fn pressure_kernel(
+    program: &Program,
+    fem: &FemBuffers,
+    tri_force: crate::ir::BufferId,
+    chamber: &str,
+    pressure: &Expr,
+) -> Result<crate::ir::Kernel, LowerError> {
+    let mut k = KernelBuilder::new(
+        &format!("pressure_{chamber}"),
+        Domain::Triangle,
+        &format!("pressure {chamber}"),
+    );
+    let mut lw = ExprLowerer::new(program);
+    let p = lw.lower(&mut k, &Env::new(), pressure)?.scalar()?;
+    let xs: Vec<[V; 3]> = (0..3)
+        .map(|c| {
+            [0, 1, 2].map(|d| {
+                k.load(ArgSource::Corner {
+                    buffer: fem.x,
+                    corner: c,
+                    component: d,
+                })
+            })
+        })
+        .collect();
+    let e1 = [0, 1, 2].map(|d| k.b.sub(xs[1][d], xs[0][d]));
+    let e2 = [0, 1, 2].map(|d| k.b.sub(xs[2][d], xs[0][d]));
+    let cross = |k: &mut KernelBuilder, i: usize, j: usize| {
+        let a = k.b.mul(e1[i], e2[j]);
+        let b = k.b.mul(e1[j], e2[i]);
+        k.b.sub(a, b)
+    };
+    let n = [
+        cross(&mut k, 1, 2),
+        cross(&mut k, 2, 0),
+        cross(&mut k, 0, 1),
+    ];
+    let p6 = k.b.scale(1.0 / 6.0, p);
+    let f = n.map(|c| k.b.mul(p6, c));
+    for corner in 0..3 {
+        for (d, &fd) in f.iter().enumerate() {
+            k.store(tri_force, 3 * corner + d as u32, fd);
+        }
+    }
+    Ok(k.finish())
+}
+
+/// Semi-implicit Euler (thesis eq. 2.2 with mass damping eq. 2.17):
+/// v' = (v + dt·(F/m − β·v + g))·(1 − fixed), x' = x + dt·v', F the gathered element and
+/// pressure forces. Writes the next state into separate buffers: no state is overwritten
+/// while it may still be read (the adjoint depends on that).
+fn node_kernel(
+    program: &Program,
+    module: &mut Module,
+    sim: &[Stmt],
+    pressure: bool,
+) -> Result<crate::ir::Kernel, LowerError> {
+    let x = module.buffer("x", Domain::Node, 3, "node positions, m");
+    let v = module.buffer("v", Domain::Node, 3, "node velocities, m/s");
+    let x_next = module.buffer("x_next", Domain::Node, 3, "positions after the step, m");
+    let v_next = module.buffer("v_next", Domain::Node, 3, "velocities after the step, m/s");
+    let mass = module.buffer("mass", Domain::Node, 1, "lumped (scaled) mass, kg");
+    let fixed = module.buffer("fixed", Domain::Node, 1, "1 for fixed nodes, else 0");
+    let elem_force = module.buffer_named("elem_force").expect("declared");
+    let tri_force = module.buffer_named("tri_force");
+    let mut k = KernelBuilder::new("integrate", Domain::Node, "sim");
+    let mut lw = ExprLowerer::new(program);
+    let damping = sim.iter().find_map(|s| match &s.kind {
+        StmtKind::Assign { name, value } if name.name == "damping" => Some(value),
+        _ => None,
+    });
+    let gravity = sim.iter().find_map(|s| match &s.kind {
+        StmtKind::Assign { name, value } if name.name == "gravity" => Some(value),
+        _ => None,
+    });
+    let beta = match damping {
+        Some(e) => Some(lw.lower(&mut k, &Env::new(), e)?.scalar()?),
+        None => None,
+    };
+    let g = match gravity {
+        Some(e) => Some(super::expr::flatten(&lw.lower(&mut k, &Env::new(), e)?)),
+        None => None,
+    };
+    let dt = k.uniform("dt");
+    let m = k.load(ArgSource::Own {
+        buffer: mass,
+        component: 0,
+    });
+    let is_fixed = k.load(ArgSource::Own {
+        buffer: fixed,
+        component: 0,
+    });
+    let zero = k.b.constant(0.0);
+    let free = k.b.cmp(CmpOp::Eq, is_fixed, zero);
+    for d in 0..3u32 {
+        let mut f = k.load(ArgSource::Gather {
+            buffer: elem_force,
+            over: Domain::Element,
+            stride: 3,
+            component: d,
+        });
+        if pressure && let Some(tf) = tri_force {
+            let fp = k.load(ArgSource::Gather {
+                buffer: tf,
+                over: Domain::Triangle,
+                stride: 3,
+                component: d,
+            });
+            f = k.b.add(f, fp);
+        }
+        let xv = k.load(ArgSource::Own {
+            buffer: x,
+            component: d,
+        });
+        let vv = k.load(ArgSource::Own {
+            buffer: v,
+            component: d,
+        });
+        let mut a = k.b.div(f, m);
+        if let Some(beta) = beta {
+            let bv = k.b.mul(beta, vv);
+            a = k.b.sub(a, bv);
+        }
+        if let Some(g) = &g {
+            a = k.b.add(a, g[d as usize]);
+        }
+        let dv = k.b.mul(dt, a);
+        let v1 = k.b.add(vv, dv);
+        let v1 = k.b.select(free, v1, zero);
+        let dx = k.b.mul(dt, v1);
+        let x1 = k.b.add(xv, dx);
+        k.store(x_next, d, x1);
+        k.store(v_next, d, v1);
+    }
+    Ok(k.finish())
+}

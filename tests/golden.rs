@@ -1,0 +1,62 @@
+//! Generated kernels are golden files: `tests/golden/ir/NAME.ir` holds the kernel IR of every
+//! example, so a change to generated code shows in review. Update after an intended change:
+//!     SOFTC_BLESS=1 cargo test -p softc-tests --test golden
+//! and read the diff.
+
+use softc_tests::{bless, files_with_ext, root, softc};
+
+#[test]
+fn example_kernels_match_their_golden_ir() {
+    let dir = root().join("tests/golden/ir");
+    let mut failures = Vec::new();
+    for script in files_with_ext(&root().join("examples"), "soft") {
+        let (code, out, err) = softc(&["compile", "--emit", "ir", script.to_str().unwrap()]);
+        assert_eq!(code, 0, "{}: {err}", script.display());
+        let golden = dir.join(script.file_stem().unwrap()).with_extension("ir");
+        if bless() {
+            std::fs::write(&golden, &out).unwrap();
+            continue;
+        }
+        let expected = std::fs::read_to_string(&golden).unwrap_or_default();
+        if expected != out {
+            failures.push(format!(
+                "{} differs from {} (run with SOFTC_BLESS=1 and review the diff)",
+                script.display(),
+                golden.display()
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn specialization_is_visible_in_the_kernels() {
+    let ir = |name: &str| {
+        let path = root().join("examples").join(name);
+        softc(&["compile", path.to_str().unwrap()]).1
+    };
+    let bench = ir("benchmark-1k.soft");
+    let meta = ir("meta_optimization.soft");
+    let controller = ir("controller_synthesis.soft");
+    // Constant damping is a literal; windowed damping selects among params.
+    assert!(bench.contains("const 2e1"), "constant damping folded");
+    assert!(!bench.contains("uniform param.beta"));
+    assert!(meta.contains("uniform param.beta.29") && meta.contains("select"));
+    // One pressure kernel per chamber.
+    assert_eq!(bench.matches("over triangle").count(), 1);
+    assert_eq!(controller.matches("over triangle").count(), 3);
+    // A user-defined W and the prelude's Yeoh generate different element code.
+    assert!(bench.contains("kernel fem_rubber") && meta.contains("kernel fem_silicone"));
+}
+
+#[test]
+fn compile_reports_script_errors_and_unsupported_emits() {
+    let bad = root().join("tests/diagnostics/add_pressure_and_length.soft");
+    let (code, _, err) = softc(&["compile", bad.to_str().unwrap()]);
+    assert_eq!(code, 1);
+    assert!(err.contains("E0201"), "{err}");
+    let good = root().join("examples/benchmark-1k.soft");
+    let (code, _, err) = softc(&["compile", "--emit", "wgsl", good.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(err.contains("not implemented yet"), "{err}");
+}
