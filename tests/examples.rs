@@ -133,9 +133,16 @@ fn usage_errors_exit_with_status_2() {
     let (code, _, err) = softc(&["check", "/nonexistent/x.soft"]);
     assert_eq!(code, 2);
     assert!(err.contains("cannot read"), "{err}");
-    let (code, _, err) = softc(&["run", "x.soft"]);
+    let (code, _, err) = softc(&["run", "/nonexistent/x.soft"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("cannot read"), "{err}");
+    let bench = root().join("examples/benchmark-1k.soft");
+    let (code, _, err) = softc(&["run", "--backend", "reference", bench.to_str().unwrap()]);
     assert_eq!(code, 2);
     assert!(err.contains("not implemented yet"), "{err}");
+    let (code, _, err) = softc(&["run", "--set", "nope=3kPa", bench.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(err.contains("no param `nope`"), "{err}");
     let (code, _, _) = softc(&["mesh", "generate"]);
     assert_eq!(code, 2, "a missing spec is a usage error");
     let (code, out, _) = softc(&["--help"]);
@@ -160,4 +167,38 @@ fn mesh_info_accepts_the_shipped_meshes_and_refuses_a_missing_one() {
     assert_eq!(code, 0);
     let (code, _, _) = softc(&["mesh", "info", "/nonexistent/x.msh"]);
     assert_eq!(code, 1);
+}
+
+#[test]
+fn run_writes_a_json_summary_in_si_units() {
+    let dir = std::env::temp_dir().join(format!("softc-run-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("out.json");
+    let bench = root().join("examples/benchmark-1k.soft");
+    let (code, _, err) = softc(&[
+        "run",
+        bench.to_str().unwrap(),
+        "--steps",
+        "20",
+        "--set",
+        "p_peak=5kPa",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["steps"], 20);
+    assert!((v["dt"].as_f64().unwrap() - 40e-6).abs() < 1e-12);
+    assert!(v["loss"].is_null());
+    for key in ["wall_seconds", "steps_per_second"] {
+        assert!(v[key].as_f64().unwrap() > 0.0, "{key}");
+    }
+    let tip = &v["sets"]["tip"];
+    for key in ["mean_displacement", "min_displacement", "max_displacement"] {
+        assert_eq!(tip[key].as_array().unwrap().len(), 3, "{key}");
+    }
+    // The base is clamped: no displacement at all.
+    assert_eq!(v["sets"]["base"]["max_displacement"][2], 0.0);
+    std::fs::remove_dir_all(&dir).ok();
 }

@@ -91,10 +91,10 @@ fn run(module: &Module, k: &Kernel, tet: &Tet) -> ([[f64; 3]; 4], f64) {
     for st in &k.stores {
         let name = &module.buffers[st.buffer.0 as usize].name;
         let v = out[st.output];
-        if name == "elem_force" {
-            f[st.component as usize / 3][st.component as usize % 3] = v;
-        } else {
-            e = v;
+        match name.as_str() {
+            "elem_force" => f[st.component as usize / 3][st.component as usize % 3] = v,
+            "elem_energy" => e = v,
+            _ => {}
         }
     }
     (f, e)

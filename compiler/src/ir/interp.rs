@@ -5,8 +5,15 @@ use super::{Func, Inst, eval_bin, eval_cmp, eval_un};
 
 /// Every value of `func` for the given arguments.
 pub fn eval_all(func: &Func, args: &[f64]) -> Vec<f64> {
-    assert_eq!(args.len(), func.n_args as usize, "argument count");
     let mut vals = Vec::with_capacity(func.insts.len());
+    eval_into(func, args, &mut vals);
+    vals
+}
+
+/// Like [`eval_all`], reusing `vals` (cleared first) to avoid an allocation per entity.
+pub fn eval_into(func: &Func, args: &[f64], vals: &mut Vec<f64>) {
+    assert_eq!(args.len(), func.n_args as usize, "argument count");
+    vals.clear();
     for inst in &func.insts {
         let v = |x: super::V| vals[x.0 as usize];
         let r = match *inst {
@@ -25,7 +32,6 @@ pub fn eval_all(func: &Func, args: &[f64]) -> Vec<f64> {
         };
         vals.push(r);
     }
-    vals
 }
 
 /// The outputs of `func` for the given arguments.

@@ -30,6 +30,8 @@ pub struct FemBuffers {
     pub force: BufferId,
     /// Strain energy V₀·W per element (element × 1).
     pub energy: BufferId,
+    /// Volume ratio J = det F per element (element × 1), for inversion checks.
+    pub j: BufferId,
 }
 
 impl FemBuffers {
@@ -50,6 +52,7 @@ impl FemBuffers {
                 "internal force per corner, N",
             ),
             energy: m.buffer("elem_energy", Domain::Element, 1, "strain energy V0*W, J"),
+            j: m.buffer("elem_j", Domain::Element, 1, "volume ratio det F"),
         }
     }
 }
@@ -92,8 +95,7 @@ pub fn element_force_kernel(
     // Ds[r][c] = x_{c+1}[r] − x_0[r]
     let ds: [[V; 3]; 3] = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k.b.sub(xs[c + 1][r], xs[0][r])));
     let f = matmul(&mut k.b, &ds, &dmi);
-    let (w, energy_terms) = energy_and_stress(program, &mut k, material, &f)?;
-    let p = energy_terms;
+    let (w, p, j) = energy_and_stress(program, &mut k, material, &f)?;
     // H = −V0 · P · Dm⁻ᵀ: H[r][c] = −V0 Σ_k P[r][k] Dm⁻¹[c][k]
     let nv0 = k.b.neg(vol0);
     let mut h = [[V(0); 3]; 3];
@@ -117,6 +119,7 @@ pub fn element_force_kernel(
     }
     let e = k.b.mul(vol0, w);
     k.store(bufs.energy, 0, e);
+    k.store(bufs.j, 0, j);
     Ok(k.finish())
 }
 
@@ -139,7 +142,7 @@ fn energy_and_stress(
     k: &mut KernelBuilder,
     material: &str,
     f: &[[V; 3]; 3],
-) -> Result<(V, [[V; 3]; 3]), LowerError> {
+) -> Result<(V, [[V; 3]; 3], V), LowerError> {
     let b = &mut k.b;
     // Cofactor matrix: cof[r][c] = (F_{r+1,c+1} F_{r+2,c+2} − F_{r+1,c+2} F_{r+2,c+1}).
     let mut cof = [[V(0); 3]; 3];
@@ -214,7 +217,7 @@ fn energy_and_stress(
             p[r][col] = b.sum(&terms);
         }
     }
-    Ok((w, p))
+    Ok((w, p, j))
 }
 
 /// Lower a material's strain energy at the given invariants.

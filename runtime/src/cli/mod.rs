@@ -4,6 +4,7 @@
 //! (bad flags, unreadable file, a command that is not implemented yet).
 
 pub mod mesh;
+pub mod run;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use softc_compiler::diag::{Diagnostic, SourceFile};
@@ -53,12 +54,8 @@ pub enum Command {
         #[arg(long, value_enum, default_value_t = Emit::Ir)]
         emit: Emit,
     },
-    /// Simulate or optimize a script (not implemented yet).
-    Run {
-        file: PathBuf,
-        #[arg(trailing_var_arg = true, allow_hyphen_values = true, hide = true)]
-        rest: Vec<String>,
-    },
+    /// Simulate a script and print a JSON summary (optimization comes with the adjoint).
+    Run(run::RunArgs),
     /// Generate, inspect and convert tetrahedral meshes.
     Mesh {
         #[command(subcommand)]
@@ -106,7 +103,7 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         } => check_files(&files, message_format, deny_warnings, out, err),
         Command::Fmt { files, check } => fmt_files(&files, check, out, err),
         Command::Compile { file, emit } => compile_file(&file, emit, out, err),
-        Command::Run { .. } => not_implemented("run", err),
+        Command::Run(args) => run::run(args, out, err),
         Command::Mesh { command } => mesh::run(command),
     }
 }

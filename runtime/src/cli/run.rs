@@ -1,0 +1,203 @@
+//! `softc run`: simulate a script and report a JSON summary.
+
+use crate::engine::scene::Scene;
+use crate::engine::{Interpreter, RunSummary, Simulation};
+use clap::{Args, ValueEnum};
+use std::io::Write;
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// The script to run.
+    pub file: PathBuf,
+    /// Which backend runs the kernels.
+    #[arg(long, value_enum, default_value_t = BackendChoice::Interp)]
+    pub backend: BackendChoice,
+    /// Override a param's value, with its unit: `--set p_max=2.5kPa`.
+    #[arg(long = "set", value_name = "NAME=VALUE")]
+    pub set: Vec<String>,
+    /// Override the number of steps.
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Override the time step, with its unit: `--dt 20us`.
+    #[arg(long)]
+    pub dt: Option<String>,
+    /// Write the JSON summary here (SI units).
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum BackendChoice {
+    /// The kernel-IR interpreter: exact reference semantics, slow.
+    Interp,
+    /// Native code through Cranelift (not implemented yet).
+    Cpu,
+    /// The plain-Rust f64 reference simulator (not implemented yet).
+    Reference,
+}
+
+/// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
+fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::sema::units::Dim), String> {
+    let src = format!("let __value = {text}");
+    let ast = softc_compiler::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
+    let Some(softc_compiler::front::ast::Item {
+        kind: softc_compiler::front::ast::ItemKind::Let(l),
+        ..
+    }) = ast.items.first()
+    else {
+        return Err(format!("`{text}` is not a value"));
+    };
+    let (num, dim) = match &l.value.kind {
+        softc_compiler::front::ast::ExprKind::Number { value, unit, .. } => {
+            let mut factor = 1.0;
+            let mut dim = softc_compiler::sema::units::Dim::NONE;
+            for f in unit.iter().flat_map(|u| &u.factors) {
+                let (k, d) = softc_compiler::sema::units::unit(&f.name)
+                    .ok_or_else(|| format!("unknown unit `{}` in `{text}`", f.name))?;
+                factor *= k.powi(f.power);
+                dim = dim.times(d.powi(f.power).unwrap_or(d));
+            }
+            (value * factor, dim)
+        }
+        _ => return Err(format!("`{text}` is not a number with a unit")),
+    };
+    Ok((num, dim))
+}
+
+pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    match args.backend {
+        BackendChoice::Interp => {}
+        BackendChoice::Cpu | BackendChoice::Reference => {
+            let _ = writeln!(
+                err,
+                "softc run --backend {:?}: not implemented yet (use --backend interp)",
+                args.backend
+            );
+            return 2;
+        }
+    }
+    if let Err(e) = std::fs::metadata(&args.file) {
+        let _ = writeln!(err, "softc: cannot read `{}`: {e}", args.file.display());
+        return 2;
+    }
+    let mut overrides = Vec::new();
+    for s in &args.set {
+        let Some((name, value)) = s.split_once('=') else {
+            let _ = writeln!(err, "softc: --set expects NAME=VALUE, found `{s}`");
+            return 2;
+        };
+        match parse_quantity(value) {
+            Ok((v, _)) => overrides.push((name.trim().to_string(), v)),
+            Err(e) => {
+                let _ = writeln!(err, "softc: --set {name}: {e}");
+                return 2;
+            }
+        }
+    }
+    let dt = match args.dt.as_deref().map(parse_quantity).transpose() {
+        Ok(v) => v.map(|(x, _)| x),
+        Err(e) => {
+            let _ = writeln!(err, "softc: --dt: {e}");
+            return 2;
+        }
+    };
+    let scene = match Scene::load(&args.file, &overrides) {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = writeln!(err, "{e}");
+            return 1;
+        }
+    };
+    for (name, _) in &overrides {
+        let known = scene.uniforms.keys().any(|k| {
+            k.strip_prefix("param.")
+                .is_some_and(|rest| rest == name || rest.starts_with(&format!("{name}.")))
+        });
+        if !known {
+            let _ = writeln!(err, "softc: --set {name}: the script has no param `{name}`");
+            return 2;
+        }
+    }
+    let backend = Interpreter::new(&scene.lowered.module);
+    let mut sim = Simulation::new(&scene, backend);
+    let summary = match sim.run(dt, args.steps) {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = writeln!(err, "{}: {e}", args.file.display());
+            return 1;
+        }
+    };
+    let json = summary_json(&scene, &summary, sim.backend_name());
+    let text = serde_json::to_string_pretty(&json).unwrap_or_default();
+    let _ = writeln!(
+        err,
+        "{}: {} steps of {:e} s in {:.3} s ({:.0} steps/s, backend {})",
+        args.file.display(),
+        summary.steps,
+        summary.dt,
+        summary.wall_seconds,
+        summary.steps as f64 / summary.wall_seconds.max(1e-12),
+        sim.backend_name()
+    );
+    match &args.json {
+        Some(path) => {
+            if let Err(e) = super::write_atomically(path, text.as_bytes()) {
+                let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
+                return 2;
+            }
+        }
+        None => {
+            let _ = writeln!(out, "{text}");
+        }
+    }
+    0
+}
+
+impl<B: crate::engine::Backend> Simulation<'_, B> {
+    pub fn backend_name(&self) -> &'static str {
+        self.backend.name()
+    }
+}
+
+/// The JSON summary: SI units throughout.
+pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json::Value {
+    let mut sets = serde_json::Map::new();
+    for (name, nodes) in &scene.node_sets {
+        let mut mean = [0.0; 3];
+        let mut min = [f64::INFINITY; 3];
+        let mut max = [f64::NEG_INFINITY; 3];
+        for &n in nodes {
+            let (x, x0) = (s.x[n as usize], scene.mesh.nodes[n as usize]);
+            for d in 0..3 {
+                let u = x[d] - x0[d];
+                mean[d] += u / nodes.len().max(1) as f64;
+                min[d] = min[d].min(u);
+                max[d] = max[d].max(u);
+            }
+        }
+        sets.insert(
+            name.clone(),
+            serde_json::json!({
+                "nodes": nodes.len(),
+                "mean_displacement": mean,
+                "min_displacement": min,
+                "max_displacement": max,
+            }),
+        );
+    }
+    serde_json::json!({
+        "script": scene.script.display().to_string(),
+        "backend": backend,
+        "loss": serde_json::Value::Null,
+        "steps": s.steps,
+        "dt": s.dt,
+        "dt_stable_estimate": s.dt_stable_estimate,
+        "simulated_time": s.steps as f64 * s.dt,
+        "wall_seconds": s.wall_seconds,
+        "steps_per_second": s.steps as f64 / s.wall_seconds.max(1e-12),
+        "nodes": scene.mesh.nodes.len(),
+        "elements": scene.mesh.tets.len(),
+        "sets": sets,
+    })
+}

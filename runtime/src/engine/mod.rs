@@ -1,0 +1,429 @@
+//! The time loop: a scene's kernels run step after step on a backend.
+//!
+//! State is double-buffered: the node kernel reads `x`, `v` and writes `x_next`, `v_next`,
+//! which are swapped after the step, so no kernel ever reads a value overwritten in the same
+//! step. Every few steps the engine checks the state: a non-finite position or an inverted
+//! element (J ≤ 0) stops the run with the step, time, node or element and a suggested `dt`,
+//! never with silent NaNs.
+
+pub mod scene;
+
+use scene::{Csr, DtChoice, Scene};
+use softc_compiler::ir::{ArgSource, BufferId, Domain, Kernel, Module, interp};
+use std::ops::Range;
+
+/// Executes kernels. The IR interpreter is the reference semantics; compiled backends must
+/// reproduce it.
+pub trait Backend {
+    fn name(&self) -> &'static str;
+    /// Run kernel `k` of the module over the entities in `range`.
+    fn run(&mut self, k: usize, range: Range<usize>, state: &mut State, uniforms: &Uniforms);
+}
+
+/// Buffers of a run, indexed by [`BufferId`], plus the connectivity kernels read through.
+pub struct State<'s> {
+    pub buffers: Vec<Vec<f64>>,
+    pub widths: Vec<usize>,
+    pub tets: &'s [[u32; 4]],
+    pub tris: &'s [[u32; 3]],
+    pub node_elements: &'s Csr,
+    pub node_tris: &'s Csr,
+}
+
+impl State<'_> {
+    pub fn get(&self, b: BufferId, entity: usize, component: u32) -> f64 {
+        self.buffers[b.0 as usize][entity * self.widths[b.0 as usize] + component as usize]
+    }
+}
+
+/// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`) by name.
+#[derive(Clone, Debug, Default)]
+pub struct Uniforms(pub std::collections::BTreeMap<String, f64>);
+
+impl Uniforms {
+    pub fn get(&self, name: &str) -> f64 {
+        *self
+            .0
+            .get(name)
+            .unwrap_or_else(|| panic!("uniform `{name}` has no value"))
+    }
+}
+
+/// Runs kernels with the IR interpreter (`ir::interp`), one entity at a time.
+pub struct Interpreter {
+    module: Module,
+    args: Vec<f64>,
+    vals: Vec<f64>,
+}
+
+impl Interpreter {
+    pub fn new(module: &Module) -> Self {
+        Interpreter {
+            module: module.clone(),
+            args: Vec::new(),
+            vals: Vec::new(),
+        }
+    }
+}
+
+/// The value of one kernel argument at one entity (shared by host-side evaluators).
+pub fn arg_value(k: &Kernel, a: &ArgSource, e: usize, st: &State, u: &Uniforms) -> f64 {
+    match a {
+        ArgSource::Own { buffer, component } => st.get(*buffer, e, *component),
+        ArgSource::Corner {
+            buffer,
+            corner,
+            component,
+        } => {
+            let node = match k.domain {
+                Domain::Element => st.tets[e][*corner as usize],
+                _ => st.tris[e][*corner as usize],
+            };
+            st.get(*buffer, node as usize, *component)
+        }
+        ArgSource::Uniform(name) => u.get(name),
+        ArgSource::Gather {
+            buffer,
+            over,
+            stride,
+            component,
+        } => {
+            let csr = if *over == Domain::Element {
+                st.node_elements
+            } else {
+                st.node_tris
+            };
+            let mut sum = 0.0;
+            for &(ent, corner) in csr.of(e) {
+                sum += st.get(
+                    *buffer,
+                    ent as usize,
+                    u32::from(corner) * stride + component,
+                );
+            }
+            sum
+        }
+    }
+}
+
+impl Backend for Interpreter {
+    fn name(&self) -> &'static str {
+        "interp"
+    }
+
+    fn run(&mut self, k: usize, range: Range<usize>, st: &mut State, u: &Uniforms) {
+        let kernel = &self.module.kernels[k];
+        for e in range {
+            self.args.clear();
+            for a in &kernel.args {
+                self.args.push(arg_value(kernel, a, e, st, u));
+            }
+            interp::eval_into(&kernel.body, &self.args, &mut self.vals);
+            for s in &kernel.stores {
+                let w = st.widths[s.buffer.0 as usize];
+                let v = self.vals[kernel.body.outputs[s.output].0 as usize];
+                st.buffers[s.buffer.0 as usize][e * w + s.component as usize] = v;
+            }
+        }
+    }
+}
+
+/// A failure during a run, with where and why.
+#[derive(Debug)]
+pub struct RunError(pub String);
+
+impl std::fmt::Display for RunError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+/// What a finished run reports.
+#[derive(Debug, Clone)]
+pub struct RunSummary {
+    pub steps: u64,
+    pub dt: f64,
+    pub dt_stable_estimate: Option<f64>,
+    pub wall_seconds: f64,
+    /// Final positions and velocities.
+    pub x: Vec<[f64; 3]>,
+    pub v: Vec<[f64; 3]>,
+}
+
+/// A scene bound to a backend: buffers allocated and initialised.
+pub struct Simulation<'s, B: Backend> {
+    pub scene: &'s Scene,
+    pub backend: B,
+    pub state: State<'s>,
+    pub uniforms: Uniforms,
+    ids: Ids,
+}
+
+struct Ids {
+    x: BufferId,
+    v: BufferId,
+    x_next: BufferId,
+    v_next: BufferId,
+    elem_force: BufferId,
+    elem_j: BufferId,
+}
+
+/// How often the state is checked for blow-ups and inversions.
+const CHECK_EVERY: u64 = 50;
+
+impl<'s, B: Backend> Simulation<'s, B> {
+    pub fn new(scene: &'s Scene, backend: B) -> Self {
+        let m = &scene.lowered.module;
+        let len = |d: Domain| match d {
+            Domain::Node => scene.mesh.nodes.len(),
+            Domain::Element => scene.mesh.tets.len(),
+            Domain::Triangle => scene.tris.len(),
+            Domain::Single => 1,
+        };
+        let mut buffers: Vec<Vec<f64>> = m
+            .buffers
+            .iter()
+            .map(|b| vec![0.0; len(b.domain) * b.width as usize])
+            .collect();
+        let widths: Vec<usize> = m.buffers.iter().map(|b| b.width as usize).collect();
+        let id = |n: &str| m.buffer_named(n).unwrap_or_else(|| panic!("buffer {n}"));
+        let ids = Ids {
+            x: id("x"),
+            v: id("v"),
+            x_next: id("x_next"),
+            v_next: id("v_next"),
+            elem_force: id("elem_force"),
+            elem_j: id("elem_j"),
+        };
+        let fill = |buffers: &mut Vec<Vec<f64>>, name: &str, data: Vec<f64>| {
+            if let Some(b) = m.buffer_named(name) {
+                buffers[b.0 as usize] = data;
+            }
+        };
+        fill(
+            &mut buffers,
+            "x",
+            scene.mesh.nodes.iter().flatten().copied().collect(),
+        );
+        fill(&mut buffers, "mass", scene.pre.mass.clone());
+        fill(
+            &mut buffers,
+            "fixed",
+            scene
+                .fixed
+                .iter()
+                .map(|&f| if f { 1.0 } else { 0.0 })
+                .collect(),
+        );
+        fill(&mut buffers, "vol0", scene.pre.rest_volume.clone());
+        fill(
+            &mut buffers,
+            "dm_inv",
+            scene
+                .pre
+                .dm_inv
+                .iter()
+                .flatten()
+                .flatten()
+                .copied()
+                .collect(),
+        );
+        let state = State {
+            buffers,
+            widths,
+            tets: &scene.mesh.tets,
+            tris: &scene.tris,
+            node_elements: &scene.node_elements,
+            node_tris: &scene.node_tris,
+        };
+        let mut uniforms = Uniforms(scene.uniforms.clone());
+        uniforms.0.insert("t".into(), 0.0);
+        uniforms.0.insert("dt".into(), 0.0);
+        Simulation {
+            scene,
+            backend,
+            state,
+            uniforms,
+            ids,
+        }
+    }
+
+    fn run_element_kernels(&mut self) {
+        for (k, range) in self.scene.material_ranges.iter().enumerate() {
+            self.backend
+                .run(k, range.clone(), &mut self.state, &self.uniforms);
+        }
+    }
+
+    /// Internal forces per node at the current positions (host gather, for the dt estimate).
+    fn internal_forces(&mut self) -> Vec<f64> {
+        self.run_element_kernels();
+        let n = self.scene.mesh.nodes.len();
+        let mut f = vec![0.0; 3 * n];
+        for (node, fn_) in f.chunks_mut(3).enumerate() {
+            for &(e, c) in self.scene.node_elements.of(node) {
+                for (d, fd) in fn_.iter_mut().enumerate() {
+                    *fd += self.state.get(
+                        self.ids.elem_force,
+                        e as usize,
+                        3 * u32::from(c) + d as u32,
+                    );
+                }
+            }
+        }
+        f
+    }
+
+    /// The largest stable step of semi-implicit Euler at rest, 2/ω_max with ω_max² the largest
+    /// eigenvalue of M⁻¹K over the free nodes, by power iteration with K·u from finite
+    /// differences of the element forces.
+    pub fn stable_dt_estimate(&mut self) -> f64 {
+        let n = self.scene.mesh.nodes.len();
+        let x0 = self.state.buffers[self.ids.x.0 as usize].clone();
+        let f0 = self.internal_forces();
+        let mass = &self.scene.pre.mass;
+        let free: Vec<bool> = self.scene.fixed.iter().map(|f| !f).collect();
+        // A deterministic, rough start vector.
+        let mut u: Vec<f64> = (0..3 * n)
+            .map(|i| {
+                if free[i / 3] {
+                    ((i * 7919 % 1000) as f64 / 1000.0) - 0.5
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let scale = self
+            .scene
+            .pre
+            .min_altitude
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min)
+            .max(1e-12)
+            * 1e-6;
+        let mut lambda: f64 = 0.0;
+        for _ in 0..60 {
+            let norm = u.iter().map(|x| x * x).sum::<f64>().sqrt();
+            if norm == 0.0 {
+                break;
+            }
+            u.iter_mut().for_each(|x| *x /= norm);
+            let xs = &mut self.state.buffers[self.ids.x.0 as usize];
+            for i in 0..3 * n {
+                xs[i] = x0[i] + scale * u[i];
+            }
+            let f1 = self.internal_forces();
+            // K u ≈ −(f(x0 + εu) − f(x0)) / ε ;  w = M⁻¹ K u
+            let mut w = vec![0.0; 3 * n];
+            let (mut num, mut den) = (0.0, 0.0);
+            for i in 0..3 * n {
+                if !free[i / 3] {
+                    continue;
+                }
+                let ku = -(f1[i] - f0[i]) / scale;
+                num += u[i] * ku;
+                den += u[i] * mass[i / 3] * u[i];
+                w[i] = ku / mass[i / 3];
+            }
+            if den > 0.0 {
+                lambda = lambda.max(num / den);
+            }
+            u = w;
+        }
+        self.state.buffers[self.ids.x.0 as usize] = x0;
+        self.run_element_kernels();
+        if lambda <= 0.0 {
+            f64::INFINITY
+        } else {
+            2.0 / lambda.sqrt()
+        }
+    }
+
+    /// Run the whole simulation.
+    pub fn run(
+        &mut self,
+        dt_override: Option<f64>,
+        steps_override: Option<u64>,
+    ) -> Result<RunSummary, RunError> {
+        let start = std::time::Instant::now();
+        let estimate = match (self.scene.dt, dt_override) {
+            (DtChoice::Auto { .. }, None) => Some(self.stable_dt_estimate()),
+            _ => None,
+        };
+        let dt = match (dt_override, self.scene.dt, estimate) {
+            (Some(dt), _, _) => dt,
+            (None, DtChoice::Given(dt), _) => dt,
+            (None, DtChoice::Auto { safety }, Some(est)) => safety * est,
+            _ => unreachable!(),
+        };
+        if !dt.is_finite() || dt <= 0.0 {
+            return Err(RunError(format!("no usable time step (estimate {dt} s)")));
+        }
+        let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
+        self.uniforms.0.insert("dt".into(), dt);
+        let n_mat = self.scene.material_ranges.len();
+        let n_ch = self.scene.chamber_ranges.len();
+        let n_nodes = self.scene.mesh.nodes.len();
+        for step in 0..steps {
+            self.uniforms.0.insert("t".into(), step as f64 * dt);
+            self.run_element_kernels();
+            for c in 0..n_ch {
+                let range = self.scene.chamber_ranges[c].clone();
+                self.backend
+                    .run(n_mat + c, range, &mut self.state, &self.uniforms);
+            }
+            self.backend
+                .run(n_mat + n_ch, 0..n_nodes, &mut self.state, &self.uniforms);
+            let (x, xn, v, vn) = (
+                self.ids.x.0 as usize,
+                self.ids.x_next.0 as usize,
+                self.ids.v.0 as usize,
+                self.ids.v_next.0 as usize,
+            );
+            self.state.buffers.swap(x, xn);
+            self.state.buffers.swap(v, vn);
+            if step % CHECK_EVERY == 0 || step + 1 == steps {
+                self.check_state(step, dt)?;
+            }
+        }
+        let xs = &self.state.buffers[self.ids.x.0 as usize];
+        let vs = &self.state.buffers[self.ids.v.0 as usize];
+        Ok(RunSummary {
+            steps,
+            dt,
+            dt_stable_estimate: estimate,
+            wall_seconds: start.elapsed().as_secs_f64(),
+            x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+        })
+    }
+
+    fn check_state(&self, step: u64, dt: f64) -> Result<(), RunError> {
+        let t = (step + 1) as f64 * dt;
+        let xs = &self.state.buffers[self.ids.x.0 as usize];
+        if let Some(i) = xs.iter().position(|v| !v.is_finite()) {
+            return Err(RunError(format!(
+                "the simulation became unstable at step {} (t = {t:.6} s): node {} has a non-finite position. \
+                 The time step dt = {dt:e} s is too large for this mesh and material; try `dt = auto` \
+                 (it estimates the stable step) or a smaller dt, e.g. {:e} s",
+                step + 1,
+                i / 3,
+                dt / 4.0
+            )));
+        }
+        let js = &self.state.buffers[self.ids.elem_j.0 as usize];
+        if let Some((e, j)) = js
+            .iter()
+            .enumerate()
+            .find(|(_, j)| **j <= 0.0 || !j.is_finite())
+        {
+            return Err(RunError(format!(
+                "element {e} inverted at step {} (t = {t:.6} s): J = {j:e}. \
+                 Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element",
+                step + 1
+            )));
+        }
+        Ok(())
+    }
+}
