@@ -61,7 +61,7 @@ fn stable_step_estimate_is_the_measured_limit() {
     // BENCHMARK.md: largest stable dt of the 1k scene is 52 µs (0.98x stable, 1.02x diverges).
     let scene = Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
     let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.module));
-    let est = sim.stable_dt_estimate();
+    let est = sim.stable_dt_estimate().unwrap();
     assert!((est - 52e-6).abs() < 1.5e-6, "estimate {est:e}");
     // 1.04x the estimate diverges, and the engine says so with the step and a suggestion.
     let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.module));

@@ -12,28 +12,17 @@ use scene::{Csr, DtChoice, Scene};
 use softc_compiler::ir::{ArgSource, BufferId, Domain, Kernel, Module, interp};
 use std::ops::Range;
 
-/// Executes kernels. The IR interpreter is the reference semantics; compiled backends must
-/// reproduce it.
+/// Executes kernels and owns the buffers they read and write. The IR interpreter is the
+/// reference semantics; compiled backends must reproduce it.
 pub trait Backend {
     fn name(&self) -> &'static str;
+    /// Allocate zeroed buffers for the scene's entity counts and take its connectivity.
+    fn prepare(&mut self, scene: &Scene) -> Result<(), String>;
+    fn set(&mut self, b: BufferId, data: &[f64]);
+    fn get(&self, b: BufferId) -> Vec<f64>;
+    fn swap(&mut self, a: BufferId, b: BufferId);
     /// Run kernel `k` of the module over the entities in `range`.
-    fn run(&mut self, k: usize, range: Range<usize>, state: &mut State, uniforms: &Uniforms);
-}
-
-/// Buffers of a run, indexed by [`BufferId`], plus the connectivity kernels read through.
-pub struct State<'s> {
-    pub buffers: Vec<Vec<f64>>,
-    pub widths: Vec<usize>,
-    pub tets: &'s [[u32; 4]],
-    pub tris: &'s [[u32; 3]],
-    pub node_elements: &'s Csr,
-    pub node_tris: &'s Csr,
-}
-
-impl State<'_> {
-    pub fn get(&self, b: BufferId, entity: usize, component: u32) -> f64 {
-        self.buffers[b.0 as usize][entity * self.widths[b.0 as usize] + component as usize]
-    }
+    fn run(&mut self, k: usize, range: Range<usize>, uniforms: &Uniforms) -> Result<(), String>;
 }
 
 /// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`) by name.
@@ -49,9 +38,27 @@ impl Uniforms {
     }
 }
 
+/// Buffers and connectivity as the interpreter reads them.
+#[derive(Default)]
+struct HostState {
+    buffers: Vec<Vec<f64>>,
+    widths: Vec<usize>,
+    tets: Vec<[u32; 4]>,
+    tris: Vec<[u32; 3]>,
+    node_elements: Csr,
+    node_tris: Csr,
+}
+
+impl HostState {
+    fn get(&self, b: BufferId, entity: usize, component: u32) -> f64 {
+        self.buffers[b.0 as usize][entity * self.widths[b.0 as usize] + component as usize]
+    }
+}
+
 /// Runs kernels with the IR interpreter (`ir::interp`), one entity at a time.
 pub struct Interpreter {
     module: Module,
+    state: HostState,
     args: Vec<f64>,
     vals: Vec<f64>,
 }
@@ -60,14 +67,15 @@ impl Interpreter {
     pub fn new(module: &Module) -> Self {
         Interpreter {
             module: module.clone(),
+            state: HostState::default(),
             args: Vec::new(),
             vals: Vec::new(),
         }
     }
 }
 
-/// The value of one kernel argument at one entity (shared by host-side evaluators).
-pub fn arg_value(k: &Kernel, a: &ArgSource, e: usize, st: &State, u: &Uniforms) -> f64 {
+/// The value of one kernel argument at one entity.
+fn arg_value(k: &Kernel, a: &ArgSource, e: usize, st: &HostState, u: &Uniforms) -> f64 {
     match a {
         ArgSource::Own { buffer, component } => st.get(*buffer, e, *component),
         ArgSource::Corner {
@@ -89,9 +97,9 @@ pub fn arg_value(k: &Kernel, a: &ArgSource, e: usize, st: &State, u: &Uniforms) 
             component,
         } => {
             let csr = if *over == Domain::Element {
-                st.node_elements
+                &st.node_elements
             } else {
-                st.node_tris
+                &st.node_tris
             };
             let mut sum = 0.0;
             for &(ent, corner) in csr.of(e) {
@@ -106,25 +114,72 @@ pub fn arg_value(k: &Kernel, a: &ArgSource, e: usize, st: &State, u: &Uniforms) 
     }
 }
 
+/// Entity count of a domain in a scene.
+pub fn domain_len(scene: &Scene, d: Domain) -> usize {
+    match d {
+        Domain::Node => scene.mesh.nodes.len(),
+        Domain::Element => scene.mesh.tets.len(),
+        Domain::Triangle => scene.tris.len(),
+        Domain::Single => 1,
+    }
+}
+
 impl Backend for Interpreter {
     fn name(&self) -> &'static str {
         "interp"
     }
 
-    fn run(&mut self, k: usize, range: Range<usize>, st: &mut State, u: &Uniforms) {
+    fn prepare(&mut self, scene: &Scene) -> Result<(), String> {
+        self.state = HostState {
+            buffers: self
+                .module
+                .buffers
+                .iter()
+                .map(|b| vec![0.0; domain_len(scene, b.domain) * b.width as usize])
+                .collect(),
+            widths: self
+                .module
+                .buffers
+                .iter()
+                .map(|b| b.width as usize)
+                .collect(),
+            tets: scene.mesh.tets.clone(),
+            tris: scene.tris.clone(),
+            node_elements: scene.node_elements.clone(),
+            node_tris: scene.node_tris.clone(),
+        };
+        Ok(())
+    }
+
+    fn set(&mut self, b: BufferId, data: &[f64]) {
+        let buf = &mut self.state.buffers[b.0 as usize];
+        buf.clear();
+        buf.extend_from_slice(data);
+    }
+
+    fn get(&self, b: BufferId) -> Vec<f64> {
+        self.state.buffers[b.0 as usize].clone()
+    }
+
+    fn swap(&mut self, a: BufferId, b: BufferId) {
+        self.state.buffers.swap(a.0 as usize, b.0 as usize);
+    }
+
+    fn run(&mut self, k: usize, range: Range<usize>, u: &Uniforms) -> Result<(), String> {
         let kernel = &self.module.kernels[k];
         for e in range {
             self.args.clear();
             for a in &kernel.args {
-                self.args.push(arg_value(kernel, a, e, st, u));
+                self.args.push(arg_value(kernel, a, e, &self.state, u));
             }
             interp::eval_into(&kernel.body, &self.args, &mut self.vals);
             for s in &kernel.stores {
-                let w = st.widths[s.buffer.0 as usize];
+                let w = self.state.widths[s.buffer.0 as usize];
                 let v = self.vals[kernel.body.outputs[s.output].0 as usize];
-                st.buffers[s.buffer.0 as usize][e * w + s.component as usize] = v;
+                self.state.buffers[s.buffer.0 as usize][e * w + s.component as usize] = v;
             }
         }
+        Ok(())
     }
 }
 
@@ -154,7 +209,6 @@ pub struct RunSummary {
 pub struct Simulation<'s, B: Backend> {
     pub scene: &'s Scene,
     pub backend: B,
-    pub state: State<'s>,
     pub uniforms: Uniforms,
     ids: Ids,
 }
@@ -172,20 +226,12 @@ struct Ids {
 const CHECK_EVERY: u64 = 50;
 
 impl<'s, B: Backend> Simulation<'s, B> {
-    pub fn new(scene: &'s Scene, backend: B) -> Self {
+    /// Bind a scene to a backend: buffers allocated and filled with the initial state.
+    pub fn new(scene: &'s Scene, mut backend: B) -> Self {
         let m = &scene.lowered.module;
-        let len = |d: Domain| match d {
-            Domain::Node => scene.mesh.nodes.len(),
-            Domain::Element => scene.mesh.tets.len(),
-            Domain::Triangle => scene.tris.len(),
-            Domain::Single => 1,
-        };
-        let mut buffers: Vec<Vec<f64>> = m
-            .buffers
-            .iter()
-            .map(|b| vec![0.0; len(b.domain) * b.width as usize])
-            .collect();
-        let widths: Vec<usize> = m.buffers.iter().map(|b| b.width as usize).collect();
+        backend
+            .prepare(scene)
+            .unwrap_or_else(|e| panic!("backend {}: {e}", backend.name()));
         let id = |n: &str| m.buffer_named(n).unwrap_or_else(|| panic!("buffer {n}"));
         let ids = Ids {
             x: id("x"),
@@ -195,19 +241,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
             elem_force: id("elem_force"),
             elem_j: id("elem_j"),
         };
-        let fill = |buffers: &mut Vec<Vec<f64>>, name: &str, data: Vec<f64>| {
+        let mut fill = |name: &str, data: Vec<f64>| {
             if let Some(b) = m.buffer_named(name) {
-                buffers[b.0 as usize] = data;
+                backend.set(b, &data);
             }
         };
+        fill("x", scene.mesh.nodes.iter().flatten().copied().collect());
+        fill("mass", scene.pre.mass.clone());
         fill(
-            &mut buffers,
-            "x",
-            scene.mesh.nodes.iter().flatten().copied().collect(),
-        );
-        fill(&mut buffers, "mass", scene.pre.mass.clone());
-        fill(
-            &mut buffers,
             "fixed",
             scene
                 .fixed
@@ -215,9 +256,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .map(|&f| if f { 1.0 } else { 0.0 })
                 .collect(),
         );
-        fill(&mut buffers, "vol0", scene.pre.rest_volume.clone());
+        fill("vol0", scene.pre.rest_volume.clone());
         fill(
-            &mut buffers,
             "dm_inv",
             scene
                 .pre
@@ -228,59 +268,49 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .copied()
                 .collect(),
         );
-        let state = State {
-            buffers,
-            widths,
-            tets: &scene.mesh.tets,
-            tris: &scene.tris,
-            node_elements: &scene.node_elements,
-            node_tris: &scene.node_tris,
-        };
         let mut uniforms = Uniforms(scene.uniforms.clone());
         uniforms.0.insert("t".into(), 0.0);
         uniforms.0.insert("dt".into(), 0.0);
         Simulation {
             scene,
             backend,
-            state,
             uniforms,
             ids,
         }
     }
 
-    fn run_element_kernels(&mut self) {
+    fn run_element_kernels(&mut self) -> Result<(), RunError> {
         for (k, range) in self.scene.material_ranges.iter().enumerate() {
             self.backend
-                .run(k, range.clone(), &mut self.state, &self.uniforms);
+                .run(k, range.clone(), &self.uniforms)
+                .map_err(RunError)?;
         }
+        Ok(())
     }
 
     /// Internal forces per node at the current positions (host gather, for the dt estimate).
-    fn internal_forces(&mut self) -> Vec<f64> {
-        self.run_element_kernels();
+    fn internal_forces(&mut self) -> Result<Vec<f64>, RunError> {
+        self.run_element_kernels()?;
+        let ef = self.backend.get(self.ids.elem_force);
         let n = self.scene.mesh.nodes.len();
         let mut f = vec![0.0; 3 * n];
-        for (node, fn_) in f.chunks_mut(3).enumerate() {
+        for (node, fnode) in f.chunks_mut(3).enumerate() {
             for &(e, c) in self.scene.node_elements.of(node) {
-                for (d, fd) in fn_.iter_mut().enumerate() {
-                    *fd += self.state.get(
-                        self.ids.elem_force,
-                        e as usize,
-                        3 * u32::from(c) + d as u32,
-                    );
+                for (d, fd) in fnode.iter_mut().enumerate() {
+                    *fd += ef[12 * e as usize + 3 * c as usize + d];
                 }
             }
         }
-        f
+        Ok(f)
     }
 
     /// The largest stable step of semi-implicit Euler at rest, 2/ω_max with ω_max² the largest
     /// eigenvalue of M⁻¹K over the free nodes, by power iteration with K·u from finite
     /// differences of the element forces.
-    pub fn stable_dt_estimate(&mut self) -> f64 {
+    pub fn stable_dt_estimate(&mut self) -> Result<f64, RunError> {
         let n = self.scene.mesh.nodes.len();
-        let x0 = self.state.buffers[self.ids.x.0 as usize].clone();
-        let f0 = self.internal_forces();
+        let x0 = self.backend.get(self.ids.x);
+        let f0 = self.internal_forces()?;
         let mass = &self.scene.pre.mass;
         let free: Vec<bool> = self.scene.fixed.iter().map(|f| !f).collect();
         // A deterministic, rough start vector.
@@ -309,11 +339,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 break;
             }
             u.iter_mut().for_each(|x| *x /= norm);
-            let xs = &mut self.state.buffers[self.ids.x.0 as usize];
-            for i in 0..3 * n {
-                xs[i] = x0[i] + scale * u[i];
-            }
-            let f1 = self.internal_forces();
+            let xs: Vec<f64> = x0.iter().zip(&u).map(|(a, b)| a + scale * b).collect();
+            self.backend.set(self.ids.x, &xs);
+            let f1 = self.internal_forces()?;
             // K u ≈ −(f(x0 + εu) − f(x0)) / ε ;  w = M⁻¹ K u
             let mut w = vec![0.0; 3 * n];
             let (mut num, mut den) = (0.0, 0.0);
@@ -331,13 +359,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             u = w;
         }
-        self.state.buffers[self.ids.x.0 as usize] = x0;
-        self.run_element_kernels();
-        if lambda <= 0.0 {
+        self.backend.set(self.ids.x, &x0);
+        self.run_element_kernels()?;
+        Ok(if lambda <= 0.0 {
             f64::INFINITY
         } else {
             2.0 / lambda.sqrt()
-        }
+        })
     }
 
     /// Run the whole simulation.
@@ -348,7 +376,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     ) -> Result<RunSummary, RunError> {
         let start = std::time::Instant::now();
         let estimate = match (self.scene.dt, dt_override) {
-            (DtChoice::Auto { .. }, None) => Some(self.stable_dt_estimate()),
+            (DtChoice::Auto { .. }, None) => Some(self.stable_dt_estimate()?),
             _ => None,
         };
         let dt = match (dt_override, self.scene.dt, estimate) {
@@ -367,28 +395,24 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let n_nodes = self.scene.mesh.nodes.len();
         for step in 0..steps {
             self.uniforms.0.insert("t".into(), step as f64 * dt);
-            self.run_element_kernels();
+            self.run_element_kernels()?;
             for c in 0..n_ch {
                 let range = self.scene.chamber_ranges[c].clone();
                 self.backend
-                    .run(n_mat + c, range, &mut self.state, &self.uniforms);
+                    .run(n_mat + c, range, &self.uniforms)
+                    .map_err(RunError)?;
             }
             self.backend
-                .run(n_mat + n_ch, 0..n_nodes, &mut self.state, &self.uniforms);
-            let (x, xn, v, vn) = (
-                self.ids.x.0 as usize,
-                self.ids.x_next.0 as usize,
-                self.ids.v.0 as usize,
-                self.ids.v_next.0 as usize,
-            );
-            self.state.buffers.swap(x, xn);
-            self.state.buffers.swap(v, vn);
+                .run(n_mat + n_ch, 0..n_nodes, &self.uniforms)
+                .map_err(RunError)?;
+            self.backend.swap(self.ids.x, self.ids.x_next);
+            self.backend.swap(self.ids.v, self.ids.v_next);
             if step % CHECK_EVERY == 0 || step + 1 == steps {
                 self.check_state(step, dt)?;
             }
         }
-        let xs = &self.state.buffers[self.ids.x.0 as usize];
-        let vs = &self.state.buffers[self.ids.v.0 as usize];
+        let xs = self.backend.get(self.ids.x);
+        let vs = self.backend.get(self.ids.v);
         Ok(RunSummary {
             steps,
             dt,
@@ -401,7 +425,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
 
     fn check_state(&self, step: u64, dt: f64) -> Result<(), RunError> {
         let t = (step + 1) as f64 * dt;
-        let xs = &self.state.buffers[self.ids.x.0 as usize];
+        let xs = self.backend.get(self.ids.x);
         if let Some(i) = xs.iter().position(|v| !v.is_finite()) {
             return Err(RunError(format!(
                 "the simulation became unstable at step {} (t = {t:.6} s): node {} has a non-finite position. \
@@ -412,7 +436,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 dt / 4.0
             )));
         }
-        let js = &self.state.buffers[self.ids.elem_j.0 as usize];
+        let js = self.backend.get(self.ids.elem_j);
         if let Some((e, j)) = js
             .iter()
             .enumerate()
