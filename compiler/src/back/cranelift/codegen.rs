@@ -76,13 +76,18 @@ pub(super) fn validate(m: &Module, k: &Kernel) -> Result<(), String> {
                 component,
             } => {
                 let Some(nc) = corners(k.domain) else {
-                    return err(format!("argument {i}: corner loads need an element or triangle kernel"));
+                    return err(format!(
+                        "argument {i}: corner loads need an element or triangle kernel"
+                    ));
                 };
                 let Some(b) = buf(*buffer) else {
                     return err(format!("argument {i} reads an undeclared buffer"));
                 };
                 if b.domain != Domain::Node {
-                    return err(format!("argument {i}: corner load from non-node buffer `{}`", b.name));
+                    return err(format!(
+                        "argument {i}: corner load from non-node buffer `{}`",
+                        b.name
+                    ));
                 }
                 if *corner >= nc || *component >= b.width {
                     return err(format!(
@@ -102,7 +107,9 @@ pub(super) fn validate(m: &Module, k: &Kernel) -> Result<(), String> {
                     return err(format!("argument {i}: gathers need a node kernel"));
                 }
                 let Some(nc) = corners(*over) else {
-                    return err(format!("argument {i}: gathers run over elements or triangles"));
+                    return err(format!(
+                        "argument {i}: gathers run over elements or triangles"
+                    ));
                 };
                 let Some(b) = buf(*buffer) else {
                     return err(format!("argument {i} reads an undeclared buffer"));
@@ -240,8 +247,7 @@ impl Translator<'_> {
                 Inst::Bin(op, _, _) => Lib::Bin(op),
                 _ => continue,
             };
-            if matches!(lib, Lib::Bin(BinOp::Min | BinOp::Max)) && self.min_max == MinMax::Inline
-            {
+            if matches!(lib, Lib::Bin(BinOp::Min | BinOp::Max)) && self.min_max == MinMax::Inline {
                 continue;
             }
             let Some(sym) = lib.symbol(self.precision) else {
@@ -286,16 +292,14 @@ impl Translator<'_> {
                 used[a as usize] = true;
             }
         }
-        let ctx_load = |b: &mut FunctionBuilder, field: usize| {
-            b.ins().load(PTR, readonly(), cx, off(field))
-        };
+        let ctx_load =
+            |b: &mut FunctionBuilder, field: usize| b.ins().load(PTR, readonly(), cx, off(field));
 
         // Hoisted loads: buffer pointers, connectivity pointers, uniforms.
         let mut bufs_arr = None;
         let mut buf_ptr: HashMap<u32, Value> = HashMap::new();
         let mut need_buf = |b: &mut FunctionBuilder, id: u32| {
-            let arr =
-                *bufs_arr.get_or_insert_with(|| ctx_load(b, offset_of!(KernelCtx, buffers)));
+            let arr = *bufs_arr.get_or_insert_with(|| ctx_load(b, offset_of!(KernelCtx, buffers)));
             *buf_ptr
                 .entry(id)
                 .or_insert_with(|| b.ins().load(PTR, readonly(), arr, off(8 * id as usize)))
@@ -327,7 +331,11 @@ impl Translator<'_> {
             .iter()
             .map(|s| need_buf(&mut b, s.buffer.0))
             .collect();
-        let conn = if k.args.iter().zip(&used).any(|(a, &u)| u && matches!(a, ArgSource::Corner { .. }))
+        let conn = if k
+            .args
+            .iter()
+            .zip(&used)
+            .any(|(a, &u)| u && matches!(a, ArgSource::Corner { .. }))
         {
             let field = match k.domain {
                 Domain::Element => offset_of!(KernelCtx, elem_conn),
@@ -420,7 +428,9 @@ impl Translator<'_> {
                 let col = b.ins().imul_imm_s(cor, *stride as i64 * size as i64);
                 let p = b.ins().iadd(arg_buf[&a], row);
                 let p = b.ins().iadd(p, col);
-                let x = b.ins().load(fty, trusted(), p, off(*component as usize * size));
+                let x = b
+                    .ins()
+                    .load(fty, trusted(), p, off(*component as usize * size));
                 let s = b.use_var(acc);
                 let s = b.ins().fadd(s, x);
                 b.def_var(acc, s);

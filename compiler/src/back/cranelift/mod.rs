@@ -70,9 +70,6 @@ pub struct CompiledKernel {
     func: KernelFn,
     /// Buffers the kernel reads or writes (for the length checks).
     touched: Vec<BufferId>,
-    /// Whether it writes a buffer that it reads at other entities (through a corner or a
-    /// gather): running it on several threads would race.
-    racy: bool,
 }
 
 /// The JIT memory; only freed, never used after finalization.
@@ -116,7 +113,8 @@ impl std::fmt::Debug for CpuModule {
 fn jit_module() -> Result<JITModule, String> {
     let mut flags = settings::builder();
     let set = |f: &mut settings::Builder, k: &str, v: &str| {
-        f.set(k, v).map_err(|e| format!("Cranelift flag {k}={v}: {e}"))
+        f.set(k, v)
+            .map_err(|e| format!("Cranelift flag {k}={v}: {e}"))
     };
     set(&mut flags, "opt_level", "speed")?;
     set(&mut flags, "is_pic", "false")?;
@@ -170,23 +168,20 @@ impl CpuModule {
             ctx.func = func;
             jit.define_function(id, &mut ctx)
                 .map_err(|e| format!("kernel `{}`: Cranelift: {e:?}", k.name))?;
-            let mut touched = Vec::new();
-            let mut far_reads = Vec::new();
-            for a in &k.args {
-                match a {
-                    ArgSource::Own { buffer, .. } => touched.push(*buffer),
-                    ArgSource::Corner { buffer, .. } | ArgSource::Gather { buffer, .. } => {
-                        touched.push(*buffer);
-                        far_reads.push(*buffer);
-                    }
-                    ArgSource::Uniform(_) => {}
-                }
-            }
-            let racy = k.stores.iter().any(|s| far_reads.contains(&s.buffer));
+            let mut touched: Vec<BufferId> = k
+                .args
+                .iter()
+                .filter_map(|a| match a {
+                    ArgSource::Own { buffer, .. }
+                    | ArgSource::Corner { buffer, .. }
+                    | ArgSource::Gather { buffer, .. } => Some(*buffer),
+                    ArgSource::Uniform(_) => None,
+                })
+                .collect();
             touched.extend(k.stores.iter().map(|s| s.buffer));
             touched.sort_by_key(|b| b.0);
             touched.dedup();
-            pending.push((id, k, clif, t0.elapsed(), touched, racy));
+            pending.push((id, k, clif, t0.elapsed(), touched));
         }
         let t0 = Instant::now();
         jit.finalize_definitions()
@@ -194,7 +189,7 @@ impl CpuModule {
         let link = t0.elapsed() / pending.len().max(1) as u32;
         let kernels = pending
             .into_iter()
-            .map(|(id, k, clif, t, touched, racy)| {
+            .map(|(id, k, clif, t, touched)| {
                 let ptr = jit.get_finalized_function(id);
                 // SAFETY: the function was defined with the signature of `KernelFn` (pointer,
                 // u64, u64, no result) in the host's default calling convention, which is the
@@ -208,7 +203,6 @@ impl CpuModule {
                     compile_time: t + link,
                     func,
                     touched,
-                    racy,
                 }
             })
             .collect();
@@ -324,12 +318,6 @@ impl CpuModule {
                 k.name
             ));
         }
-        if threads > 1 && k.racy {
-            return Err(format!(
-                "kernel `{}` writes a buffer it reads at other entities: it cannot run on several threads",
-                k.name
-            ));
-        }
         let uni64: Vec<f64>;
         let uni32: Vec<f32>;
         let uniforms_ptr = match self.precision {
@@ -365,9 +353,11 @@ impl CpuModule {
             // SAFETY: the buffers the kernel touches have the lengths its layout needs for the
             // topology's entity counts, the topology's indices were validated against those
             // counts, `lo..hi` lies inside the kernel's domain, and the kernel was validated
-            // to access only inside that layout. Chunks are disjoint and entities write only
-            // their own rows of buffers no other entity reads (`racy` kernels run on one
-            // thread), so concurrent calls do not race.
+            // to access only inside that layout. Chunks are disjoint; an entity stores only to
+            // its own row of buffers of the kernel's domain, while other entities' rows are
+            // read only from buffers of other domains (corners read node buffers in element
+            // and triangle kernels, gathers read element or triangle buffers in node kernels),
+            // so concurrent calls never touch a location another one writes.
             unsafe { f(c.0, lo as u64, hi as u64) }
         };
         if threads == 1 {
@@ -576,7 +566,14 @@ impl Topology {
     ) -> Result<Self, String> {
         check_conn(n_nodes, &elem_conn, 4, "element")?;
         check_conn(n_nodes, &tri_conn, 3, "triangle")?;
-        check_csr(n_nodes, &elem_conn, 4, &node_elem.0, &node_elem.1, "element")?;
+        check_csr(
+            n_nodes,
+            &elem_conn,
+            4,
+            &node_elem.0,
+            &node_elem.1,
+            "element",
+        )?;
         check_csr(n_nodes, &tri_conn, 3, &node_tri.0, &node_tri.1, "triangle")?;
         Ok(Topology {
             n_nodes,
