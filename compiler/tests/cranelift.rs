@@ -4,7 +4,7 @@
 //! comparisons and selects; thread-count independence; and errors instead of panics.
 
 use softc_compiler::back::Precision;
-use softc_compiler::back::cranelift::{Buffers, CpuModule, Topology};
+use softc_compiler::back::cranelift::{Buffers, CpuModule, Options, Topology};
 use softc_compiler::front::parse;
 use softc_compiler::ir::{
     ArgSource, BinOp, Buffer, BufferId, CmpOp, Domain, Func, Inst, Kernel, KernelBuilder, Module,
@@ -242,6 +242,30 @@ fn eval_f32(func: &Func, args: &[f32]) -> Vec<f32> {
     func.outputs.iter().map(|o| vals[o.0 as usize]).collect()
 }
 
+/// The module compiled both ways: vector code (checked to be in use) and scalar code.
+fn both_ways(m: &Module, p: Precision) -> [CpuModule; 2] {
+    let simd = CpuModule::compile(m, p).unwrap();
+    let lanes = match p {
+        Precision::F64 => 2,
+        Precision::F32 => 4,
+    };
+    for k in simd.kernels() {
+        let vectorizable = k.domain != Domain::Single
+            && !m.kernels.iter().any(|mk| {
+                mk.name == k.name
+                    && mk
+                        .args
+                        .iter()
+                        .any(|a| matches!(a, ArgSource::Gather { .. }))
+            });
+        let want = if vectorizable { lanes } else { 1 };
+        assert_eq!(k.lanes, want, "kernel {} lanes", k.name);
+    }
+    let scalar = CpuModule::compile_with(m, p, &Options { simd: false }).unwrap();
+    assert!(scalar.kernels().iter().all(|k| k.lanes == 1));
+    [simd, scalar]
+}
+
 // ------------------------------------------------------------------ every instruction
 
 #[test]
@@ -253,10 +277,12 @@ fn every_instruction_is_bit_identical_to_the_interpreter_in_f64() {
         .flat_map(|&x| vals.iter().map(move |&y| (x, y)))
         .collect();
     let topo = Topology::new(pairs.len(), vec![], vec![]).unwrap();
-    let cpu = CpuModule::compile(&module, Precision::F64).unwrap();
     let width = module.buffers[1].width as usize;
     let mut reference = None;
-    for threads in [1, 3] {
+    for (cpu, threads) in both_ways(&module, Precision::F64)
+        .iter()
+        .flat_map(|c| [(c, 1), (c, 3)])
+    {
         let mut bufs = Buffers::new(&module, &topo, Precision::F64);
         let flat: Vec<f64> = pairs.iter().flat_map(|&(x, y)| [x, y]).collect();
         bufs.set(input, &flat).unwrap();
@@ -304,24 +330,29 @@ fn every_instruction_matches_an_f32_evaluation_in_f32() {
         .flat_map(|&x| vals.iter().map(move |&y| (x, y)))
         .collect();
     let topo = Topology::new(pairs.len(), vec![], vec![]).unwrap();
-    let cpu = CpuModule::compile(&module, Precision::F32).unwrap();
     let width = module.buffers[1].width as usize;
-    let mut bufs = Buffers::new(&module, &topo, Precision::F32);
-    let data = bufs.f32_mut(input).unwrap();
-    for (n, &(x, y)) in pairs.iter().enumerate() {
-        data[2 * n] = x;
-        data[2 * n + 1] = y;
-    }
-    cpu.run(0, &mut bufs, &topo, &[], 0..pairs.len()).unwrap();
-    let got = bufs.f32(out).unwrap();
     let mut bad = 0;
-    for (n, &(x, y)) in pairs.iter().enumerate() {
-        let want = eval_f32(&module.kernels[0].body, &[x, y]);
-        for (o, &w) in want.iter().enumerate() {
-            let g = got[n * width + o];
-            if g.to_bits() != w.to_bits() {
-                bad += 1;
-                eprintln!("output {o} at x={x:e} y={y:e}: jit {g:e}, f32 eval {w:e}");
+    for cpu in both_ways(&module, Precision::F32) {
+        let mut bufs = Buffers::new(&module, &topo, Precision::F32);
+        let data = bufs.f32_mut(input).unwrap();
+        for (n, &(x, y)) in pairs.iter().enumerate() {
+            data[2 * n] = x;
+            data[2 * n + 1] = y;
+        }
+        // An odd start and a length that is no multiple of 4: vector and scalar loops both run.
+        cpu.run(0, &mut bufs, &topo, &[], 1..pairs.len()).unwrap();
+        let got = bufs.f32(out).unwrap();
+        for (o, g) in got[..width].iter().enumerate() {
+            assert_eq!(*g, 0.0, "entity 0 is outside the range (output {o})");
+        }
+        for (n, &(x, y)) in pairs.iter().enumerate().skip(1) {
+            let want = eval_f32(&module.kernels[0].body, &[x, y]);
+            for (o, &w) in want.iter().enumerate() {
+                let g = got[n * width + o];
+                if g.to_bits() != w.to_bits() {
+                    bad += 1;
+                    eprintln!("output {o} at x={x:e} y={y:e}: jit {g:e}, f32 eval {w:e}");
+                }
             }
         }
     }
@@ -542,10 +573,10 @@ fn fem_element_kernels_are_bit_identical_to_the_interpreter_in_f64_for_any_threa
     let n_el = mesh.tets.len();
     assert_eq!(n_el, 600);
     for (name, m) in fem_modules() {
-        let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
         let k = &m.kernels[0];
         let mut first: Option<Vec<Vec<f64>>> = None;
-        for threads in [1, 2, 3, 8] {
+        let ways = both_ways(&m, Precision::F64);
+        for (cpu, threads) in ways.iter().flat_map(|c| [1, 2, 3, 8].map(|t| (c, t))) {
             let mut bufs = Buffers::new(&m, &topo, Precision::F64);
             mesh.fill(&m, &mut bufs);
             cpu.run_parallel(0, &mut bufs, &topo, &[], 0..n_el, threads)
@@ -599,12 +630,26 @@ fn fem_element_kernels_in_f32_are_close_to_f64() {
     let topo = mesh.topology();
     let n_el = mesh.tets.len();
     for (name, m) in fem_modules() {
-        let cpu = CpuModule::compile(&m, Precision::F32).unwrap();
+        let [cpu, scalar] = both_ways(&m, Precision::F32);
         let k = &m.kernels[0];
         let mut bufs = Buffers::new(&m, &topo, Precision::F32);
         mesh.fill(&m, &mut bufs);
+        let mut b1 = bufs.clone();
         cpu.run_parallel(0, &mut bufs, &topo, &[], 0..n_el, 2)
             .unwrap();
+        scalar
+            .run_parallel(0, &mut b1, &topo, &[], 0..n_el, 3)
+            .unwrap();
+        for i in 0..m.buffers.len() {
+            let id = BufferId(i as u32);
+            let same = bufs
+                .f32(id)
+                .unwrap()
+                .iter()
+                .zip(b1.f32(id).unwrap())
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "{name}: f32 vector and scalar code differ");
+        }
         let force = m.buffer_named("elem_force").unwrap();
         let energy = m.buffer_named("elem_energy").unwrap();
         let (fs, es) = (bufs.get(force), bufs.get(energy));
@@ -676,7 +721,7 @@ fn gathers_equal_a_plain_loop_over_the_csr_bit_for_bit() {
     let (_, mut m) = fem_modules().swap_remove(0);
     let k = gather_kernel(&mut m);
     m.kernels.push(k);
-    let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
+    let [cpu, _] = both_ways(&m, Precision::F64);
     assert_eq!(cpu.kernel(1).uniforms, vec!["pressure_scale".to_string()]);
     let n_el = mesh.tets.len();
     let n_nodes = mesh.x.len();
@@ -985,4 +1030,58 @@ fn misuse_is_an_error() {
     cpu2.run_parallel(0, &mut b2, &topo, &[], 0..n_el, 4)
         .unwrap();
     assert!(b2.get(el).iter().all(|&v| v == 3.0));
+}
+
+// ------------------------------------------------------------------ measurements
+
+/// Compile time per kernel and run time per element of the FEM kernels, f64 and f32, on 1
+/// and 2 threads, against the interpreter. `cargo test --release --test cranelift -- --ignored
+/// --nocapture measure`.
+#[test]
+#[ignore]
+fn measure() {
+    use std::time::Instant;
+    let cells: usize = std::env::var("SOFTC_CELLS").map_or(30, |v| v.parse().unwrap());
+    let mesh = box_mesh((cells, cells, cells), 42);
+    let topo = mesh.topology();
+    let n_el = mesh.tets.len();
+    let reps = 5;
+    for (name, m) in fem_modules() {
+        let k = &m.kernels[0];
+        let t0 = Instant::now();
+        let n_interp = n_el.min(20_000);
+        let mut sink = 0.0;
+        for e in 0..n_interp {
+            sink += mesh.interp_element(&m, k, e)[0];
+        }
+        let interp_ns = t0.elapsed().as_secs_f64() * 1e9 / n_interp as f64;
+        let mut line = format!(
+            "{name:7} {:4} insts  interp {interp_ns:7.1} ns/el",
+            k.body.insts.len()
+        );
+        for p in [Precision::F64, Precision::F32] {
+            let t0 = Instant::now();
+            let cpu = CpuModule::compile(&m, p).unwrap();
+            let compile_ms = t0.elapsed().as_secs_f64() * 1e3;
+            let mut bufs = Buffers::new(&m, &topo, p);
+            mesh.fill(&m, &mut bufs);
+            line += &format!("  {p}: compile {compile_ms:5.1} ms");
+            let threads_list: Vec<usize> = std::env::var("SOFTC_THREADS")
+                .map(|v| v.split(',').map(|t| t.parse().unwrap()).collect())
+                .unwrap_or(vec![1, 2]);
+            for threads in threads_list {
+                cpu.run_parallel(0, &mut bufs, &topo, &[], 0..n_el, threads)
+                    .unwrap();
+                let t0 = Instant::now();
+                for _ in 0..reps {
+                    cpu.run_parallel(0, &mut bufs, &topo, &[], 0..n_el, threads)
+                        .unwrap();
+                }
+                let ns = t0.elapsed().as_secs_f64() * 1e9 / (reps * n_el) as f64;
+                line += &format!(" {threads}t {ns:5.1} ns/el");
+            }
+        }
+        println!("{line} ({sink:e})");
+    }
+    println!("{n_el} elements");
 }

@@ -21,7 +21,7 @@ use crate::back::Precision;
 use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp};
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{
-    AbiParam, Function, InstBuilder, MemFlagsData, Type, UserFuncName, Value, types,
+    AbiParam, FuncRef, Function, InstBuilder, MemFlagsData, Type, UserFuncName, Value, types,
 };
 use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext, Variable};
 use cranelift_jit::JITModule;
@@ -211,6 +211,21 @@ fn off(bytes: usize) -> i32 {
     i32::try_from(bytes).expect("offsets inside validated buffers fit in 32 bits")
 }
 
+/// What the entity loops share: values loaded once in the entry block.
+struct Hoisted {
+    /// Base pointer of the buffer each used argument reads.
+    arg_buf: HashMap<usize, Value>,
+    /// Base pointer of each store's buffer.
+    store_ptrs: Vec<Value>,
+    /// The connectivity of the kernel's domain, if corners are read.
+    conn: Option<Value>,
+    /// The uniforms (scalars), in the order of `uniforms`.
+    uni_vals: Vec<Value>,
+    uniforms: Vec<String>,
+    /// Imported helper functions.
+    fref: HashMap<Lib, FuncRef>,
+}
+
 impl Translator<'_> {
     fn fty(&self) -> Type {
         match self.precision {
@@ -219,20 +234,23 @@ impl Translator<'_> {
         }
     }
 
-    /// Build the Cranelift function of kernel `k` into `func`.
+    /// Build the Cranelift function of kernel `k`. With `simd`, entities go `lanes` at a
+    /// time through vector code (one entity per lane: every lane performs exactly the scalar
+    /// operation sequence, so results are the same bits), and the remainder through scalar
+    /// code; kernels with gathers are scalar only.
     pub fn translate(
         &mut self,
         m: &Module,
         k: &Kernel,
         index: u32,
+        simd: bool,
         fctx: &mut FunctionBuilderContext,
-    ) -> Result<Function, String> {
+    ) -> Result<(Function, bool), String> {
         if self.jit.target_config().pointer_type() != PTR {
             return Err("the Cranelift backend needs a 64-bit host".into());
         }
         validate(m, k)?;
         let fty = self.fty();
-        let size = self.precision.size();
         let mut sig = self.jit.make_signature();
         sig.params.push(AbiParam::new(PTR));
         sig.params.push(AbiParam::new(types::I64));
@@ -277,9 +295,6 @@ impl Translator<'_> {
 
         let mut b = FunctionBuilder::new(&mut func, fctx);
         let entry = b.create_block();
-        let header = b.create_block();
-        let body = b.create_block();
-        let exit = b.create_block();
         b.append_block_params_for_function_params(entry);
         b.switch_to_block(entry);
         let params = b.block_params(entry).to_vec();
@@ -309,7 +324,10 @@ impl Translator<'_> {
         if !uniforms.is_empty() {
             let up = ctx_load(&mut b, offset_of!(KernelCtx, uniforms));
             for j in 0..uniforms.len() {
-                uni_vals.push(b.ins().load(fty, readonly(), up, off(j * size)));
+                uni_vals.push(
+                    b.ins()
+                        .load(fty, readonly(), up, off(j * self.precision.size())),
+                );
             }
         }
         let mut arg_buf = HashMap::new();
@@ -371,17 +389,50 @@ impl Translator<'_> {
                 (ctx_load(&mut b, o), ctx_load(&mut b, e))
             })
             .collect();
+        let h = Hoisted {
+            arg_buf,
+            store_ptrs,
+            conn,
+            uni_vals,
+            uniforms,
+            fref,
+        };
 
+        let lanes: u32 = match self.precision {
+            Precision::F64 => 2,
+            Precision::F32 => 4,
+        };
+        let simd = simd && gathers.is_empty() && k.domain != Domain::Single;
         let iv: Variable = b.declare_var(types::I64);
         b.def_var(iv, begin);
-        b.ins().jump(header, &[]);
+        let sheader = b.create_block();
+        let sbody = b.create_block();
+        let exit = b.create_block();
+        if simd {
+            // Vector loop: while i + lanes <= end.
+            let vheader = b.create_block();
+            let vbody = b.create_block();
+            b.ins().jump(vheader, &[]);
+            b.switch_to_block(vheader);
+            let i = b.use_var(iv);
+            let next = b.ins().iadd_imm_s(i, lanes as i64);
+            let fits = b.ins().icmp(IntCC::UnsignedLessThanOrEqual, next, end);
+            b.ins().brif(fits, vbody, &[], sheader, &[]);
+            b.switch_to_block(vbody);
+            self.emit_body(&mut b, m, k, &h, i, lanes, &HashMap::new());
+            b.def_var(iv, next);
+            b.ins().jump(vheader, &[]);
+        } else {
+            b.ins().jump(sheader, &[]);
+        }
 
-        b.switch_to_block(header);
+        b.switch_to_block(sheader);
         let i = b.use_var(iv);
         let more = b.ins().icmp(IntCC::UnsignedLessThan, i, end);
-        b.ins().brif(more, body, &[], exit, &[]);
+        b.ins().brif(more, sbody, &[], exit, &[]);
 
-        b.switch_to_block(body);
+        b.switch_to_block(sbody);
+        let size = self.precision.size();
         // Gather loops.
         let mut gathered: HashMap<usize, Value> = HashMap::new();
         for ((_, args), &(offsets, entries)) in gathers.iter().zip(&csr) {
@@ -426,7 +477,7 @@ impl Translator<'_> {
                 let width = m.buffers[buffer.0 as usize].width as i64;
                 let row = b.ins().imul_imm_s(ent, width * size as i64);
                 let col = b.ins().imul_imm_s(cor, *stride as i64 * size as i64);
-                let p = b.ins().iadd(arg_buf[&a], row);
+                let p = b.ins().iadd(h.arg_buf[&a], row);
                 let p = b.ins().iadd(p, col);
                 let x = b
                     .ins()
@@ -443,28 +494,108 @@ impl Translator<'_> {
                 gathered.insert(a, b.use_var(acc));
             }
         }
+        self.emit_body(&mut b, m, k, &h, i, 1, &gathered);
+        let i1 = b.ins().iadd_imm_s(i, 1);
+        b.def_var(iv, i1);
+        b.ins().jump(sheader, &[]);
 
-        // The body, in order.
+        b.switch_to_block(exit);
+        b.ins().return_(&[]);
+        b.seal_all_blocks();
+        b.finalize(self.jit.target_config());
+        Ok((func, simd))
+    }
+
+    /// Loads, body and stores for the entities `i .. i + lanes` (`lanes` = 1: scalar code).
+    #[allow(clippy::too_many_arguments)]
+    fn emit_body(
+        &self,
+        b: &mut FunctionBuilder,
+        m: &Module,
+        k: &Kernel,
+        h: &Hoisted,
+        i: Value,
+        lanes: u32,
+        gathered: &HashMap<usize, Value>,
+    ) {
+        let fty = self.fty();
+        let size = self.precision.size();
+        let vty = if lanes == 1 {
+            fty
+        } else {
+            fty.by(lanes).expect("2 × f64 and 4 × f32 are vector types")
+        };
+        let ity = vty.as_int();
+        // Scalars of all lanes into one value.
+        let pack = |b: &mut FunctionBuilder, xs: &[Value]| {
+            if lanes == 1 {
+                return xs[0];
+            }
+            let mut v = b.ins().scalar_to_vector(vty, xs[0]);
+            for (l, &x) in xs.iter().enumerate().skip(1) {
+                v = b.ins().insertlane(v, x, l as u8);
+            }
+            v
+        };
+        let lane = |b: &mut FunctionBuilder, v: Value, l: u32| {
+            if lanes == 1 {
+                v
+            } else {
+                b.ins().extractlane(v, l as u8)
+            }
+        };
+        // A comparison mask (all ones / zeros per lane) as a float value, for `bitselect`.
+        let mask_f =
+            |b: &mut FunctionBuilder, mask: Value| b.ins().bitcast(vty, MemFlagsData::new(), mask);
+        let select = |b: &mut FunctionBuilder, c: Value, x: Value, y: Value| {
+            if lanes == 1 {
+                b.ins().select(c, x, y)
+            } else {
+                let c = mask_f(b, c);
+                b.ins().bitselect(c, x, y)
+            }
+        };
+        let constant = |b: &mut FunctionBuilder, c: f64| {
+            let s = self.fconst(b, c);
+            if lanes == 1 { s } else { b.ins().splat(vty, s) }
+        };
+        let per_lane = |b: &mut FunctionBuilder,
+                        f: &dyn Fn(&mut FunctionBuilder, &[Value]) -> Value,
+                        xs: &[Value]| {
+            let outs: Vec<Value> = (0..lanes)
+                .map(|l| {
+                    let args: Vec<Value> = xs.iter().map(|&x| lane(b, x, l)).collect();
+                    f(b, &args)
+                })
+                .collect();
+            pack(b, &outs)
+        };
+
         let mut rows: HashMap<(u32, Option<u32>), Value> = HashMap::new();
-        let mut nodes: HashMap<u32, Value> = HashMap::new();
-        let nc = corners(k.domain).unwrap_or(1) as i64;
+        let mut nodes: HashMap<(u32, u32), Value> = HashMap::new();
+        let nc = corners(k.domain).unwrap_or(1) as usize;
         let mut vals: Vec<Value> = Vec::with_capacity(k.body.insts.len());
         for inst in &k.body.insts {
             let v = |n: crate::ir::V| vals[n.0 as usize];
             let r = match *inst {
-                Inst::Const(c) => self.fconst(&mut b, c),
+                Inst::Const(c) => constant(b, c),
                 Inst::Arg(a) => {
                     let a = a as usize;
                     match &k.args[a] {
                         ArgSource::Own { buffer, component } => {
-                            let width = m.buffers[buffer.0 as usize].width as i64;
-                            let base = arg_buf[&a];
+                            let width = m.buffers[buffer.0 as usize].width as usize;
+                            let base = h.arg_buf[&a];
                             let row = *rows.entry((buffer.0, None)).or_insert_with(|| {
-                                let o = b.ins().imul_imm_s(i, width * size as i64);
+                                let o = b.ins().imul_imm_s(i, (width * size) as i64);
                                 b.ins().iadd(base, o)
                             });
-                            b.ins()
-                                .load(fty, trusted(), row, off(*component as usize * size))
+                            let xs: Vec<Value> = (0..lanes as usize)
+                                .map(|l| {
+                                    let o = (l * width + *component as usize) * size;
+                                    b.ins().load(fty, trusted(), row, off(o))
+                                })
+                                .collect();
+                            pack(b, &xs)
                         }
                         ArgSource::Corner {
                             buffer,
@@ -472,26 +603,40 @@ impl Translator<'_> {
                             component,
                         } => {
                             let width = m.buffers[buffer.0 as usize].width as i64;
-                            let base = arg_buf[&a];
-                            let conn = conn.expect("corner loads load the connectivity");
-                            let node = *nodes.entry(*corner).or_insert_with(|| {
-                                let o = b.ins().imul_imm_s(i, nc * 4);
-                                let p = b.ins().iadd(conn, o);
-                                b.ins().uload32(readonly(), p, off(*corner as usize * 4))
-                            });
-                            let row = *rows.entry((buffer.0, Some(*corner))).or_insert_with(|| {
-                                let o = b.ins().imul_imm_s(node, width * size as i64);
-                                b.ins().iadd(base, o)
-                            });
-                            b.ins()
-                                .load(fty, trusted(), row, off(*component as usize * size))
+                            let base = h.arg_buf[&a];
+                            let conn = h.conn.expect("corner loads load the connectivity");
+                            let xs: Vec<Value> = (0..lanes)
+                                .map(|l| {
+                                    let node = *nodes.entry((*corner, l)).or_insert_with(|| {
+                                        let o = b.ins().imul_imm_s(i, nc as i64 * 4);
+                                        let p = b.ins().iadd(conn, o);
+                                        let at = (l as usize * nc + *corner as usize) * 4;
+                                        b.ins().uload32(readonly(), p, off(at))
+                                    });
+                                    let row = *rows
+                                        .entry((buffer.0, Some(*corner * lanes + l)))
+                                        .or_insert_with(|| {
+                                            let o = b.ins().imul_imm_s(node, width * size as i64);
+                                            b.ins().iadd(base, o)
+                                        });
+                                    b.ins().load(
+                                        fty,
+                                        trusted(),
+                                        row,
+                                        off(*component as usize * size),
+                                    )
+                                })
+                                .collect();
+                            pack(b, &xs)
                         }
                         ArgSource::Uniform(name) => {
-                            let j = uniforms
+                            let j = h
+                                .uniforms
                                 .iter()
                                 .position(|n| n == name)
                                 .expect("uniforms are collected from the arguments");
-                            uni_vals[j]
+                            let u = h.uni_vals[j];
+                            if lanes == 1 { u } else { b.ins().splat(vty, u) }
                         }
                         ArgSource::Gather { .. } => gathered[&a],
                     }
@@ -502,11 +647,18 @@ impl Translator<'_> {
                         UnOp::Neg => b.ins().fneg(x),
                         UnOp::Abs => b.ins().fabs(x),
                         UnOp::Sqrt => b.ins().sqrt(x),
-                        UnOp::Floor => b.ins().floor(x),
-                        UnOp::Ceil => b.ins().ceil(x),
+                        UnOp::Floor => per_lane(b, &|b, a| b.ins().floor(a[0]), &[x]),
+                        UnOp::Ceil => per_lane(b, &|b, a| b.ins().ceil(a[0]), &[x]),
                         UnOp::Exp | UnOp::Ln | UnOp::Sin | UnOp::Cos | UnOp::Tan | UnOp::Tanh => {
-                            let call = b.ins().call(fref[&Lib::Un(op)], &[x]);
-                            b.inst_results(call)[0]
+                            let f = h.fref[&Lib::Un(op)];
+                            per_lane(
+                                b,
+                                &|b, a| {
+                                    let call = b.ins().call(f, a);
+                                    b.inst_results(call)[0]
+                                },
+                                &[x],
+                            )
                         }
                     }
                 }
@@ -526,13 +678,20 @@ impl Translator<'_> {
                                 FloatCC::GreaterThan
                             };
                             let y_wins = b.ins().fcmp(cc, y, x);
-                            let r = b.ins().select(y_wins, y, x);
+                            let r = select(b, y_wins, y, x);
                             let x_nan = b.ins().fcmp(FloatCC::Unordered, x, x);
-                            b.ins().select(x_nan, y, r)
+                            select(b, x_nan, y, r)
                         }
                         BinOp::Pow | BinOp::Min | BinOp::Max => {
-                            let call = b.ins().call(fref[&Lib::Bin(op)], &[x, y]);
-                            b.inst_results(call)[0]
+                            let f = h.fref[&Lib::Bin(op)];
+                            per_lane(
+                                b,
+                                &|b, a| {
+                                    let call = b.ins().call(f, a);
+                                    b.inst_results(call)[0]
+                                },
+                                &[x, y],
+                            )
                         }
                     }
                 }
@@ -547,40 +706,42 @@ impl Translator<'_> {
                         CmpOp::Ne => FloatCC::NotEqual,
                     };
                     let c = b.ins().fcmp(cc, v(x), v(y));
-                    let one = self.fconst(&mut b, 1.0);
-                    let zero = self.fconst(&mut b, 0.0);
-                    b.ins().select(c, one, zero)
+                    if lanes == 1 {
+                        let one = constant(b, 1.0);
+                        let zero = constant(b, 0.0);
+                        b.ins().select(c, one, zero)
+                    } else {
+                        // mask & bits(1.0): 1.0 where true, +0.0 where false.
+                        let one = constant(b, 1.0);
+                        let one_bits = b.ins().bitcast(ity, MemFlagsData::new(), one);
+                        let r = b.ins().band(c, one_bits);
+                        b.ins().bitcast(vty, MemFlagsData::new(), r)
+                    }
                 }
                 Inst::Select(c, x, y) => {
-                    let zero = self.fconst(&mut b, 0.0);
+                    let zero = constant(b, 0.0);
                     // `c != 0.0`: NaN selects `x`, as in the interpreter.
                     let t = b.ins().fcmp(FloatCC::NotEqual, v(c), zero);
-                    b.ins().select(t, v(x), v(y))
+                    select(b, t, v(x), v(y))
                 }
             };
             vals.push(r);
         }
 
         // Stores.
-        for (s, &base) in k.stores.iter().zip(&store_ptrs) {
-            let width = m.buffers[s.buffer.0 as usize].width as i64;
+        for (s, &base) in k.stores.iter().zip(&h.store_ptrs) {
+            let width = m.buffers[s.buffer.0 as usize].width as usize;
             let row = *rows.entry((s.buffer.0, None)).or_insert_with(|| {
-                let o = b.ins().imul_imm_s(i, width * size as i64);
+                let o = b.ins().imul_imm_s(i, (width * size) as i64);
                 b.ins().iadd(base, o)
             });
             let x = vals[k.body.outputs[s.output].0 as usize];
-            b.ins()
-                .store(trusted(), x, row, off(s.component as usize * size));
+            for l in 0..lanes {
+                let xl = lane(b, x, l);
+                let o = (l as usize * width + s.component as usize) * size;
+                b.ins().store(trusted(), xl, row, off(o));
+            }
         }
-        let i1 = b.ins().iadd_imm_s(i, 1);
-        b.def_var(iv, i1);
-        b.ins().jump(header, &[]);
-
-        b.switch_to_block(exit);
-        b.ins().return_(&[]);
-        b.seal_all_blocks();
-        b.finalize(self.jit.target_config());
-        Ok(func)
     }
 
     fn fconst(&self, b: &mut FunctionBuilder, c: f64) -> Value {

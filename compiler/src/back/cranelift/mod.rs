@@ -67,6 +67,9 @@ pub struct CompiledKernel {
     pub clif: String,
     /// Wall time spent translating, verifying and compiling this kernel.
     pub compile_time: Duration,
+    /// Entities per iteration of the main loop: 2 (f64) or 4 (f32) in vector code, 1 in
+    /// scalar code (kernels with gathers, single kernels, or `Options::simd` off).
+    pub lanes: u32,
     func: KernelFn,
     /// Buffers the kernel reads or writes (for the length checks).
     touched: Vec<BufferId>,
@@ -88,6 +91,20 @@ impl Drop for Code {
             // this `Code` and are dropped with it; no call can be running (calls borrow it).
             unsafe { m.free_memory() };
         }
+    }
+}
+
+/// How to compile.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// Run entities through 128-bit vector code (2 × f64 or 4 × f32 per iteration; one entity
+    /// per lane, so results are the same bits as scalar code). Default on.
+    pub simd: bool,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options { simd: true }
     }
 }
 
@@ -130,9 +147,18 @@ fn jit_module() -> Result<JITModule, String> {
 }
 
 impl CpuModule {
-    /// Compile every kernel of `module`. Errors describe a kernel that does not fit its
-    /// module (an access outside a buffer's declared layout) or a Cranelift failure.
+    /// Compile every kernel of `module` (with [`Options::default`]). Errors describe a kernel
+    /// that does not fit its module (an access outside a buffer's declared layout) or a
+    /// Cranelift failure.
     pub fn compile(module: &Module, precision: Precision) -> Result<CpuModule, String> {
+        Self::compile_with(module, precision, &Options::default())
+    }
+
+    pub fn compile_with(
+        module: &Module,
+        precision: Precision,
+        options: &Options,
+    ) -> Result<CpuModule, String> {
         let mut jit = jit_module()?;
         let mut imports = Imports::default();
         let min_max = if libm::inline_min_max_matches_std() {
@@ -145,29 +171,53 @@ impl CpuModule {
         let mut pending = Vec::new();
         for (index, k) in module.kernels.iter().enumerate() {
             let t0 = Instant::now();
-            let func = Translator {
-                jit: &mut jit,
-                imports: &mut imports,
-                precision,
-                min_max,
-            }
-            .translate(module, k, index as u32, &mut fctx)?;
-            let clif = func.display().to_string();
-            cranelift_codegen::verify_function(&func, jit.isa()).map_err(|e| {
-                format!(
-                    "kernel `{}`: invalid Cranelift IR: {}",
-                    k.name,
-                    cranelift_codegen::print_errors::pretty_verifier_error(&func, None, e)
-                )
-            })?;
             let name = format!("softc_kernel_{index}");
-            let id = jit
-                .declare_function(&name, Linkage::Local, &func.signature)
-                .map_err(|e| format!("kernel `{}`: {e}", k.name))?;
-            ctx.clear();
-            ctx.func = func;
-            jit.define_function(id, &mut ctx)
-                .map_err(|e| format!("kernel `{}`: Cranelift: {e:?}", k.name))?;
+            let mut id = None;
+            let mut result = Err(String::new());
+            // Vector code first where asked for; scalar code if the target cannot take it.
+            let tries: &[bool] = if options.simd {
+                &[true, false]
+            } else {
+                &[false]
+            };
+            for &simd in tries {
+                result = (|| {
+                    let mut tr = Translator {
+                        jit: &mut jit,
+                        imports: &mut imports,
+                        precision,
+                        min_max,
+                    };
+                    let (func, simd) = tr.translate(module, k, index as u32, simd, &mut fctx)?;
+                    let clif = func.display().to_string();
+                    cranelift_codegen::verify_function(&func, jit.isa()).map_err(|e| {
+                        format!(
+                            "kernel `{}`: invalid Cranelift IR: {}",
+                            k.name,
+                            cranelift_codegen::print_errors::pretty_verifier_error(&func, None, e)
+                        )
+                    })?;
+                    let fid = match id {
+                        Some(fid) => fid,
+                        None => {
+                            let fid = jit
+                                .declare_function(&name, Linkage::Local, &func.signature)
+                                .map_err(|e| format!("kernel `{}`: {e}", k.name))?;
+                            id = Some(fid);
+                            fid
+                        }
+                    };
+                    ctx.clear();
+                    ctx.func = func;
+                    jit.define_function(fid, &mut ctx)
+                        .map_err(|e| format!("kernel `{}`: Cranelift: {e:?}", k.name))?;
+                    Ok((fid, clif, simd))
+                })();
+                if result.is_ok() {
+                    break;
+                }
+            }
+            let (id, clif, simd) = result?;
             let mut touched: Vec<BufferId> = k
                 .args
                 .iter()
@@ -181,7 +231,7 @@ impl CpuModule {
             touched.extend(k.stores.iter().map(|s| s.buffer));
             touched.sort_by_key(|b| b.0);
             touched.dedup();
-            pending.push((id, k, clif, t0.elapsed(), touched));
+            pending.push((id, k, clif, t0.elapsed(), touched, simd));
         }
         let t0 = Instant::now();
         jit.finalize_definitions()
@@ -189,7 +239,7 @@ impl CpuModule {
         let link = t0.elapsed() / pending.len().max(1) as u32;
         let kernels = pending
             .into_iter()
-            .map(|(id, k, clif, t, touched)| {
+            .map(|(id, k, clif, t, touched, simd)| {
                 let ptr = jit.get_finalized_function(id);
                 // SAFETY: the function was defined with the signature of `KernelFn` (pointer,
                 // u64, u64, no result) in the host's default calling convention, which is the
@@ -201,6 +251,11 @@ impl CpuModule {
                     uniforms: codegen::uniform_names(k),
                     clif,
                     compile_time: t + link,
+                    lanes: if simd {
+                        16 / precision.size() as u32
+                    } else {
+                        1
+                    },
                     func,
                     touched,
                 }
