@@ -1083,5 +1083,36 @@ fn measure() {
         }
         println!("{line} ({sink:e})");
     }
-    println!("{n_el} elements");
+    // The node kernel with gathers (scalar code), after the yeoh element kernel.
+    let (_, mut m) = fem_modules().swap_remove(0);
+    let k = gather_kernel(&mut m);
+    m.kernels.push(k);
+    let n_nodes = mesh.x.len();
+    for p in [Precision::F64, Precision::F32] {
+        let cpu = CpuModule::compile(&m, p).unwrap();
+        let mut bufs = Buffers::new(&m, &topo, p);
+        mesh.fill(&m, &mut bufs);
+        cpu.run(0, &mut bufs, &topo, &[], 0..n_el).unwrap();
+        let mut line = format!(
+            "assemble (gather, {p}): compile {:.1} ms",
+            cpu.kernel(1).compile_time.as_secs_f64() * 1e3
+        );
+        for threads in [1, 2] {
+            let t0 = Instant::now();
+            for _ in 0..reps {
+                cpu.run_parallel(1, &mut bufs, &topo, &[1.0], 0..n_nodes, threads)
+                    .unwrap();
+            }
+            let ns = t0.elapsed().as_secs_f64() * 1e9 / (reps * n_nodes) as f64;
+            line += &format!(" {threads}t {ns:5.1} ns/node");
+        }
+        println!("{line}");
+    }
+    println!("{n_el} elements, {n_nodes} nodes");
+}
+
+#[test]
+fn compiled_modules_can_be_shared_between_threads() {
+    fn send_sync<T: Send + Sync>() {}
+    send_sync::<CpuModule>();
 }

@@ -51,6 +51,13 @@ pub(super) fn validate(m: &Module, k: &Kernel) -> Result<(), String> {
         ));
     }
     let buf = |id: crate::ir::BufferId| m.buffers.get(id.0 as usize);
+    // Offsets inside a row (up to 4 lanes of rows) are 32-bit immediates.
+    if let Some(b) = m.buffers.iter().find(|b| b.width > 1 << 24) {
+        return err(format!(
+            "buffer `{}` is {} wide; at most 2^24 components",
+            b.name, b.width
+        ));
+    }
     for (i, a) in k.args.iter().enumerate() {
         match a {
             ArgSource::Own { buffer, component } => {
@@ -207,6 +214,7 @@ fn readonly() -> MemFlagsData {
     MemFlagsData::trusted().with_readonly()
 }
 
+/// A 32-bit immediate offset: at most 4 lanes × 2^24 components × 8 bytes (`validate`).
 fn off(bytes: usize) -> i32 {
     i32::try_from(bytes).expect("offsets inside validated buffers fit in 32 bits")
 }
