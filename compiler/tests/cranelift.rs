@@ -1045,16 +1045,20 @@ fn measure() {
     let mesh = box_mesh((cells, cells, cells), 42);
     let topo = mesh.topology();
     let n_el = mesh.tets.len();
-    let reps = 5;
+    let reps = 9;
     for (name, m) in fem_modules() {
         let k = &m.kernels[0];
-        let t0 = Instant::now();
-        let n_interp = n_el.min(20_000);
+        let n_interp = n_el.min(10_000);
         let mut sink = 0.0;
-        for e in 0..n_interp {
-            sink += mesh.interp_element(&m, k, e)[0];
+        let mut best = f64::INFINITY;
+        for _ in 0..3 {
+            let t0 = Instant::now();
+            for e in 0..n_interp {
+                sink += mesh.interp_element(&m, k, e)[0];
+            }
+            best = best.min(t0.elapsed().as_secs_f64());
         }
-        let interp_ns = t0.elapsed().as_secs_f64() * 1e9 / n_interp as f64;
+        let interp_ns = best * 1e9 / n_interp as f64;
         let mut line = format!(
             "{name:7} {:4} insts  interp {interp_ns:7.1} ns/el",
             k.body.insts.len()
@@ -1072,12 +1076,15 @@ fn measure() {
             for threads in threads_list {
                 cpu.run_parallel(0, &mut bufs, &topo, &[], 0..n_el, threads)
                     .unwrap();
-                let t0 = Instant::now();
+                // Best of `reps`: the machine may be shared.
+                let mut best = f64::INFINITY;
                 for _ in 0..reps {
+                    let t0 = Instant::now();
                     cpu.run_parallel(0, &mut bufs, &topo, &[], 0..n_el, threads)
                         .unwrap();
+                    best = best.min(t0.elapsed().as_secs_f64());
                 }
-                let ns = t0.elapsed().as_secs_f64() * 1e9 / (reps * n_el) as f64;
+                let ns = best * 1e9 / n_el as f64;
                 line += &format!(" {threads}t {ns:5.1} ns/el");
             }
         }
@@ -1098,21 +1105,85 @@ fn measure() {
             cpu.kernel(1).compile_time.as_secs_f64() * 1e3
         );
         for threads in [1, 2] {
-            let t0 = Instant::now();
+            let mut best = f64::INFINITY;
             for _ in 0..reps {
+                let t0 = Instant::now();
                 cpu.run_parallel(1, &mut bufs, &topo, &[1.0], 0..n_nodes, threads)
                     .unwrap();
+                best = best.min(t0.elapsed().as_secs_f64());
             }
-            let ns = t0.elapsed().as_secs_f64() * 1e9 / (reps * n_nodes) as f64;
+            let ns = best * 1e9 / n_nodes as f64;
             line += &format!(" {threads}t {ns:5.1} ns/node");
         }
         println!("{line}");
     }
     println!("{n_el} elements, {n_nodes} nodes");
+
+    // Per-call cost of a small launch (~1k tets): thread start-up shows here.
+    let small = box_mesh((6, 6, 5), 3);
+    let st = small.topology();
+    let (_, m) = fem_modules().swap_remove(2);
+    let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
+    let mut bufs = Buffers::new(&m, &st, Precision::F64);
+    small.fill(&m, &mut bufs);
+    let n = small.tets.len();
+    let mut line = format!("nh f64, {n} elements per call:");
+    for threads in [1, 2] {
+        let mut best = f64::INFINITY;
+        for _ in 0..2000 {
+            let t0 = Instant::now();
+            cpu.run_parallel(0, &mut bufs, &st, &[], 0..n, threads)
+                .unwrap();
+            best = best.min(t0.elapsed().as_secs_f64());
+        }
+        let us = best * 1e6;
+        line += &format!(" {threads}t {us:6.1} µs/call");
+    }
+    println!("{line}");
 }
 
 #[test]
 fn compiled_modules_can_be_shared_between_threads() {
     fn send_sync<T: Send + Sync>() {}
     send_sync::<CpuModule>();
+}
+
+#[test]
+fn single_kernels_run_once() {
+    // A parameter transform: p = lo + (hi − lo) · sigmoid(raw), raw read from a single buffer,
+    // bounds as uniforms; also the raw value doubled in place.
+    let mut m = Module::default();
+    let raw = m.buffer("raw", Domain::Single, 2, "");
+    let out = m.buffer("p", Domain::Single, 1, "");
+    let mut k = KernelBuilder::new("transform", Domain::Single, "test");
+    let lo = k.uniform("lo");
+    let hi = k.uniform("hi");
+    let r = k.load(ArgSource::Own {
+        buffer: raw,
+        component: 1,
+    });
+    let nr = k.b.neg(r);
+    let e = k.b.un(UnOp::Exp, nr);
+    let one = k.b.constant(1.0);
+    let den = k.b.add(one, e);
+    let s = k.b.div(one, den);
+    let span = k.b.sub(hi, lo);
+    let t = k.b.mul(span, s);
+    let p = k.b.add(lo, t);
+    k.store(out, 0, p);
+    let r2 = k.b.scale(2.0, r);
+    k.store(raw, 1, r2);
+    m.kernels.push(k.finish());
+    let topo = Topology::new(0, vec![], vec![]).unwrap();
+    for cpu in both_ways(&m, Precision::F64) {
+        assert_eq!(cpu.kernel(0).lanes, 1);
+        let mut bufs = Buffers::new(&m, &topo, Precision::F64);
+        bufs.set(raw, &[9.0, 0.3]).unwrap();
+        cpu.run_parallel(0, &mut bufs, &topo, &[1e3, 5e4], 0..1, 4)
+            .unwrap();
+        let want = interp::eval(&m.kernels[0].body, &[1e3, 5e4, 0.3]);
+        assert!(same_bits(bufs.get(out)[0], want[0]));
+        assert_eq!(bufs.get(raw), [9.0, 0.6]);
+        assert!(cpu.run(0, &mut bufs, &topo, &[1e3, 5e4], 0..2).is_err());
+    }
 }
