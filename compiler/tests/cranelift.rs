@@ -1187,3 +1187,39 @@ fn single_kernels_run_once() {
         assert!(cpu.run(0, &mut bufs, &topo, &[1e3, 5e4], 0..2).is_err());
     }
 }
+
+#[test]
+fn caller_owned_storage_and_double_buffering() {
+    use softc_compiler::back::cranelift::Storage;
+    // x_new = x_old + 1 per node; swap, run again: x = 2.
+    let mut m = Module::default();
+    let old = m.buffer("x_old", Domain::Node, 1, "");
+    let new = m.buffer("x_new", Domain::Node, 1, "");
+    let mut k = KernelBuilder::new("step", Domain::Node, "test");
+    let x = k.load(ArgSource::Own {
+        buffer: old,
+        component: 0,
+    });
+    let one = k.b.constant(1.0);
+    let y = k.b.add(x, one);
+    k.store(new, 0, y);
+    m.kernels.push(k.finish());
+    let topo = Topology::new(5, vec![], vec![]).unwrap();
+    let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
+    let mut bufs = Buffers::from_storage(
+        Precision::F64,
+        vec![Storage::F64(vec![0.0; 5]), Storage::F64(vec![0.0; 5])],
+    )
+    .unwrap();
+    for _ in 0..2 {
+        cpu.run(0, &mut bufs, &topo, &[], 0..5).unwrap();
+        bufs.swap(old, new);
+    }
+    assert_eq!(bufs.get(old), [2.0; 5]);
+    // A wrong precision or length slipped in through `storage_mut` is caught at run time.
+    bufs.storage_mut()[1] = Storage::F32(vec![0.0; 5]);
+    assert!(cpu.run(0, &mut bufs, &topo, &[], 0..5).is_err());
+    bufs.storage_mut()[1] = Storage::F64(vec![0.0; 4]);
+    assert!(cpu.run(0, &mut bufs, &topo, &[], 0..5).is_err());
+    assert!(Buffers::from_storage(Precision::F32, bufs.into_storage()).is_err());
+}

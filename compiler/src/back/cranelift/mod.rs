@@ -381,7 +381,16 @@ impl CpuModule {
         for b in &k.touched {
             let (domain, width) = self.layout[b.0 as usize];
             let want = topology.count(domain) * width as usize;
-            let have = buffers.data[b.0 as usize].len();
+            let data = &buffers.data[b.0 as usize];
+            if data.precision() != self.precision {
+                return Err(format!(
+                    "buffer `{}` holds {} values, the module was compiled for {}",
+                    self.names[b.0 as usize],
+                    data.precision(),
+                    self.precision
+                ));
+            }
+            let have = data.len();
             if have != want {
                 return Err(format!(
                     "buffer `{}` has {have} values, {want} expected ({domain:?} × {width})",
@@ -487,11 +496,22 @@ pub enum Storage {
 }
 
 impl Storage {
-    fn len(&self) -> usize {
+    pub fn precision(&self) -> Precision {
+        match self {
+            Storage::F64(_) => Precision::F64,
+            Storage::F32(_) => Precision::F32,
+        }
+    }
+
+    pub fn len(&self) -> usize {
         match self {
             Storage::F64(v) => v.len(),
             Storage::F32(v) => v.len(),
         }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
     }
 
     fn as_mut_ptr(&mut self) -> *mut u8 {
@@ -526,8 +546,33 @@ impl Buffers {
         Buffers { precision, data }
     }
 
+    /// Buffers made by the caller, one per buffer of the module in [`BufferId`] order (their
+    /// lengths are checked when a kernel runs).
+    pub fn from_storage(precision: Precision, data: Vec<Storage>) -> Result<Buffers, String> {
+        if let Some(i) = data.iter().position(|d| d.precision() != precision) {
+            return Err(format!("buffer {i} is not {precision}"));
+        }
+        Ok(Buffers { precision, data })
+    }
+
+    pub fn into_storage(self) -> Vec<Storage> {
+        self.data
+    }
+
+    /// The data of every buffer, in [`BufferId`] order (lengths and precisions are checked
+    /// again when a kernel runs).
+    pub fn storage_mut(&mut self) -> &mut [Storage] {
+        &mut self.data
+    }
+
     pub fn precision(&self) -> Precision {
         self.precision
+    }
+
+    /// Exchange the data of two buffers (double-buffered state: the new state becomes the
+    /// current one without a copy).
+    pub fn swap(&mut self, a: BufferId, b: BufferId) {
+        self.data.swap(a.0 as usize, b.0 as usize);
     }
 
     /// Overwrite a buffer with `values` (rounded to f32 in f32 buffers); the length must match.
