@@ -1069,7 +1069,10 @@ fn measure() {
             let compile_ms = t0.elapsed().as_secs_f64() * 1e3;
             let mut bufs = Buffers::new(&m, &topo, p);
             mesh.fill(&m, &mut bufs);
-            line += &format!("  {p}: compile {compile_ms:5.1} ms");
+            line += &format!(
+                "  {p}: compile {compile_ms:5.1} ms (kernel {:4.1})",
+                cpu.kernel(0).compile_time.as_secs_f64() * 1e3
+            );
             let threads_list: Vec<usize> = std::env::var("SOFTC_THREADS")
                 .map(|v| v.split(',').map(|t| t.parse().unwrap()).collect())
                 .unwrap_or(vec![1, 2]);
