@@ -648,6 +648,9 @@ pub struct Topology {
 
 /// The node→entity CSR of a connectivity with `nc` nodes per entity: for each node, its
 /// incidences `(entity, corner)` in increasing entity (then corner) order.
+///
+/// # Panics
+/// If an index of `conn` is `n_nodes` or more ([`Topology::new`] checks that first).
 pub fn node_csr(n_nodes: usize, conn: &[u32], nc: usize) -> (Vec<u32>, Vec<u32>) {
     let mut counts = vec![0u32; n_nodes + 1];
     for &n in conn {
