@@ -1,6 +1,7 @@
 //! softc compiler: front end (pest grammar → AST with spans), semantic analysis (names, types,
 //! units, bounds) and the formatter; later the kernel IR, passes and backends.
 
+pub mod back;
 pub mod diag;
 pub mod fmt;
 pub mod front;

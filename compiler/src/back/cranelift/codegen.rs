@@ -1,0 +1,761 @@
+//! Translation of one IR kernel into a Cranelift function.
+//!
+//! The function is `fn(ctx: *const KernelCtx, begin: u64, end: u64)` and loops over the
+//! entities `begin..end` itself:
+//!
+//! ```text
+//! entry(ctx, begin, end):  load buffer pointers, connectivity pointers and uniforms once
+//! header(i):               if i < end goto body else exit
+//! body:                    [gather loops over the node's CSR list, one per incident domain]
+//!                          the body's instructions in order (arguments loaded where the
+//!                          body reads them), then the stores; i += 1; goto header
+//! exit:                    return
+//! ```
+//!
+//! Every floating-point operation is one IEEE operation of the precision (no fused
+//! multiply-add, no reassociation), so f64 results equal the interpreter's bit for bit.
+
+use super::KernelCtx;
+use super::libm::Lib;
+use crate::back::Precision;
+use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp};
+use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
+use cranelift_codegen::ir::{
+    AbiParam, FuncRef, Function, InstBuilder, MemFlagsData, Type, UserFuncName, Value, types,
+};
+use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext, Variable};
+use cranelift_jit::JITModule;
+use cranelift_module::{FuncId, Linkage, Module as _};
+use std::collections::HashMap;
+use std::mem::offset_of;
+
+/// Nodes per entity of a domain with connectivity.
+pub(super) fn corners(d: Domain) -> Option<u32> {
+    match d {
+        Domain::Element => Some(4),
+        Domain::Triangle => Some(3),
+        Domain::Node | Domain::Single => None,
+    }
+}
+
+/// Check that a kernel is well formed against its module: every access it makes stays inside
+/// buffers laid out as `Module::buffers` says. The run-time checks (buffer lengths, entity
+/// ranges, connectivity) then make the generated code memory safe.
+pub(super) fn validate(m: &Module, k: &Kernel) -> Result<(), String> {
+    let err = |msg: String| Err(format!("kernel `{}`: {msg}", k.name));
+    if k.body.n_args as usize != k.args.len() {
+        return err(format!(
+            "body has {} arguments but {} argument sources",
+            k.body.n_args,
+            k.args.len()
+        ));
+    }
+    let buf = |id: crate::ir::BufferId| m.buffers.get(id.0 as usize);
+    // Offsets inside a row (up to 4 lanes of rows) are 32-bit immediates.
+    if let Some(b) = m.buffers.iter().find(|b| b.width > 1 << 24) {
+        return err(format!(
+            "buffer `{}` is {} wide; at most 2^24 components",
+            b.name, b.width
+        ));
+    }
+    for (i, a) in k.args.iter().enumerate() {
+        match a {
+            ArgSource::Own { buffer, component } => {
+                let Some(b) = buf(*buffer) else {
+                    return err(format!("argument {i} reads an undeclared buffer"));
+                };
+                if b.domain != k.domain {
+                    return err(format!(
+                        "argument {i} reads `{}` ({:?}) per {:?}",
+                        b.name, b.domain, k.domain
+                    ));
+                }
+                if *component >= b.width {
+                    return err(format!(
+                        "argument {i} reads component {component} of `{}` (width {})",
+                        b.name, b.width
+                    ));
+                }
+            }
+            ArgSource::Corner {
+                buffer,
+                corner,
+                component,
+            } => {
+                let Some(nc) = corners(k.domain) else {
+                    return err(format!(
+                        "argument {i}: corner loads need an element or triangle kernel"
+                    ));
+                };
+                let Some(b) = buf(*buffer) else {
+                    return err(format!("argument {i} reads an undeclared buffer"));
+                };
+                if b.domain != Domain::Node {
+                    return err(format!(
+                        "argument {i}: corner load from non-node buffer `{}`",
+                        b.name
+                    ));
+                }
+                if *corner >= nc || *component >= b.width {
+                    return err(format!(
+                        "argument {i} reads corner {corner}, component {component} of `{}` (width {})",
+                        b.name, b.width
+                    ));
+                }
+            }
+            ArgSource::Uniform(_) => {}
+            ArgSource::Gather {
+                buffer,
+                over,
+                stride,
+                component,
+            } => {
+                if k.domain != Domain::Node {
+                    return err(format!("argument {i}: gathers need a node kernel"));
+                }
+                let Some(nc) = corners(*over) else {
+                    return err(format!(
+                        "argument {i}: gathers run over elements or triangles"
+                    ));
+                };
+                let Some(b) = buf(*buffer) else {
+                    return err(format!("argument {i} reads an undeclared buffer"));
+                };
+                if b.domain != *over {
+                    return err(format!(
+                        "argument {i}: gather over {over:?} from `{}` ({:?})",
+                        b.name, b.domain
+                    ));
+                }
+                let last = (nc as u64 - 1) * *stride as u64 + *component as u64;
+                if last >= b.width as u64 {
+                    return err(format!(
+                        "argument {i}: gather reads component {last} of `{}` (width {})",
+                        b.name, b.width
+                    ));
+                }
+            }
+        }
+    }
+    for (n, inst) in k.body.insts.iter().enumerate() {
+        let ok = match *inst {
+            Inst::Arg(a) => a < k.body.n_args,
+            _ => crate::ir::operands(inst).iter().all(|v| (v.0 as usize) < n),
+        };
+        if !ok {
+            return err(format!("instruction v{n} uses a value it cannot"));
+        }
+    }
+    for o in &k.body.outputs {
+        if o.0 as usize >= k.body.insts.len() {
+            return err(format!("output v{} does not exist", o.0));
+        }
+    }
+    for s in &k.stores {
+        let Some(b) = buf(s.buffer) else {
+            return err("store to an undeclared buffer".into());
+        };
+        if b.domain != k.domain || s.component >= b.width {
+            return err(format!(
+                "store to `{}` ({:?}, width {}) component {} per {:?}",
+                b.name, b.domain, b.width, s.component, k.domain
+            ));
+        }
+        if s.output >= k.body.outputs.len() {
+            return err(format!("store of output {} that does not exist", s.output));
+        }
+    }
+    Ok(())
+}
+
+/// The uniforms a kernel reads, in order of first appearance among its arguments.
+pub(super) fn uniform_names(k: &Kernel) -> Vec<String> {
+    let mut names: Vec<String> = Vec::new();
+    for a in &k.args {
+        if let ArgSource::Uniform(n) = a
+            && !names.contains(n)
+        {
+            names.push(n.clone());
+        }
+    }
+    names
+}
+
+/// Imported helper functions, declared once per JIT module.
+#[derive(Default)]
+pub(super) struct Imports {
+    ids: HashMap<&'static str, FuncId>,
+}
+
+/// How `min`/`max` are compiled.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum MinMax {
+    /// Compare and select inline (matches rustc's x86-64 lowering of `f64::min`/`max`).
+    Inline,
+    /// Call the std function.
+    Call,
+}
+
+pub(super) struct Translator<'a> {
+    pub jit: &'a mut JITModule,
+    pub imports: &'a mut Imports,
+    pub precision: Precision,
+    pub min_max: MinMax,
+}
+
+const PTR: Type = types::I64;
+
+fn trusted() -> MemFlagsData {
+    MemFlagsData::trusted()
+}
+
+/// Read-only data for the whole call (the context, the connectivity, the uniforms).
+fn readonly() -> MemFlagsData {
+    MemFlagsData::trusted().with_readonly()
+}
+
+/// A 32-bit immediate offset: at most 4 lanes × 2^24 components × 8 bytes (`validate`).
+fn off(bytes: usize) -> i32 {
+    i32::try_from(bytes).expect("offsets inside validated buffers fit in 32 bits")
+}
+
+/// What the entity loops share: values loaded once in the entry block.
+struct Hoisted {
+    /// Base pointer of the buffer each used argument reads.
+    arg_buf: HashMap<usize, Value>,
+    /// Base pointer of each store's buffer.
+    store_ptrs: Vec<Value>,
+    /// The connectivity of the kernel's domain, if corners are read.
+    conn: Option<Value>,
+    /// The uniforms (scalars), in the order of `uniforms`.
+    uni_vals: Vec<Value>,
+    uniforms: Vec<String>,
+    /// Imported helper functions.
+    fref: HashMap<Lib, FuncRef>,
+}
+
+impl Translator<'_> {
+    fn fty(&self) -> Type {
+        match self.precision {
+            Precision::F32 => types::F32,
+            Precision::F64 => types::F64,
+        }
+    }
+
+    /// Build the Cranelift function of kernel `k`. With `simd`, entities go `lanes` at a
+    /// time through vector code (one entity per lane: every lane performs exactly the scalar
+    /// operation sequence, so results are the same bits), and the remainder through scalar
+    /// code; kernels with gathers are scalar only.
+    pub fn translate(
+        &mut self,
+        m: &Module,
+        k: &Kernel,
+        index: u32,
+        simd: bool,
+        fctx: &mut FunctionBuilderContext,
+    ) -> Result<(Function, bool), String> {
+        if self.jit.target_config().pointer_type() != PTR {
+            return Err("the Cranelift backend needs a 64-bit host".into());
+        }
+        validate(m, k)?;
+        let fty = self.fty();
+        let mut sig = self.jit.make_signature();
+        sig.params.push(AbiParam::new(PTR));
+        sig.params.push(AbiParam::new(types::I64));
+        sig.params.push(AbiParam::new(types::I64));
+        let mut func = Function::with_name_signature(UserFuncName::user(0, index), sig);
+
+        // Helper imports this kernel needs, declared in the function up front.
+        let mut fref = HashMap::new();
+        for inst in &k.body.insts {
+            let lib = match *inst {
+                Inst::Un(op, _) => Lib::Un(op),
+                Inst::Bin(op, _, _) => Lib::Bin(op),
+                _ => continue,
+            };
+            if matches!(lib, Lib::Bin(BinOp::Min | BinOp::Max)) && self.min_max == MinMax::Inline {
+                continue;
+            }
+            let Some(sym) = lib.symbol(self.precision) else {
+                continue;
+            };
+            if fref.contains_key(&lib) {
+                continue;
+            }
+            let id = match self.imports.ids.get(sym) {
+                Some(&id) => id,
+                None => {
+                    let mut s = self.jit.make_signature();
+                    for _ in 0..lib.arity() {
+                        s.params.push(AbiParam::new(fty));
+                    }
+                    s.returns.push(AbiParam::new(fty));
+                    let id = self
+                        .jit
+                        .declare_function(sym, Linkage::Import, &s)
+                        .map_err(|e| format!("declaring {sym}: {e}"))?;
+                    self.imports.ids.insert(sym, id);
+                    id
+                }
+            };
+            fref.insert(lib, self.jit.declare_func_in_func(id, &mut func));
+        }
+
+        let mut b = FunctionBuilder::new(&mut func, fctx);
+        let entry = b.create_block();
+        b.append_block_params_for_function_params(entry);
+        b.switch_to_block(entry);
+        let params = b.block_params(entry).to_vec();
+        let (cx, begin, end) = (params[0], params[1], params[2]);
+
+        // Which arguments the body reads at all (a hand-built body may leave some unused).
+        let mut used = vec![false; k.args.len()];
+        for inst in &k.body.insts {
+            if let Inst::Arg(a) = *inst {
+                used[a as usize] = true;
+            }
+        }
+        let ctx_load =
+            |b: &mut FunctionBuilder, field: usize| b.ins().load(PTR, readonly(), cx, off(field));
+
+        // Hoisted loads: buffer pointers, connectivity pointers, uniforms.
+        let mut bufs_arr = None;
+        let mut buf_ptr: HashMap<u32, Value> = HashMap::new();
+        let mut need_buf = |b: &mut FunctionBuilder, id: u32| {
+            let arr = *bufs_arr.get_or_insert_with(|| ctx_load(b, offset_of!(KernelCtx, buffers)));
+            *buf_ptr
+                .entry(id)
+                .or_insert_with(|| b.ins().load(PTR, readonly(), arr, off(8 * id as usize)))
+        };
+        let uniforms = uniform_names(k);
+        let mut uni_vals = Vec::new();
+        if !uniforms.is_empty() {
+            let up = ctx_load(&mut b, offset_of!(KernelCtx, uniforms));
+            for j in 0..uniforms.len() {
+                uni_vals.push(
+                    b.ins()
+                        .load(fty, readonly(), up, off(j * self.precision.size())),
+                );
+            }
+        }
+        let mut arg_buf = HashMap::new();
+        for (a, src) in k.args.iter().enumerate() {
+            if !used[a] {
+                continue;
+            }
+            match src {
+                ArgSource::Own { buffer, .. }
+                | ArgSource::Corner { buffer, .. }
+                | ArgSource::Gather { buffer, .. } => {
+                    arg_buf.insert(a, need_buf(&mut b, buffer.0));
+                }
+                ArgSource::Uniform(_) => {}
+            }
+        }
+        let store_ptrs: Vec<Value> = k
+            .stores
+            .iter()
+            .map(|s| need_buf(&mut b, s.buffer.0))
+            .collect();
+        let conn = if k
+            .args
+            .iter()
+            .zip(&used)
+            .any(|(a, &u)| u && matches!(a, ArgSource::Corner { .. }))
+        {
+            let field = match k.domain {
+                Domain::Element => offset_of!(KernelCtx, elem_conn),
+                _ => offset_of!(KernelCtx, tri_conn),
+            };
+            Some(ctx_load(&mut b, field))
+        } else {
+            None
+        };
+        // Gathers grouped by incident domain: one CSR loop per domain.
+        let mut gathers: Vec<(Domain, Vec<usize>)> = Vec::new();
+        for (a, src) in k.args.iter().enumerate() {
+            if let (true, ArgSource::Gather { over, .. }) = (used[a], src) {
+                match gathers.iter_mut().find(|(d, _)| d == over) {
+                    Some((_, v)) => v.push(a),
+                    None => gathers.push((*over, vec![a])),
+                }
+            }
+        }
+        let csr: Vec<(Value, Value)> = gathers
+            .iter()
+            .map(|(d, _)| {
+                let (o, e) = match d {
+                    Domain::Element => (
+                        offset_of!(KernelCtx, node_elem_offsets),
+                        offset_of!(KernelCtx, node_elem_entries),
+                    ),
+                    _ => (
+                        offset_of!(KernelCtx, node_tri_offsets),
+                        offset_of!(KernelCtx, node_tri_entries),
+                    ),
+                };
+                (ctx_load(&mut b, o), ctx_load(&mut b, e))
+            })
+            .collect();
+        let h = Hoisted {
+            arg_buf,
+            store_ptrs,
+            conn,
+            uni_vals,
+            uniforms,
+            fref,
+        };
+
+        let lanes: u32 = match self.precision {
+            Precision::F64 => 2,
+            Precision::F32 => 4,
+        };
+        let simd = simd && gathers.is_empty() && k.domain != Domain::Single;
+        let iv: Variable = b.declare_var(types::I64);
+        b.def_var(iv, begin);
+        let sheader = b.create_block();
+        let sbody = b.create_block();
+        let exit = b.create_block();
+        if simd {
+            // Vector loop: while i + lanes <= end.
+            let vheader = b.create_block();
+            let vbody = b.create_block();
+            b.ins().jump(vheader, &[]);
+            b.switch_to_block(vheader);
+            let i = b.use_var(iv);
+            let next = b.ins().iadd_imm_s(i, lanes as i64);
+            let fits = b.ins().icmp(IntCC::UnsignedLessThanOrEqual, next, end);
+            b.ins().brif(fits, vbody, &[], sheader, &[]);
+            b.switch_to_block(vbody);
+            self.emit_body(&mut b, m, k, &h, i, lanes, &HashMap::new());
+            b.def_var(iv, next);
+            b.ins().jump(vheader, &[]);
+        } else {
+            b.ins().jump(sheader, &[]);
+        }
+
+        b.switch_to_block(sheader);
+        let i = b.use_var(iv);
+        let more = b.ins().icmp(IntCC::UnsignedLessThan, i, end);
+        b.ins().brif(more, sbody, &[], exit, &[]);
+
+        b.switch_to_block(sbody);
+        let size = self.precision.size();
+        // Gather loops.
+        let mut gathered: HashMap<usize, Value> = HashMap::new();
+        for ((_, args), &(offsets, entries)) in gathers.iter().zip(&csr) {
+            let o = b.ins().imul_imm_s(i, 4);
+            let oa = b.ins().iadd(offsets, o);
+            let start = b.ins().uload32(readonly(), oa, 0);
+            let stop = b.ins().uload32(readonly(), oa, 4);
+            let jv = b.declare_var(types::I64);
+            b.def_var(jv, start);
+            let zero = self.fconst(&mut b, 0.0);
+            let accs: Vec<Variable> = args
+                .iter()
+                .map(|_| {
+                    let v = b.declare_var(fty);
+                    b.def_var(v, zero);
+                    v
+                })
+                .collect();
+            let gh = b.create_block();
+            let gb = b.create_block();
+            let gx = b.create_block();
+            b.ins().jump(gh, &[]);
+            b.switch_to_block(gh);
+            let j = b.use_var(jv);
+            let more = b.ins().icmp(IntCC::UnsignedLessThan, j, stop);
+            b.ins().brif(more, gb, &[], gx, &[]);
+            b.switch_to_block(gb);
+            let eo = b.ins().imul_imm_s(j, 8);
+            let ea = b.ins().iadd(entries, eo);
+            let ent = b.ins().uload32(readonly(), ea, 0);
+            let cor = b.ins().uload32(readonly(), ea, 4);
+            for (&a, &acc) in args.iter().zip(&accs) {
+                let ArgSource::Gather {
+                    buffer,
+                    stride,
+                    component,
+                    ..
+                } = &k.args[a]
+                else {
+                    unreachable!("grouped gathers are gathers")
+                };
+                let width = m.buffers[buffer.0 as usize].width as i64;
+                let row = b.ins().imul_imm_s(ent, width * size as i64);
+                let col = b.ins().imul_imm_s(cor, *stride as i64 * size as i64);
+                let p = b.ins().iadd(h.arg_buf[&a], row);
+                let p = b.ins().iadd(p, col);
+                let x = b
+                    .ins()
+                    .load(fty, trusted(), p, off(*component as usize * size));
+                let s = b.use_var(acc);
+                let s = b.ins().fadd(s, x);
+                b.def_var(acc, s);
+            }
+            let j1 = b.ins().iadd_imm_s(j, 1);
+            b.def_var(jv, j1);
+            b.ins().jump(gh, &[]);
+            b.switch_to_block(gx);
+            for (&a, &acc) in args.iter().zip(&accs) {
+                gathered.insert(a, b.use_var(acc));
+            }
+        }
+        self.emit_body(&mut b, m, k, &h, i, 1, &gathered);
+        let i1 = b.ins().iadd_imm_s(i, 1);
+        b.def_var(iv, i1);
+        b.ins().jump(sheader, &[]);
+
+        b.switch_to_block(exit);
+        b.ins().return_(&[]);
+        b.seal_all_blocks();
+        b.finalize(self.jit.target_config());
+        Ok((func, simd))
+    }
+
+    /// Loads, body and stores for the entities `i .. i + lanes` (`lanes` = 1: scalar code).
+    #[allow(clippy::too_many_arguments)]
+    fn emit_body(
+        &self,
+        b: &mut FunctionBuilder,
+        m: &Module,
+        k: &Kernel,
+        h: &Hoisted,
+        i: Value,
+        lanes: u32,
+        gathered: &HashMap<usize, Value>,
+    ) {
+        let fty = self.fty();
+        let size = self.precision.size();
+        let vty = if lanes == 1 {
+            fty
+        } else {
+            fty.by(lanes).expect("2 × f64 and 4 × f32 are vector types")
+        };
+        let ity = vty.as_int();
+        // Scalars of all lanes into one value.
+        let pack = |b: &mut FunctionBuilder, xs: &[Value]| {
+            if lanes == 1 {
+                return xs[0];
+            }
+            let mut v = b.ins().scalar_to_vector(vty, xs[0]);
+            for (l, &x) in xs.iter().enumerate().skip(1) {
+                v = b.ins().insertlane(v, x, l as u8);
+            }
+            v
+        };
+        let lane = |b: &mut FunctionBuilder, v: Value, l: u32| {
+            if lanes == 1 {
+                v
+            } else {
+                b.ins().extractlane(v, l as u8)
+            }
+        };
+        // A comparison mask (all ones / zeros per lane) as a float value, for `bitselect`.
+        let mask_f =
+            |b: &mut FunctionBuilder, mask: Value| b.ins().bitcast(vty, MemFlagsData::new(), mask);
+        let select = |b: &mut FunctionBuilder, c: Value, x: Value, y: Value| {
+            if lanes == 1 {
+                b.ins().select(c, x, y)
+            } else {
+                let c = mask_f(b, c);
+                b.ins().bitselect(c, x, y)
+            }
+        };
+        let constant = |b: &mut FunctionBuilder, c: f64| {
+            let s = self.fconst(b, c);
+            if lanes == 1 { s } else { b.ins().splat(vty, s) }
+        };
+        let per_lane = |b: &mut FunctionBuilder,
+                        f: &dyn Fn(&mut FunctionBuilder, &[Value]) -> Value,
+                        xs: &[Value]| {
+            let outs: Vec<Value> = (0..lanes)
+                .map(|l| {
+                    let args: Vec<Value> = xs.iter().map(|&x| lane(b, x, l)).collect();
+                    f(b, &args)
+                })
+                .collect();
+            pack(b, &outs)
+        };
+
+        let mut rows: HashMap<(u32, Option<u32>), Value> = HashMap::new();
+        let mut nodes: HashMap<(u32, u32), Value> = HashMap::new();
+        let nc = corners(k.domain).unwrap_or(1) as usize;
+        let mut vals: Vec<Value> = Vec::with_capacity(k.body.insts.len());
+        for inst in &k.body.insts {
+            let v = |n: crate::ir::V| vals[n.0 as usize];
+            let r = match *inst {
+                Inst::Const(c) => constant(b, c),
+                Inst::Arg(a) => {
+                    let a = a as usize;
+                    match &k.args[a] {
+                        ArgSource::Own { buffer, component } => {
+                            let width = m.buffers[buffer.0 as usize].width as usize;
+                            let base = h.arg_buf[&a];
+                            let row = *rows.entry((buffer.0, None)).or_insert_with(|| {
+                                let o = b.ins().imul_imm_s(i, (width * size) as i64);
+                                b.ins().iadd(base, o)
+                            });
+                            let xs: Vec<Value> = (0..lanes as usize)
+                                .map(|l| {
+                                    let o = (l * width + *component as usize) * size;
+                                    b.ins().load(fty, trusted(), row, off(o))
+                                })
+                                .collect();
+                            pack(b, &xs)
+                        }
+                        ArgSource::Corner {
+                            buffer,
+                            corner,
+                            component,
+                        } => {
+                            let width = m.buffers[buffer.0 as usize].width as i64;
+                            let base = h.arg_buf[&a];
+                            let conn = h.conn.expect("corner loads load the connectivity");
+                            let xs: Vec<Value> = (0..lanes)
+                                .map(|l| {
+                                    let node = *nodes.entry((*corner, l)).or_insert_with(|| {
+                                        let o = b.ins().imul_imm_s(i, nc as i64 * 4);
+                                        let p = b.ins().iadd(conn, o);
+                                        let at = (l as usize * nc + *corner as usize) * 4;
+                                        b.ins().uload32(readonly(), p, off(at))
+                                    });
+                                    let row = *rows
+                                        .entry((buffer.0, Some(*corner * lanes + l)))
+                                        .or_insert_with(|| {
+                                            let o = b.ins().imul_imm_s(node, width * size as i64);
+                                            b.ins().iadd(base, o)
+                                        });
+                                    b.ins().load(
+                                        fty,
+                                        trusted(),
+                                        row,
+                                        off(*component as usize * size),
+                                    )
+                                })
+                                .collect();
+                            pack(b, &xs)
+                        }
+                        ArgSource::Uniform(name) => {
+                            let j = h
+                                .uniforms
+                                .iter()
+                                .position(|n| n == name)
+                                .expect("uniforms are collected from the arguments");
+                            let u = h.uni_vals[j];
+                            if lanes == 1 { u } else { b.ins().splat(vty, u) }
+                        }
+                        ArgSource::Gather { .. } => gathered[&a],
+                    }
+                }
+                Inst::Un(op, a) => {
+                    let x = v(a);
+                    match op {
+                        UnOp::Neg => b.ins().fneg(x),
+                        UnOp::Abs => b.ins().fabs(x),
+                        UnOp::Sqrt => b.ins().sqrt(x),
+                        UnOp::Floor => per_lane(b, &|b, a| b.ins().floor(a[0]), &[x]),
+                        UnOp::Ceil => per_lane(b, &|b, a| b.ins().ceil(a[0]), &[x]),
+                        UnOp::Exp | UnOp::Ln | UnOp::Sin | UnOp::Cos | UnOp::Tan | UnOp::Tanh => {
+                            let f = h.fref[&Lib::Un(op)];
+                            per_lane(
+                                b,
+                                &|b, a| {
+                                    let call = b.ins().call(f, a);
+                                    b.inst_results(call)[0]
+                                },
+                                &[x],
+                            )
+                        }
+                    }
+                }
+                Inst::Bin(op, x, y) => {
+                    let (x, y) = (v(x), v(y));
+                    match op {
+                        BinOp::Add => b.ins().fadd(x, y),
+                        BinOp::Sub => b.ins().fsub(x, y),
+                        BinOp::Mul => b.ins().fmul(x, y),
+                        BinOp::Div => b.ins().fdiv(x, y),
+                        BinOp::Min | BinOp::Max if self.min_max == MinMax::Inline => {
+                            // Rust's min/max: a NaN `x` gives `y`; otherwise `y` only where it
+                            // is strictly smaller (larger), so ties and a NaN `y` give `x`.
+                            let cc = if op == BinOp::Min {
+                                FloatCC::LessThan
+                            } else {
+                                FloatCC::GreaterThan
+                            };
+                            let y_wins = b.ins().fcmp(cc, y, x);
+                            let r = select(b, y_wins, y, x);
+                            let x_nan = b.ins().fcmp(FloatCC::Unordered, x, x);
+                            select(b, x_nan, y, r)
+                        }
+                        BinOp::Pow | BinOp::Min | BinOp::Max => {
+                            let f = h.fref[&Lib::Bin(op)];
+                            per_lane(
+                                b,
+                                &|b, a| {
+                                    let call = b.ins().call(f, a);
+                                    b.inst_results(call)[0]
+                                },
+                                &[x, y],
+                            )
+                        }
+                    }
+                }
+                Inst::Cmp(op, x, y) => {
+                    let cc = match op {
+                        CmpOp::Lt => FloatCC::LessThan,
+                        CmpOp::Le => FloatCC::LessThanOrEqual,
+                        CmpOp::Gt => FloatCC::GreaterThan,
+                        CmpOp::Ge => FloatCC::GreaterThanOrEqual,
+                        CmpOp::Eq => FloatCC::Equal,
+                        // `!=` is true for unordered operands, as in Rust.
+                        CmpOp::Ne => FloatCC::NotEqual,
+                    };
+                    let c = b.ins().fcmp(cc, v(x), v(y));
+                    if lanes == 1 {
+                        let one = constant(b, 1.0);
+                        let zero = constant(b, 0.0);
+                        b.ins().select(c, one, zero)
+                    } else {
+                        // mask & bits(1.0): 1.0 where true, +0.0 where false.
+                        let one = constant(b, 1.0);
+                        let one_bits = b.ins().bitcast(ity, MemFlagsData::new(), one);
+                        let r = b.ins().band(c, one_bits);
+                        b.ins().bitcast(vty, MemFlagsData::new(), r)
+                    }
+                }
+                Inst::Select(c, x, y) => {
+                    let zero = constant(b, 0.0);
+                    // `c != 0.0`: NaN selects `x`, as in the interpreter.
+                    let t = b.ins().fcmp(FloatCC::NotEqual, v(c), zero);
+                    select(b, t, v(x), v(y))
+                }
+            };
+            vals.push(r);
+        }
+
+        // Stores.
+        for (s, &base) in k.stores.iter().zip(&h.store_ptrs) {
+            let width = m.buffers[s.buffer.0 as usize].width as usize;
+            let row = *rows.entry((s.buffer.0, None)).or_insert_with(|| {
+                let o = b.ins().imul_imm_s(i, (width * size) as i64);
+                b.ins().iadd(base, o)
+            });
+            let x = vals[k.body.outputs[s.output].0 as usize];
+            for l in 0..lanes {
+                let xl = lane(b, x, l);
+                let o = (l as usize * width + s.component as usize) * size;
+                b.ins().store(trusted(), xl, row, off(o));
+            }
+        }
+    }
+
+    fn fconst(&self, b: &mut FunctionBuilder, c: f64) -> Value {
+        match self.precision {
+            Precision::F64 => b.ins().f64const(c),
+            Precision::F32 => b.ins().f32const(c as f32),
+        }
+    }
+}

@@ -1,0 +1,810 @@
+//! The Cranelift CPU backend: a module's kernels compiled to native code with cranelift-jit.
+//!
+//! Each kernel becomes one function `extern "C" fn(ctx: *const KernelCtx, begin: u64, end: u64)`
+//! that runs the kernel for every entity in `begin..end` (the entity loop, and a node kernel's
+//! gather loops over its CSR list, are inside the generated code). [`KernelCtx`] holds the
+//! buffers (indexed by [`BufferId`]), the connectivity and the kernel's uniforms.
+//!
+//! - In [`Precision::F64`] every operation is the single IEEE operation the interpreter
+//!   ([`crate::ir::interp`]) performs, in the same order: results are bit-identical to it.
+//!   Transcendental functions (`pow`, `exp`, `ln`, `sin`, `cos`, `tan`, `tanh`) call `extern
+//!   "C"` wrappers of the same std functions; `sqrt`, `abs`, `floor`, `ceil`, `neg`, `min`,
+//!   `max`, comparisons and selects are inline, with Rust's semantics (`min`/`max` return the
+//!   non-NaN operand). Nothing is fused or reassociated.
+//! - In [`Precision::F32`] every value and buffer is `f32`, constants and uniforms are
+//!   rounded to `f32`, and the wrappers call the `f32` functions.
+//!
+//! [`CpuModule`] is the safe interface: it checks buffers, connectivity ([`Topology`]) and
+//! entity ranges before it calls generated code, and runs a kernel on any number of threads
+//! ([`CpuModule::run_parallel`]) over contiguous chunks of the range. Entities write only
+//! their own outputs, so results do not depend on the thread count.
+//!
+//! Element, triangle and node kernels without gathers run 2 (f64) or 4 (f32) entities per
+//! iteration in 128-bit vector code, one entity per lane (each lane performs exactly the
+//! scalar operation sequence; transcendental calls go lane by lane), and the rest of the
+//! range in scalar code; [`Options::simd`] turns this off.
+//!
+//! ```
+//! use softc_compiler::back::{Precision, cranelift::{Buffers, CpuModule, Topology}};
+//! use softc_compiler::ir::{ArgSource, Domain, KernelBuilder, Module};
+//!
+//! // y[e] = scale * (x at corner 0 + x at corner 3) of every tet.
+//! let mut m = Module::default();
+//! let x = m.buffer("x", Domain::Node, 1, "");
+//! let y = m.buffer("y", Domain::Element, 1, "");
+//! let mut k = KernelBuilder::new("demo", Domain::Element, "doc");
+//! let a = k.load(ArgSource::Corner { buffer: x, corner: 0, component: 0 });
+//! let b = k.load(ArgSource::Corner { buffer: x, corner: 3, component: 0 });
+//! let s = k.uniform("scale");
+//! let sum = k.b.add(a, b);
+//! let v = k.b.mul(s, sum);
+//! k.store(y, 0, v);
+//! m.kernels.push(k.finish());
+//!
+//! let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
+//! let topo = Topology::new(5, vec![0, 1, 2, 3, 1, 2, 3, 4], vec![]).unwrap();
+//! let mut bufs = Buffers::new(&m, &topo, Precision::F64);
+//! bufs.set(x, &[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
+//! assert_eq!(cpu.kernel(0).uniforms, ["scale"]);
+//! cpu.run_parallel(0, &mut bufs, &topo, &[0.5], 0..2, 2).unwrap();
+//! assert_eq!(bufs.get(y), [2.5, 3.5]);
+//! assert!(cpu.clif(0).contains("fmul"));
+//! ```
+
+mod codegen;
+mod libm;
+
+pub use crate::back::Precision;
+use crate::ir::{ArgSource, BufferId, Domain, Module};
+use codegen::{Imports, MinMax, Translator};
+use cranelift_codegen::{Context, settings, settings::Configurable};
+use cranelift_frontend::FunctionBuilderContext;
+use cranelift_jit::{JITBuilder, JITModule};
+use cranelift_module::{Linkage, Module as _};
+use std::ops::Range;
+use std::time::{Duration, Instant};
+
+/// What a compiled kernel reads: the layout the generated code expects (`repr(C)`).
+///
+/// Connectivity is `u32`: `elem_conn` has 4 node indices per element, `tri_conn` 3 per
+/// triangle; the node→element CSR has `n_nodes + 1` offsets and, for each incidence, a pair
+/// `(element, corner)` in `node_elem_entries` (likewise for triangles). Pointers a kernel
+/// does not use may be null.
+#[repr(C)]
+#[derive(Clone, Copy, Debug)]
+pub struct KernelCtx {
+    /// One pointer per buffer of the module, indexed by [`BufferId`], to `f64` or `f32` data.
+    pub buffers: *const *mut u8,
+    /// The kernel's uniforms (`f64` or `f32`), in the order of [`CompiledKernel::uniforms`].
+    pub uniforms: *const u8,
+    pub elem_conn: *const u32,
+    pub tri_conn: *const u32,
+    pub node_elem_offsets: *const u32,
+    pub node_elem_entries: *const u32,
+    pub node_tri_offsets: *const u32,
+    pub node_tri_entries: *const u32,
+}
+
+/// The signature of a generated kernel.
+pub type KernelFn = unsafe extern "C" fn(ctx: *const KernelCtx, begin: u64, end: u64);
+
+/// One compiled kernel.
+#[derive(Debug)]
+pub struct CompiledKernel {
+    pub name: String,
+    pub domain: Domain,
+    /// The uniforms the kernel reads, in the order its uniforms array holds them.
+    pub uniforms: Vec<String>,
+    /// The Cranelift IR of the kernel, as generated (before Cranelift's optimizations).
+    pub clif: String,
+    /// Wall time spent translating, verifying and compiling this kernel.
+    pub compile_time: Duration,
+    /// Entities per iteration of the main loop: 2 (f64) or 4 (f32) in vector code, 1 in
+    /// scalar code (kernels with gathers, single kernels, or `Options::simd` off).
+    pub lanes: u32,
+    func: KernelFn,
+    /// Buffers the kernel reads or writes (for the length checks).
+    touched: Vec<BufferId>,
+}
+
+/// The JIT memory; only freed, never used after finalization.
+struct Code(Option<JITModule>);
+
+// SAFETY: after `finalize_definitions` the JIT module is never accessed except to free its
+// memory on drop (which needs `&mut`, so exclusive access); the finalized code is immutable.
+unsafe impl Send for Code {}
+// SAFETY: as above: a shared reference gives no access to the module at all.
+unsafe impl Sync for Code {}
+
+impl Drop for Code {
+    fn drop(&mut self) {
+        if let Some(m) = self.0.take() {
+            // SAFETY: the function pointers into this memory live in the `CpuModule` that owns
+            // this `Code` and are dropped with it; no call can be running (calls borrow it).
+            unsafe { m.free_memory() };
+        }
+    }
+}
+
+/// How to compile.
+#[derive(Clone, Debug)]
+pub struct Options {
+    /// Run entities through 128-bit vector code (2 × f64 or 4 × f32 per iteration; one entity
+    /// per lane, so results are the same bits as scalar code). Default on.
+    pub simd: bool,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options { simd: true }
+    }
+}
+
+/// A module's kernels compiled to native code.
+pub struct CpuModule {
+    precision: Precision,
+    kernels: Vec<CompiledKernel>,
+    /// `(domain, width)` of each buffer.
+    layout: Vec<(Domain, u32)>,
+    names: Vec<String>,
+    _code: Code,
+}
+
+impl std::fmt::Debug for CpuModule {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CpuModule")
+            .field("precision", &self.precision)
+            .field("kernels", &self.kernels)
+            .finish_non_exhaustive()
+    }
+}
+
+fn jit_module() -> Result<JITModule, String> {
+    let mut flags = settings::builder();
+    let set = |f: &mut settings::Builder, k: &str, v: &str| {
+        f.set(k, v)
+            .map_err(|e| format!("Cranelift flag {k}={v}: {e}"))
+    };
+    set(&mut flags, "opt_level", "speed")?;
+    set(&mut flags, "is_pic", "false")?;
+    set(&mut flags, "use_colocated_libcalls", "false")?;
+    set(&mut flags, "enable_verifier", "true")?;
+    let isa = cranelift_native::builder()
+        .map_err(|e| format!("this host is not supported by Cranelift: {e}"))?
+        .finish(settings::Flags::new(flags))
+        .map_err(|e| format!("Cranelift target: {e}"))?;
+    let mut jb = JITBuilder::with_isa(isa, cranelift_module::default_libcall_names());
+    jb.symbols(libm::symbols());
+    Ok(JITModule::new(jb))
+}
+
+impl CpuModule {
+    /// Compile every kernel of `module` (with [`Options::default`]). Errors describe a kernel
+    /// that does not fit its module (an access outside a buffer's declared layout) or a
+    /// Cranelift failure.
+    pub fn compile(module: &Module, precision: Precision) -> Result<CpuModule, String> {
+        Self::compile_with(module, precision, &Options::default())
+    }
+
+    pub fn compile_with(
+        module: &Module,
+        precision: Precision,
+        options: &Options,
+    ) -> Result<CpuModule, String> {
+        let mut jit = jit_module()?;
+        let mut imports = Imports::default();
+        let min_max = if libm::inline_min_max_matches_std() {
+            MinMax::Inline
+        } else {
+            MinMax::Call
+        };
+        let mut fctx = FunctionBuilderContext::new();
+        let mut ctx = Context::new();
+        let mut pending = Vec::new();
+        for (index, k) in module.kernels.iter().enumerate() {
+            let t0 = Instant::now();
+            let name = format!("softc_kernel_{index}");
+            let mut id = None;
+            let mut result = Err(String::new());
+            // Vector code first where asked for; scalar code if the target cannot take it.
+            let tries: &[bool] = if options.simd {
+                &[true, false]
+            } else {
+                &[false]
+            };
+            for &simd in tries {
+                result = (|| {
+                    let mut tr = Translator {
+                        jit: &mut jit,
+                        imports: &mut imports,
+                        precision,
+                        min_max,
+                    };
+                    let (func, simd) = tr.translate(module, k, index as u32, simd, &mut fctx)?;
+                    let clif = func.display().to_string();
+                    cranelift_codegen::verify_function(&func, jit.isa()).map_err(|e| {
+                        format!(
+                            "kernel `{}`: invalid Cranelift IR: {}",
+                            k.name,
+                            cranelift_codegen::print_errors::pretty_verifier_error(&func, None, e)
+                        )
+                    })?;
+                    let fid = match id {
+                        Some(fid) => fid,
+                        None => {
+                            let fid = jit
+                                .declare_function(&name, Linkage::Local, &func.signature)
+                                .map_err(|e| format!("kernel `{}`: {e}", k.name))?;
+                            id = Some(fid);
+                            fid
+                        }
+                    };
+                    ctx.clear();
+                    ctx.func = func;
+                    jit.define_function(fid, &mut ctx)
+                        .map_err(|e| format!("kernel `{}`: Cranelift: {e:?}", k.name))?;
+                    Ok((fid, clif, simd))
+                })();
+                if result.is_ok() {
+                    break;
+                }
+            }
+            let (id, clif, simd) = result?;
+            let mut touched: Vec<BufferId> = k
+                .args
+                .iter()
+                .filter_map(|a| match a {
+                    ArgSource::Own { buffer, .. }
+                    | ArgSource::Corner { buffer, .. }
+                    | ArgSource::Gather { buffer, .. } => Some(*buffer),
+                    ArgSource::Uniform(_) => None,
+                })
+                .collect();
+            touched.extend(k.stores.iter().map(|s| s.buffer));
+            touched.sort_by_key(|b| b.0);
+            touched.dedup();
+            pending.push((id, k, clif, t0.elapsed(), touched, simd));
+        }
+        let t0 = Instant::now();
+        jit.finalize_definitions()
+            .map_err(|e| format!("Cranelift: {e}"))?;
+        let link = t0.elapsed() / pending.len().max(1) as u32;
+        let kernels = pending
+            .into_iter()
+            .map(|(id, k, clif, t, touched, simd)| {
+                let ptr = jit.get_finalized_function(id);
+                // SAFETY: the function was defined with the signature of `KernelFn` (pointer,
+                // u64, u64, no result) in the host's default calling convention, which is the
+                // C calling convention of this platform.
+                let func = unsafe { std::mem::transmute::<*const u8, KernelFn>(ptr) };
+                CompiledKernel {
+                    name: k.name.clone(),
+                    domain: k.domain,
+                    uniforms: codegen::uniform_names(k),
+                    clif,
+                    compile_time: t + link,
+                    lanes: if simd {
+                        16 / precision.size() as u32
+                    } else {
+                        1
+                    },
+                    func,
+                    touched,
+                }
+            })
+            .collect();
+        Ok(CpuModule {
+            precision,
+            kernels,
+            layout: module.buffers.iter().map(|b| (b.domain, b.width)).collect(),
+            names: module.buffers.iter().map(|b| b.name.clone()).collect(),
+            _code: Code(Some(jit)),
+        })
+    }
+
+    pub fn precision(&self) -> Precision {
+        self.precision
+    }
+
+    pub fn kernels(&self) -> &[CompiledKernel] {
+        &self.kernels
+    }
+
+    pub fn kernel(&self, index: usize) -> &CompiledKernel {
+        &self.kernels[index]
+    }
+
+    pub fn kernel_index(&self, name: &str) -> Option<usize> {
+        self.kernels.iter().position(|k| k.name == name)
+    }
+
+    /// The Cranelift IR of a kernel (`softc compile --emit clif`).
+    pub fn clif(&self, kernel: usize) -> String {
+        self.kernels[kernel].clif.clone()
+    }
+
+    /// The Cranelift IR of every kernel, each under a comment naming it.
+    pub fn clif_all(&self) -> String {
+        let mut s = String::new();
+        for k in &self.kernels {
+            s.push_str(&format!("; kernel {} over {:?}\n", k.name, k.domain));
+            if !k.uniforms.is_empty() {
+                s.push_str(&format!("; uniforms: {}\n", k.uniforms.join(", ")));
+            }
+            s.push_str(&k.clif);
+            s.push('\n');
+        }
+        s
+    }
+
+    /// Run kernel `kernel` over the entities `range` on the calling thread. `uniforms` holds
+    /// the values of [`CompiledKernel::uniforms`] in order (rounded to f32 in f32 modules).
+    pub fn run(
+        &self,
+        kernel: usize,
+        buffers: &mut Buffers,
+        topology: &Topology,
+        uniforms: &[f64],
+        range: Range<usize>,
+    ) -> Result<(), String> {
+        self.run_parallel(kernel, buffers, topology, uniforms, range, 1)
+    }
+
+    /// Run kernel `kernel` over `range` split into `threads` contiguous chunks, one per
+    /// thread (`std::thread::scope`). Results are bit-identical for any thread count.
+    pub fn run_parallel(
+        &self,
+        kernel: usize,
+        buffers: &mut Buffers,
+        topology: &Topology,
+        uniforms: &[f64],
+        range: Range<usize>,
+        threads: usize,
+    ) -> Result<(), String> {
+        let k = self
+            .kernels
+            .get(kernel)
+            .ok_or_else(|| format!("no kernel {kernel}"))?;
+        if buffers.precision != self.precision {
+            return Err(format!(
+                "buffers are {} but the module was compiled for {}",
+                buffers.precision, self.precision
+            ));
+        }
+        if buffers.data.len() != self.layout.len() {
+            return Err(format!(
+                "{} buffers given, the module has {}",
+                buffers.data.len(),
+                self.layout.len()
+            ));
+        }
+        for b in &k.touched {
+            let (domain, width) = self.layout[b.0 as usize];
+            let want = topology.count(domain) * width as usize;
+            let data = &buffers.data[b.0 as usize];
+            if data.precision() != self.precision {
+                return Err(format!(
+                    "buffer `{}` holds {} values, the module was compiled for {}",
+                    self.names[b.0 as usize],
+                    data.precision(),
+                    self.precision
+                ));
+            }
+            let have = data.len();
+            if have != want {
+                return Err(format!(
+                    "buffer `{}` has {have} values, {want} expected ({domain:?} × {width})",
+                    self.names[b.0 as usize]
+                ));
+            }
+        }
+        if uniforms.len() != k.uniforms.len() {
+            return Err(format!(
+                "kernel `{}` takes {} uniforms ({}), {} given",
+                k.name,
+                k.uniforms.len(),
+                k.uniforms.join(", "),
+                uniforms.len()
+            ));
+        }
+        let n = topology.count(k.domain);
+        if range.start > range.end || range.end > n {
+            return Err(format!(
+                "entity range {range:?} outside 0..{n} of kernel `{}`",
+                k.name
+            ));
+        }
+        let uni64: Vec<f64>;
+        let uni32: Vec<f32>;
+        let uniforms_ptr = match self.precision {
+            Precision::F64 => {
+                uni64 = uniforms.to_vec();
+                uni64.as_ptr() as *const u8
+            }
+            Precision::F32 => {
+                uni32 = uniforms.iter().map(|&u| u as f32).collect();
+                uni32.as_ptr() as *const u8
+            }
+        };
+        let ptrs: Vec<*mut u8> = buffers.data.iter_mut().map(Storage::as_mut_ptr).collect();
+        let ctx = KernelCtx {
+            buffers: ptrs.as_ptr(),
+            uniforms: uniforms_ptr,
+            elem_conn: topology.elem_conn.as_ptr(),
+            tri_conn: topology.tri_conn.as_ptr(),
+            node_elem_offsets: topology.node_elem_offsets.as_ptr(),
+            node_elem_entries: topology.node_elem_entries.as_ptr(),
+            node_tri_offsets: topology.node_tri_offsets.as_ptr(),
+            node_tri_entries: topology.node_tri_entries.as_ptr(),
+        };
+        let len = range.end - range.start;
+        let threads = threads.clamp(1, len.max(1));
+        let bounds: Vec<usize> = (0..=threads)
+            .map(|t| range.start + len * t / threads)
+            .collect();
+        let shared = SharedCtx(&ctx);
+        let f = k.func;
+        let call = |lo: usize, hi: usize| {
+            let c = &shared;
+            // SAFETY: the buffers the kernel touches have the lengths its layout needs for the
+            // topology's entity counts, the topology's indices were validated against those
+            // counts, `lo..hi` lies inside the kernel's domain, and the kernel was validated
+            // to access only inside that layout. Chunks are disjoint; an entity stores only to
+            // its own row of buffers of the kernel's domain, while other entities' rows are
+            // read only from buffers of other domains (corners read node buffers in element
+            // and triangle kernels, gathers read element or triangle buffers in node kernels),
+            // so concurrent calls never touch a location another one writes.
+            unsafe { f(c.0, lo as u64, hi as u64) }
+        };
+        if threads == 1 {
+            call(range.start, range.end);
+        } else {
+            std::thread::scope(|s| {
+                for t in 1..threads {
+                    let (lo, hi) = (bounds[t], bounds[t + 1]);
+                    s.spawn(move || call(lo, hi));
+                }
+                call(bounds[0], bounds[1]);
+            });
+        }
+        Ok(())
+    }
+
+    /// Call a kernel's native code directly.
+    ///
+    /// # Safety
+    /// `ctx` must satisfy everything [`CpuModule::run_parallel`] checks: every buffer the
+    /// kernel touches holds `count(domain) × width` values of the module's precision,
+    /// connectivity and CSR indices are in range, `begin..end` lies inside the kernel's domain,
+    /// and no other thread writes what this call reads or writes.
+    pub unsafe fn run_raw(&self, kernel: usize, ctx: &KernelCtx, begin: u64, end: u64) {
+        // SAFETY: forwarded to the caller.
+        unsafe { (self.kernels[kernel].func)(ctx, begin, end) }
+    }
+}
+
+struct SharedCtx<'a>(&'a KernelCtx);
+// SAFETY: the context is only read; the data behind its pointers is partitioned by entity
+// between threads (see `run_parallel`).
+unsafe impl Sync for SharedCtx<'_> {}
+
+/// The data of one buffer.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Storage {
+    F64(Vec<f64>),
+    F32(Vec<f32>),
+}
+
+impl Storage {
+    pub fn precision(&self) -> Precision {
+        match self {
+            Storage::F64(_) => Precision::F64,
+            Storage::F32(_) => Precision::F32,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        match self {
+            Storage::F64(v) => v.len(),
+            Storage::F32(v) => v.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn as_mut_ptr(&mut self) -> *mut u8 {
+        match self {
+            Storage::F64(v) => v.as_mut_ptr() as *mut u8,
+            Storage::F32(v) => v.as_mut_ptr() as *mut u8,
+        }
+    }
+}
+
+/// The buffers of a module at one precision, sized for a topology.
+#[derive(Clone, Debug)]
+pub struct Buffers {
+    precision: Precision,
+    data: Vec<Storage>,
+}
+
+impl Buffers {
+    /// Zero-filled buffers of `module` for the entity counts of `topology`.
+    pub fn new(module: &Module, topology: &Topology, precision: Precision) -> Buffers {
+        let data = module
+            .buffers
+            .iter()
+            .map(|b| {
+                let n = topology.count(b.domain) * b.width as usize;
+                match precision {
+                    Precision::F64 => Storage::F64(vec![0.0; n]),
+                    Precision::F32 => Storage::F32(vec![0.0; n]),
+                }
+            })
+            .collect();
+        Buffers { precision, data }
+    }
+
+    /// Buffers made by the caller, one per buffer of the module in [`BufferId`] order (their
+    /// lengths are checked when a kernel runs).
+    pub fn from_storage(precision: Precision, data: Vec<Storage>) -> Result<Buffers, String> {
+        if let Some(i) = data.iter().position(|d| d.precision() != precision) {
+            return Err(format!("buffer {i} is not {precision}"));
+        }
+        Ok(Buffers { precision, data })
+    }
+
+    pub fn into_storage(self) -> Vec<Storage> {
+        self.data
+    }
+
+    /// The data of every buffer, in [`BufferId`] order (lengths and precisions are checked
+    /// again when a kernel runs).
+    pub fn storage_mut(&mut self) -> &mut [Storage] {
+        &mut self.data
+    }
+
+    pub fn precision(&self) -> Precision {
+        self.precision
+    }
+
+    /// Exchange the data of two buffers (double-buffered state: the new state becomes the
+    /// current one without a copy).
+    pub fn swap(&mut self, a: BufferId, b: BufferId) {
+        self.data.swap(a.0 as usize, b.0 as usize);
+    }
+
+    /// Overwrite a buffer with `values` (rounded to f32 in f32 buffers); the length must match.
+    pub fn set(&mut self, id: BufferId, values: &[f64]) -> Result<(), String> {
+        let d = self
+            .data
+            .get_mut(id.0 as usize)
+            .ok_or_else(|| format!("no buffer {}", id.0))?;
+        if d.len() != values.len() {
+            return Err(format!(
+                "buffer {} holds {} values, {} given",
+                id.0,
+                d.len(),
+                values.len()
+            ));
+        }
+        match d {
+            Storage::F64(v) => v.copy_from_slice(values),
+            Storage::F32(v) => v.iter_mut().zip(values).for_each(|(a, &b)| *a = b as f32),
+        }
+        Ok(())
+    }
+
+    /// A buffer's values as f64.
+    pub fn get(&self, id: BufferId) -> Vec<f64> {
+        match &self.data[id.0 as usize] {
+            Storage::F64(v) => v.clone(),
+            Storage::F32(v) => v.iter().map(|&x| f64::from(x)).collect(),
+        }
+    }
+
+    /// The data of an f64 buffer (`None` in f32 buffers).
+    pub fn f64(&self, id: BufferId) -> Option<&[f64]> {
+        match &self.data[id.0 as usize] {
+            Storage::F64(v) => Some(v),
+            Storage::F32(_) => None,
+        }
+    }
+
+    pub fn f64_mut(&mut self, id: BufferId) -> Option<&mut [f64]> {
+        match &mut self.data[id.0 as usize] {
+            Storage::F64(v) => Some(v),
+            Storage::F32(_) => None,
+        }
+    }
+
+    pub fn f32(&self, id: BufferId) -> Option<&[f32]> {
+        match &self.data[id.0 as usize] {
+            Storage::F32(v) => Some(v),
+            Storage::F64(_) => None,
+        }
+    }
+
+    pub fn f32_mut(&mut self, id: BufferId) -> Option<&mut [f32]> {
+        match &mut self.data[id.0 as usize] {
+            Storage::F32(v) => Some(v),
+            Storage::F64(_) => None,
+        }
+    }
+}
+
+/// Mesh connectivity as the generated code reads it, validated on construction.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Topology {
+    n_nodes: usize,
+    elem_conn: Vec<u32>,
+    tri_conn: Vec<u32>,
+    node_elem_offsets: Vec<u32>,
+    node_elem_entries: Vec<u32>,
+    node_tri_offsets: Vec<u32>,
+    node_tri_entries: Vec<u32>,
+}
+
+/// The node→entity CSR of a connectivity with `nc` nodes per entity: for each node, its
+/// incidences `(entity, corner)` in increasing entity (then corner) order.
+///
+/// # Panics
+/// If an index of `conn` is `n_nodes` or more ([`Topology::new`] checks that first).
+pub fn node_csr(n_nodes: usize, conn: &[u32], nc: usize) -> (Vec<u32>, Vec<u32>) {
+    let mut counts = vec![0u32; n_nodes + 1];
+    for &n in conn {
+        counts[n as usize + 1] += 1;
+    }
+    for i in 0..n_nodes {
+        counts[i + 1] += counts[i];
+    }
+    let offsets = counts.clone();
+    let mut fill = counts;
+    let mut entries = vec![0u32; 2 * conn.len()];
+    for (p, &n) in conn.iter().enumerate() {
+        let slot = fill[n as usize] as usize;
+        fill[n as usize] += 1;
+        entries[2 * slot] = (p / nc) as u32;
+        entries[2 * slot + 1] = (p % nc) as u32;
+    }
+    (offsets, entries)
+}
+
+impl Topology {
+    /// Connectivity of `n_nodes` nodes, tets (`elem_conn`, 4 per element) and chamber
+    /// triangles (`tri_conn`, 3 per triangle); builds both node CSR lists.
+    pub fn new(n_nodes: usize, elem_conn: Vec<u32>, tri_conn: Vec<u32>) -> Result<Self, String> {
+        check_conn(n_nodes, &elem_conn, 4, "element")?;
+        check_conn(n_nodes, &tri_conn, 3, "triangle")?;
+        let (node_elem_offsets, node_elem_entries) = node_csr(n_nodes, &elem_conn, 4);
+        let (node_tri_offsets, node_tri_entries) = node_csr(n_nodes, &tri_conn, 3);
+        Ok(Topology {
+            n_nodes,
+            elem_conn,
+            tri_conn,
+            node_elem_offsets,
+            node_elem_entries,
+            node_tri_offsets,
+            node_tri_entries,
+        })
+    }
+
+    /// Connectivity with CSR lists given by the caller (any order of incidences per node;
+    /// gathers sum in that order). Each entry must name an incidence of its node.
+    pub fn with_csr(
+        n_nodes: usize,
+        elem_conn: Vec<u32>,
+        tri_conn: Vec<u32>,
+        node_elem: (Vec<u32>, Vec<u32>),
+        node_tri: (Vec<u32>, Vec<u32>),
+    ) -> Result<Self, String> {
+        check_conn(n_nodes, &elem_conn, 4, "element")?;
+        check_conn(n_nodes, &tri_conn, 3, "triangle")?;
+        check_csr(
+            n_nodes,
+            &elem_conn,
+            4,
+            &node_elem.0,
+            &node_elem.1,
+            "element",
+        )?;
+        check_csr(n_nodes, &tri_conn, 3, &node_tri.0, &node_tri.1, "triangle")?;
+        Ok(Topology {
+            n_nodes,
+            elem_conn,
+            tri_conn,
+            node_elem_offsets: node_elem.0,
+            node_elem_entries: node_elem.1,
+            node_tri_offsets: node_tri.0,
+            node_tri_entries: node_tri.1,
+        })
+    }
+
+    /// How many entities a domain has.
+    pub fn count(&self, d: Domain) -> usize {
+        match d {
+            Domain::Element => self.elem_conn.len() / 4,
+            Domain::Triangle => self.tri_conn.len() / 3,
+            Domain::Node => self.n_nodes,
+            Domain::Single => 1,
+        }
+    }
+
+    pub fn elem_conn(&self) -> &[u32] {
+        &self.elem_conn
+    }
+
+    pub fn tri_conn(&self) -> &[u32] {
+        &self.tri_conn
+    }
+
+    /// The node→element CSR: `(offsets, entries)`, entries as `(element, corner)` pairs.
+    pub fn node_elem(&self) -> (&[u32], &[u32]) {
+        (&self.node_elem_offsets, &self.node_elem_entries)
+    }
+
+    /// The node→triangle CSR: `(offsets, entries)`, entries as `(triangle, corner)` pairs.
+    pub fn node_tri(&self) -> (&[u32], &[u32]) {
+        (&self.node_tri_offsets, &self.node_tri_entries)
+    }
+}
+
+fn check_conn(n_nodes: usize, conn: &[u32], nc: usize, what: &str) -> Result<(), String> {
+    if n_nodes >= u32::MAX as usize || conn.len() >= u32::MAX as usize {
+        return Err("meshes are limited to 2^32 - 1 nodes and incidences".into());
+    }
+    if !conn.len().is_multiple_of(nc) {
+        return Err(format!(
+            "{what} connectivity has {} indices, not a multiple of {nc}",
+            conn.len()
+        ));
+    }
+    if let Some(p) = conn.iter().position(|&n| n as usize >= n_nodes) {
+        return Err(format!(
+            "{what} {} names node {} of {n_nodes}",
+            p / nc,
+            conn[p]
+        ));
+    }
+    Ok(())
+}
+
+fn check_csr(
+    n_nodes: usize,
+    conn: &[u32],
+    nc: usize,
+    offsets: &[u32],
+    entries: &[u32],
+    what: &str,
+) -> Result<(), String> {
+    if offsets.len() != n_nodes + 1 || offsets[0] != 0 {
+        return Err(format!(
+            "node→{what} offsets: {} values starting at {:?}, expected {} starting at 0",
+            offsets.len(),
+            offsets.first(),
+            n_nodes + 1
+        ));
+    }
+    if offsets.windows(2).any(|w| w[0] > w[1]) {
+        return Err(format!("node→{what} offsets decrease"));
+    }
+    if offsets[n_nodes] as usize * 2 != entries.len() {
+        return Err(format!(
+            "node→{what} offsets end at {} but there are {} entries",
+            offsets[n_nodes],
+            entries.len() / 2
+        ));
+    }
+    for node in 0..n_nodes {
+        for j in offsets[node] as usize..offsets[node + 1] as usize {
+            let (e, c) = (entries[2 * j] as usize, entries[2 * j + 1] as usize);
+            if c >= nc || e >= conn.len() / nc || conn[e * nc + c] as usize != node {
+                return Err(format!(
+                    "node→{what} entry {j} ({e}, {c}) is not an incidence of node {node}"
+                ));
+            }
+        }
+    }
+    Ok(())
+}
