@@ -50,7 +50,8 @@ pub enum Command {
     /// Compile a script and print its kernels.
     Compile {
         file: PathBuf,
-        /// What to print: the kernel IR (`clif` and `wgsl` come with their backends).
+        /// What to print: the kernel IR or the Cranelift IR of the CPU backend (`wgsl` comes with
+        /// the GPU backend).
         #[arg(long, value_enum, default_value_t = Emit::Ir)]
         emit: Emit,
     },
@@ -67,7 +68,7 @@ pub enum Command {
 pub enum Emit {
     /// The kernel IR of every kernel of the scene.
     Ir,
-    /// Cranelift IR (not implemented yet).
+    /// Cranelift IR of the CPU backend (f64).
     Clif,
     /// WGSL (not implemented yet).
     Wgsl,
@@ -213,13 +214,8 @@ fn check_options(path: &Path) -> CheckOptions {
 }
 
 fn compile_file(path: &Path, emit: Emit, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
-    if emit != Emit::Ir {
-        let what = if emit == Emit::Clif {
-            "--emit clif"
-        } else {
-            "--emit wgsl"
-        };
-        return not_implemented(&format!("compile {what}"), err);
+    if emit == Emit::Wgsl {
+        return not_implemented("compile --emit wgsl", err);
     }
     let Some(bytes) = read_input(path, err) else {
         return 2;
@@ -242,6 +238,21 @@ fn compile_file(path: &Path, emit: Emit, out: &mut dyn Write, err: &mut dyn Writ
     let program =
         softc_compiler::lower::expr::Program::new(&ast, softc_compiler::sema::prelude_ast());
     match softc_compiler::lower::scene::lower_scene(&program, &ast) {
+        Ok(scene) if emit == Emit::Clif => {
+            match softc_compiler::back::cranelift::CpuModule::compile(
+                &scene.module,
+                softc_compiler::back::Precision::F64,
+            ) {
+                Ok(m) => {
+                    let _ = write!(out, "{}", m.clif_all());
+                    0
+                }
+                Err(e) => {
+                    let _ = writeln!(err, "{name}: the kernels do not compile: {e}");
+                    1
+                }
+            }
+        }
         Ok(scene) => {
             let _ = write!(out, "{}", scene.module);
             0

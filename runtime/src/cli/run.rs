@@ -1,8 +1,9 @@
 //! `softc run`: simulate a script and report a JSON summary.
 
 use crate::engine::scene::Scene;
-use crate::engine::{Interpreter, RunSummary, Simulation};
+use crate::engine::{Cpu, Interpreter, RunSummary, Simulation};
 use clap::{Args, ValueEnum};
+use softc_compiler::back::Precision;
 use std::io::Write;
 use std::path::PathBuf;
 
@@ -11,8 +12,14 @@ pub struct RunArgs {
     /// The script to run.
     pub file: PathBuf,
     /// Which backend runs the kernels.
-    #[arg(long, value_enum, default_value_t = BackendChoice::Interp)]
+    #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
     pub backend: BackendChoice,
+    /// Floating-point precision of the kernels (the cpu backend; the interpreter is f64).
+    #[arg(long, value_enum)]
+    pub precision: Option<PrecisionChoice>,
+    /// Worker threads of the cpu backend (default: all cores for large meshes, else 1).
+    #[arg(long)]
+    pub threads: Option<usize>,
     /// Override a param's value, with its unit: `--set p_max=2.5kPa`.
     #[arg(long = "set", value_name = "NAME=VALUE")]
     pub set: Vec<String>,
@@ -28,11 +35,17 @@ pub struct RunArgs {
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum PrecisionChoice {
+    F32,
+    F64,
+}
+
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum BackendChoice {
-    /// The kernel-IR interpreter: exact reference semantics, slow.
-    Interp,
-    /// Native code through Cranelift (not implemented yet).
+    /// Native code through Cranelift, multi-threaded, deterministic.
     Cpu,
+    /// The kernel-IR interpreter: the reference semantics of the kernels, slow.
+    Interp,
     /// The plain-Rust f64 reference simulator (not implemented yet).
     Reference,
 }
@@ -67,8 +80,8 @@ fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::sema::units::Dim),
 
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     match args.backend {
-        BackendChoice::Interp => {}
-        BackendChoice::Cpu | BackendChoice::Reference => {
+        BackendChoice::Interp | BackendChoice::Cpu => {}
+        BackendChoice::Reference => {
             let _ = writeln!(
                 err,
                 "softc run --backend {:?}: not implemented yet (use --backend interp)",
@@ -119,16 +132,39 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 2;
         }
     }
-    let backend = Interpreter::new(&scene.lowered.module);
-    let mut sim = Simulation::new(&scene, backend);
-    let summary = match sim.run(dt, args.steps) {
+    let result = match args.backend {
+        BackendChoice::Interp => {
+            let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.module));
+            sim.run(dt, args.steps).map(|s| (s, "interp"))
+        }
+        _ => {
+            let precision = match (args.precision, scene.precision_setting()) {
+                (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
+                _ => Precision::F64,
+            };
+            let cpu = match Cpu::new(&scene.lowered.module, precision, args.threads) {
+                Ok(c) => c,
+                Err(e) => {
+                    let _ = writeln!(
+                        err,
+                        "{}: the kernels do not compile: {e}",
+                        args.file.display()
+                    );
+                    return 1;
+                }
+            };
+            let mut sim = Simulation::new(&scene, cpu);
+            sim.run(dt, args.steps).map(|s| (s, "cpu"))
+        }
+    };
+    let (summary, backend_name) = match result {
         Ok(s) => s,
         Err(e) => {
             let _ = writeln!(err, "{}: {e}", args.file.display());
             return 1;
         }
     };
-    let json = summary_json(&scene, &summary, sim.backend_name());
+    let json = summary_json(&scene, &summary, backend_name);
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
     let _ = writeln!(
         err,
@@ -138,7 +174,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         summary.dt,
         summary.wall_seconds,
         summary.steps as f64 / summary.wall_seconds.max(1e-12),
-        sim.backend_name()
+        backend_name
     );
     match &args.json {
         Some(path) => {
@@ -152,12 +188,6 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     0
-}
-
-impl<B: crate::engine::Backend> Simulation<'_, B> {
-    pub fn backend_name(&self) -> &'static str {
-        self.backend.name()
-    }
 }
 
 /// The JSON summary: SI units throughout.

@@ -210,6 +210,14 @@ impl Scene {
         })
     }
 
+    /// `precision = f32|f64` from the sim block, if given.
+    pub fn precision_setting(&self) -> Option<&str> {
+        match setting(&self.ast, "precision").map(|e| &e.kind) {
+            Some(ExprKind::Name(n)) => Some(n.name.as_str()),
+            _ => None,
+        }
+    }
+
     pub fn program(&self) -> Program<'_> {
         Program::new(&self.ast, softc_compiler::sema::prelude_ast())
     }
