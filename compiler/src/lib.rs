@@ -4,6 +4,7 @@
 pub mod diag;
 pub mod fmt;
 pub mod front;
+pub mod ide;
 pub mod sema;
 
 use diag::Diagnostic;
