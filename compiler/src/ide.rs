@@ -642,7 +642,7 @@ pub fn tokenize(text: &str) -> Vec<Tok> {
                 j += 1;
             }
             if chars.get(j).is_some_and(|c| c.1 == '.')
-                && !chars.get(j + 1).is_some_and(|c| c.1 == '.')
+                && chars.get(j + 1).is_none_or(|c| c.1 != '.')
             {
                 j += 1;
                 while chars.get(j).is_some_and(|c| c.1.is_ascii_digit()) {
@@ -1023,6 +1023,22 @@ impl<'a> Analysis<'a> {
         a
     }
 
+    /// Analyze a script parsed before (`script` must be `front::parse(text).ok()`).
+    pub fn from_parsed(
+        text: &'a str,
+        script: Option<Script>,
+        checked: Option<CheckedScript>,
+    ) -> Self {
+        let resolved = script.as_ref().map(resolve).unwrap_or_default();
+        Analysis {
+            text,
+            script,
+            resolved,
+            checked,
+            tokens: tokenize(text),
+        }
+    }
+
     fn global_info(&self, name: &str, span: Span) -> Option<&GlobalInfo> {
         self.checked
             .as_ref()?
@@ -1275,7 +1291,6 @@ impl<'a> Analysis<'a> {
             return self
                 .lexical_decls()
                 .into_iter()
-                .filter(|(_, k, _)| *k != "let" || true)
                 .map(|(name, kind, span)| Symbol {
                     name,
                     kind,
@@ -1357,9 +1372,10 @@ impl<'a> Analysis<'a> {
         let prefix = &before[word_start..];
         let ctx = context_at(self.text, &self.tokens, word_start);
         let mut out = Vec::new();
+        let mut seen = std::collections::HashSet::new();
         let mut push =
             |label: &str, kind: CompletionKind, detail: String, insert: Option<String>| {
-                if label.starts_with(prefix) && !out.iter().any(|c: &Completion| c.label == label) {
+                if label.starts_with(prefix) && seen.insert(label.to_string()) {
                     out.push(Completion {
                         label: label.to_string(),
                         kind,
@@ -1672,18 +1688,21 @@ fn context_at(text: &str, tokens: &[Tok], offset: usize) -> Ctx {
         .filter(|t| t.span.end <= offset && t.kind != TokKind::Comment)
         .collect();
     let word = |t: &Tok| &text[t.span.start..t.span.end];
-    // A unit: a number (or `]`) then only spaces, or `/` right after them, on the same line.
-    let line_before = &text[text[..offset].rfind('\n').map_or(0, |i| i + 1)..offset];
-    let trimmed = line_before.trim_end_matches([' ', '\t']);
-    let trimmed = trimmed.strip_suffix('/').unwrap_or(trimmed);
-    if trimmed.len() < line_before.len() || line_before.ends_with('/') {
-        if let Some(last) = before.last()
-            && last.span.end == trimmed.len() + (offset - line_before.len())
-            && (last.kind == TokKind::Number || (last.kind == TokKind::Punct && word(last) == "]"))
-            && (last.kind == TokKind::Number || is_array_close(text, tokens, last))
-        {
-            return Ctx::Unit;
-        }
+    // A unit: after a number or an array literal, on the same line (spaces or tabs between), or
+    // right after `/`, `*` or `·` in a unit (`8 /`, `kg/`).
+    let head = &text[..offset];
+    let (head, in_unit) = match head.strip_suffix(['/', '*', '·']) {
+        Some(h) => (h, true),
+        None => (head, false),
+    };
+    let head = head.trim_end_matches([' ', '\t']);
+    if let Some(last) = before.iter().rev().find(|t| t.span.end <= head.len())
+        && last.span.end == head.len()
+        && (last.kind == TokKind::Number
+            || (in_unit && last.kind == TokKind::Unit)
+            || (word(last) == "]" && is_array_close(text, tokens, last)))
+    {
+        return Ctx::Unit;
     }
     // Enclosing brackets.
     let mut stack: Vec<usize> = Vec::new();
@@ -1888,11 +1907,10 @@ fn truncate(s: &str) -> String {
 }
 
 fn fmt_num(v: f64) -> String {
-    if v != 0.0 && (v.abs() >= 1e6 || v.abs() < 1e-3) {
+    if v != 0.0 && (v.abs() >= 1e15 || v.abs() < 1e-4) {
         format!("{v:e}")
     } else {
-        let s = format!("{v}");
-        s
+        format!("{v}")
     }
 }
 
@@ -2044,13 +2062,13 @@ pub fn builtin_hover(word: &str, called: bool) -> Option<String> {
         let doc = leading_comment(sema::PRELUDE, item.span.start);
         return Some(format!("```soft\n{sig}\n```\n\n{what}. {doc}"));
     }
-    if called || !RESERVED_DOCS.iter().any(|(n, _)| *n == word) {
-        if let Some(b) = BUILTIN_DOCS.iter().find(|b| b.name == word) {
-            return Some(format!(
-                "```soft\n{}\n```\n\nbuilt-in function. {}",
-                b.signature, b.doc
-            ));
-        }
+    if (called || !RESERVED_DOCS.iter().any(|(n, _)| *n == word))
+        && let Some(b) = BUILTIN_DOCS.iter().find(|b| b.name == word)
+    {
+        return Some(format!(
+            "```soft\n{}\n```\n\nbuilt-in function. {}",
+            b.signature, b.doc
+        ));
     }
     if let Some((_, d)) = RESERVED_DOCS.iter().find(|(n, _)| *n == word) {
         return Some(format!("**{word}** — built-in name: {d}"));
@@ -2179,6 +2197,10 @@ mod tests {
         assert!(kw("let a = 3 k").contains(&"kPa".to_string()));
         assert!(kw("let a = [1, 2] m").contains(&"mm".to_string()));
         assert!(!kw("let a = x[1] m").contains(&"mm".to_string()));
+        assert!(kw("let a = 8 /").contains(&"s".to_string()));
+        assert!(kw("let a = 1070 kg/m").contains(&"mm".to_string()));
+        assert!(!kw("let a = 8 / s").contains(&"ms".to_string()));
+        assert!(!kw("let a = 8\n  m").contains(&"mm".to_string()));
         assert!(kw("sim {\n  da").contains(&"damping".to_string()));
         assert!(kw("optimize p with adam(lr: 0.1) {\n  ").contains(&"gradient_scale".to_string()));
         assert!(kw("param p: pre").contains(&"pressure".to_string()));

@@ -2,4 +2,5 @@
 //! outputs, plus the `softc` command line.
 
 pub mod cli;
+pub mod lsp;
 pub mod mesh;

@@ -63,6 +63,8 @@ pub enum Command {
         #[command(subcommand)]
         command: mesh::MeshCommand,
     },
+    /// Run the language server on standard input/output (editors start it).
+    Lsp,
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -97,6 +99,7 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         Command::Compile { .. } => not_implemented("compile", err),
         Command::Run { .. } => not_implemented("run", err),
         Command::Mesh { command } => mesh::run(command),
+        Command::Lsp => crate::lsp::run_stdio(),
     }
 }
 
