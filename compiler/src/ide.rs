@@ -1159,7 +1159,88 @@ impl<'a> Analysis<'a> {
             let code = truncate(self.text[line_start..line_end].trim());
             return Some((format!("```soft\n{code}\n```"), tok.span));
         }
+        if let Some(h) = self.argument_hover(tok, word) {
+            return Some((h, tok.span));
+        }
         builtin_hover(word, self.is_call(tok)).map(|h| (h, tok.span))
+    }
+
+    /// An argument name (`radius` in `sphere(center: c, radius: 2 mm)`): the callee's parameter.
+    fn argument_hover(&self, tok: Tok, word: &str) -> Option<String> {
+        let rest = self.text[tok.span.end..].trim_start_matches([' ', '\t']);
+        if !rest.starts_with(':') || rest.starts_with("::") {
+            return None;
+        }
+        let callee = self.enclosing_callee(tok.span.start)?;
+        if !self.params_of(&callee).iter().any(|p| p == word) {
+            return None;
+        }
+        let sig = BUILTIN_DOCS
+            .iter()
+            .find(|b| b.name == callee)
+            .map(|b| b.signature.to_string())
+            .or_else(|| {
+                let item = self
+                    .script
+                    .as_ref()
+                    .and_then(|s| {
+                        s.items.iter().find(|i| match &i.kind {
+                            ItemKind::Fn(f) => f.name.name == callee,
+                            ItemKind::Material(m) => m.name.name == callee,
+                            _ => false,
+                        })
+                    })
+                    .map(|i| (self.text, i))
+                    .or_else(|| prelude_item(&callee).map(|i| (sema::PRELUDE, i)))?;
+                let (text, item) = item;
+                Some(match &item.kind {
+                    ItemKind::Fn(f) => signature_text(text, item.span, f.body.span),
+                    _ => {
+                        let t = &text[item.span.start..item.span.end];
+                        t[..t.find(['{', '=']).unwrap_or(t.len())]
+                            .trim()
+                            .to_string()
+                    }
+                })
+            })?;
+        Some(format!(
+            "argument `{word}` of `{callee}`\n\n```soft\n{}\n```",
+            truncate(&sig)
+        ))
+    }
+
+    /// The name called by the innermost unclosed `(` before `offset`.
+    fn enclosing_callee(&self, offset: usize) -> Option<String> {
+        let mut depth = 0usize;
+        let toks: Vec<&Tok> = self
+            .tokens
+            .iter()
+            .filter(|t| t.span.end <= offset && t.kind != TokKind::Comment)
+            .collect();
+        for (i, t) in toks.iter().enumerate().rev() {
+            if t.kind != TokKind::Punct {
+                continue;
+            }
+            match &self.text[t.span.start..t.span.end] {
+                ")" | "]" | "}" => depth += 1,
+                "[" | "{" => {
+                    if depth == 0 {
+                        return None;
+                    }
+                    depth -= 1;
+                }
+                "(" => {
+                    if depth == 0 {
+                        let prev = toks.get(i.checked_sub(1)?)?;
+                        return (prev.kind == TokKind::Ident)
+                            .then(|| self.text[prev.span.start..prev.span.end].to_string());
+                    }
+                    depth -= 1;
+                }
+                _ => {}
+            }
+        }
+        None
     }
 
     fn is_call(&self, tok: Tok) -> bool {
@@ -2062,7 +2143,9 @@ pub fn builtin_hover(word: &str, called: bool) -> Option<String> {
         let doc = leading_comment(sema::PRELUDE, item.span.start);
         return Some(format!("```soft\n{sig}\n```\n\n{what}. {doc}"));
     }
-    if (called || !RESERVED_DOCS.iter().any(|(n, _)| *n == word))
+    let other_meaning = RESERVED_DOCS.iter().any(|(n, _)| *n == word)
+        || CONSTANT_DOCS.iter().any(|(n, _)| *n == word);
+    if (called || !other_meaning)
         && let Some(b) = BUILTIN_DOCS.iter().find(|b| b.name == word)
     {
         return Some(format!(
@@ -2172,6 +2255,15 @@ mod tests {
         assert!(h.contains("1 kPa = 1000 Pa"), "{h}");
         let (h, _) = a.hover(at(text, "q =")).unwrap();
         assert!(h.contains("let q: pressure [Pa]"), "{h}");
+        let text = "let s = sphere(center: [0, 0, 0] mm, radius: 2 mm)\nsim { dt = auto }\n";
+        let a = Analysis::new(text);
+        let (h, _) = a.hover(at(text, "radius")).unwrap();
+        assert!(h.contains("argument `radius` of `sphere`"), "{h}");
+        let (h, _) = a.hover(at(text, "auto")).unwrap();
+        assert!(h.contains("built-in constant"), "{h}");
+        let text = "let m = yeoh(c10: 1 kPa, d1: 1 /MPa, density: 1 kg/m^3)\n";
+        let (h, _) = Analysis::new(text).hover(at(text, "d1")).unwrap();
+        assert!(h.contains("material yeoh(c10: pressure"), "{h}");
     }
 
     #[test]
