@@ -1561,6 +1561,12 @@ impl<'a> Analysis<'a> {
                 }
                 return out;
             }
+            Ctx::Names(kinds) => {
+                for (name, kind, detail) in self.names_of_kinds(kinds) {
+                    push(&name, kind, detail, None);
+                }
+                return out;
+            }
             Ctx::Expr => {}
         }
         // Expressions: names in scope, built-ins, expression keywords.
@@ -1664,6 +1670,30 @@ impl<'a> Analysis<'a> {
             .unwrap_or_default()
     }
 
+    /// Global declarations of the given kinds.
+    fn names_of_kinds(&self, kinds: &[SymKind]) -> Vec<(String, CompletionKind, String)> {
+        if self.script.is_some() {
+            return self
+                .resolved
+                .defs
+                .iter()
+                .filter_map(|d| match d.kind {
+                    DefKind::Global(k) if kinds.contains(&k) => Some((
+                        d.name.clone(),
+                        CompletionKind::Variable,
+                        kind_word(k).to_string(),
+                    )),
+                    _ => None,
+                })
+                .collect();
+        }
+        self.lexical_decls()
+            .into_iter()
+            .filter(|(_, kw, _)| kinds.iter().any(|k| kind_word(*k) == *kw))
+            .map(|(n, kw, _)| (n, CompletionKind::Variable, kw.to_string()))
+            .collect()
+    }
+
     /// Declared names visible at `offset`: globals, plus locals of the enclosing item.
     fn names_in_scope(&self, offset: usize) -> Vec<(String, CompletionKind, String)> {
         let mut out = Vec::new();
@@ -1759,6 +1789,8 @@ enum Ctx {
     Type,
     /// Inside the argument list of a call to the named function.
     Args(String),
+    /// A name of one of these kinds: `pressure CHAMBER`, `fix REGION`, `use MATERIAL`, …
+    Names(&'static [SymKind]),
     Expr,
 }
 
@@ -1800,6 +1832,9 @@ fn context_at(text: &str, tokens: &[Tok], offset: usize) -> Ctx {
         }
     }
     let last = before.last().map(|t| word(t));
+    if let Some(kinds) = statement_names(text, &before) {
+        return Ctx::Names(kinds);
+    }
     if let Some(&open) = stack.last() {
         let o = word(before[open]);
         let prev = |k: usize| open.checked_sub(k).map(|j| word(before[j]));
@@ -1871,6 +1906,45 @@ fn context_at(text: &str, tokens: &[Tok], offset: usize) -> Ctx {
         return Ctx::Type;
     }
     Ctx::Expr
+}
+
+/// In a statement that names declarations (`pressure CHAMBER`, `fix A, B`, `use M in SET`,
+/// `optimize P, Q with`, `validate INPUT`): the kinds of names that fit at the cursor.
+fn statement_names(text: &str, before: &[&Tok]) -> Option<&'static [SymKind]> {
+    let word = |t: &Tok| &text[t.span.start..t.span.end];
+    // The tokens of the current statement: back to a line start, `{` or `;`.
+    let mut start = before.len();
+    while start > 0 {
+        let t = before[start - 1];
+        let w = word(t);
+        if w == "{" || w == ";" || w == "}" {
+            break;
+        }
+        start -= 1;
+        let line_start = text[..t.span.start].rfind('\n').map_or(0, |i| i + 1);
+        if text[line_start..t.span.start].trim().is_empty() {
+            break;
+        }
+    }
+    let stmt: Vec<&str> = before[start..].iter().map(|t| word(t)).collect();
+    let list = |rest: &[&str]| {
+        // `A, B, ` — names separated by commas, ending with a comma.
+        rest.is_empty()
+            || (rest.last() == Some(&",")
+                && rest
+                    .iter()
+                    .enumerate()
+                    .all(|(i, w)| (i % 2 == 1) == (*w == ",") && (*w == "," || !is_keyword(w))))
+    };
+    match stmt.as_slice() {
+        ["pressure"] => Some(&[SymKind::Chamber]),
+        ["fix", rest @ ..] if list(rest) => Some(&[SymKind::Region, SymKind::Nodes]),
+        ["use"] => Some(&[SymKind::Material]),
+        ["use", _, "in"] => Some(&[SymKind::Elements]),
+        ["optimize", rest @ ..] if list(rest) => Some(&[SymKind::Param]),
+        ["validate"] => Some(&[SymKind::Input]),
+        _ => None,
+    }
 }
 
 fn ends_in_operator(last: Option<&str>) -> bool {
@@ -2301,6 +2375,15 @@ mod tests {
         let names = kw("param pmax: pressure = 1 kPa\nlet b = 2 * pm");
         assert!(names.contains(&"pmax".to_string()), "{names:?}");
         assert!(kw("let b = sq").contains(&"sqrt".to_string()));
+        let decls = "chamber ch = surface(b, \"c\")\nregion r = box(min: [0, 0, 0] mm, max: [1, 1, 1] mm)\nparam p: pressure = 1 kPa\nmaterial m = neo_hookean(mu: 1 kPa, kappa: 1 MPa, density: 1 kg/m^3)\nelements e = tagged(b, 1)\n";
+        let names = |tail: &str| kw(&format!("{decls}{tail}"));
+        assert_eq!(names("sim {\n  pressure "), ["ch"]);
+        assert_eq!(names("sim {\n  fix "), ["r"]);
+        assert_eq!(names("sim {\n  fix r, "), ["r"]);
+        assert_eq!(names("sim {\n  use "), ["m"]);
+        assert_eq!(names("sim {\n  use m in "), ["e"]);
+        assert_eq!(names("optimize "), ["p"]);
+        assert!(names("sim {\n  pressure ch = ").contains(&"p".to_string()));
     }
 
     #[test]
