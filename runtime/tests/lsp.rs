@@ -43,6 +43,7 @@ impl Client {
     fn start() -> Client {
         let mut child = Command::new(env!("CARGO_BIN_EXE_softc"))
             .arg("lsp")
+            .env("SOFTC_LSP_TEST_PANIC", "1")
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
@@ -409,6 +410,15 @@ fn malformed_requests_get_errors_and_the_server_keeps_answering() {
     assert_eq!(r["error"]["code"], -32002, "{r}");
     c.initialize();
 
+    // Closing a document clears its diagnostics.
+    c.open("untitled:closed.soft", "let a = 1 kPa + 1 mm\n");
+    assert!(!c.diagnostics("untitled:closed.soft").is_empty());
+    c.notify(
+        "textDocument/didClose",
+        json!({"textDocument": {"uri": "untitled:closed.soft"}}),
+    );
+    assert!(c.diagnostics("untitled:closed.soft").is_empty());
+
     // Invalid JSON: a parse error with id null.
     c.send_raw(b"{\"jsonrpc\": \"2.0\", \"id\": 99, \"method\": ");
     let r = c.next_response();
@@ -444,6 +454,9 @@ fn malformed_requests_get_errors_and_the_server_keeps_answering() {
     // A handler that panics: an internal error, and the server lives on.
     let r = c.call("softc/panic", json!({}));
     assert_eq!(r["error"]["code"], -32603, "{r}");
+    // A second initialize.
+    let r = c.call("initialize", json!({"capabilities": {}}));
+    assert_eq!(r["error"]["code"], -32600, "{r}");
     // Notifications with bad params are ignored.
     c.notify("textDocument/didOpen", json!({"textDocument": "nope"}));
     c.notify("textDocument/didChange", json!(42));

@@ -74,6 +74,8 @@ pub struct Server {
     docs: HashMap<String, Document>,
     initialized: bool,
     shutdown: bool,
+    /// Closed documents whose diagnostics must be cleared.
+    closed: Vec<String>,
     probe: Arc<CachedProbe>,
 }
 
@@ -89,6 +91,7 @@ impl Server {
             docs: HashMap::new(),
             initialized: false,
             shutdown: false,
+            closed: Vec::new(),
             probe: Arc::new(CachedProbe::default()),
         }
     }
@@ -197,6 +200,9 @@ impl Server {
 
     fn request(&mut self, method: &str, params: Value) -> HandlerResult {
         match method {
+            "initialize" if self.initialized => {
+                Err((INVALID_REQUEST, "the server is already initialized".into()))
+            }
             "initialize" => {
                 self.initialized = true;
                 Ok(initialize_result())
@@ -233,8 +239,11 @@ impl Server {
                 let p: lt::DocumentFormattingParams = parse(params)?;
                 self.formatting(p.text_document.uri.as_str())
             }
-            // Lets a test (or a user) check that a crashing handler does not stop the server.
-            "softc/panic" => panic!("requested panic (softc/panic)"),
+            // Lets the tests check that a crashing handler does not stop the server; only when
+            // the environment asks for it.
+            "softc/panic" if std::env::var_os("SOFTC_LSP_TEST_PANIC").is_some() => {
+                panic!("requested panic (softc/panic)")
+            }
             _ => Err((METHOD_NOT_FOUND, format!("unknown method `{method}`"))),
         }
     }
@@ -282,8 +291,11 @@ impl Server {
                 }
             }
             "textDocument/didClose" => {
-                if let Ok(p) = serde_json::from_value::<lt::DidCloseTextDocumentParams>(params) {
-                    self.docs.remove(p.text_document.uri.as_str());
+                if let Ok(p) = serde_json::from_value::<lt::DidCloseTextDocumentParams>(params)
+                    && self.docs.remove(p.text_document.uri.as_str()).is_some()
+                {
+                    // Clear the closed document's diagnostics in the editor.
+                    self.closed.push(p.text_document.uri.as_str().to_string());
                 }
             }
             "textDocument/didSave" => {
@@ -307,6 +319,16 @@ impl Server {
 
     /// Check every changed document and publish its diagnostics.
     fn publish_dirty(&mut self, out: &mut dyn Write) {
+        for uri in std::mem::take(&mut self.closed) {
+            send(
+                out,
+                json!({
+                    "jsonrpc": "2.0",
+                    "method": "textDocument/publishDiagnostics",
+                    "params": {"uri": uri, "diagnostics": []},
+                }),
+            );
+        }
         let dirty: Vec<String> = self
             .docs
             .iter()
