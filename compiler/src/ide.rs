@@ -2351,6 +2351,59 @@ mod tests {
     }
 
     #[test]
+    fn definitions_of_locals_and_the_outline() {
+        let text = "fn f(a: length, b: length = 1 mm) -> length = a + b\n\
+                    let s = sum(i in 0..3) i * 1 mm\n\
+                    region r = box(min: [0, 0, 0] mm, max: [1, 1, 1] mm)\n\
+                    sim {\n  let k = 2\n  damping = k * 1 /s\n  fix r\n}\n";
+        let a = Analysis::new(text);
+        let def_of = |needle: &str, skip: usize| {
+            let at = text.match_indices(needle).nth(skip).unwrap().0;
+            let d = a.definition(at).expect(needle);
+            (d.start, &text[d.start..d.end])
+        };
+        // The fn parameter `a` in the body, the reduction variable, the sim let, the region.
+        assert_eq!(def_of("a + b", 0), (text.find("a:").unwrap(), "a"));
+        assert_eq!(def_of("b\n", 0), (text.find("b:").unwrap(), "b"));
+        assert_eq!(def_of("i * 1", 0), (text.find("i in").unwrap(), "i"));
+        assert_eq!(def_of("k * 1", 0), (text.find("k = 2").unwrap(), "k"));
+        assert_eq!(def_of("r\n}", 0), (text.find("r = box").unwrap(), "r"));
+        let h = a.hover(text.find("a + b").unwrap()).unwrap().0;
+        assert!(
+            h.contains("a: length [m]") && h.contains("parameter of `f`"),
+            "{h}"
+        );
+        let outline: Vec<(String, &str, usize)> = a
+            .symbols()
+            .into_iter()
+            .map(|s| (s.name, s.kind, s.children.len()))
+            .collect();
+        assert_eq!(
+            outline,
+            [
+                ("f".to_string(), "fn", 0),
+                ("s".to_string(), "let", 0),
+                ("r".to_string(), "region", 0),
+                ("sim".to_string(), "sim", 1)
+            ]
+        );
+        // While the script does not parse, declarations are still found.
+        let broken = format!("{text}let oops = (\n");
+        let b = Analysis::new(&broken);
+        assert!(b.script.is_none());
+        let r_use = broken.find("fix r").unwrap() + 4;
+        assert_eq!(
+            b.definition(r_use),
+            Some(Span::new(
+                broken.find("r = box").unwrap(),
+                broken.find("r = box").unwrap() + 1
+            ))
+        );
+        assert!(b.symbols().iter().any(|s| s.name == "oops"));
+        assert!(b.hover(r_use).unwrap().0.contains("region r = box"));
+    }
+
+    #[test]
     fn completion_contexts() {
         let kw = |text: &str| -> Vec<String> {
             Analysis::new(text)
