@@ -998,7 +998,8 @@ pub struct Analysis<'a> {
     pub text: &'a str,
     pub script: Option<Script>,
     pub resolved: Resolved,
-    pub checked: Option<CheckedScript>,
+    /// The checker's view of the script's globals (types, values); empty when not checked.
+    pub globals: Vec<GlobalInfo>,
     pub tokens: Vec<Tok>,
 }
 
@@ -1011,7 +1012,7 @@ impl<'a> Analysis<'a> {
             text,
             script,
             resolved,
-            checked: None,
+            globals: Vec::new(),
             tokens: tokenize(text),
         }
     }
@@ -1019,30 +1020,24 @@ impl<'a> Analysis<'a> {
     /// Analyze and keep the checker's results (types of globals).
     pub fn with_check(text: &'a str, checked: Option<CheckedScript>) -> Self {
         let mut a = Analysis::new(text);
-        a.checked = checked;
+        a.globals = checked.map(|c| c.globals).unwrap_or_default();
         a
     }
 
     /// Analyze a script parsed before (`script` must be `front::parse(text).ok()`).
-    pub fn from_parsed(
-        text: &'a str,
-        script: Option<Script>,
-        checked: Option<CheckedScript>,
-    ) -> Self {
+    pub fn from_parsed(text: &'a str, script: Option<Script>, globals: Vec<GlobalInfo>) -> Self {
         let resolved = script.as_ref().map(resolve).unwrap_or_default();
         Analysis {
             text,
             script,
             resolved,
-            checked,
+            globals,
             tokens: tokenize(text),
         }
     }
 
     fn global_info(&self, name: &str, span: Span) -> Option<&GlobalInfo> {
-        self.checked
-            .as_ref()?
-            .globals
+        self.globals
             .iter()
             .find(|g| g.name == name && g.span == span)
     }

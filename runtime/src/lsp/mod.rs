@@ -388,7 +388,10 @@ impl Server {
             Some(ast) if !doc.dirty => Analysis::from_parsed(
                 &doc.text,
                 Some(ast.clone()),
-                doc.checked.as_ref().map(clone_checked),
+                doc.checked
+                    .as_ref()
+                    .map(|c| c.globals.clone())
+                    .unwrap_or_default(),
             ),
             _ => Analysis::new(&doc.text),
         }
@@ -508,14 +511,6 @@ impl Server {
                 Ok(json!([{"range": idx.range(&doc.text, 0, doc.text.len()), "newText": f}]))
             }
         }
-    }
-}
-
-fn clone_checked(c: &softc_compiler::sema::CheckedScript) -> softc_compiler::sema::CheckedScript {
-    softc_compiler::sema::CheckedScript {
-        params: c.params.clone(),
-        duration: c.duration,
-        globals: c.globals.clone(),
     }
 }
 
