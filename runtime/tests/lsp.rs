@@ -419,6 +419,25 @@ fn malformed_requests_get_errors_and_the_server_keeps_answering() {
     );
     assert!(c.diagnostics("untitled:closed.soft").is_empty());
 
+    // A ranged (incremental) change is applied too: `1 kPa` becomes `1 mm + 1 kPa`.
+    c.open("untitled:inc.soft", "# µ\nlet a = 1 µm; let b = 1 kPa\n");
+    let before = c.diagnostics("untitled:inc.soft");
+    assert!(before.iter().all(|d| d["code"] != "E0201"), "{before:?}");
+    c.notify(
+        "textDocument/didChange",
+        json!({"textDocument": {"uri": "untitled:inc.soft", "version": 2}, "contentChanges": [
+            {"range": {"start": pos(1, 24), "end": pos(1, 24)}, "text": "mm + 1 "}
+        ]}),
+    );
+    let after = c.diagnostics("untitled:inc.soft");
+    let e = after.iter().find(|d| d["code"] == "E0201").expect("E0201");
+    // `1 mm + 1 kPa` at characters 22..34 (the `µ` before it is one UTF-16 unit).
+    assert_eq!(
+        e["range"],
+        json!({"start": pos(1, 22), "end": pos(1, 34)}),
+        "{after:?}"
+    );
+
     // Invalid JSON: a parse error with id null.
     c.send_raw(b"{\"jsonrpc\": \"2.0\", \"id\": 99, \"method\": ");
     let r = c.next_response();
