@@ -1,10 +1,12 @@
 //! softc compiler: front end (pest grammar → AST with spans), semantic analysis (names, types,
-//! units, bounds) and the formatter; later the kernel IR, passes and backends.
+//! units, bounds), the formatter, editor support, the kernel IR with its passes (folding,
+//! sharing, pruning, reverse-mode AD), lowering from scripts to kernels, and the backends.
 
 pub mod back;
 pub mod diag;
 pub mod fmt;
 pub mod front;
+pub mod ide;
 pub mod ir;
 pub mod lower;
 pub mod sema;

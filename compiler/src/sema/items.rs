@@ -25,7 +25,8 @@ pub(super) struct SimInfo {
 /// Largest number of entries of a fixed-shape value (params, inputs, lets).
 const MAX_ENTRIES: usize = 10_000_000;
 
-const SIM_SETTINGS: &[&str] = &[
+/// The settings of the `sim` block.
+pub const SIM_SETTINGS: &[&str] = &[
     "dt",
     "steps",
     "duration",
@@ -37,7 +38,8 @@ const SIM_SETTINGS: &[&str] = &[
     "precision",
 ];
 
-const OPTIMIZE_SETTINGS: &[&str] = &[
+/// The settings of an `optimize` body.
+pub const OPTIMIZE_SETTINGS: &[&str] = &[
     "batch",
     "seed",
     "gradient_scale",

@@ -14,6 +14,9 @@ pub mod mesh_probe;
 pub mod types;
 pub mod units;
 
+pub use builtins::{CONSTANTS, FUNCTIONS};
+pub use items::{OPTIMIZE_SETTINGS, SIM_SETTINGS};
+
 use crate::diag::{Diagnostic, did_you_mean};
 use crate::front::ast::{Item, Script, Span};
 use std::collections::HashMap;
@@ -30,6 +33,21 @@ pub struct CheckedScript {
     pub params: Vec<ParamInfo>,
     /// The simulated duration in seconds, when the script fixes it.
     pub duration: Option<f64>,
+    /// The script's global declarations with their checked types (editors: hover).
+    pub globals: Vec<GlobalInfo>,
+}
+
+/// A global declaration of the user's script, as the checker saw it.
+#[derive(Debug, Clone)]
+pub struct GlobalInfo {
+    pub name: String,
+    pub kind: SymKind,
+    /// The declared name.
+    pub span: Span,
+    /// The checked type; `None` when the declaration had an error or was not checked.
+    pub ty: Option<types::Ty>,
+    /// The compile-time value in SI units, when it is a known scalar.
+    pub value: Option<f64>,
 }
 
 #[derive(Debug, Clone)]
@@ -69,6 +87,24 @@ pub fn check(script: &Script, options: &CheckOptions) -> (CheckedScript, Vec<Dia
     c.register(&script.items, false);
     c.check_items(&script.items, false);
     c.finish(&script.items);
+    c.out.globals = c
+        .syms
+        .iter()
+        .filter(|g| !g.prelude)
+        .map(|g| {
+            let done = match &g.state {
+                GState::Done(t) if !t.ty.is_error() => Some(t),
+                _ => None,
+            };
+            GlobalInfo {
+                name: g.name.clone(),
+                kind: g.kind,
+                span: g.span,
+                ty: done.map(|t| t.ty.clone()),
+                value: done.and_then(|t| t.num()),
+            }
+        })
+        .collect();
     debug_assert_eq!(
         c.prelude_diags,
         0,

@@ -62,6 +62,8 @@ pub enum Command {
         #[command(subcommand)]
         command: mesh::MeshCommand,
     },
+    /// Run the language server on standard input/output (editors start it).
+    Lsp,
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -106,6 +108,7 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         Command::Compile { file, emit } => compile_file(&file, emit, out, err),
         Command::Run(args) => run::run(args, out, err),
         Command::Mesh { command } => mesh::run(command),
+        Command::Lsp => crate::lsp::run_stdio(),
     }
 }
 
