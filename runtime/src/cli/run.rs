@@ -33,7 +33,7 @@ pub enum BackendChoice {
     Interp,
     /// Native code through Cranelift (not implemented yet).
     Cpu,
-    /// The plain-Rust f64 reference simulator (not implemented yet).
+    /// The plain-Rust f64 reference simulator (the test oracle).
     Reference,
 }
 
@@ -67,8 +67,8 @@ fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::sema::units::Dim),
 
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     match args.backend {
-        BackendChoice::Interp => {}
-        BackendChoice::Cpu | BackendChoice::Reference => {
+        BackendChoice::Interp | BackendChoice::Reference => {}
+        BackendChoice::Cpu => {
             let _ = writeln!(
                 err,
                 "softc run --backend {:?}: not implemented yet (use --backend interp)",
@@ -119,16 +119,23 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 2;
         }
     }
-    let backend = Interpreter::new(&scene.lowered.module);
-    let mut sim = Simulation::new(&scene, backend);
-    let summary = match sim.run(dt, args.steps) {
-        Ok(s) => s,
+    let result = if args.backend == BackendChoice::Reference {
+        crate::reference::run(&scene, dt, args.steps).map(|s| (s, "reference"))
+    } else {
+        let backend = Interpreter::new(&scene.lowered.module);
+        let mut sim = Simulation::new(&scene, backend);
+        sim.run(dt, args.steps)
+            .map(|s| (s, sim.backend_name()))
+            .map_err(|e| e.0)
+    };
+    let (summary, backend_name) = match result {
+        Ok(r) => r,
         Err(e) => {
             let _ = writeln!(err, "{}: {e}", args.file.display());
             return 1;
         }
     };
-    let json = summary_json(&scene, &summary, sim.backend_name());
+    let json = summary_json(&scene, &summary, backend_name);
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
     let _ = writeln!(
         err,
@@ -138,7 +145,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         summary.dt,
         summary.wall_seconds,
         summary.steps as f64 / summary.wall_seconds.max(1e-12),
-        sim.backend_name()
+        backend_name
     );
     match &args.json {
         Some(path) => {
