@@ -133,6 +133,8 @@ impl Sub for Dual {
     }
 }
 
+// The product and quotient rules mix operators by nature.
+#[allow(clippy::suspicious_arithmetic_impl)]
 impl Mul for Dual {
     type Output = Dual;
     fn mul(self, o: Dual) -> Dual {
@@ -143,6 +145,7 @@ impl Mul for Dual {
     }
 }
 
+#[allow(clippy::suspicious_arithmetic_impl)]
 impl Div for Dual {
     type Output = Dual;
     fn div(self, o: Dual) -> Dual {
@@ -192,7 +195,11 @@ mod tests {
                 .v
             };
             let fd = (c(p) - c(m)) / (2.0 * h);
-            assert!((fd - d.d[s]).abs() < 1e-6 * (1.0 + fd.abs()), "{s}: {fd} {}", d.d[s]);
+            assert!(
+                (fd - d.d[s]).abs() < 1e-6 * (1.0 + fd.abs()),
+                "{s}: {fd} {}",
+                d.d[s]
+            );
         }
     }
 }

@@ -62,16 +62,12 @@ fn truth(b: bool) -> Dual {
 fn zip(a: &Val, b: &Val, f: &mut dyn FnMut(Dual, Dual) -> Dual) -> Result<Val, String> {
     Ok(match (a, b) {
         (Val::S(x), Val::S(y)) => Val::S(f(*x, *y)),
-        (Val::A(xs), Val::S(_)) => Val::A(
-            xs.iter()
-                .map(|x| zip(x, b, f))
-                .collect::<Result<_, _>>()?,
-        ),
-        (Val::S(_), Val::A(ys)) => Val::A(
-            ys.iter()
-                .map(|y| zip(a, y, f))
-                .collect::<Result<_, _>>()?,
-        ),
+        (Val::A(xs), Val::S(_)) => {
+            Val::A(xs.iter().map(|x| zip(x, b, f)).collect::<Result<_, _>>()?)
+        }
+        (Val::S(_), Val::A(ys)) => {
+            Val::A(ys.iter().map(|y| zip(a, y, f)).collect::<Result<_, _>>()?)
+        }
         (Val::A(xs), Val::A(ys)) if xs.len() == ys.len() => Val::A(
             xs.iter()
                 .zip(ys)
@@ -112,7 +108,8 @@ impl<'s> Scope<'s> {
 pub fn unit_factor(u: &Unit) -> Result<f64, String> {
     let mut f = 1.0;
     for fac in &u.factors {
-        let (k, _) = units::unit(&fac.name).ok_or_else(|| format!("unknown unit `{}`", fac.name))?;
+        let (k, _) =
+            units::unit(&fac.name).ok_or_else(|| format!("unknown unit `{}`", fac.name))?;
         f *= k.powi(fac.power);
     }
     Ok(f)
@@ -180,7 +177,11 @@ impl<'a> Evaluator<'a> {
                 let mut out = Vec::with_capacity(items.len());
                 for it in items {
                     let v = self.eval(env, it)?;
-                    out.push(if unit.is_some() { v.map(&mut |x| x * c) } else { v });
+                    out.push(if unit.is_some() {
+                        v.map(&mut |x| x * c)
+                    } else {
+                        v
+                    });
                 }
                 Ok(Val::A(out))
             }
@@ -346,11 +347,7 @@ impl<'a> Evaluator<'a> {
                 _ => 0,
             })
             .collect();
-        fn build(
-            u: &BTreeMap<String, f64>,
-            prefix: &str,
-            dims: &[usize],
-        ) -> Result<Val, String> {
+        fn build(u: &BTreeMap<String, f64>, prefix: &str, dims: &[usize]) -> Result<Val, String> {
             match dims.split_first() {
                 None => u
                     .get(prefix)
@@ -489,12 +486,8 @@ fn binary(op: BinOp, l: &Val, r: &Val) -> Result<Val, String> {
         BinOp::Div => zip(l, r, &mut |x, y| x / y),
         BinOp::Pow => zip(l, r, &mut Dual::pow),
         BinOp::MatMul => matmul(l, r),
-        BinOp::And => Ok(Val::S(truth(
-            l.scalar()?.v != 0.0 && r.scalar()?.v != 0.0,
-        ))),
-        BinOp::Or => Ok(Val::S(truth(
-            l.scalar()?.v != 0.0 || r.scalar()?.v != 0.0,
-        ))),
+        BinOp::And => Ok(Val::S(truth(l.scalar()?.v != 0.0 && r.scalar()?.v != 0.0))),
+        BinOp::Or => Ok(Val::S(truth(l.scalar()?.v != 0.0 || r.scalar()?.v != 0.0))),
         BinOp::Eq => cmp(|a, b| a == b),
         BinOp::Ne => cmp(|a, b| a != b),
         BinOp::Lt => cmp(|a, b| a < b),

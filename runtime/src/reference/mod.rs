@@ -291,11 +291,13 @@ impl<'a> Reference<'a> {
             for i in 0..n {
                 xs[i] = x0[i] + u[i] * eps;
             }
-            self.internal_forces(&xs, &mut fp).map_err(|e| e.message())?;
+            self.internal_forces(&xs, &mut fp)
+                .map_err(|e| e.message())?;
             for i in 0..n {
                 xs[i] = x0[i] - u[i] * eps;
             }
-            self.internal_forces(&xs, &mut fm).map_err(|e| e.message())?;
+            self.internal_forces(&xs, &mut fm)
+                .map_err(|e| e.message())?;
             let (mut num, mut den) = (0.0, 0.0);
             for i in 0..n {
                 if !free[i] {
@@ -499,7 +501,9 @@ fn material<'a>(ev: &mut Evaluator<'a>, name: &str) -> Result<Material<'a>, Stri
                         "I1bar" => Ok((a.name.as_str(), 0)),
                         "I2bar" => Ok((a.name.as_str(), 1)),
                         "J" => Ok((a.name.as_str(), 2)),
-                        other => Err(format!("material `{name}`: W has an unknown argument `{other}`")),
+                        other => Err(format!(
+                            "material `{name}`: W has an unknown argument `{other}`"
+                        )),
                     })
                     .collect::<Result<_, _>>()?;
                 return Ok(Material {
