@@ -93,6 +93,16 @@ fn benchmark_1k_agrees_with_the_engine() {
     agree(&example("benchmark-1k"), None, 400);
 }
 
+#[test]
+fn benchmark_10k_agrees_with_the_engine() {
+    agree(&example("benchmark-10k"), None, 60);
+}
+
+#[test]
+fn benchmark_50k_agrees_with_the_engine() {
+    agree(&example("benchmark-50k"), None, 20);
+}
+
 // The cuboid (9600 tets) and the endoscope (37828 tets) are slow in the IR interpreter: short
 // rollouts. `dt = auto` scripts get an explicit dt just below their stable step. In the first
 // few dozen steps the ramped pressure is still tiny (≈ 0.01–0.1 Pa), so the round-off noise of

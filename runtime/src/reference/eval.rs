@@ -199,6 +199,18 @@ impl<'a> Evaluator<'a> {
             ExprKind::Binary { op, lhs, rhs } => {
                 let l = self.eval(env, lhs)?;
                 let r = self.eval(env, rhs)?;
+                // Scalar arithmetic, the common case, without the broadcasting machinery.
+                if let (Val::S(x), Val::S(y)) = (&l, &r) {
+                    let (x, y) = (*x, *y);
+                    match op {
+                        BinOp::Add => return Ok(Val::S(x + y)),
+                        BinOp::Sub => return Ok(Val::S(x - y)),
+                        BinOp::Mul => return Ok(Val::S(x * y)),
+                        BinOp::Div => return Ok(Val::S(x / y)),
+                        BinOp::Pow => return Ok(Val::S(x.pow(y))),
+                        _ => {}
+                    }
+                }
                 binary(*op, &l, &r)
             }
             ExprKind::If {
