@@ -185,12 +185,22 @@ material series = yeoh_series(c: [0.08, 0.03, -0.001] MPa, d: [2.0, 8.0] /MPa, d
     let p = bench_variant(
         "materials",
         &materials,
-        "  damping = 10 /s\n  use rubber\n  use gel in front\n  use mr in top\n  use series in tipzone\n  pressure cavity = p_peak * ramp(t, 4 ms)",
+        "  damping = 10 /s\n  mass_scaling = 2.5\n  use rubber\n  use gel in front\n  use mr in top\n  use series in tipzone\n  pressure cavity = p_peak * ramp(t, 4 ms)",
         "elements tipzone = select(body, x > 50 mm)",
     );
     let scene = load(&p);
     assert_eq!(scene.lowered.materials.len(), 4);
     assert!(scene.material_ranges.iter().all(|r| !r.is_empty()));
+    // The reference's own rest volumes and lumped masses (with `mass_scaling`) equal the
+    // scene's precomputation.
+    let r = Reference::new(&scene).unwrap();
+    for (a, b) in r.rest_volumes().iter().zip(&scene.pre.rest_volume) {
+        assert!((a - b).abs() <= 1e-12 * b, "{a} {b}");
+    }
+    for (a, b) in r.masses().iter().zip(&scene.pre.mass) {
+        assert!((a - b).abs() <= 1e-12 * b, "{a} {b}");
+    }
+    drop(r);
     drop(scene);
     agree(&p, None, 400);
 }

@@ -31,6 +31,7 @@ type Vec3 = Vector3<f64>;
 /// A material ready to evaluate: its template arguments and `let`s, and its W.
 struct Material<'a> {
     name: String,
+    density: f64,
     scope: Scope<'a>,
     /// Derivative slot (0 = Ī1, 1 = Ī2, 2 = J) of each argument of W, with its name.
     args: Vec<(&'a str, usize)>,
@@ -57,6 +58,9 @@ pub struct Reference<'a> {
     materials: Vec<Material<'a>>,
     elem_material: Vec<usize>,
     dm_inv: Vec<Matrix3<f64>>,
+    rest_volume: Vec<f64>,
+    /// Lumped node masses ρ·V0/4 from each adjacent tet, times `mass_scaling`.
+    mass: Vec<f64>,
     /// Pressure expression per chamber, in `scene.lowered.chambers` order.
     pressures: Vec<&'a Expr>,
     damping: Option<&'a Expr>,
@@ -125,21 +129,54 @@ impl<'a> Reference<'a> {
             }
             None => None,
         };
+        // Rest shapes and masses from the mesh, independently of the scene's precomputation.
+        let n_nodes = scene.mesh.nodes.len();
+        let mut dm_inv = Vec::with_capacity(scene.mesh.tets.len());
+        let mut rest_volume = Vec::with_capacity(scene.mesh.tets.len());
+        let mut mass = vec![0.0; n_nodes];
+        let scaling = match setting(&scene.ast, "mass_scaling") {
+            Some(e) => ev.eval(&Scope::root(), e)?.scalar()?.v,
+            None => 1.0,
+        };
+        for (e, tet) in scene.mesh.tets.iter().enumerate() {
+            let p = tet.map(|n| Vec3::from(scene.mesh.nodes[n as usize]));
+            let dm = Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
+            let v0 = dm.determinant() / 6.0;
+            if !(v0 > 0.0 && v0.is_finite()) {
+                return Err(format!("element {e} has rest volume {v0:e} m³ ≤ 0"));
+            }
+            let inv = dm
+                .try_inverse()
+                .ok_or_else(|| format!("element {e} has a singular rest shape"))?;
+            let m = materials[elem_material[e]].density * v0 / 4.0 * scaling;
+            for &n in tet {
+                mass[n as usize] += m;
+            }
+            dm_inv.push(inv);
+            rest_volume.push(v0);
+        }
         Ok(Reference {
             scene,
             materials,
             elem_material,
-            dm_inv: scene
-                .pre
-                .dm_inv
-                .iter()
-                .map(|m| Matrix3::from_fn(|r, c| m[r][c]))
-                .collect(),
+            dm_inv,
+            rest_volume,
+            mass,
             pressures: pressure_stmts.into_iter().map(|(_, e)| e).collect(),
             damping: setting(&scene.ast, "damping"),
             gravity,
             ev,
         })
+    }
+
+    /// Lumped node masses (kg, with `mass_scaling`), computed by the reference itself.
+    pub fn masses(&self) -> &[f64] {
+        &self.mass
+    }
+
+    /// Rest volume per element (m³), computed by the reference itself.
+    pub fn rest_volumes(&self) -> &[f64] {
+        &self.rest_volume
     }
 
     /// W's value and partial derivatives (Ī1, Ī2, J) for material `m`.
@@ -191,7 +228,7 @@ impl<'a> Reference<'a> {
         let mut p = (f * 2.0 - finv_t * (2.0 / 3.0 * i1)) * (w1 * j23);
         p += ((f * i1 - f * c) * 2.0 - finv_t * (4.0 / 3.0 * i2)) * (w2 * j43);
         p += finv_t * (wj * j);
-        let vol0 = self.scene.pre.rest_volume[e];
+        let vol0 = self.rest_volume[e];
         let h = p * dm_inv.transpose() * (-vol0);
         Ok(Local {
             h,
@@ -255,14 +292,15 @@ impl<'a> Reference<'a> {
         let scene = self.scene;
         let n = scene.mesh.nodes.len();
         let x0: Vec<Vec3> = scene.mesh.nodes.iter().map(|p| Vec3::from(*p)).collect();
-        let mass = &scene.pre.mass;
+        let mass = self.mass.clone();
         let free: Vec<bool> = scene.fixed.iter().map(|f| !f).collect();
-        let h_min = scene
-            .pre
-            .min_altitude
+        // A length of the smallest element: the cube root of its volume.
+        let h_min = self
+            .rest_volume
             .iter()
             .copied()
-            .fold(f64::INFINITY, f64::min);
+            .fold(f64::INFINITY, f64::min)
+            .cbrt();
         let eps = h_min.max(1e-12) * 1e-6;
         // A deterministic pseudo-random start (xorshift).
         let mut seed: u64 = 0x9E37_79B9_7F4A_7C15;
@@ -386,7 +424,7 @@ impl<'a> Reference<'a> {
                     continue;
                 }
                 let f = f_el[i] + f_pr[i];
-                let a = f / scene.pre.mass[i] - v[i] * beta + g;
+                let a = f / self.mass[i] - v[i] * beta + g;
                 v[i] += a * dt;
                 x[i] += v[i] * dt;
             }
@@ -486,6 +524,8 @@ fn material<'a>(ev: &mut Evaluator<'a>, name: &str) -> Result<Material<'a>, Stri
         }
     };
     let mut scope = scope;
+    let mut density = None;
+    let mut energy = None;
     for s in stmts {
         match &s.kind {
             StmtKind::Let(l) => {
@@ -494,7 +534,14 @@ fn material<'a>(ev: &mut Evaluator<'a>, name: &str) -> Result<Material<'a>, Stri
                     .map_err(|e| format!("material `{name}`: {e}"))?;
                 scope.vars.push((l.name.name.as_str(), v));
             }
-            StmtKind::Energy { args, body, .. } => {
+            StmtKind::Assign { name: n, value } if n.name == "density" => {
+                let v = ev
+                    .eval(&scope, value)
+                    .and_then(|v| v.scalar())
+                    .map_err(|e| format!("material `{name}`: density: {e}"))?;
+                density = Some(v.v);
+            }
+            StmtKind::Energy { args, body, .. } if energy.is_none() => {
                 let args = args
                     .iter()
                     .map(|a| match a.name.as_str() {
@@ -505,18 +552,21 @@ fn material<'a>(ev: &mut Evaluator<'a>, name: &str) -> Result<Material<'a>, Stri
                             "material `{name}`: W has an unknown argument `{other}`"
                         )),
                     })
-                    .collect::<Result<_, _>>()?;
-                return Ok(Material {
-                    name: name.to_string(),
-                    scope,
-                    args,
-                    body,
-                });
+                    .collect::<Result<Vec<_>, _>>()?;
+                energy = Some((args, body));
             }
             _ => {}
         }
     }
-    Err(format!("material `{name}` has no strain energy"))
+    let (args, body) = energy.ok_or_else(|| format!("material `{name}` has no strain energy"))?;
+    let density = density.ok_or_else(|| format!("material `{name}` has no density"))?;
+    Ok(Material {
+        name: name.to_string(),
+        density,
+        scope,
+        args,
+        body,
+    })
 }
 
 /// Run a scene with the reference simulator (`dt`, `steps` override the script's).
