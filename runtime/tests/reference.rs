@@ -375,6 +375,26 @@ sim {{
     }
 }
 
+/// Stepping by hand gives the same state as `run`, and the state moves every step.
+#[test]
+fn stepping_matches_run() {
+    let scene = load(&example("benchmark-1k"));
+    let mut r = Reference::new(&scene).unwrap();
+    let mut st = r.initial_state();
+    let mut last = st.x.clone();
+    for step in 0..30 {
+        r.step(&mut st, step, 40e-6).unwrap();
+        if step > 0 {
+            assert!(st.x != last, "step {step} did not move");
+        }
+        last = st.x.clone();
+    }
+    let s = reference::run(&scene, Some(40e-6), Some(30)).unwrap();
+    for (a, b) in s.x.iter().zip(&st.x) {
+        assert_eq!(*a, [b[0], b[1], b[2]]);
+    }
+}
+
 /// At rest every material is stress-free.
 #[test]
 fn rest_is_stress_free() {

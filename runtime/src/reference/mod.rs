@@ -365,6 +365,78 @@ impl<'a> Reference<'a> {
         })
     }
 
+    /// The state at rest: positions from the mesh, zero velocities.
+    pub fn initial_state(&self) -> RefState {
+        let n = self.scene.mesh.nodes.len();
+        RefState {
+            x: self
+                .scene
+                .mesh
+                .nodes
+                .iter()
+                .map(|p| Vec3::from(*p))
+                .collect(),
+            v: vec![Vec3::zeros(); n],
+            f_el: vec![Vec3::zeros(); n],
+            f_pr: vec![Vec3::zeros(); n],
+        }
+    }
+
+    /// Advance `st` by one step of `dt`, the step with index `step` (t = step·dt at its start).
+    pub fn step(&mut self, st: &mut RefState, step: u64, dt: f64) -> Result<(), String> {
+        let scene = self.scene;
+        let t = step as f64 * dt;
+        self.ev.t = t;
+        self.ev.dt = dt;
+        match self.internal_forces(&st.x, &mut st.f_el) {
+            Ok(()) => {}
+            Err(InvertedOr::Inverted(e, j)) => {
+                return Err(format!(
+                    "element {e} inverted at step {step} (t = {t:.6} s): J = {j:e}. \
+                     Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element"
+                ));
+            }
+            Err(InvertedOr::Other(m)) => return Err(m),
+        }
+        st.f_pr.iter_mut().for_each(|f| *f = Vec3::zeros());
+        for c in 0..self.pressures.len() {
+            let p = self.scalar_at(self.pressures[c], "pressure")?;
+            let p6 = p / 6.0;
+            for tri in &scene.tris[scene.chamber_ranges[c].clone()] {
+                let [a, b, cc] = tri.map(|i| st.x[i as usize]);
+                let fc = (b - a).cross(&(cc - a)) * p6;
+                for &i in tri {
+                    st.f_pr[i as usize] += fc;
+                }
+            }
+        }
+        let beta = match self.damping {
+            Some(e) => self.scalar_at(e, "damping")?,
+            None => 0.0,
+        };
+        let g = self.gravity.unwrap_or_else(Vec3::zeros);
+        for i in 0..st.x.len() {
+            if scene.fixed[i] {
+                st.v[i] = Vec3::zeros();
+                continue;
+            }
+            let f = st.f_el[i] + st.f_pr[i];
+            let a = f / self.mass[i] - st.v[i] * beta + g;
+            st.v[i] += a * dt;
+            st.x[i] += st.v[i] * dt;
+        }
+        if let Some(i) = st.x.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+            return Err(format!(
+                "the simulation became unstable at step {} (t = {:.6} s): node {i} has a non-finite position. \
+                 The time step dt = {dt:e} s is too large for this mesh and material; try a smaller dt, e.g. {:e} s",
+                step + 1,
+                (step + 1) as f64 * dt,
+                dt / 4.0
+            ));
+        }
+        Ok(())
+    }
+
     /// Simulate: `dt` and `steps` override the script's.
     pub fn run(&mut self, dt: Option<f64>, steps: Option<u64>) -> Result<RunSummary, String> {
         let start = std::time::Instant::now();
@@ -382,62 +454,11 @@ impl<'a> Reference<'a> {
             return Err(format!("no usable time step (dt = {dt} s)"));
         }
         let steps = steps.unwrap_or_else(|| scene.steps_for(dt));
-        let n = scene.mesh.nodes.len();
-        let mut x: Vec<Vec3> = scene.mesh.nodes.iter().map(|p| Vec3::from(*p)).collect();
-        let mut v = vec![Vec3::zeros(); n];
-        let mut f_el = vec![Vec3::zeros(); n];
-        let mut f_pr = vec![Vec3::zeros(); n];
-        let g = self.gravity.unwrap_or_else(Vec3::zeros);
-        self.ev.dt = dt;
+        let mut st = self.initial_state();
         for step in 0..steps {
-            let t = step as f64 * dt;
-            self.ev.t = t;
-            match self.internal_forces(&x, &mut f_el) {
-                Ok(()) => {}
-                Err(InvertedOr::Inverted(e, j)) => {
-                    return Err(format!(
-                        "element {e} inverted at step {step} (t = {t:.6} s): J = {j:e}. \
-                         Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element"
-                    ));
-                }
-                Err(InvertedOr::Other(m)) => return Err(m),
-            }
-            f_pr.iter_mut().for_each(|f| *f = Vec3::zeros());
-            for c in 0..self.pressures.len() {
-                let p = self.scalar_at(self.pressures[c], "pressure")?;
-                let p6 = p / 6.0;
-                for tri in &scene.tris[scene.chamber_ranges[c].clone()] {
-                    let [a, b, cc] = tri.map(|i| x[i as usize]);
-                    let fc = (b - a).cross(&(cc - a)) * p6;
-                    for &i in tri {
-                        f_pr[i as usize] += fc;
-                    }
-                }
-            }
-            let beta = match self.damping {
-                Some(e) => self.scalar_at(e, "damping")?,
-                None => 0.0,
-            };
-            for i in 0..n {
-                if scene.fixed[i] {
-                    v[i] = Vec3::zeros();
-                    continue;
-                }
-                let f = f_el[i] + f_pr[i];
-                let a = f / self.mass[i] - v[i] * beta + g;
-                v[i] += a * dt;
-                x[i] += v[i] * dt;
-            }
-            if let Some(i) = x.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
-                return Err(format!(
-                    "the simulation became unstable at step {} (t = {:.6} s): node {i} has a non-finite position. \
-                     The time step dt = {dt:e} s is too large for this mesh and material; try a smaller dt, e.g. {:e} s",
-                    step + 1,
-                    (step + 1) as f64 * dt,
-                    dt / 4.0
-                ));
-            }
+            self.step(&mut st, step, dt)?;
         }
+        let (x, v) = (&st.x, &st.v);
         Ok(RunSummary {
             steps,
             dt,
@@ -447,6 +468,14 @@ impl<'a> Reference<'a> {
             v: v.iter().map(|p| [p[0], p[1], p[2]]).collect(),
         })
     }
+}
+
+/// The state of a reference run: positions and velocities per node (plus scratch buffers).
+pub struct RefState {
+    pub x: Vec<Vector3<f64>>,
+    pub v: Vec<Vector3<f64>>,
+    f_el: Vec<Vector3<f64>>,
+    f_pr: Vec<Vector3<f64>>,
 }
 
 /// Per-element intermediate results.
