@@ -173,6 +173,16 @@ fn gravity_and_mass_scaling_agree() {
     agree(&p, None, VARIANT_STEPS);
 }
 
+/// No damping and no pressure (a chamber is declared but not pressurised): gravity alone.
+#[test]
+fn gravity_alone_agrees() {
+    let p = bench_variant("falling", RUBBER, "  gravity = [0, 0, -9.81] m/s^2", "");
+    let scene = load(&p);
+    assert!(scene.lowered.chambers.is_empty());
+    drop(scene);
+    agree(&p, None, 150);
+}
+
 #[test]
 fn several_materials_agree() {
     let materials = format!(
