@@ -1,20 +1,27 @@
 //! The reference simulator: a plain-Rust f64 implementation of softc's physics, written
 //! independently of the kernel IR so that it can serve as the test oracle of every backend.
 //!
-//! It reads the same [`Scene`] (mesh, masses, rest shapes, chambers, fixed nodes, uniform values)
-//! but evaluates the script's expressions with its own tree-walking evaluator over the AST
-//! ([`eval`]) and differentiates the strain energy W(Ī1, Ī2, J) in forward mode with dual
-//! numbers ([`dual`]), where the kernels use reverse-mode AD on the IR. Per step, with
-//! t = step·dt at the start of the step:
+//! From the [`Scene`] it takes only data: the mesh (nodes in metres, tets grouped by material),
+//! the material of each element range, the chamber triangles, the fixed nodes, the values of
+//! params and inputs, the time-step choice and the parsed script. Everything else it computes
+//! itself: rest shapes Dm⁻¹ and volumes (nalgebra), densities and lumped masses (with
+//! `mass_scaling`), and every expression of the script (material constants, W, pressures,
+//! damping, gravity) with its own tree-walking evaluator over the AST ([`eval`]). It
+//! differentiates W(Ī1, Ī2, J) in forward mode with dual numbers ([`dual`]), where the kernels
+//! use reverse-mode AD on the IR. Per step, with t = step·dt at the start of the step:
 //!
 //! - element forces: F = Ds·Dm⁻¹, P = ∂W/∂F by the chain rule through Ī1 = J^(−2/3)·I1,
-//!   Ī2 = J^(−4/3)·I2 and J, the columns of −V0·P·Dm⁻ᵀ on corners 1–3, minus their sum on
-//!   corner 0;
+//!   Ī2 = J^(−4/3)·I2 and J (F⁻ᵀ from `try_inverse`), the columns of −V0·P·Dm⁻ᵀ on corners
+//!   1–3, minus their sum on corner 0;
 //! - follower pressure: p(t)/6 · (x1 − x0) × (x2 − x0) on each corner of each chamber triangle;
 //! - semi-implicit Euler: v' = (v + dt·(F/m − β·v + g))·(1 − fixed), x' = x + dt·v'.
 //!
-//! A non-finite position or an inverted element (J ≤ 0) stops the run with the step and the node
-//! or element. `dt = auto` is resolved by its own power iteration on M⁻¹K.
+//! Every step is checked: an inverted element (J ≤ 0) or a non-finite position stops the run
+//! with the step, the time and the element or node. `dt = auto` is resolved by its own power
+//! iteration on M⁻¹K (K·u from central differences of its own forces).
+//!
+//! Entry points: [`run`] (what `softc run --backend reference` calls), [`Reference::step`] for
+//! per-step comparisons, [`Reference::element`] for element-level checks.
 
 pub mod dual;
 pub mod eval;
