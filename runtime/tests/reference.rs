@@ -405,6 +405,65 @@ fn stepping_matches_run() {
     }
 }
 
+/// Under a homogeneous deformation x = F·X the stress equals the closed forms of the two
+/// neo-Hookean laws: P = μ(F − F⁻ᵀ) + λ ln J F⁻ᵀ (coupled ln J form) and
+/// P = μ J^(−2/3)(F − I1/3 F⁻ᵀ) + κ (J − 1) J F⁻ᵀ (decoupled form).
+#[test]
+fn stress_matches_closed_forms() {
+    let p = script(
+        "closed",
+        &format!(
+            r#"mesh body = load("{}")
+material coupled = neo_hookean_ln(mu: 0.1 MPa, lambda: 0.9 MPa, density: 1070 kg/m^3)
+material decoupled = neo_hookean(mu: 0.1 MPa, kappa: 1.5 MPa, density: 1070 kg/m^3)
+elements half = select(body, x < 30 mm)
+nodes base = named(body, "base")
+sim {{
+  dt = 10 us
+  steps = 1
+  fix base
+  use coupled
+  use decoupled in half
+}}
+"#,
+            mesh("bench_1k.msh")
+        ),
+    );
+    let scene = load(&p);
+    let mut r = Reference::new(&scene).unwrap();
+    let f = nalgebra::Matrix3::new(1.2, 0.1, -0.05, 0.03, 0.9, 0.2, -0.1, 0.04, 1.1);
+    let j = f.determinant();
+    let finv_t = f.try_inverse().unwrap().transpose();
+    let i1 = (f.transpose() * f).trace();
+    assert!(scene.material_ranges.iter().all(|r| !r.is_empty()));
+    for (m, range) in scene.material_ranges.iter().enumerate() {
+        let e = range.start;
+        let x = scene.mesh.tets[e].map(|n| {
+            let p = f * nalgebra::Vector3::from(scene.mesh.nodes[n as usize]);
+            [p[0], p[1], p[2]]
+        });
+        let res = r.element(e, &x).unwrap();
+        let expected = match scene.lowered.materials[m].as_str() {
+            "coupled" => (f - finv_t) * 0.1e6 + finv_t * (0.9e6 * j.ln()),
+            _ => {
+                (f - finv_t * (i1 / 3.0)) * (0.1e6 * j.powf(-2.0 / 3.0))
+                    + finv_t * (1.5e6 * (j - 1.0) * j)
+            }
+        };
+        for rr in 0..3 {
+            for c in 0..3 {
+                let (a, b) = (res.piola[rr][c], expected[(rr, c)]);
+                assert!(
+                    (a - b).abs() < 1e-9 * expected.abs().max(),
+                    "{}: P[{rr}][{c}] = {a} vs {b}",
+                    scene.lowered.materials[m]
+                );
+            }
+        }
+        assert!((res.j - j).abs() < 1e-12);
+    }
+}
+
 /// At rest every material is stress-free.
 #[test]
 fn rest_is_stress_free() {
