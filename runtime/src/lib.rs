@@ -5,3 +5,4 @@ pub mod cli;
 pub mod engine;
 pub mod lsp;
 pub mod mesh;
+pub mod reference;

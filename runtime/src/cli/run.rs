@@ -46,7 +46,7 @@ pub enum BackendChoice {
     Cpu,
     /// The kernel-IR interpreter: the reference semantics of the kernels, slow.
     Interp,
-    /// The plain-Rust f64 reference simulator (not implemented yet).
+    /// The plain-Rust f64 reference simulator (the test oracle).
     Reference,
 }
 
@@ -79,17 +79,6 @@ fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::sema::units::Dim),
 }
 
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
-    match args.backend {
-        BackendChoice::Interp | BackendChoice::Cpu => {}
-        BackendChoice::Reference => {
-            let _ = writeln!(
-                err,
-                "softc run --backend {:?}: not implemented yet (use --backend interp)",
-                args.backend
-            );
-            return 2;
-        }
-    }
     if let Err(e) = std::fs::metadata(&args.file) {
         let _ = writeln!(err, "softc: cannot read `{}`: {e}", args.file.display());
         return 2;
@@ -133,9 +122,14 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     let result = match args.backend {
+        BackendChoice::Reference => {
+            crate::reference::run(&scene, dt, args.steps).map(|s| (s, "reference"))
+        }
         BackendChoice::Interp => {
             let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.module));
-            sim.run(dt, args.steps).map(|s| (s, "interp"))
+            sim.run(dt, args.steps)
+                .map(|s| (s, "interp"))
+                .map_err(|e| e.0)
         }
         _ => {
             let precision = match (args.precision, scene.precision_setting()) {
@@ -154,7 +148,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 }
             };
             let mut sim = Simulation::new(&scene, cpu);
-            sim.run(dt, args.steps).map(|s| (s, "cpu"))
+            sim.run(dt, args.steps).map(|s| (s, "cpu")).map_err(|e| e.0)
         }
     };
     let (summary, backend_name) = match result {

@@ -1,0 +1,611 @@
+//! The reference simulator: a plain-Rust f64 implementation of softc's physics, written
+//! independently of the kernel IR so that it can serve as the test oracle of every backend.
+//!
+//! From the [`Scene`] it takes only data: the mesh (nodes in metres, tets grouped by material),
+//! the material of each element range, the chamber triangles, the fixed nodes, the values of
+//! params and inputs, the time-step choice and the parsed script. Everything else it computes
+//! itself: rest shapes Dm⁻¹ and volumes (nalgebra), densities and lumped masses (with
+//! `mass_scaling`), and every expression of the script (material constants, W, pressures,
+//! damping, gravity) with its own tree-walking evaluator over the AST ([`eval`]). It
+//! differentiates W(Ī1, Ī2, J) in forward mode with dual numbers ([`dual`]), where the kernels
+//! use reverse-mode AD on the IR. Per step, with t = step·dt at the start of the step:
+//!
+//! - element forces: F = Ds·Dm⁻¹, P = ∂W/∂F by the chain rule through Ī1 = J^(−2/3)·I1,
+//!   Ī2 = J^(−4/3)·I2 and J (F⁻ᵀ from `try_inverse`), the columns of −V0·P·Dm⁻ᵀ on corners
+//!   1–3, minus their sum on corner 0;
+//! - follower pressure: p(t)/6 · (x1 − x0) × (x2 − x0) on each corner of each chamber triangle;
+//! - semi-implicit Euler: v' = (v + dt·(F/m − β·v + g))·(1 − fixed), x' = x + dt·v'.
+//!
+//! Every step is checked: an inverted element (J ≤ 0) or a non-finite position stops the run
+//! with the step, the time and the element or node. `dt = auto` is resolved by its own power
+//! iteration on M⁻¹K (K·u from central differences of its own forces).
+//!
+//! Entry points: [`run`] (what `softc run --backend reference` calls), [`Reference::step`] for
+//! per-step comparisons, [`Reference::element`] for element-level checks.
+
+pub mod dual;
+pub mod eval;
+
+use crate::engine::RunSummary;
+use crate::engine::scene::{DtChoice, Scene};
+use dual::Dual;
+use eval::{Evaluator, Scope};
+use nalgebra::{Matrix3, Vector3};
+use softc_compiler::front::ast::*;
+
+type Vec3 = Vector3<f64>;
+
+/// A material ready to evaluate: its template arguments and `let`s, and its W.
+struct Material<'a> {
+    name: String,
+    density: f64,
+    scope: Scope<'a>,
+    /// Derivative slot (0 = Ī1, 1 = Ī2, 2 = J) of each argument of W, with its name.
+    args: Vec<(&'a str, usize)>,
+    body: &'a Expr,
+}
+
+/// What one element contributes at a deformed configuration.
+#[derive(Clone, Debug)]
+pub struct ElementResult {
+    /// Forces on the four corners, N.
+    pub forces: [[f64; 3]; 4],
+    /// Strain energy V0·W, J.
+    pub energy: f64,
+    /// Volume ratio det F.
+    pub j: f64,
+    /// First Piola–Kirchhoff stress, row-major, Pa.
+    pub piola: [[f64; 3]; 3],
+}
+
+/// The reference simulator bound to a scene.
+pub struct Reference<'a> {
+    scene: &'a Scene,
+    ev: Evaluator<'a>,
+    materials: Vec<Material<'a>>,
+    elem_material: Vec<usize>,
+    dm_inv: Vec<Matrix3<f64>>,
+    rest_volume: Vec<f64>,
+    /// Lumped node masses ρ·V0/4 from each adjacent tet, times `mass_scaling`.
+    mass: Vec<f64>,
+    /// Pressure expression per chamber, in `scene.lowered.chambers` order.
+    pressures: Vec<&'a Expr>,
+    damping: Option<&'a Expr>,
+    gravity: Option<Vec3>,
+}
+
+fn sim_block(ast: &Script) -> &[Stmt] {
+    ast.items
+        .iter()
+        .find_map(|i| match &i.kind {
+            ItemKind::Sim(s) => Some(s.as_slice()),
+            _ => None,
+        })
+        .unwrap_or(&[])
+}
+
+fn setting<'a>(ast: &'a Script, name: &str) -> Option<&'a Expr> {
+    sim_block(ast).iter().find_map(|s| match &s.kind {
+        StmtKind::Assign { name: n, value } if n.name == name => Some(value),
+        _ => None,
+    })
+}
+
+impl<'a> Reference<'a> {
+    pub fn new(scene: &'a Scene) -> Result<Self, String> {
+        let prelude = softc_compiler::sema::prelude_ast();
+        let mut ev = Evaluator::new(&scene.ast, prelude, &scene.uniforms);
+        let materials = scene
+            .lowered
+            .materials
+            .iter()
+            .map(|m| material(&mut ev, m))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut elem_material = vec![usize::MAX; scene.mesh.tets.len()];
+        for (m, range) in scene.material_ranges.iter().enumerate() {
+            for e in range.clone() {
+                elem_material[e] = m;
+            }
+        }
+        if let Some(e) = elem_material.iter().position(|&m| m == usize::MAX) {
+            return Err(format!("element {e} has no material"));
+        }
+        let sim = sim_block(&scene.ast);
+        let pressure_stmts: Vec<(&str, &Expr)> = sim
+            .iter()
+            .filter_map(|s| match &s.kind {
+                StmtKind::Pressure { chamber, value } => Some((chamber.name.as_str(), value)),
+                _ => None,
+            })
+            .collect();
+        if pressure_stmts.len() != scene.lowered.chambers.len()
+            || pressure_stmts
+                .iter()
+                .zip(&scene.lowered.chambers)
+                .any(|((a, _), b)| a != b)
+        {
+            return Err("the scene's chambers do not match the sim block's pressures".into());
+        }
+        let gravity = match setting(&scene.ast, "gravity") {
+            Some(e) => {
+                let g = ev.eval(&Scope::root(), e)?.flat();
+                if g.len() != 3 {
+                    return Err("`gravity` is not a 3-vector".into());
+                }
+                Some(Vec3::new(g[0].v, g[1].v, g[2].v))
+            }
+            None => None,
+        };
+        // Rest shapes and masses from the mesh, independently of the scene's precomputation.
+        let n_nodes = scene.mesh.nodes.len();
+        let mut dm_inv = Vec::with_capacity(scene.mesh.tets.len());
+        let mut rest_volume = Vec::with_capacity(scene.mesh.tets.len());
+        let mut mass = vec![0.0; n_nodes];
+        let scaling = match setting(&scene.ast, "mass_scaling") {
+            Some(e) => ev.eval(&Scope::root(), e)?.scalar()?.v,
+            None => 1.0,
+        };
+        for (e, tet) in scene.mesh.tets.iter().enumerate() {
+            let p = tet.map(|n| Vec3::from(scene.mesh.nodes[n as usize]));
+            let dm = Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
+            let v0 = dm.determinant() / 6.0;
+            if !(v0 > 0.0 && v0.is_finite()) {
+                return Err(format!("element {e} has rest volume {v0:e} m³ ≤ 0"));
+            }
+            let inv = dm
+                .try_inverse()
+                .ok_or_else(|| format!("element {e} has a singular rest shape"))?;
+            let m = materials[elem_material[e]].density * v0 / 4.0 * scaling;
+            for &n in tet {
+                mass[n as usize] += m;
+            }
+            dm_inv.push(inv);
+            rest_volume.push(v0);
+        }
+        Ok(Reference {
+            scene,
+            materials,
+            elem_material,
+            dm_inv,
+            rest_volume,
+            mass,
+            pressures: pressure_stmts.into_iter().map(|(_, e)| e).collect(),
+            damping: setting(&scene.ast, "damping"),
+            gravity,
+            ev,
+        })
+    }
+
+    /// Lumped node masses (kg, with `mass_scaling`), computed by the reference itself.
+    pub fn masses(&self) -> &[f64] {
+        &self.mass
+    }
+
+    /// Rest volume per element (m³), computed by the reference itself.
+    pub fn rest_volumes(&self) -> &[f64] {
+        &self.rest_volume
+    }
+
+    /// W's value and partial derivatives (Ī1, Ī2, J) for material `m`.
+    fn energy(&mut self, m: usize, inv: [f64; 3]) -> Result<Dual, String> {
+        let mat = &self.materials[m];
+        let scope = Scope {
+            vars: mat
+                .args
+                .iter()
+                .map(|&(n, slot)| (n, eval::Val::S(Dual::var(inv[slot], slot))))
+                .collect(),
+            parent: Some(&mat.scope),
+        };
+        self.ev
+            .eval(&scope, mat.body)
+            .and_then(|v| v.scalar())
+            .map_err(|e| format!("material `{}`: {e}", mat.name))
+    }
+
+    /// Energy, stress and H = −V0·P·Dm⁻ᵀ of element `e` (its material, Dm⁻¹ and V0) with its
+    /// corners at `x`. J ≤ 0 (or not finite) is returned with zero stress for the caller to
+    /// judge; a singular F with J > 0 is an error.
+    fn element_at(&mut self, e: usize, x: &[Vec3; 4]) -> Result<Local, String> {
+        let dm_inv = self.dm_inv[e];
+        let ds = Matrix3::from_columns(&[x[1] - x[0], x[2] - x[0], x[3] - x[0]]);
+        let f = ds * dm_inv;
+        let j = f.determinant();
+        if !(j > 0.0 && j.is_finite()) {
+            return Ok(Local {
+                h: Matrix3::zeros(),
+                p: Matrix3::zeros(),
+                energy: f64::NAN,
+                j,
+            });
+        }
+        let finv_t = f
+            .try_inverse()
+            .ok_or_else(|| format!("element {e}: singular deformation gradient (J = {j:e})"))?
+            .transpose();
+        let c = f.transpose() * f;
+        let i1 = c.trace();
+        let i2 = 0.5 * (i1 * i1 - (c * c).trace());
+        let j23 = j.powf(-2.0 / 3.0);
+        let j43 = j.powf(-4.0 / 3.0);
+        let w = self.energy(self.elem_material[e], [j23 * i1, j43 * i2, j])?;
+        let [w1, w2, wj] = w.d;
+        // ∂Ī1/∂F = J^(−2/3)(2F − ⅔ I1 F⁻ᵀ), ∂Ī2/∂F = J^(−4/3)(2(I1 F − F C) − ⁴⁄₃ I2 F⁻ᵀ),
+        // ∂J/∂F = J F⁻ᵀ.
+        let mut p = (f * 2.0 - finv_t * (2.0 / 3.0 * i1)) * (w1 * j23);
+        p += ((f * i1 - f * c) * 2.0 - finv_t * (4.0 / 3.0 * i2)) * (w2 * j43);
+        p += finv_t * (wj * j);
+        let vol0 = self.rest_volume[e];
+        let h = p * dm_inv.transpose() * (-vol0);
+        Ok(Local {
+            h,
+            p,
+            energy: vol0 * w.v,
+            j,
+        })
+    }
+
+    /// Energy, stress and corner forces of element `e` with its corners at `x` (metres).
+    pub fn element(&mut self, e: usize, x: &[[f64; 3]; 4]) -> Result<ElementResult, String> {
+        let xs = x.map(Vec3::from);
+        let l = self.element_at(e, &xs)?;
+        let mut forces = [[0.0; 3]; 4];
+        for k in 0..3 {
+            let col = l.h.column(k);
+            forces[k + 1] = [col[0], col[1], col[2]];
+        }
+        let s = l.h.column(0) + l.h.column(1) + l.h.column(2);
+        forces[0] = [-s[0], -s[1], -s[2]];
+        Ok(ElementResult {
+            forces,
+            energy: l.energy,
+            j: l.j,
+            piola: std::array::from_fn(|r| std::array::from_fn(|c| l.p[(r, c)])),
+        })
+    }
+
+    /// Internal (element) forces per node at positions `x`; the first element with J ≤ 0 is
+    /// an error `(element, J)`.
+    fn internal_forces(&mut self, x: &[Vec3], out: &mut [Vec3]) -> Result<(), InvertedOr> {
+        out.iter_mut().for_each(|f| *f = Vec3::zeros());
+        for (e, tet) in self.scene.mesh.tets.iter().enumerate() {
+            let xs = tet.map(|n| x[n as usize]);
+            let l = self.element_at(e, &xs).map_err(InvertedOr::Other)?;
+            if !(l.j > 0.0 && l.j.is_finite()) {
+                return Err(InvertedOr::Inverted(e, l.j));
+            }
+            let (c0, c1, c2) = (l.h.column(0), l.h.column(1), l.h.column(2));
+            out[tet[1] as usize] += c0;
+            out[tet[2] as usize] += c1;
+            out[tet[3] as usize] += c2;
+            out[tet[0] as usize] -= c0 + c1 + c2;
+        }
+        Ok(())
+    }
+
+    fn scalar_at(&mut self, e: &'a Expr, what: &str) -> Result<f64, String> {
+        let v = self
+            .ev
+            .eval(&Scope::root(), e)
+            .and_then(|v| v.scalar())
+            .map_err(|err| format!("{what}: {err}"))?;
+        Ok(v.v)
+    }
+
+    /// The largest stable step of semi-implicit Euler at rest, 2/ω_max with ω_max² the largest
+    /// eigenvalue of M⁻¹K over the free nodes: power iteration, K·u by central differences of
+    /// this simulator's own internal forces.
+    pub fn stable_dt_estimate(&mut self) -> Result<f64, String> {
+        let scene = self.scene;
+        let n = scene.mesh.nodes.len();
+        let x0: Vec<Vec3> = scene.mesh.nodes.iter().map(|p| Vec3::from(*p)).collect();
+        let mass = self.mass.clone();
+        let free: Vec<bool> = scene.fixed.iter().map(|f| !f).collect();
+        // A length of the smallest element: the cube root of its volume.
+        let h_min = self
+            .rest_volume
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min)
+            .cbrt();
+        let eps = h_min.max(1e-12) * 1e-6;
+        // A deterministic pseudo-random start (xorshift).
+        let mut seed: u64 = 0x9E37_79B9_7F4A_7C15;
+        let mut rnd = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            (seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let mut u: Vec<Vec3> = (0..n)
+            .map(|i| {
+                let r = Vec3::new(rnd(), rnd(), rnd());
+                if free[i] { r } else { Vec3::zeros() }
+            })
+            .collect();
+        let (mut fp, mut fm) = (vec![Vec3::zeros(); n], vec![Vec3::zeros(); n]);
+        let mut xs = x0.clone();
+        let mut lambda = 0.0_f64;
+        let mut history: Vec<f64> = Vec::new();
+        for it in 0..400 {
+            let norm = u.iter().map(|v| v.norm_squared()).sum::<f64>().sqrt();
+            if norm == 0.0 {
+                break;
+            }
+            u.iter_mut().for_each(|v| *v /= norm);
+            for i in 0..n {
+                xs[i] = x0[i] + u[i] * eps;
+            }
+            self.internal_forces(&xs, &mut fp)
+                .map_err(|e| e.message())?;
+            for i in 0..n {
+                xs[i] = x0[i] - u[i] * eps;
+            }
+            self.internal_forces(&xs, &mut fm)
+                .map_err(|e| e.message())?;
+            let (mut num, mut den) = (0.0, 0.0);
+            for i in 0..n {
+                if !free[i] {
+                    u[i] = Vec3::zeros();
+                    continue;
+                }
+                let ku = -(fp[i] - fm[i]) / (2.0 * eps);
+                num += u[i].dot(&ku);
+                den += mass[i] * u[i].norm_squared();
+                u[i] = ku / mass[i];
+            }
+            if den > 0.0 {
+                lambda = lambda.max(num / den);
+            }
+            history.push(lambda);
+            if it >= 40 {
+                let old = history[it - 20];
+                if (lambda - old).abs() <= 1e-6 * lambda {
+                    break;
+                }
+            }
+        }
+        Ok(if lambda <= 0.0 {
+            f64::INFINITY
+        } else {
+            2.0 / lambda.sqrt()
+        })
+    }
+
+    /// The state at rest: positions from the mesh, zero velocities.
+    pub fn initial_state(&self) -> RefState {
+        let n = self.scene.mesh.nodes.len();
+        RefState {
+            x: self
+                .scene
+                .mesh
+                .nodes
+                .iter()
+                .map(|p| Vec3::from(*p))
+                .collect(),
+            v: vec![Vec3::zeros(); n],
+            f_el: vec![Vec3::zeros(); n],
+            f_pr: vec![Vec3::zeros(); n],
+        }
+    }
+
+    /// Advance `st` by one step of `dt`, the step with index `step` (t = step·dt at its start).
+    pub fn step(&mut self, st: &mut RefState, step: u64, dt: f64) -> Result<(), String> {
+        let scene = self.scene;
+        let t = step as f64 * dt;
+        self.ev.t = t;
+        self.ev.dt = dt;
+        match self.internal_forces(&st.x, &mut st.f_el) {
+            Ok(()) => {}
+            Err(InvertedOr::Inverted(e, j)) => {
+                return Err(format!(
+                    "element {e} inverted at step {step} (t = {t:.6} s): J = {j:e}. \
+                     Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element"
+                ));
+            }
+            Err(InvertedOr::Other(m)) => return Err(m),
+        }
+        st.f_pr.iter_mut().for_each(|f| *f = Vec3::zeros());
+        for c in 0..self.pressures.len() {
+            let p = self.scalar_at(self.pressures[c], "pressure")?;
+            let p6 = p / 6.0;
+            for tri in &scene.tris[scene.chamber_ranges[c].clone()] {
+                let [a, b, cc] = tri.map(|i| st.x[i as usize]);
+                let fc = (b - a).cross(&(cc - a)) * p6;
+                for &i in tri {
+                    st.f_pr[i as usize] += fc;
+                }
+            }
+        }
+        let beta = match self.damping {
+            Some(e) => self.scalar_at(e, "damping")?,
+            None => 0.0,
+        };
+        let g = self.gravity.unwrap_or_else(Vec3::zeros);
+        for i in 0..st.x.len() {
+            if scene.fixed[i] {
+                st.v[i] = Vec3::zeros();
+                continue;
+            }
+            let f = st.f_el[i] + st.f_pr[i];
+            let a = f / self.mass[i] - st.v[i] * beta + g;
+            st.v[i] += a * dt;
+            st.x[i] += st.v[i] * dt;
+        }
+        if let Some(i) = st.x.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+            return Err(format!(
+                "the simulation became unstable at step {} (t = {:.6} s): node {i} has a non-finite position. \
+                 The time step dt = {dt:e} s is too large for this mesh and material; try a smaller dt, e.g. {:e} s",
+                step + 1,
+                (step + 1) as f64 * dt,
+                dt / 4.0
+            ));
+        }
+        Ok(())
+    }
+
+    /// Simulate: `dt` and `steps` override the script's.
+    pub fn run(&mut self, dt: Option<f64>, steps: Option<u64>) -> Result<RunSummary, String> {
+        let start = std::time::Instant::now();
+        let scene = self.scene;
+        let estimate = match (scene.dt, dt) {
+            (DtChoice::Auto { .. }, None) => Some(self.stable_dt_estimate()?),
+            _ => None,
+        };
+        let dt = match (dt, scene.dt, estimate) {
+            (Some(dt), _, _) | (None, DtChoice::Given(dt), _) => dt,
+            (None, DtChoice::Auto { safety }, Some(est)) => safety * est,
+            (None, DtChoice::Auto { .. }, None) => unreachable!("estimated above"),
+        };
+        if !dt.is_finite() || dt <= 0.0 {
+            return Err(format!("no usable time step (dt = {dt} s)"));
+        }
+        let steps = steps.unwrap_or_else(|| scene.steps_for(dt));
+        let mut st = self.initial_state();
+        for step in 0..steps {
+            self.step(&mut st, step, dt)?;
+        }
+        let (x, v) = (&st.x, &st.v);
+        Ok(RunSummary {
+            steps,
+            dt,
+            dt_stable_estimate: estimate,
+            wall_seconds: start.elapsed().as_secs_f64(),
+            x: x.iter().map(|p| [p[0], p[1], p[2]]).collect(),
+            v: v.iter().map(|p| [p[0], p[1], p[2]]).collect(),
+        })
+    }
+}
+
+/// The state of a reference run: positions and velocities per node (plus scratch buffers).
+pub struct RefState {
+    pub x: Vec<Vector3<f64>>,
+    pub v: Vec<Vector3<f64>>,
+    f_el: Vec<Vector3<f64>>,
+    f_pr: Vec<Vector3<f64>>,
+}
+
+/// Per-element intermediate results.
+struct Local {
+    h: Matrix3<f64>,
+    p: Matrix3<f64>,
+    energy: f64,
+    j: f64,
+}
+
+enum InvertedOr {
+    Inverted(usize, f64),
+    Other(String),
+}
+
+impl InvertedOr {
+    fn message(self) -> String {
+        match self {
+            InvertedOr::Inverted(e, j) => format!("element {e} is inverted (J = {j:e})"),
+            InvertedOr::Other(m) => m,
+        }
+    }
+}
+
+/// Resolve a material (a block, or an instance of a prelude or user template).
+fn material<'a>(ev: &mut Evaluator<'a>, name: &str) -> Result<Material<'a>, String> {
+    let mut item = ev
+        .find(name)
+        .ok_or_else(|| format!("unknown material `{name}`"))?;
+    // A `let` may alias a material.
+    for _ in 0..8 {
+        match &item.kind {
+            ItemKind::Let(LetDecl {
+                value:
+                    Expr {
+                        kind: ExprKind::Name(id),
+                        ..
+                    },
+                ..
+            }) => {
+                item = ev
+                    .find(&id.name)
+                    .ok_or_else(|| format!("unknown material `{}`", id.name))?;
+            }
+            _ => break,
+        }
+    }
+    let ItemKind::Material(m) = &item.kind else {
+        return Err(format!("`{name}` is not a material"));
+    };
+    let (stmts, scope): (&'a [Stmt], Scope<'a>) = match &m.body {
+        MaterialBody::Block(stmts) => (stmts, Scope::root()),
+        MaterialBody::Expr(e) => {
+            let ExprKind::Call { callee, args } = &e.kind else {
+                return Err(format!("material `{name}` is not a call to a template"));
+            };
+            let ExprKind::Name(t) = &callee.kind else {
+                return Err(format!("material `{name}` is not a call to a template"));
+            };
+            let template = ev
+                .find(&t.name)
+                .ok_or_else(|| format!("unknown material template `{}`", t.name))?;
+            let ItemKind::Material(MaterialDecl {
+                params: Some(params),
+                body: MaterialBody::Block(stmts),
+                ..
+            }) = &template.kind
+            else {
+                return Err(format!("`{}` is not a material template", t.name));
+            };
+            let scope = ev
+                .bind(&Scope::root(), params, args)
+                .map_err(|e| format!("material `{name}`: {e}"))?;
+            (stmts, scope)
+        }
+    };
+    let mut scope = scope;
+    let mut density = None;
+    let mut energy = None;
+    for s in stmts {
+        match &s.kind {
+            StmtKind::Let(l) => {
+                let v = ev
+                    .eval(&scope, &l.value)
+                    .map_err(|e| format!("material `{name}`: {e}"))?;
+                scope.vars.push((l.name.name.as_str(), v));
+            }
+            StmtKind::Assign { name: n, value } if n.name == "density" => {
+                let v = ev
+                    .eval(&scope, value)
+                    .and_then(|v| v.scalar())
+                    .map_err(|e| format!("material `{name}`: density: {e}"))?;
+                density = Some(v.v);
+            }
+            StmtKind::Energy { args, body, .. } if energy.is_none() => {
+                let args = args
+                    .iter()
+                    .map(|a| match a.name.as_str() {
+                        "I1bar" => Ok((a.name.as_str(), 0)),
+                        "I2bar" => Ok((a.name.as_str(), 1)),
+                        "J" => Ok((a.name.as_str(), 2)),
+                        other => Err(format!(
+                            "material `{name}`: W has an unknown argument `{other}`"
+                        )),
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                energy = Some((args, body));
+            }
+            _ => {}
+        }
+    }
+    let (args, body) = energy.ok_or_else(|| format!("material `{name}` has no strain energy"))?;
+    let density = density.ok_or_else(|| format!("material `{name}` has no density"))?;
+    Ok(Material {
+        name: name.to_string(),
+        density,
+        scope,
+        args,
+        body,
+    })
+}
+
+/// Run a scene with the reference simulator (`dt`, `steps` override the script's).
+pub fn run(scene: &Scene, dt: Option<f64>, steps: Option<u64>) -> Result<RunSummary, String> {
+    Reference::new(scene)?.run(dt, steps)
+}

@@ -1,0 +1,507 @@
+//! The reference simulator (`softc::reference`) against the kernel-IR engine and against
+//! independent facts: short rollouts of every example and of variants (gravity, several
+//! materials, windowed damping, a controller) agree to 1e-6 relative in f64; element forces
+//! equal the finite-difference derivative of the energy; the benchmark's tip displacement and
+//! stable step match BENCHMARK.md.
+
+use softc::engine::scene::Scene;
+use softc::engine::{Interpreter, RunSummary, Simulation};
+use softc::reference::{self, Reference};
+use std::path::{Path, PathBuf};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn mesh(name: &str) -> String {
+    root()
+        .join("meshes")
+        .join(name)
+        .canonicalize()
+        .unwrap()
+        .display()
+        .to_string()
+}
+
+/// Write a script into a fresh temp dir.
+fn script(name: &str, text: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("softc-reference-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(format!("{name}.soft"));
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn load(path: &Path) -> Scene {
+    Scene::load(path, &[]).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+fn interp(scene: &Scene, dt: Option<f64>, steps: u64) -> RunSummary {
+    Simulation::new(scene, Interpreter::new(&scene.lowered.module))
+        .run(dt, Some(steps))
+        .unwrap()
+}
+
+/// max |x_ref − x_ir| / max |x_ir − x0| over all nodes (and the same for velocities).
+fn relative_difference(scene: &Scene, a: &RunSummary, b: &RunSummary) -> (f64, f64) {
+    let d = |p: [f64; 3], q: [f64; 3]| (0..3).map(|k| (p[k] - q[k]).powi(2)).sum::<f64>().sqrt();
+    let mut scale_x: f64 = 0.0;
+    let mut diff_x: f64 = 0.0;
+    let mut scale_v: f64 = 0.0;
+    let mut diff_v: f64 = 0.0;
+    for i in 0..a.x.len() {
+        scale_x = scale_x.max(d(b.x[i], scene.mesh.nodes[i]));
+        diff_x = diff_x.max(d(a.x[i], b.x[i]));
+        scale_v = scale_v.max(d(b.v[i], [0.0; 3]));
+        diff_v = diff_v.max(d(a.v[i], b.v[i]));
+    }
+    assert!(scale_x > 0.0, "nothing moved");
+    (diff_x / scale_x, diff_v / scale_v)
+}
+
+/// Run both simulators for `steps` steps and check that positions agree to 1e-6 relative to the
+/// largest displacement, velocities to `v_tol` relative to the largest speed.
+fn agree_to(path: &Path, dt: Option<f64>, steps: u64, v_tol: f64) -> f64 {
+    let scene = load(path);
+    let ir = interp(&scene, dt, steps);
+    let rf = reference::run(&scene, dt, Some(steps)).unwrap();
+    assert_eq!(rf.steps, steps);
+    assert_eq!(rf.dt, ir.dt);
+    let (dx, dv) = relative_difference(&scene, &rf, &ir);
+    eprintln!(
+        "{}: {steps} steps, max relative difference x {dx:.2e}, v {dv:.2e}",
+        path.display()
+    );
+    assert!(
+        dx < 1e-6 && dv < v_tol,
+        "{}: x {dx:e}, v {dv:e}",
+        path.display()
+    );
+    dx
+}
+
+fn agree(path: &Path, dt: Option<f64>, steps: u64) -> f64 {
+    agree_to(path, dt, steps, 1e-6)
+}
+
+fn example(name: &str) -> PathBuf {
+    root().join("examples").join(format!("{name}.soft"))
+}
+
+#[test]
+fn benchmark_1k_agrees_with_the_engine() {
+    agree(&example("benchmark-1k"), None, 400);
+}
+
+#[test]
+fn benchmark_10k_agrees_with_the_engine() {
+    agree(&example("benchmark-10k"), None, 60);
+}
+
+#[test]
+fn benchmark_50k_agrees_with_the_engine() {
+    agree(&example("benchmark-50k"), None, 20);
+}
+
+// The cuboid (9600 tets) and the endoscope (37828 tets) are slow in the IR interpreter: short
+// rollouts. `dt = auto` scripts get an explicit dt just below their stable step. In the first
+// few dozen steps the ramped pressure is still tiny (≈ 0.01–0.1 Pa), so the round-off noise of
+// the stress at rest (≈ 1e-16·κ in both simulators, summed in different orders) is not
+// negligible against the velocities yet: positions are held to 1e-6, velocities to 1e-5 there
+// (the longer rollouts below hold both to 1e-6).
+#[test]
+fn pressure_optimization_agrees_with_the_engine() {
+    agree_to(&example("pressure_optimization"), Some(13.5e-6), 40, 1e-5);
+}
+
+#[test]
+fn verification_agrees_with_the_engine() {
+    agree_to(&example("verification"), Some(13.5e-6), 40, 1e-5);
+}
+
+#[test]
+fn meta_optimization_agrees_with_the_engine() {
+    agree_to(&example("meta_optimization"), Some(13.5e-6), 40, 1e-5);
+}
+
+#[test]
+fn controller_synthesis_agrees_with_the_engine() {
+    agree_to(&example("controller_synthesis"), Some(5.5e-6), 20, 1e-5);
+}
+
+/// Steps of the variants below (30 µs each: 7.5 ms, the load ramps over 4–5 ms).
+const VARIANT_STEPS: u64 = 250;
+
+/// The benchmark beam with its material written in a different way, plus `extra` sim lines.
+fn bench_variant(name: &str, materials: &str, sim: &str, extra_items: &str) -> PathBuf {
+    script(
+        name,
+        &format!(
+            r#"mesh body = load("{}")
+{materials}
+chamber cavity = surface(body, "cavity")
+nodes base = named(body, "base")
+nodes tip = named(body, "tip")
+elements front = select(body, x < 20 mm)
+elements top = select(body, x >= 20 mm and z > 5 mm)
+param p_peak: pressure = 20 kPa in [0 kPa, 50 kPa]
+{extra_items}
+sim {{
+  dt = 30 us
+  steps = 400
+  fix base
+{sim}
+}}
+"#,
+            mesh("bench_1k.msh")
+        ),
+    )
+}
+
+const RUBBER: &str = r#"let E = 0.3 MPa
+let nu = 0.45
+material rubber = neo_hookean_ln(mu: lame_mu(E, nu), lambda: lame_lambda(E, nu), density: 1070 kg/m^3)"#;
+
+#[test]
+fn gravity_and_mass_scaling_agree() {
+    let p = bench_variant(
+        "gravity",
+        RUBBER,
+        "  damping = 5 /s\n  mass_scaling = 3\n  gravity = [0, 0.5, -9.81] m/s^2\n  pressure cavity = p_peak * ramp(t, 5 ms)",
+        "",
+    );
+    agree(&p, None, VARIANT_STEPS);
+}
+
+/// No damping and no pressure (a chamber is declared but not pressurised): gravity alone.
+#[test]
+fn gravity_alone_agrees() {
+    let p = bench_variant("falling", RUBBER, "  gravity = [0, 0, -9.81] m/s^2", "");
+    let scene = load(&p);
+    assert!(scene.lowered.chambers.is_empty());
+    drop(scene);
+    agree(&p, None, 150);
+}
+
+#[test]
+fn several_materials_agree() {
+    let materials = format!(
+        r#"{RUBBER}
+material gel {{
+  let mu = lame_mu(0.2 MPa, 0.45)
+  density = 1.2 g/cm^3
+  W(I1bar, I2bar, J) = mu / 2 * (I1bar - 3) + 0.02 MPa * (I2bar - 3) + 0.01 MPa * (I1bar - 3) * (I2bar - 3) + bulk_modulus(0.2 MPa, 0.45) / 2 * (J - 1)^2
+}}
+material mr = mooney_rivlin(c10: 0.05 MPa, c01: 0.02 MPa, c11: 0.005 MPa, d1: 5 /MPa, density: 1000 kg/m^3)
+material series = yeoh_series(c: [0.08, 0.03, -0.001] MPa, d: [2.0, 8.0] /MPa, density: 1100 kg/m^3)"#
+    );
+    let p = bench_variant(
+        "materials",
+        &materials,
+        "  damping = 10 /s\n  mass_scaling = 2.5\n  use rubber\n  use gel in front\n  use mr in top\n  use series in tipzone\n  pressure cavity = p_peak * ramp(t, 4 ms)",
+        "elements tipzone = select(body, x > 50 mm)",
+    );
+    let scene = load(&p);
+    assert_eq!(scene.lowered.materials.len(), 4);
+    assert!(scene.material_ranges.iter().all(|r| !r.is_empty()));
+    // The reference's own rest volumes and lumped masses (with `mass_scaling`) equal the
+    // scene's precomputation.
+    let r = Reference::new(&scene).unwrap();
+    for (a, b) in r.rest_volumes().iter().zip(&scene.pre.rest_volume) {
+        assert!((a - b).abs() <= 1e-12 * b, "{a} {b}");
+    }
+    for (a, b) in r.masses().iter().zip(&scene.pre.mass) {
+        assert!((a - b).abs() <= 1e-12 * b, "{a} {b}");
+    }
+    drop(r);
+    drop(scene);
+    agree(&p, None, VARIANT_STEPS);
+}
+
+#[test]
+fn windowed_damping_agrees() {
+    let p = bench_variant(
+        "windows",
+        RUBBER,
+        "  damping = beta[window(t, 1 ms)] + 2 /s * abs(sin(t / 1 ms))\n  pressure cavity = p_peak * ramp(t, 5 ms) * (1 + 0.2 * step(t, 4 ms))",
+        "param beta: rate[12] = [50, 5, 120, 1, 30, 80, 10, 150, 2, 60, 20, 90] /s in [0 /s, 200 /s]",
+    );
+    agree(&p, None, VARIANT_STEPS);
+}
+
+#[test]
+fn controller_with_matrix_param_agrees() {
+    let p = bench_variant(
+        "controller",
+        RUBBER,
+        "  damping = 10 /s\n  pressure cavity = (pressures(target)[0] + clamp(pressures(target)[1], 1 kPa, 5 kPa) + max(pressures(target)[2], 0 Pa)) * ramp(t, 5 ms)",
+        r#"input target: length[3] from [[0, 2.5, 4.33], [0, -4.33, 2.5]] mm
+param w: 1/length[3, 4] = [[1, -2, 0.5, 0], [0, 1, -1, 2], [-1, 0, 2, 1]] /mm in [-10 /mm, 10 /mm]
+let gain = sum(i in 0..3) (i + 1) * 0.5
+fn features(p: length[3]) -> length[4] = [max(0 mm, p.y), min(0 mm, p.y), max(0 mm, p.z), min(0 mm, p.z)]
+controller pressures(goal: length[3]) -> pressure[3] = 4 kPa * sigmoid(w @ features(goal)) / gain * (if norm(goal) > 1 mm then 3 else 1)"#,
+    );
+    let scene = load(&p);
+    assert_eq!(scene.uniforms["param.w.1.3"], 2000.0);
+    assert!((scene.uniforms["input.target.2"] - 4.33e-3).abs() < 1e-15);
+    drop(scene);
+    agree(&p, None, VARIANT_STEPS);
+}
+
+/// The tip's mean z-displacement of the benchmark after 4000 steps at 40 µs: −0.015146 mm
+/// (BENCHMARK.md).
+#[test]
+fn benchmark_1k_tip_displacement() {
+    let scene = load(&example("benchmark-1k"));
+    let s = reference::run(&scene, None, None).unwrap();
+    assert_eq!(s.steps, 4000);
+    assert!((s.dt - 40e-6).abs() < 1e-18);
+    let tip = &scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap().1;
+    let z = tip
+        .iter()
+        .map(|&n| s.x[n as usize][2] - scene.mesh.nodes[n as usize][2])
+        .sum::<f64>()
+        / tip.len() as f64;
+    eprintln!(
+        "benchmark-1k tip mean z after 4000 steps: {:.6} mm",
+        z * 1e3
+    );
+    assert!((z - -0.015146e-3).abs() < 0.5e-9, "{z}");
+}
+
+/// The largest stable step of the benchmark at 1k is 52 µs (BENCHMARK.md): the reference's own
+/// estimate (power iteration on M⁻¹K) agrees with it and with the engine's, and `dt = auto`
+/// runs at the safety factor times it.
+#[test]
+fn auto_dt_uses_a_stable_step_estimate_that_matches_the_benchmark() {
+    let p = bench_variant(
+        "auto",
+        RUBBER,
+        "  damping = 20 /s\n  pressure cavity = p_peak * ramp(t, 5 ms)",
+        "",
+    );
+    let text = std::fs::read_to_string(&p)
+        .unwrap()
+        .replace("dt = 30 us", "dt = auto(safety: 0.5)");
+    std::fs::write(&p, text).unwrap();
+    let scene = load(&p);
+    let s = reference::run(&scene, None, Some(10)).unwrap();
+    let est = s.dt_stable_estimate.unwrap();
+    assert!((s.dt - 0.5 * est).abs() < 1e-15);
+    let engine = Simulation::new(&scene, Interpreter::new(&scene.lowered.module))
+        .stable_dt_estimate()
+        .unwrap();
+    eprintln!("stable dt: reference {est:e} s, engine {engine:e} s");
+    assert!((est - 52e-6).abs() < 1e-6, "{est}");
+    assert!((est - engine).abs() < 0.02 * est, "{est} vs {engine}");
+}
+
+#[test]
+fn a_step_beyond_the_stable_limit_stops_with_a_clear_message() {
+    let scene = load(&example("benchmark-1k"));
+    let e = reference::run(&scene, Some(0.5e-3), Some(200)).unwrap_err();
+    assert!(
+        e.contains("step") && (e.contains("inverted") || e.contains("non-finite")),
+        "{e}"
+    );
+    eprintln!("{e}");
+}
+
+/// Element forces are −∂(V0·W)/∂x: central differences of the reference's own energy.
+#[test]
+fn element_forces_are_the_energy_gradient() {
+    let p = script(
+        "element",
+        &format!(
+            r#"mesh body = load("{}")
+material yeo = yeoh(c10: 0.24162 MPa, c20: 0.19977 MPa, c30: -0.00541 MPa, d1: 1.0 /MPa, density: 1070 kg/m^3)
+material mr = mooney_rivlin(c10: 0.1 MPa, c01: 0.05 MPa, c11: 0.01 MPa, d1: 2 /MPa, density: 1070 kg/m^3)
+material user {{
+  density = 1000 kg/m^3
+  W(I1bar, I2bar, J) = 0.1 MPa * (I1bar - 3) + 0.03 MPa * (I2bar - 3)^2 + 0.02 MPa * exp(0.5 * (I2bar - 3)) + 1 MPa * (J - 1)^2 - 0.02 MPa * ln(J)
+}}
+elements a = select(body, x < 20 mm)
+elements b = select(body, x > 40 mm)
+chamber cavity = surface(body, "cavity")
+nodes base = named(body, "base")
+sim {{
+  dt = 10 us
+  steps = 1
+  fix base
+  use yeo
+  use mr in a
+  use user in b
+  pressure cavity = 1 kPa
+}}
+"#,
+            mesh("bench_1k.msh")
+        ),
+    );
+    let scene = load(&p);
+    let mut r = Reference::new(&scene).unwrap();
+    let mut rng: u64 = 12345;
+    let mut rnd = || {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (rng >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    };
+    for (m, range) in scene.material_ranges.iter().enumerate() {
+        for e in [range.start, range.start + range.len() / 2] {
+            let rest = scene.mesh.tets[e].map(|n| scene.mesh.nodes[n as usize]);
+            let size = scene.pre.min_altitude[e];
+            // A finite deformation: about 15 % of the element size at each corner.
+            let x: [[f64; 3]; 4] = rest.map(|p| p.map(|c| c + 0.3 * size * rnd()));
+            let res = r.element(e, &x).unwrap();
+            assert!(res.j > 0.5, "{}", res.j);
+            let fmax = res
+                .forces
+                .iter()
+                .flatten()
+                .fold(0.0_f64, |a, f| a.max(f.abs()));
+            assert!(fmax > 0.0);
+            let h = 1e-6 * size;
+            let mut net = [0.0; 3];
+            for c in 0..4 {
+                for d in 0..3 {
+                    net[d] += res.forces[c][d];
+                    let mut xp = x;
+                    let mut xm = x;
+                    xp[c][d] += h;
+                    xm[c][d] -= h;
+                    let ep = r.element(e, &xp).unwrap().energy;
+                    let em = r.element(e, &xm).unwrap().energy;
+                    let fd = -(ep - em) / (2.0 * h);
+                    let err = (fd - res.forces[c][d]).abs() / fmax;
+                    assert!(
+                        err < 1e-6,
+                        "material {} element {e} corner {c} dim {d}: force {} vs finite difference {fd} ({err:e})",
+                        scene.lowered.materials[m],
+                        res.forces[c][d]
+                    );
+                }
+            }
+            assert!(net.iter().all(|f| f.abs() < 1e-12 * fmax.max(1.0)));
+        }
+    }
+}
+
+/// Stepping by hand gives the same state as `run`, and the state moves every step.
+#[test]
+fn stepping_matches_run() {
+    let scene = load(&example("benchmark-1k"));
+    let mut r = Reference::new(&scene).unwrap();
+    let mut st = r.initial_state();
+    let mut last = st.x.clone();
+    for step in 0..30 {
+        r.step(&mut st, step, 40e-6).unwrap();
+        if step > 0 {
+            assert!(st.x != last, "step {step} did not move");
+        }
+        last = st.x.clone();
+    }
+    let s = reference::run(&scene, Some(40e-6), Some(30)).unwrap();
+    for (a, b) in s.x.iter().zip(&st.x) {
+        assert_eq!(*a, [b[0], b[1], b[2]]);
+    }
+}
+
+/// Under a homogeneous deformation x = F·X the stress equals the closed forms of the two
+/// neo-Hookean laws: P = μ(F − F⁻ᵀ) + λ ln J F⁻ᵀ (coupled ln J form) and
+/// P = μ J^(−2/3)(F − I1/3 F⁻ᵀ) + κ (J − 1) J F⁻ᵀ (decoupled form).
+#[test]
+fn stress_matches_closed_forms() {
+    let p = script(
+        "closed",
+        &format!(
+            r#"mesh body = load("{}")
+material coupled = neo_hookean_ln(mu: 0.1 MPa, lambda: 0.9 MPa, density: 1070 kg/m^3)
+material decoupled = neo_hookean(mu: 0.1 MPa, kappa: 1.5 MPa, density: 1070 kg/m^3)
+elements half = select(body, x < 30 mm)
+nodes base = named(body, "base")
+sim {{
+  dt = 10 us
+  steps = 1
+  fix base
+  use coupled
+  use decoupled in half
+}}
+"#,
+            mesh("bench_1k.msh")
+        ),
+    );
+    let scene = load(&p);
+    let mut r = Reference::new(&scene).unwrap();
+    let f = nalgebra::Matrix3::new(1.2, 0.1, -0.05, 0.03, 0.9, 0.2, -0.1, 0.04, 1.1);
+    let j = f.determinant();
+    let finv_t = f.try_inverse().unwrap().transpose();
+    let i1 = (f.transpose() * f).trace();
+    assert!(scene.material_ranges.iter().all(|r| !r.is_empty()));
+    for (m, range) in scene.material_ranges.iter().enumerate() {
+        let e = range.start;
+        let x = scene.mesh.tets[e].map(|n| {
+            let p = f * nalgebra::Vector3::from(scene.mesh.nodes[n as usize]);
+            [p[0], p[1], p[2]]
+        });
+        let res = r.element(e, &x).unwrap();
+        let expected = match scene.lowered.materials[m].as_str() {
+            "coupled" => (f - finv_t) * 0.1e6 + finv_t * (0.9e6 * j.ln()),
+            _ => {
+                (f - finv_t * (i1 / 3.0)) * (0.1e6 * j.powf(-2.0 / 3.0))
+                    + finv_t * (1.5e6 * (j - 1.0) * j)
+            }
+        };
+        for rr in 0..3 {
+            for c in 0..3 {
+                let (a, b) = (res.piola[rr][c], expected[(rr, c)]);
+                assert!(
+                    (a - b).abs() < 1e-9 * expected.abs().max(),
+                    "{}: P[{rr}][{c}] = {a} vs {b}",
+                    scene.lowered.materials[m]
+                );
+            }
+        }
+        assert!((res.j - j).abs() < 1e-12);
+    }
+}
+
+/// At rest every material is stress-free.
+#[test]
+fn rest_is_stress_free() {
+    let scene = load(&example("pressure_optimization"));
+    let mut r = Reference::new(&scene).unwrap();
+    for e in [0, scene.mesh.tets.len() - 1] {
+        let x = scene.mesh.tets[e].map(|n| scene.mesh.nodes[n as usize]);
+        let res = r.element(e, &x).unwrap();
+        assert!((res.j - 1.0).abs() < 1e-12);
+        assert!(
+            res.piola.iter().flatten().all(|p| p.abs() < 1e-6),
+            "{:?}",
+            res.piola
+        );
+    }
+}
+
+/// `softc run --backend reference` prints the same JSON summary as the engine.
+#[test]
+fn cli_runs_the_reference_backend() {
+    let bench = example("benchmark-1k");
+    let args: Vec<String> = ["softc", "run", "--backend", "reference", "--steps", "20"]
+        .iter()
+        .map(|s| s.to_string())
+        .chain([bench.display().to_string()])
+        .collect();
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    let code = softc::cli::run(&args, &mut out, &mut err);
+    let err = String::from_utf8_lossy(&err);
+    assert_eq!(code, 0, "{err}");
+    let json: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    assert_eq!(json["backend"], "reference");
+    assert_eq!(json["steps"], 20);
+    assert!(
+        json["sets"]["tip"]["mean_displacement"][2]
+            .as_f64()
+            .unwrap()
+            < 0.0
+    );
+}
