@@ -24,11 +24,9 @@ fn variant(example: &str, edits: &[(&str, &str)]) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("softc-engine-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let text = text.replace("\"../meshes/", &format!("\"{}/meshes/", root().display()));
-    let path = dir.join(format!(
-        "{}-{}.soft",
-        example.trim_end_matches(".soft"),
-        edits.len()
-    ));
+    static COUNT: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = COUNT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let path = dir.join(format!("{}-{n}.soft", example.trim_end_matches(".soft")));
     std::fs::write(&path, text).unwrap();
     path
 }
@@ -180,5 +178,51 @@ fn f32_kernels_stay_close_to_f64() {
     assert!(
         (ub - ua).abs() < 5e-3 * ua.abs(),
         "f64 {ua:e} vs f32 {ub:e}"
+    );
+}
+
+#[test]
+fn the_loss_is_the_scripts_expression_at_the_end_or_summed_over_its_window() {
+    let scene = Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
+    let s = Simulation::new(&scene, Interpreter::new(&scene.lowered.module))
+        .run(None, Some(300))
+        .unwrap();
+    // loss = sum(n in tip) (x[n].z - x0[n].z + 10 mm)^2 at end, computed here by hand.
+    let (_, tip) = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap();
+    let want: f64 = tip
+        .iter()
+        .map(|&n| (s.x[n as usize][2] - scene.mesh.nodes[n as usize][2] + 0.01).powi(2))
+        .sum();
+    let got = s.loss.unwrap();
+    assert!((got - want).abs() <= 1e-14 * want, "{got} vs {want}");
+    // A window holding only the last step gives the same value; one holding the last two
+    // steps adds the previous state's term.
+    let last = variant(
+        "benchmark-1k.soft",
+        &[("+ 10 mm)^2 at end", "+ 10 mm)^2 over [t_end, t_end]")],
+    );
+    let scene2 = Scene::load(&last, &[]).unwrap();
+    let s2 = Simulation::new(&scene2, Interpreter::new(&scene2.lowered.module))
+        .run(None, Some(300))
+        .unwrap();
+    assert_eq!(s2.loss.unwrap().to_bits(), got.to_bits());
+    let two = variant(
+        "benchmark-1k.soft",
+        &[("+ 10 mm)^2 at end", "+ 10 mm)^2 over [t_end - dt, t_end]")],
+    );
+    let scene3 = Scene::load(&two, &[]).unwrap();
+    let s3 = Simulation::new(&scene3, Interpreter::new(&scene3.lowered.module))
+        .run(None, Some(300))
+        .unwrap();
+    let prev = Simulation::new(&scene, Interpreter::new(&scene.lowered.module))
+        .run(None, Some(299))
+        .unwrap()
+        .loss
+        .unwrap();
+    assert!(
+        (s3.loss.unwrap() - (got + prev)).abs() <= 1e-14 * got,
+        "{} vs {}",
+        s3.loss.unwrap(),
+        got + prev
     );
 }

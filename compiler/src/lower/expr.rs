@@ -77,6 +77,10 @@ pub struct ExprLowerer<'p, 'a> {
     pub program: &'p Program<'a>,
     /// Constants the scene fixes (e.g. `t_end`, `dt`), by name.
     pub constants: HashMap<String, f64>,
+    /// Node sets by name (for reductions over nodes in losses): node indices.
+    pub node_sets: HashMap<String, Vec<u32>>,
+    /// Reduction variables currently bound to a node.
+    node_binders: HashMap<String, u32>,
     depth: usize,
 }
 
@@ -85,6 +89,8 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         ExprLowerer {
             program,
             constants: HashMap::new(),
+            node_sets: HashMap::new(),
+            node_binders: HashMap::new(),
             depth: 0,
         }
     }
@@ -157,6 +163,25 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                     .ok_or_else(|| LowerError::new("component of a vector shorter than 3"))
             }
             ExprKind::Index { base, indices } => {
+                // Node state `x[n]`, `x0[n]`, `v[n]` of a node bound by a reduction: uniforms
+                // `state.x.NODE.d` the host fills in.
+                if let (ExprKind::Name(b), [ExprKind::Name(n)]) = (
+                    &base.kind,
+                    indices
+                        .iter()
+                        .map(|i| &i.kind)
+                        .collect::<Vec<_>>()
+                        .as_slice(),
+                ) && ["x", "x0", "v"].contains(&b.name.as_str())
+                    && !env.contains_key(&b.name)
+                    && let Some(&node) = self.node_binders.get(&n.name)
+                {
+                    return Ok(LVal::A(
+                        (0..3)
+                            .map(|d| LVal::S(k.uniform(&format!("state.{}.{node}.{d}", b.name))))
+                            .collect(),
+                    ));
+                }
                 let mut v = self.lower(k, env, base)?;
                 for ie in indices {
                     let i = self.lower(k, env, ie)?.scalar()?;
@@ -280,26 +305,39 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         domain: &Expr,
         body: &Expr,
     ) -> Result<LVal, LowerError> {
-        let ExprKind::Binary {
-            op: crate::front::ast::BinOp::Range,
-            lhs,
-            rhs,
-        } = &domain.kind
-        else {
-            return Err(LowerError::new(
-                "reductions over node or element sets are lowered by the loss, not here",
-            ));
-        };
-        let lo = self.lower(k, env, lhs)?.scalar()?;
-        let hi = self.lower(k, env, rhs)?.scalar()?;
-        let (Some(lo), Some(hi)) = (k.b.func.constant(lo), k.b.func.constant(hi)) else {
-            return Err(LowerError::new("a range reduction needs constant bounds"));
-        };
         let mut terms = Vec::new();
-        for i in (lo as i64)..(hi as i64) {
-            let mut inner = env.clone();
-            inner.insert(var.name.clone(), LVal::S(k.b.constant(i as f64)));
-            terms.push(self.lower(k, &inner, body)?);
+        if let ExprKind::Name(set) = &domain.kind
+            && let Some(nodes) = self.node_sets.get(&set.name).cloned()
+        {
+            // Over the nodes of a set, in index order (a fixed order: reproducible sums).
+            for node in nodes {
+                self.node_binders.insert(var.name.clone(), node);
+                let t = self.lower(k, env, body);
+                self.node_binders.remove(&var.name);
+                terms.push(t?);
+            }
+        } else {
+            let ExprKind::Binary {
+                op: crate::front::ast::BinOp::Range,
+                lhs,
+                rhs,
+            } = &domain.kind
+            else {
+                return Err(LowerError::new(format!(
+                    "the reduction's domain `{}` is not a known node set or range",
+                    crate::fmt::expr(domain)
+                )));
+            };
+            let lo = self.lower(k, env, lhs)?.scalar()?;
+            let hi = self.lower(k, env, rhs)?.scalar()?;
+            let (Some(lo), Some(hi)) = (k.b.func.constant(lo), k.b.func.constant(hi)) else {
+                return Err(LowerError::new("a range reduction needs constant bounds"));
+            };
+            for i in (lo as i64)..(hi as i64) {
+                let mut inner = env.clone();
+                inner.insert(var.name.clone(), LVal::S(k.b.constant(i as f64)));
+                terms.push(self.lower(k, &inner, body)?);
+            }
         }
         let Some(first) = terms.first().cloned() else {
             return Ok(LVal::S(k.b.constant(0.0)));

@@ -123,7 +123,17 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     }
     let result = match args.backend {
         BackendChoice::Reference => {
-            crate::reference::run(&scene, dt, args.steps).map(|s| (s, "reference"))
+            crate::reference::run(&scene, dt, args.steps).and_then(|mut s| {
+                // The oracle's own job is the state; an at-end loss is evaluated on its final state.
+                if let Some(l) = crate::engine::loss::Loss::build(&scene, s.dt, s.steps)?
+                    && l.window == crate::engine::loss::LossWindow::End
+                {
+                    let x: Vec<f64> = s.x.iter().flatten().copied().collect();
+                    let v: Vec<f64> = s.v.iter().flatten().copied().collect();
+                    s.loss = Some(l.eval(&scene, &x, &v, s.steps as f64 * s.dt, &scene.uniforms));
+                }
+                Ok((s, "reference"))
+            })
         }
         BackendChoice::Interp => {
             let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.module));
@@ -213,7 +223,7 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
     serde_json::json!({
         "script": scene.script.display().to_string(),
         "backend": backend,
-        "loss": serde_json::Value::Null,
+        "loss": s.loss,
         "steps": s.steps,
         "dt": s.dt,
         "dt_stable_estimate": s.dt_stable_estimate,

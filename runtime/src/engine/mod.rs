@@ -6,6 +6,7 @@
 //! element (J ≤ 0) stops the run with the step, time, node or element and a suggested `dt`,
 //! never with silent NaNs.
 
+pub mod loss;
 pub mod scene;
 
 use scene::{Csr, DtChoice, Scene};
@@ -286,6 +287,8 @@ impl std::fmt::Display for RunError {
 /// What a finished run reports.
 #[derive(Debug, Clone)]
 pub struct RunSummary {
+    /// The script's loss for this run (`None` without a loss).
+    pub loss: Option<f64>,
     pub steps: u64,
     pub dt: f64,
     pub dt_stable_estimate: Option<f64>,
@@ -480,6 +483,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         }
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
         self.uniforms.0.insert("dt".into(), dt);
+        let loss_fn = loss::Loss::build(self.scene, dt, steps).map_err(RunError)?;
+        let mut loss_sum = 0.0;
         let n_mat = self.scene.material_ranges.len();
         let n_ch = self.scene.chamber_ranges.len();
         let n_nodes = self.scene.mesh.nodes.len();
@@ -497,13 +502,27 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .map_err(RunError)?;
             self.backend.swap(self.ids.x, self.ids.x_next);
             self.backend.swap(self.ids.v, self.ids.v_next);
+            if let Some(l) = &loss_fn {
+                let t_after = (step + 1) as f64 * dt;
+                if l.in_window(t_after, dt) {
+                    let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
+                    loss_sum += l.eval(self.scene, &x, &v, t_after, &self.uniforms.0);
+                }
+            }
             if step % CHECK_EVERY == 0 || step + 1 == steps {
                 self.check_state(step, dt)?;
             }
         }
         let xs = self.backend.get(self.ids.x);
         let vs = self.backend.get(self.ids.v);
+        let loss = loss_fn.map(|l| match l.window {
+            loss::LossWindow::End => {
+                l.eval(self.scene, &xs, &vs, steps as f64 * dt, &self.uniforms.0)
+            }
+            loss::LossWindow::Over { .. } => loss_sum,
+        });
         Ok(RunSummary {
+            loss,
             steps,
             dt,
             dt_stable_estimate: estimate,

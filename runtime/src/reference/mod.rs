@@ -467,6 +467,8 @@ impl<'a> Reference<'a> {
         }
         let (x, v) = (&st.x, &st.v);
         Ok(RunSummary {
+            // The reference reports the loss through `loss::Loss` at the end state (cli).
+            loss: None,
             steps,
             dt,
             dt_stable_estimate: estimate,
