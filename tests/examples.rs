@@ -201,5 +201,26 @@ fn run_writes_a_json_summary_in_si_units() {
     }
     // The base is clamped: no displacement at all.
     assert_eq!(v["sets"]["base"]["max_displacement"][2], 0.0);
+    // A ParaView series: the first state, every 100 steps, and the last.
+    let vtk = dir.join("vtk");
+    let (code, _, err) = softc(&[
+        "run",
+        bench.to_str().unwrap(),
+        "--steps",
+        "250",
+        "--vtk",
+        vtk.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let pvd = std::fs::read_to_string(vtk.join("benchmark-1k.pvd")).unwrap();
+    assert_eq!(pvd.matches("<DataSet").count(), 4, "{pvd}");
+    let last = softc::mesh::read(
+        &vtk.join("benchmark-1k_000003.vtu"),
+        softc::mesh::LengthUnit::Millimetre,
+    )
+    .unwrap();
+    assert_eq!(last.tets.len(), 1032);
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -32,6 +32,10 @@ pub struct RunArgs {
     /// Write the JSON summary here (SI units).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Write a ParaView series (`.pvd` + `.vtu`) into this folder, every N steps as the
+    /// script's `output vtk every N steps` says (default 100).
+    #[arg(long)]
+    pub vtk: Option<PathBuf>,
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -137,6 +141,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
         BackendChoice::Interp => {
             let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.module));
+            sim.vtk = match vtk_output(&args, &scene, err) {
+                Ok(v) => v,
+                Err(code) => return code,
+            };
             sim.run(dt, args.steps)
                 .map(|s| (s, "interp"))
                 .map_err(|e| e.0)
@@ -158,6 +166,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 }
             };
             let mut sim = Simulation::new(&scene, cpu);
+            sim.vtk = match vtk_output(&args, &scene, err) {
+                Ok(v) => v,
+                Err(code) => return code,
+            };
             sim.run(dt, args.steps).map(|s| (s, "cpu")).map_err(|e| e.0)
         }
     };
@@ -192,6 +204,54 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     0
+}
+
+/// The VTK series asked for with `--vtk DIR`.
+fn vtk_output(
+    args: &RunArgs,
+    scene: &Scene,
+    err: &mut dyn Write,
+) -> Result<Option<crate::engine::VtkOutput>, i32> {
+    let Some(dir) = &args.vtk else {
+        return Ok(None);
+    };
+    if let Err(e) = std::fs::create_dir_all(dir) {
+        let _ = writeln!(err, "softc: cannot create `{}`: {e}", dir.display());
+        return Err(2);
+    }
+    let every = vtk_every(scene).unwrap_or(100);
+    let name = scene
+        .script
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "run".into());
+    Ok(Some(crate::engine::VtkOutput {
+        series: crate::mesh::writers::PvdSeries::new(
+            dir,
+            &name,
+            crate::mesh::LengthUnit::Millimetre,
+        ),
+        every,
+    }))
+}
+
+/// `output vtk every N steps` in the sim block.
+fn vtk_every(scene: &Scene) -> Option<u64> {
+    use softc_compiler::front::ast::{ExprKind, ItemKind, StmtKind};
+    scene.ast.items.iter().find_map(|i| match &i.kind {
+        ItemKind::Sim(stmts) => stmts.iter().find_map(|s| match &s.kind {
+            StmtKind::Output {
+                what,
+                every,
+                steps: true,
+            } if matches!(&what.kind, ExprKind::Name(n) if n.name == "vtk") => match &every.kind {
+                ExprKind::Number { value, .. } => Some(*value as u64),
+                _ => None,
+            },
+            _ => None,
+        }),
+        _ => None,
+    })
 }
 
 /// The JSON summary: SI units throughout.

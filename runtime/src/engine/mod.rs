@@ -303,7 +303,17 @@ pub struct Simulation<'s, B: Backend> {
     pub scene: &'s Scene,
     pub backend: B,
     pub uniforms: Uniforms,
+    /// Write a ParaView series while running.
+    pub vtk: Option<VtkOutput>,
     ids: Ids,
+}
+
+/// A `.pvd` series of `.vtu` files: the deformed mesh with displacement and velocity per
+/// node, strain energy and volume ratio J per element.
+pub struct VtkOutput {
+    pub series: crate::mesh::writers::PvdSeries,
+    /// Write every this many steps (and the first and last state).
+    pub every: u64,
 }
 
 struct Ids {
@@ -368,6 +378,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             scene,
             backend,
             uniforms,
+            vtk: None,
             ids,
         }
     }
@@ -490,6 +501,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let n_nodes = self.scene.mesh.nodes.len();
         for step in 0..steps {
             self.uniforms.0.insert("t".into(), step as f64 * dt);
+            if self
+                .vtk
+                .as_ref()
+                .is_some_and(|o| step % o.every.max(1) == 0)
+            {
+                self.write_vtk(step as f64 * dt)?;
+            }
             self.run_element_kernels()?;
             for c in 0..n_ch {
                 let range = self.scene.chamber_ranges[c].clone();
@@ -513,6 +531,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 self.check_state(step, dt)?;
             }
         }
+        if self.vtk.is_some() {
+            // Element fields of the final state, then the final frame.
+            self.run_element_kernels()?;
+            self.write_vtk(steps as f64 * dt)?;
+        }
         let xs = self.backend.get(self.ids.x);
         let vs = self.backend.get(self.ids.v);
         let loss = loss_fn.map(|l| match l.window {
@@ -530,6 +553,50 @@ impl<'s, B: Backend> Simulation<'s, B> {
             x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
             v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
         })
+    }
+
+    fn write_vtk(&mut self, t: f64) -> Result<(), RunError> {
+        let scene = self.scene;
+        let x = self.backend.get(self.ids.x);
+        let v = self.backend.get(self.ids.v);
+        let energy = self
+            .scene
+            .lowered
+            .module
+            .buffer_named("elem_energy")
+            .map(|b| self.backend.get(b))
+            .unwrap_or_default();
+        let j = self.backend.get(self.ids.elem_j);
+        let pos: Vec<[f64; 3]> = x.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let disp: Vec<[f64; 3]> = pos
+            .iter()
+            .zip(&scene.mesh.nodes)
+            .map(|(p, p0)| [p[0] - p0[0], p[1] - p0[1], p[2] - p0[2]])
+            .collect();
+        let vel: Vec<[f64; 3]> = v.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let density: Vec<f64> = energy
+            .iter()
+            .zip(&scene.pre.rest_volume)
+            .map(|(e, v0)| e / v0)
+            .collect();
+        use crate::mesh::writers::Field;
+        let out = self.vtk.as_mut().expect("vtk output");
+        out.series
+            .write_step(
+                &scene.mesh,
+                t,
+                &pos,
+                &[
+                    ("displacement", Field::Vector(&disp)),
+                    ("velocity", Field::Vector(&vel)),
+                ],
+                &[
+                    ("strain_energy_density", Field::Scalar(&density)),
+                    ("J", Field::Scalar(&j)),
+                ],
+            )
+            .map(|_| ())
+            .map_err(|e| RunError(format!("cannot write the VTK output: {e}")))
     }
 
     fn check_state(&self, step: u64, dt: f64) -> Result<(), RunError> {
