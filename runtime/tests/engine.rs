@@ -226,3 +226,21 @@ fn the_loss_is_the_scripts_expression_at_the_end_or_summed_over_its_window() {
         got + prev
     );
 }
+
+#[test]
+fn settings_without_kernels_are_refused_not_ignored() {
+    for (from, to) in [
+        (
+            "damping = 20 /s",
+            "damping = 20 /s\n  model = springs(volume_stiffness: 1 kPa/mm)",
+        ),
+        (
+            "damping = 20 /s",
+            "damping = 20 /s\n  integrator = quasi_static",
+        ),
+    ] {
+        let path = variant("benchmark-1k.soft", &[(from, to)]);
+        let e = Scene::load(&path, &[]).unwrap_err().0;
+        assert!(e.contains("not implemented yet"), "{e}");
+    }
+}

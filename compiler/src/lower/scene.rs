@@ -29,6 +29,24 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
             _ => None,
         })
         .ok_or_else(|| LowerError::new("the script has no sim block"))?;
+    // Settings the checker accepts whose kernels do not exist yet: refuse them rather than
+    // silently simulating something else.
+    for s in sim {
+        if let StmtKind::Assign { name, value } = &s.kind {
+            let unsupported = match (name.name.as_str(), &value.kind) {
+                ("model", ExprKind::Call { .. }) => Some("the spring-mesh model `springs(…)`"),
+                ("integrator", ExprKind::Name(n)) if n.name == "quasi_static" => {
+                    Some("the quasi-static integrator")
+                }
+                _ => None,
+            };
+            if let Some(what) = unsupported {
+                return Err(LowerError::new(format!(
+                    "{what} is not implemented yet; use `model = fem` and `integrator = semi_implicit_euler`"
+                )));
+            }
+        }
+    }
     let mut module = Module::default();
     let mut materials: Vec<String> = Vec::new();
     for s in sim {
