@@ -30,6 +30,27 @@ pub struct Script {
     pub items: Vec<Item>,
 }
 
+impl Script {
+    /// The statements of the `sim` block (empty without one).
+    pub fn sim_block(&self) -> &[Stmt] {
+        self.items
+            .iter()
+            .find_map(|i| match &i.kind {
+                ItemKind::Sim(s) => Some(s.as_slice()),
+                _ => None,
+            })
+            .unwrap_or(&[])
+    }
+
+    /// The value of a `name = value` setting of the `sim` block.
+    pub fn sim_setting(&self, name: &str) -> Option<&Expr> {
+        self.sim_block().iter().find_map(|s| match &s.kind {
+            StmtKind::Assign { name: n, value } if n.name == name => Some(value),
+            _ => None,
+        })
+    }
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct Item {
     pub kind: ItemKind,

@@ -21,14 +21,14 @@ pub struct SceneModule {
 
 /// Lower the scene described by a checked script.
 pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, LowerError> {
-    let sim = script
+    if !script
         .items
         .iter()
-        .find_map(|i| match &i.kind {
-            ItemKind::Sim(s) => Some(s),
-            _ => None,
-        })
-        .ok_or_else(|| LowerError::new("the script has no sim block"))?;
+        .any(|i| matches!(i.kind, ItemKind::Sim(_)))
+    {
+        return Err(LowerError::new("the script has no sim block"));
+    }
+    let sim = script.sim_block();
     // Settings the checker accepts whose kernels do not exist yet: refuse them rather than
     // silently simulating something else.
     for s in sim {
@@ -97,7 +97,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     if chambers.is_empty() {
         module.buffers.retain(|b| b.name != "tri_force");
     }
-    let node = node_kernel(program, &mut module, sim, !chambers.is_empty())?;
+    let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
     module.kernels.push(node);
     Ok(SceneModule {
         module,
@@ -163,7 +163,7 @@ fn pressure_kernel(
 fn node_kernel(
     program: &Program,
     module: &mut Module,
-    sim: &[Stmt],
+    script: &Script,
     pressure: bool,
 ) -> Result<crate::ir::Kernel, LowerError> {
     let x = module.buffer("x", Domain::Node, 3, "node positions, m");
@@ -176,14 +176,8 @@ fn node_kernel(
     let tri_force = module.buffer_named("tri_force");
     let mut k = KernelBuilder::new("integrate", Domain::Node, "sim");
     let mut lw = ExprLowerer::new(program);
-    let damping = sim.iter().find_map(|s| match &s.kind {
-        StmtKind::Assign { name, value } if name.name == "damping" => Some(value),
-        _ => None,
-    });
-    let gravity = sim.iter().find_map(|s| match &s.kind {
-        StmtKind::Assign { name, value } if name.name == "gravity" => Some(value),
-        _ => None,
-    });
+    let damping = script.sim_setting("damping");
+    let gravity = script.sim_setting("gravity");
     let beta = match damping {
         Some(e) => Some(lw.lower(&mut k, &Env::new(), e)?.scalar()?),
         None => None,

@@ -212,7 +212,7 @@ impl Scene {
 
     /// `precision = f32|f64` from the sim block, if given.
     pub fn precision_setting(&self) -> Option<&str> {
-        match setting(&self.ast, "precision").map(|e| &e.kind) {
+        match &self.ast.sim_setting("precision").map(|e| &e.kind) {
             Some(ExprKind::Name(n)) => Some(n.name.as_str()),
             _ => None,
         }
@@ -230,23 +230,6 @@ impl Scene {
             _ => 1,
         }
     }
-}
-
-fn sim_block(ast: &Script) -> &[Stmt] {
-    ast.items
-        .iter()
-        .find_map(|i| match &i.kind {
-            ItemKind::Sim(s) => Some(s.as_slice()),
-            _ => None,
-        })
-        .unwrap_or(&[])
-}
-
-fn setting<'a>(ast: &'a Script, name: &str) -> Option<&'a Expr> {
-    sim_block(ast).iter().find_map(|s| match &s.kind {
-        StmtKind::Assign { name: n, value } if n.name == name => Some(value),
-        _ => None,
-    })
 }
 
 /// Evaluate a constant expression (SI values, flattened).
@@ -274,13 +257,13 @@ fn const_scalar(program: &Program, e: &Expr) -> Result<f64, SceneError> {
 }
 
 fn setting_value(program: &Program, ast: &Script, name: &str) -> Result<Option<f64>, SceneError> {
-    setting(ast, name)
+    ast.sim_setting(name)
         .map(|e| const_scalar(program, e))
         .transpose()
 }
 
 fn time_settings(program: &Program, ast: &Script) -> Result<(DtChoice, Option<u64>), SceneError> {
-    let dt = match setting(ast, "dt") {
+    let dt = match ast.sim_setting("dt") {
         None => return err("the sim block has no `dt`"),
         Some(e) => match &e.kind {
             ExprKind::Name(n) if n.name == "auto" => DtChoice::Auto { safety: 0.9 },
@@ -536,7 +519,8 @@ fn assign_materials(
     lowered: &SceneModule,
 ) -> Result<Vec<usize>, SceneError> {
     let mut of = vec![usize::MAX; mesh.tets.len()];
-    let uses: Vec<(&Ident, Option<&Ident>)> = sim_block(ast)
+    let uses: Vec<(&Ident, Option<&Ident>)> = ast
+        .sim_block()
         .iter()
         .filter_map(|s| match &s.kind {
             StmtKind::Use { material, set } => Some((material, set.as_ref())),
@@ -605,7 +589,7 @@ fn chambers(
 
 fn fixed_nodes(program: &Program, ast: &Script, mesh: &Mesh) -> Result<Vec<bool>, SceneError> {
     let mut fixed = vec![false; mesh.nodes.len()];
-    for s in sim_block(ast) {
+    for s in ast.sim_block() {
         let StmtKind::Fix(names) = &s.kind else {
             continue;
         };

@@ -74,23 +74,6 @@ pub struct Reference<'a> {
     gravity: Option<Vec3>,
 }
 
-fn sim_block(ast: &Script) -> &[Stmt] {
-    ast.items
-        .iter()
-        .find_map(|i| match &i.kind {
-            ItemKind::Sim(s) => Some(s.as_slice()),
-            _ => None,
-        })
-        .unwrap_or(&[])
-}
-
-fn setting<'a>(ast: &'a Script, name: &str) -> Option<&'a Expr> {
-    sim_block(ast).iter().find_map(|s| match &s.kind {
-        StmtKind::Assign { name: n, value } if n.name == name => Some(value),
-        _ => None,
-    })
-}
-
 impl<'a> Reference<'a> {
     pub fn new(scene: &'a Scene) -> Result<Self, String> {
         let prelude = softc_compiler::sema::prelude_ast();
@@ -110,7 +93,7 @@ impl<'a> Reference<'a> {
         if let Some(e) = elem_material.iter().position(|&m| m == usize::MAX) {
             return Err(format!("element {e} has no material"));
         }
-        let sim = sim_block(&scene.ast);
+        let sim = scene.ast.sim_block();
         let pressure_stmts: Vec<(&str, &Expr)> = sim
             .iter()
             .filter_map(|s| match &s.kind {
@@ -126,7 +109,7 @@ impl<'a> Reference<'a> {
         {
             return Err("the scene's chambers do not match the sim block's pressures".into());
         }
-        let gravity = match setting(&scene.ast, "gravity") {
+        let gravity = match &scene.ast.sim_setting("gravity") {
             Some(e) => {
                 let g = ev.eval(&Scope::root(), e)?.flat();
                 if g.len() != 3 {
@@ -141,7 +124,7 @@ impl<'a> Reference<'a> {
         let mut dm_inv = Vec::with_capacity(scene.mesh.tets.len());
         let mut rest_volume = Vec::with_capacity(scene.mesh.tets.len());
         let mut mass = vec![0.0; n_nodes];
-        let scaling = match setting(&scene.ast, "mass_scaling") {
+        let scaling = match &scene.ast.sim_setting("mass_scaling") {
             Some(e) => ev.eval(&Scope::root(), e)?.scalar()?.v,
             None => 1.0,
         };
@@ -170,7 +153,7 @@ impl<'a> Reference<'a> {
             rest_volume,
             mass,
             pressures: pressure_stmts.into_iter().map(|(_, e)| e).collect(),
-            damping: setting(&scene.ast, "damping"),
+            damping: scene.ast.sim_setting("damping"),
             gravity,
             ev,
         })
