@@ -831,39 +831,16 @@ impl Checker {
         for (name, value) in &assigns {
             match name.name.as_str() {
                 "dt" => {
-                    let t = self.check_expr(value);
-                    if t.ty == Ty::Obj(Obj::Auto) {
-                        continue;
-                    }
-                    if self.expect_type(&t, &Ty::scalar(Dim::TIME), value, "`dt`")
-                        && self.expect_const(&t, value, "`dt`")
-                    {
-                        match t.num() {
-                            Some(v) if v <= 0.0 => self.err(Diagnostic::error(
-                                "E0321",
-                                value.span,
-                                "`dt` must be positive",
-                            )),
-                            v => dt = v,
-                        }
+                    if let Some(v) = self.positive_time(value, "`dt`") {
+                        dt = Some(v);
                     }
                 }
                 "steps" => {
                     steps = self.check_count(value, "`steps`");
                 }
                 "duration" => {
-                    let t = self.check_expr(value);
-                    if self.expect_type(&t, &Ty::scalar(Dim::TIME), value, "`duration`")
-                        && self.expect_const(&t, value, "`duration`")
-                    {
-                        match t.num() {
-                            Some(v) if v <= 0.0 => self.err(Diagnostic::error(
-                                "E0321",
-                                value.span,
-                                "`duration` must be positive",
-                            )),
-                            v => self.sim.duration = v,
-                        }
+                    if let Some(v) = self.positive_time(value, "`duration`") {
+                        self.sim.duration = Some(v);
                     }
                 }
                 _ => {}
@@ -1118,6 +1095,28 @@ impl Checker {
                 let count = (duration / width - 1e-9).ceil().max(1.0) as usize;
                 self.check_window_lengths(count, *width, *sp);
             }
+        }
+    }
+
+    /// A constant positive time (`dt`, `duration`); `None` for `auto` or an invalid value
+    /// (reported).
+    fn positive_time(&mut self, value: &Expr, what: &str) -> Option<f64> {
+        let t = self.check_expr(value);
+        if t.ty == Ty::Obj(Obj::Auto) && what == "`dt`" {
+            return None;
+        }
+        if !self.expect_type(&t, &Ty::scalar(Dim::TIME), value, what)
+            || !self.expect_const(&t, value, what)
+        {
+            return None;
+        }
+        match t.num() {
+            Some(v) if v <= 0.0 => {
+                let msg = format!("{what} must be positive");
+                self.err(Diagnostic::error("E0321", value.span, msg));
+                None
+            }
+            v => v,
         }
     }
 
