@@ -167,7 +167,8 @@ fn energy_and_stress(
     let diff = b.sub(i1sq, tr_cc);
     let i2 = b.scale(0.5, diff);
     let j23 = b.powf(j, -2.0 / 3.0);
-    let j43 = b.powf(j, -4.0 / 3.0);
+    // One cube root serves both isochoric factors: J^(-4/3) = (J^(-2/3))².
+    let j43 = b.mul(j23, j23);
     let i1b = b.mul(j23, i1);
     let i2b = b.mul(j43, i2);
 
