@@ -224,3 +224,21 @@ fn run_writes_a_json_summary_in_si_units() {
     assert_eq!(last.tets.len(), 1032);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn run_warns_before_an_unstable_step_and_stops_with_a_suggestion() {
+    let bench = root().join("examples/benchmark-1k.soft");
+    let (code, _, err) = softc(&[
+        "run",
+        bench.to_str().unwrap(),
+        "--dt",
+        "60us",
+        "--steps",
+        "300",
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("stable step estimate"), "{err}");
+    assert!(err.contains("warning: dt = "), "{err}");
+    assert!(err.contains("became unstable at step"), "{err}");
+    assert!(err.contains("dt = auto"), "{err}");
+}

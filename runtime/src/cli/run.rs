@@ -145,6 +145,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 Ok(v) => v,
                 Err(code) => return code,
             };
+            if let Err(e) = announce_dt(&mut sim, dt, err) {
+                let _ = writeln!(err, "{}: {e}", args.file.display());
+                return 1;
+            }
             sim.run(dt, args.steps)
                 .map(|s| (s, "interp"))
                 .map_err(|e| e.0)
@@ -170,6 +174,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 Ok(v) => v,
                 Err(code) => return code,
             };
+            if let Err(e) = announce_dt(&mut sim, dt, err) {
+                let _ = writeln!(err, "{}: {e}", args.file.display());
+                return 1;
+            }
             sim.run(dt, args.steps).map(|s| (s, "cpu")).map_err(|e| e.0)
         }
     };
@@ -204,6 +212,36 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     0
+}
+
+/// Print the stable-step estimate before a run, and warn when the step exceeds it.
+fn announce_dt<B: crate::engine::Backend>(
+    sim: &mut Simulation<B>,
+    dt: Option<f64>,
+    err: &mut dyn Write,
+) -> Result<(), String> {
+    let est = sim.stable_dt_estimate().map_err(|e| e.0)?;
+    let chosen = match (dt, sim.scene.dt) {
+        (Some(d), _) => Some(d),
+        (None, crate::engine::scene::DtChoice::Given(d)) => Some(d),
+        (None, crate::engine::scene::DtChoice::Auto { safety }) => Some(safety * est),
+    };
+    let _ = writeln!(
+        err,
+        "stable step estimate (2/omega_max of M^-1 K at rest): {est:e} s; dt = {:e} s",
+        chosen.unwrap_or(est)
+    );
+    if let Some(d) = chosen
+        && d > est
+    {
+        let _ = writeln!(
+            err,
+            "warning: dt = {d:e} s exceeds the stable step {est:e} s of this mesh and material; \
+             the run will likely blow up. Use `dt = auto` or dt <= {:e} s",
+            0.9 * est
+        );
+    }
+    Ok(())
 }
 
 /// The VTK series asked for with `--vtk DIR`.

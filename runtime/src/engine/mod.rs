@@ -305,6 +305,8 @@ pub struct Simulation<'s, B: Backend> {
     pub uniforms: Uniforms,
     /// Write a ParaView series while running.
     pub vtk: Option<VtkOutput>,
+    /// The stable-step estimate, once computed (reused by `run`).
+    estimate: Option<f64>,
     ids: Ids,
 }
 
@@ -379,6 +381,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             backend,
             uniforms,
             vtk: None,
+            estimate: None,
             ids,
         }
     }
@@ -412,6 +415,15 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// eigenvalue of M⁻¹K over the free nodes, by power iteration with K·u from finite
     /// differences of the element forces.
     pub fn stable_dt_estimate(&mut self) -> Result<f64, RunError> {
+        if let Some(e) = self.estimate {
+            return Ok(e);
+        }
+        let e = self.compute_stable_dt()?;
+        self.estimate = Some(e);
+        Ok(e)
+    }
+
+    fn compute_stable_dt(&mut self) -> Result<f64, RunError> {
         let n = self.scene.mesh.nodes.len();
         let x0 = self.backend.get(self.ids.x);
         let f0 = self.internal_forces()?;
@@ -479,8 +491,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
         steps_override: Option<u64>,
     ) -> Result<RunSummary, RunError> {
         let start = std::time::Instant::now();
-        let estimate = match (self.scene.dt, dt_override) {
-            (DtChoice::Auto { .. }, None) => Some(self.stable_dt_estimate()?),
+        let estimate = match (self.scene.dt, dt_override, self.estimate) {
+            (_, _, Some(e)) => Some(e),
+            (DtChoice::Auto { .. }, None, None) => Some(self.stable_dt_estimate()?),
             _ => None,
         };
         let dt = match (dt_override, self.scene.dt, estimate) {
@@ -609,7 +622,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                  (it estimates the stable step) or a smaller dt, e.g. {:e} s",
                 step + 1,
                 i / 3,
-                dt / 4.0
+                self.estimate.map_or(dt / 4.0, |e| 0.9 * e)
             )));
         }
         let js = self.backend.get(self.ids.elem_j);
