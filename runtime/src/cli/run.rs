@@ -17,7 +17,7 @@ pub struct RunArgs {
     /// Floating-point precision of the kernels (the cpu backend; the interpreter is f64).
     #[arg(long, value_enum)]
     pub precision: Option<PrecisionChoice>,
-    /// Worker threads of the cpu backend (default: all cores for large meshes, else 1).
+    /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
     #[arg(long)]
     pub threads: Option<usize>,
     /// Override a param's value, with its unit: `--set p_max=2.5kPa`.
