@@ -413,8 +413,7 @@ fn selection(
             let cond = second.ok_or_else(|| SceneError("`select` needs a condition".into()))?;
             let mut k = KernelBuilder::new("select", Domain::Node, "selection");
             let mut env = Env::new();
-            for (i, c) in ["x", "y", "z"].iter().enumerate() {
-                let _ = i;
+            for c in ["x", "y", "z"] {
                 env.insert(c.to_string(), LVal::S(k.uniform(c)));
             }
             let mut lw = ExprLowerer::new(program);
