@@ -222,7 +222,9 @@ impl Cpu {
         // 10k tets 695 -> 918 steps/s with 2 threads; 1k tets are faster on one).
         self.threads.unwrap_or_else(|| {
             if entities >= 8_000 {
-                std::thread::available_parallelism().map_or(1, |n| n.get())
+                // Capped at 8: each launch spawns its threads, and on a 16-core machine
+                // 16 threads ran 2.6x slower than 8 (benchmark-50k: 420 vs 162 steps/s).
+                std::thread::available_parallelism().map_or(1, |n| n.get().min(8))
             } else {
                 1
             }
