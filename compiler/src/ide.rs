@@ -740,40 +740,15 @@ pub fn resolve(script: &Script) -> Resolved {
         scopes: Vec::new(),
     };
     for item in &script.items {
-        let (name, kind, ty) = match &item.kind {
-            ItemKind::Decl { kind, name, .. } => (
-                name,
-                match kind {
-                    DeclKind::Mesh => SymKind::Mesh,
-                    DeclKind::Region => SymKind::Region,
-                    DeclKind::Chamber => SymKind::Chamber,
-                    DeclKind::Nodes => SymKind::Nodes,
-                    DeclKind::Elements => SymKind::Elements,
-                },
-                None,
-            ),
-            ItemKind::Material(m) => (
-                &m.name,
-                if m.params.is_some() {
-                    SymKind::MaterialTemplate
-                } else {
-                    SymKind::Material
-                },
-                None,
-            ),
-            ItemKind::Param(p) => (&p.name, SymKind::Param, Some(p.ty.clone())),
-            ItemKind::Input(i) => (&i.name, SymKind::Input, Some(i.ty.clone())),
-            ItemKind::Let(l) => (&l.name, SymKind::Let, l.ty.clone()),
-            ItemKind::Fn(f) => (
-                &f.name,
-                if f.is_controller {
-                    SymKind::Controller
-                } else {
-                    SymKind::Fn
-                },
-                f.ret.clone(),
-            ),
-            _ => continue,
+        let Some((name, kind)) = SymKind::of_item(item) else {
+            continue;
+        };
+        let ty = match &item.kind {
+            ItemKind::Param(p) => Some(p.ty.clone()),
+            ItemKind::Input(i) => Some(i.ty.clone()),
+            ItemKind::Let(l) => l.ty.clone(),
+            ItemKind::Fn(f) => f.ret.clone(),
+            _ => None,
         };
         let id = rs.def(name, DefKind::Global(kind), item.span, ty);
         rs.globals.entry(name.name.clone()).or_insert(id);

@@ -60,37 +60,8 @@ impl Checker {
             self.user_items = items.to_vec();
         }
         for (index, item) in items.iter().enumerate() {
-            let (name, kind) = match &item.kind {
-                ItemKind::Decl { kind, name, .. } => (
-                    name,
-                    match kind {
-                        DeclKind::Mesh => SymKind::Mesh,
-                        DeclKind::Region => SymKind::Region,
-                        DeclKind::Chamber => SymKind::Chamber,
-                        DeclKind::Nodes => SymKind::Nodes,
-                        DeclKind::Elements => SymKind::Elements,
-                    },
-                ),
-                ItemKind::Material(m) => (
-                    &m.name,
-                    if m.params.is_some() {
-                        SymKind::MaterialTemplate
-                    } else {
-                        SymKind::Material
-                    },
-                ),
-                ItemKind::Param(p) => (&p.name, SymKind::Param),
-                ItemKind::Input(i) => (&i.name, SymKind::Input),
-                ItemKind::Let(l) => (&l.name, SymKind::Let),
-                ItemKind::Fn(f) => (
-                    &f.name,
-                    if f.is_controller {
-                        SymKind::Controller
-                    } else {
-                        SymKind::Fn
-                    },
-                ),
-                ItemKind::Sim(_) | ItemKind::Loss(_) | ItemKind::Optimize(_) => continue,
+            let Some((name, kind)) = SymKind::of_item(item) else {
+                continue;
             };
             if super::RESERVED_NAMES.contains(&name.name.as_str()) {
                 self.err(reserved_name(&name.name, name.span));
@@ -317,12 +288,12 @@ impl Checker {
                         }
                         Some((g, k)) => {
                             self.syms[g].used = true;
-                            let msg = format!(
-                                "a per-element shape names an element set, but `{}` is {}",
-                                id.name,
-                                k.with_article()
+                            self.wrong_kind(
+                                id,
+                                k,
+                                "a per-element shape names an element set",
+                                None,
                             );
-                            self.err(Diagnostic::error("E0110", id.span, msg));
                             return None;
                         }
                         None => {
@@ -917,12 +888,7 @@ impl Checker {
                             Some(SymKind::Region) => self.check_region_nonempty(n),
                             Some(SymKind::Nodes) | None => {}
                             Some(k) => {
-                                let msg = format!(
-                                    "`fix` takes regions or node sets, but `{}` is {}",
-                                    n.name,
-                                    k.with_article()
-                                );
-                                self.err(Diagnostic::error("E0110", n.span, msg));
+                                self.wrong_kind(n, k, "`fix` takes regions or node sets", None);
                             }
                         }
                     }
@@ -938,14 +904,12 @@ impl Checker {
                             self.sim.pressured.push(chamber.name.clone());
                         }
                         Some(k) => {
-                            let msg = format!(
-                                "`pressure` applies to chambers, but `{}` is {}",
-                                chamber.name,
-                                k.with_article()
+                            self.wrong_kind(
+                                chamber,
+                                k,
+                                "`pressure` applies to chambers",
+                                Some("declare it with `chamber NAME = surface(mesh, \"name\")`"),
                             );
-                            self.err(Diagnostic::error("E0110", chamber.span, msg).with_hint(
-                                "declare it with `chamber NAME = surface(mesh, \"name\")`",
-                            ));
                         }
                         None => {}
                     }
@@ -976,26 +940,19 @@ impl Checker {
                             ));
                         }
                         Some(k) => {
-                            let msg = format!(
-                                "`use` takes a material, but `{}` is {}",
-                                material.name,
-                                k.with_article()
-                            );
-                            self.err(Diagnostic::error("E0110", material.span, msg));
+                            self.wrong_kind(material, k, "`use` takes a material", None);
                         }
                     }
                     if let Some(set) = set {
                         match self.global_kind(set) {
                             Some(SymKind::Elements) | None => {}
                             Some(k) => {
-                                let msg = format!(
-                                    "materials are assigned to element sets, but `{}` is {}",
-                                    set.name,
-                                    k.with_article()
+                                self.wrong_kind(
+                                    set,
+                                    k,
+                                    "materials are assigned to element sets",
+                                    Some("declare it with `elements NAME = select(mesh, …)`"),
                                 );
-                                self.err(Diagnostic::error("E0110", set.span, msg).with_hint(
-                                    "declare it with `elements NAME = select(mesh, …)`",
-                                ));
                             }
                         }
                     }
@@ -1330,6 +1287,16 @@ impl Checker {
         }
     }
 
+    /// E0110: a name of the wrong kind where `rule` says what belongs there.
+    fn wrong_kind(&mut self, id: &Ident, k: SymKind, rule: &str, hint: Option<&str>) {
+        let msg = format!("{rule}, but `{}` is {}", id.name, k.with_article());
+        let mut d = Diagnostic::error("E0110", id.span, msg);
+        if let Some(h) = hint {
+            d = d.with_hint(h);
+        }
+        self.err(d);
+    }
+
     fn global_kind(&mut self, id: &Ident) -> Option<SymKind> {
         match self.globals.get(&id.name) {
             Some(&g) => {
@@ -1509,12 +1476,7 @@ impl Checker {
                             self.check_batch_source(source, ty.as_ref(), &input.name);
                         }
                         Some((_, k)) => {
-                            let msg = format!(
-                                "`validate` takes an input, but `{}` is {}",
-                                input.name,
-                                k.with_article()
-                            );
-                            self.err(Diagnostic::error("E0110", input.span, msg));
+                            self.wrong_kind(input, k, "`validate` takes an input", None);
                         }
                         None => {
                             let d = self.unknown_name(&input.name, input.span);

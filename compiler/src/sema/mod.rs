@@ -159,6 +159,31 @@ pub enum SymKind {
 }
 
 impl SymKind {
+    /// The name a top-level item declares and its kind (`None` for sim, loss, optimize).
+    pub fn of_item(item: &Item) -> Option<(&crate::front::ast::Ident, SymKind)> {
+        use crate::front::ast::{DeclKind, ItemKind};
+        Some(match &item.kind {
+            ItemKind::Decl { kind, name, .. } => (
+                name,
+                match kind {
+                    DeclKind::Mesh => SymKind::Mesh,
+                    DeclKind::Region => SymKind::Region,
+                    DeclKind::Chamber => SymKind::Chamber,
+                    DeclKind::Nodes => SymKind::Nodes,
+                    DeclKind::Elements => SymKind::Elements,
+                },
+            ),
+            ItemKind::Material(m) if m.params.is_some() => (&m.name, SymKind::MaterialTemplate),
+            ItemKind::Material(m) => (&m.name, SymKind::Material),
+            ItemKind::Param(p) => (&p.name, SymKind::Param),
+            ItemKind::Input(i) => (&i.name, SymKind::Input),
+            ItemKind::Let(l) => (&l.name, SymKind::Let),
+            ItemKind::Fn(f) if f.is_controller => (&f.name, SymKind::Controller),
+            ItemKind::Fn(f) => (&f.name, SymKind::Fn),
+            ItemKind::Sim(_) | ItemKind::Loss(_) | ItemKind::Optimize(_) => return None,
+        })
+    }
+
     fn with_article(self) -> String {
         expr::with_article(self.describe())
     }
