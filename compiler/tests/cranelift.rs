@@ -473,30 +473,11 @@ fn box_mesh(n: (usize, usize, usize), seed: u64) -> Mesh {
 }
 
 fn signed_volume(p: &[[f64; 3]], t: &[u32; 4]) -> f64 {
-    let r = t.map(|n| p[n as usize]);
-    let a = [0, 1, 2].map(|k| r[1][k] - r[0][k]);
-    let b = [0, 1, 2].map(|k| r[2][k] - r[0][k]);
-    let c = [0, 1, 2].map(|k| r[3][k] - r[0][k]);
-    (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
-        + a[2] * (b[0] * c[1] - b[1] * c[0]))
-        / 6.0
+    common::signed_volume(t.map(|n| p[n as usize]))
 }
 
 fn dm_inv(p: &[[f64; 3]], t: &[u32; 4]) -> [f64; 9] {
-    let r = t.map(|n| p[n as usize]);
-    let m: [[f64; 3]; 3] = [0, 1, 2].map(|row| [0, 1, 2].map(|c| r[c + 1][row] - r[0][row]));
-    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-    let mut inv = [0.0; 9];
-    for row in 0..3 {
-        for c in 0..3 {
-            let (r1, r2) = ((c + 1) % 3, (c + 2) % 3);
-            let (c1, c2) = ((row + 1) % 3, (row + 2) % 3);
-            inv[3 * row + c] = (m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]) / det;
-        }
-    }
-    inv
+    common::dm_inv(t.map(|n| p[n as usize]))
 }
 
 impl Mesh {

@@ -17,3 +17,31 @@ sim { dt = 1 us; steps = 1; use nh }
 "#;
 
 pub const NAMES: [&str; 6] = ["yeoh3", "mr", "nh", "nhln", "series", "custom"];
+
+/// Signed volume of a tet from its four corners (positive for positive orientation).
+pub fn signed_volume(r: [[f64; 3]; 4]) -> f64 {
+    let a = [0, 1, 2].map(|k| r[1][k] - r[0][k]);
+    let b = [0, 1, 2].map(|k| r[2][k] - r[0][k]);
+    let c = [0, 1, 2].map(|k| r[3][k] - r[0][k]);
+    (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+        + a[2] * (b[0] * c[1] - b[1] * c[0]))
+        / 6.0
+}
+
+/// Dm⁻¹ row-major, with Dm's columns x1−x0, x2−x0, x3−x0, computed independently of the
+/// runtime's precomputation (cofactors over the determinant).
+pub fn dm_inv(r: [[f64; 3]; 4]) -> [f64; 9] {
+    let m: [[f64; 3]; 3] = [0, 1, 2].map(|row| [0, 1, 2].map(|c| r[c + 1][row] - r[0][row]));
+    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    let mut inv = [0.0; 9];
+    for row in 0..3 {
+        for c in 0..3 {
+            let (r1, r2) = ((c + 1) % 3, (c + 2) % 3);
+            let (c1, c2) = ((row + 1) % 3, (row + 2) % 3);
+            inv[3 * row + c] = (m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]) / det;
+        }
+    }
+    inv
+}
