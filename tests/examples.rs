@@ -242,3 +242,66 @@ fn run_warns_before_an_unstable_step_and_stops_with_a_suggestion() {
     assert!(err.contains("became unstable at step"), "{err}");
     assert!(err.contains("dt = auto"), "{err}");
 }
+
+#[test]
+fn run_grad_reports_every_param_gradient_and_the_adjoint() {
+    let dir = std::env::temp_dir().join(format!("softc-grad-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let json = dir.join("grad.json");
+    let script = root().join("runtime/tests/fixtures/grad/all_kinds.soft");
+    let (code, _, err) = softc(&[
+        "run",
+        script.to_str().unwrap(),
+        "--steps",
+        "40",
+        "--grad",
+        "--checkpoint",
+        "revolve:3",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("backward pass over 40 steps"), "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let g = &v["gradients"];
+    // Scalars are numbers, arrays keep their shape.
+    for scalar in ["p0", "c10"] {
+        assert!(g[scalar].as_f64().unwrap() != 0.0, "{scalar}: {g}");
+    }
+    assert_eq!(g["beta"].as_array().unwrap().len(), 4);
+    assert_eq!(g["w"].as_array().unwrap().len(), 2);
+    let a = &v["adjoint"];
+    assert_eq!(a["schedule"], "revolve(snapshots: 3)");
+    assert!(a["recompute_ratio"].as_f64().unwrap() > 1.0);
+    assert!(!a["health"].as_array().unwrap().is_empty());
+    // Bad schedules and scenes without a loss are clear errors.
+    let (code, _, err) = softc(&[
+        "run",
+        script.to_str().unwrap(),
+        "--grad",
+        "--checkpoint",
+        "revolve:0",
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("--checkpoint revolve:0"), "{err}");
+    let verification = root().join("examples/verification.soft");
+    let (code, _, err) = softc(&[
+        "run",
+        verification.to_str().unwrap(),
+        "--steps",
+        "2",
+        "--grad",
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("no `loss`"), "{err}");
+    let (code, _, err) = softc(&[
+        "run",
+        script.to_str().unwrap(),
+        "--grad",
+        "--backend",
+        "reference",
+    ]);
+    assert_eq!(code, 2, "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

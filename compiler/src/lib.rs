@@ -9,6 +9,7 @@ pub mod front;
 pub mod ide;
 pub mod ir;
 pub mod lower;
+pub mod passes;
 pub mod sema;
 
 use diag::Diagnostic;

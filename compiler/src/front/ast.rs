@@ -43,6 +43,17 @@ impl Script {
     }
 
     /// The value of a `name = value` setting of the `sim` block.
+    /// A setting of the `optimize` block (`gradient_scale = 1e-3`).
+    pub fn optimize_setting(&self, name: &str) -> Option<&Expr> {
+        self.items.iter().find_map(|i| match &i.kind {
+            ItemKind::Optimize(o) => o.body.iter().flatten().find_map(|s| match &s.kind {
+                StmtKind::Assign { name: n, value } if n.name == name => Some(value),
+                _ => None,
+            }),
+            _ => None,
+        })
+    }
+
     pub fn sim_setting(&self, name: &str) -> Option<&Expr> {
         self.sim_block().iter().find_map(|s| match &s.kind {
             StmtKind::Assign { name: n, value } if n.name == name => Some(value),

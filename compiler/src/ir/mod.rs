@@ -387,7 +387,7 @@ pub struct Buffer {
     pub doc: String,
 }
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct BufferId(pub u32);
 
 /// Where a kernel argument comes from.
@@ -432,6 +432,33 @@ pub struct Kernel {
     pub args: Vec<ArgSource>,
     pub body: Func,
     pub stores: Vec<Store>,
+}
+
+impl Kernel {
+    /// Remove the arguments the body does not read, renumbering the others.
+    pub fn drop_unused_args(&mut self) {
+        let mut used = vec![false; self.args.len()];
+        for i in &self.body.insts {
+            if let Inst::Arg(a) = i {
+                used[*a as usize] = true;
+            }
+        }
+        let mut new_index = vec![0u32; self.args.len()];
+        let mut kept = Vec::new();
+        for (i, a) in self.args.drain(..).enumerate() {
+            if used[i] {
+                new_index[i] = kept.len() as u32;
+                kept.push(a);
+            }
+        }
+        self.args = kept;
+        for i in &mut self.body.insts {
+            if let Inst::Arg(a) = i {
+                *a = new_index[*a as usize];
+            }
+        }
+        self.body.n_args = self.args.len() as u32;
+    }
 }
 
 /// A scene's kernels and the buffers they share.

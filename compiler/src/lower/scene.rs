@@ -8,6 +8,7 @@ use super::expr::{Env, ExprLowerer, Program};
 use super::fem::{FemBuffers, element_force_kernel};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, CmpOp, Domain, KernelBuilder, Module, V};
+use crate::passes::adjoint::{Adjoint, adjoint};
 
 /// The module of a scene plus what the host needs to run it.
 #[derive(Debug, Clone)]
@@ -17,6 +18,8 @@ pub struct SceneModule {
     pub materials: Vec<String>,
     /// Chambers in kernel order (pressure kernel `i` runs over the triangles of chamber `i`).
     pub chambers: Vec<String>,
+    /// The adjoint of a step: `module` followed by the reverse-step kernels.
+    pub adjoint: Adjoint,
 }
 
 /// Lower the scene described by a checked script.
@@ -99,11 +102,29 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     }
     let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
     module.kernels.push(node);
+    let mut scale = Vec::new();
+    if let Some(e) = script.optimize_setting("gradient_scale") {
+        scale.push(("v", constant(program, e, "gradient_scale")?));
+    }
+    let adjoint =
+        adjoint(&module, &[("x", "x_next"), ("v", "v_next")], &scale).map_err(LowerError::new)?;
     Ok(SceneModule {
         module,
         materials,
         chambers,
+        adjoint,
     })
+}
+
+/// The value of a constant setting.
+fn constant(program: &Program, e: &Expr, what: &str) -> Result<f64, LowerError> {
+    let mut k = KernelBuilder::new("constant", Domain::Single, what);
+    let v = ExprLowerer::new(program)
+        .lower(&mut k, &Env::new(), e)?
+        .scalar()?;
+    k.b.func
+        .constant(v)
+        .ok_or_else(|| LowerError::new(format!("`{what}` must be a constant")))
 }
 
 /// Follower pressure load (thesis eq. 2.15): each corner of a chamber triangle gets

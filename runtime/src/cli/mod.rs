@@ -243,7 +243,7 @@ fn compile_file(path: &Path, emit: Emit, out: &mut dyn Write, err: &mut dyn Writ
     match softc_compiler::lower::scene::lower_scene(&program, &ast) {
         Ok(scene) if emit == Emit::Clif => {
             match softc_compiler::back::cranelift::CpuModule::compile(
-                &scene.module,
+                &scene.adjoint.module,
                 softc_compiler::back::Precision::F64,
             ) {
                 Ok(m) => {
@@ -257,7 +257,8 @@ fn compile_file(path: &Path, emit: Emit, out: &mut dyn Write, err: &mut dyn Writ
             }
         }
         Ok(scene) => {
-            let _ = write!(out, "{}", scene.module);
+            // The forward kernels, then the adjoint of a step.
+            let _ = write!(out, "{}", scene.adjoint.module);
             0
         }
         Err(e) => {

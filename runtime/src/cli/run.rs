@@ -1,5 +1,6 @@
 //! `softc run`: simulate a script and report a JSON summary.
 
+use crate::engine::adjoint::{Checkpointing, GradOptions, GradientReport};
 use crate::engine::scene::Scene;
 use crate::engine::{Cpu, Interpreter, RunSummary, Simulation};
 use clap::{Args, ValueEnum};
@@ -36,6 +37,17 @@ pub struct RunArgs {
     /// script's `output vtk every N steps` says (default 100).
     #[arg(long)]
     pub vtk: Option<PathBuf>,
+    /// Also run the backward pass: d loss / d param for every param (`gradients` in the JSON).
+    #[arg(long)]
+    pub grad: bool,
+    /// Which states the backward pass stores (overrides the optimize block's `checkpoint`):
+    /// `auto`, `store_all`, `periodic:K` (every K-th state) or `revolve:N` (N snapshots).
+    #[arg(long, value_name = "SCHEDULE")]
+    pub checkpoint: Option<String>,
+    /// Memory for the stored states of the backward pass, e.g. `512MB` (overrides the optimize
+    /// block's `memory_budget`).
+    #[arg(long, value_name = "BYTES")]
+    pub memory_budget: Option<String>,
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -125,6 +137,13 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 2;
         }
     }
+    if args.grad && args.backend == BackendChoice::Reference {
+        let _ = writeln!(
+            err,
+            "softc: --grad runs on the cpu and interp backends (the reference oracle is forward only)"
+        );
+        return 2;
+    }
     let result = match args.backend {
         BackendChoice::Reference => {
             crate::reference::run(&scene, dt, args.steps).and_then(|mut s| {
@@ -136,59 +155,59 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                     let v: Vec<f64> = s.v.iter().flatten().copied().collect();
                     s.loss = Some(l.eval(&scene, &x, &v, s.steps as f64 * s.dt, &scene.uniforms));
                 }
-                Ok((s, "reference"))
+                Ok(((s, None), "reference"))
             })
         }
         BackendChoice::Interp => {
-            let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.module));
-            sim.vtk = match vtk_output(&args, &scene, err) {
-                Ok(v) => v,
-                Err(code) => return code,
+            let module = if args.grad {
+                &scene.lowered.adjoint.module
+            } else {
+                &scene.lowered.module
             };
-            if let Err(e) = announce_dt(&mut sim, dt, err) {
-                let _ = writeln!(err, "{}: {e}", args.file.display());
-                return 1;
-            }
-            sim.run(dt, args.steps)
-                .map(|s| (s, "interp"))
-                .map_err(|e| e.0)
+            simulate(&scene, Interpreter::new(module), &args, dt, err).map(|o| (o, "interp"))
         }
-        _ => {
+        BackendChoice::Cpu => {
             let precision = match (args.precision, scene.precision_setting()) {
                 (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
                 _ => Precision::F64,
             };
-            let cpu = match Cpu::new(&scene.lowered.module, precision, args.threads) {
-                Ok(c) => c,
-                Err(e) => {
-                    let _ = writeln!(
-                        err,
-                        "{}: the kernels do not compile: {e}",
-                        args.file.display()
-                    );
-                    return 1;
-                }
+            // The adjoint kernels are compiled only when the backward pass runs.
+            let module = if args.grad {
+                &scene.lowered.adjoint.module
+            } else {
+                &scene.lowered.module
             };
-            let mut sim = Simulation::new(&scene, cpu);
-            sim.vtk = match vtk_output(&args, &scene, err) {
-                Ok(v) => v,
-                Err(code) => return code,
-            };
-            if let Err(e) = announce_dt(&mut sim, dt, err) {
-                let _ = writeln!(err, "{}: {e}", args.file.display());
-                return 1;
+            match Cpu::new(module, precision, args.threads) {
+                Ok(cpu) => simulate(&scene, cpu, &args, dt, err).map(|o| (o, "cpu")),
+                Err(e) => Err(format!("the kernels do not compile: {e}")),
             }
-            sim.run(dt, args.steps).map(|s| (s, "cpu")).map_err(|e| e.0)
         }
     };
-    let (summary, backend_name) = match result {
+    let ((summary, grad), backend_name) = match result {
         Ok(s) => s,
+        Err(e) if e.is_empty() => return 2,
         Err(e) => {
             let _ = writeln!(err, "{}: {e}", args.file.display());
             return 1;
         }
     };
-    let json = summary_json(&scene, &summary, backend_name);
+    let mut json = summary_json(&scene, &summary, backend_name);
+    if let Some(g) = &grad {
+        json["gradients"] = gradients_json(&g.gradients);
+        json["adjoint"] = adjoint_json(g);
+        let _ = writeln!(
+            err,
+            "{}: backward pass over {} steps in {:.3} s ({}; {} states of {} bytes stored at most; \
+             {:.2} forward steps per step)",
+            args.file.display(),
+            g.reversed_steps,
+            g.backward_seconds,
+            g.schedule,
+            g.stored_states,
+            g.state_bytes,
+            g.recompute_ratio
+        );
+    }
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
     let _ = writeln!(
         err,
@@ -331,5 +350,159 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
         "nodes": scene.mesh.nodes.len(),
         "elements": scene.mesh.tets.len(),
         "sets": sets,
+    })
+}
+
+/// A forward run, or with `--grad` a forward and backward pass, on one backend. An empty error
+/// means the message was already printed (a usage error).
+fn simulate<B: crate::engine::Backend>(
+    scene: &Scene,
+    backend: B,
+    args: &RunArgs,
+    dt: Option<f64>,
+    err: &mut dyn Write,
+) -> Result<(RunSummary, Option<GradientReport>), String> {
+    let mut sim = Simulation::new(scene, backend);
+    sim.vtk = match vtk_output(args, scene, err) {
+        Ok(v) => v,
+        Err(_) => return Err(String::new()),
+    };
+    announce_dt(&mut sim, dt, err)?;
+    if args.grad {
+        let options = grad_options(scene, args)?;
+        let g = sim.gradient(dt, args.steps, &options).map_err(|e| e.0)?;
+        Ok((g.summary.clone(), Some(g)))
+    } else {
+        sim.run(dt, args.steps).map(|s| (s, None)).map_err(|e| e.0)
+    }
+}
+
+/// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
+/// `truncate`, overridden by `--checkpoint` and `--memory-budget`.
+fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions, String> {
+    use softc_compiler::front::ast::ExprKind;
+    let mut o = GradOptions::default();
+    let program = scene.program();
+    let constant = |e: &softc_compiler::front::ast::Expr| -> Result<f64, String> {
+        let mut k = softc_compiler::ir::KernelBuilder::new(
+            "setting",
+            softc_compiler::ir::Domain::Single,
+            "setting",
+        );
+        let v = softc_compiler::lower::expr::ExprLowerer::new(&program)
+            .lower(&mut k, &softc_compiler::lower::expr::Env::new(), e)
+            .and_then(|v| v.scalar())
+            .map_err(|e| e.to_string())?;
+        k.b.func
+            .constant(v)
+            .ok_or_else(|| "a setting of the optimize block is not constant".to_string())
+    };
+    if let Some(e) = scene.ast.optimize_setting("checkpoint") {
+        o.checkpoint = match &e.kind {
+            ExprKind::Name(n) if n.name == "store_all" => Checkpointing::StoreAll,
+            ExprKind::Call { callee, args } => {
+                let k = args
+                    .first()
+                    .map(|a| constant(&a.value))
+                    .transpose()?
+                    .unwrap_or(1.0)
+                    .max(1.0) as u64;
+                match &callee.kind {
+                    ExprKind::Name(n) if n.name == "periodic" => Checkpointing::Periodic(k),
+                    _ => Checkpointing::Revolve(k as usize),
+                }
+            }
+            _ => Checkpointing::Auto,
+        };
+    }
+    if let Some(e) = scene.ast.optimize_setting("memory_budget") {
+        o.memory_budget = Some(constant(e)? as u64);
+    }
+    if let Some(e) = scene.ast.optimize_setting("truncate") {
+        o.truncate = Some(constant(e)?.max(1.0) as u64);
+    }
+    if let Some(c) = &args.checkpoint {
+        let number = |s: &str| {
+            s.trim()
+                .parse::<u64>()
+                .ok()
+                .filter(|n| *n >= 1)
+                .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
+        };
+        o.checkpoint = match c.split_once(':') {
+            None if c == "auto" => Checkpointing::Auto,
+            None if c == "store_all" => Checkpointing::StoreAll,
+            Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
+            Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
+            _ => {
+                return Err(format!(
+                    "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
+                ));
+            }
+        };
+    }
+    if let Some(m) = &args.memory_budget {
+        let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
+        if dim != softc_compiler::sema::units::Dim::MEMORY || bytes <= 0.0 {
+            return Err(format!(
+                "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
+            ));
+        }
+        o.memory_budget = Some(bytes as u64);
+    }
+    Ok(o)
+}
+
+/// `param.NAME[.i…]` derivatives as `{NAME: number or nested array}`.
+pub fn gradients_json(g: &std::collections::BTreeMap<String, f64>) -> serde_json::Value {
+    let mut by_param: std::collections::BTreeMap<&str, Vec<(Vec<usize>, f64)>> = Default::default();
+    for (name, d) in g {
+        let Some(rest) = name.strip_prefix("param.") else {
+            continue;
+        };
+        let mut parts = rest.split('.');
+        let p = parts.next().unwrap_or(rest);
+        let idx: Vec<usize> = parts.filter_map(|s| s.parse().ok()).collect();
+        by_param.entry(p).or_default().push((idx, *d));
+    }
+    fn nest(entries: &[(Vec<usize>, f64)], depth: usize) -> serde_json::Value {
+        if entries.len() == 1 && entries[0].0.len() == depth {
+            return serde_json::json!(entries[0].1);
+        }
+        let n = entries.iter().map(|(i, _)| i[depth] + 1).max().unwrap_or(0);
+        (0..n)
+            .map(|k| {
+                let sub: Vec<_> = entries
+                    .iter()
+                    .filter(|(i, _)| i[depth] == k)
+                    .cloned()
+                    .collect();
+                nest(&sub, depth + 1)
+            })
+            .collect()
+    }
+    by_param
+        .into_iter()
+        .map(|(p, e)| (p.to_string(), nest(&e, 0)))
+        .collect::<serde_json::Map<_, _>>()
+        .into()
+}
+
+fn adjoint_json(g: &GradientReport) -> serde_json::Value {
+    serde_json::json!({
+        "schedule": g.schedule,
+        "stored_states": g.stored_states,
+        "state_bytes": g.state_bytes,
+        "stored_bytes": g.stored_states * g.state_bytes,
+        "recompute_ratio": g.recompute_ratio,
+        "reversed_steps": g.reversed_steps,
+        "forward_seconds": g.forward_seconds,
+        "backward_seconds": g.backward_seconds,
+        "growth_per_1000_steps": g.growth_per_1000_steps(),
+        "health": g.health.iter().map(|h| serde_json::json!({
+            "step": h.step,
+            "adj_x_norm": h.adj_x_norm,
+            "adj_v_norm": h.adj_v_norm,
+        })).collect::<Vec<_>>(),
     })
 }

@@ -5,7 +5,7 @@
 
 use super::scene::Scene;
 use softc_compiler::front::ast::{ItemKind, LossWhen};
-use softc_compiler::ir::{ArgSource, Domain, Func, KernelBuilder, interp};
+use softc_compiler::ir::{ArgSource, Domain, Func, KernelBuilder, ad, interp};
 use softc_compiler::lower::expr::{Env, ExprLowerer};
 use std::collections::HashMap;
 
@@ -20,6 +20,8 @@ pub enum LossWindow {
 
 pub struct Loss {
     func: Func,
+    /// `func` followed by the derivative of the loss with respect to each argument.
+    grad: Func,
     /// The uniform each argument reads (`state.x.N.d`, `t`, `param.p`, …).
     args: Vec<String>,
     pub window: LossWindow,
@@ -48,6 +50,29 @@ impl Loss {
         k.b.func.outputs.push(v);
         let (srcs, mut func) = k.into_parts();
         func.n_args = srcs.len() as u32;
+        let wrt: Vec<_> = (0..func.n_args)
+            .map(|i| {
+                func.insts
+                    .iter()
+                    .position(|inst| *inst == softc_compiler::ir::Inst::Arg(i))
+                    .map(|p| softc_compiler::ir::V(p as u32))
+            })
+            .collect();
+        let present: Vec<_> = wrt.iter().flatten().copied().collect();
+        let (mut grad, ds) = ad::gradient(func.clone(), v, &present);
+        let mut ds = ds.into_iter();
+        let zero = {
+            let mut b = softc_compiler::ir::Builder::extend(grad);
+            let z = b.constant(0.0);
+            grad = b.finish();
+            z
+        };
+        grad.outputs = std::iter::once(v)
+            .chain(wrt.iter().map(|w| match w {
+                Some(_) => ds.next().expect("one derivative per present argument"),
+                None => zero,
+            }))
+            .collect();
         let args = srcs
             .into_iter()
             .map(|s| match s {
@@ -77,7 +102,12 @@ impl Loss {
                 }
             }
         };
-        Ok(Some(Loss { func, args, window }))
+        Ok(Some(Loss {
+            func,
+            grad,
+            args,
+            window,
+        }))
     }
 
     /// The loss term at one state: positions and velocities (flat, 3 per node), time, and the
@@ -90,8 +120,36 @@ impl Loss {
         t: f64,
         uniforms: &std::collections::BTreeMap<String, f64>,
     ) -> f64 {
-        let args: Vec<f64> = self
-            .args
+        interp::eval(&self.func, &self.arg_values(scene, x, v, t, uniforms))[0]
+    }
+
+    /// The loss term and its derivative with respect to each argument ([`Loss::args`]).
+    pub fn eval_grad(
+        &self,
+        scene: &Scene,
+        x: &[f64],
+        v: &[f64],
+        t: f64,
+        uniforms: &std::collections::BTreeMap<String, f64>,
+    ) -> (f64, Vec<f64>) {
+        let out = interp::eval(&self.grad, &self.arg_values(scene, x, v, t, uniforms));
+        (out[0], out[1..].to_vec())
+    }
+
+    /// The uniform each argument reads (`state.x.N.d`, `state.v.N.d`, `param.p`, `t`, …).
+    pub fn args(&self) -> &[String] {
+        &self.args
+    }
+
+    fn arg_values(
+        &self,
+        scene: &Scene,
+        x: &[f64],
+        v: &[f64],
+        t: f64,
+        uniforms: &std::collections::BTreeMap<String, f64>,
+    ) -> Vec<f64> {
+        self.args
             .iter()
             .map(|name| {
                 if let Some(rest) = name.strip_prefix("state.") {
@@ -110,8 +168,7 @@ impl Loss {
                     uniforms.get(name).copied().unwrap_or(f64::NAN)
                 }
             })
-            .collect();
-        interp::eval(&self.func, &args)[0]
+            .collect()
     }
 
     /// Whether the step ending at time `t` contributes (windowed losses).

@@ -6,6 +6,8 @@
 //! element (J ≤ 0) stops the run with the step, time, node or element and a suggested `dt`,
 //! never with silent NaNs.
 
+pub mod adjoint;
+pub mod checkpoint;
 pub mod loss;
 pub mod scene;
 
@@ -191,6 +193,8 @@ impl Backend for Interpreter {
 /// count, and in f64 bit-identical to the interpreter.
 pub struct Cpu {
     module: CpuModule,
+    /// The IR module it was compiled from (buffer layout).
+    ir: Module,
     buffers: Option<Buffers>,
     topology: Option<Topology>,
     threads: Option<usize>,
@@ -205,6 +209,7 @@ impl Cpu {
     ) -> Result<Self, String> {
         Ok(Cpu {
             module: CpuModule::compile(module, precision)?,
+            ir: module.clone(),
             buffers: None,
             topology: None,
             threads,
@@ -241,11 +246,7 @@ impl Backend for Cpu {
         let elem: Vec<u32> = scene.mesh.tets.iter().flatten().copied().collect();
         let tri: Vec<u32> = scene.tris.iter().flatten().copied().collect();
         let topology = Topology::new(scene.mesh.nodes.len(), elem, tri)?;
-        self.buffers = Some(Buffers::new(
-            &scene.lowered.module,
-            &topology,
-            self.module.precision(),
-        ));
+        self.buffers = Some(Buffers::new(&self.ir, &topology, self.module.precision()));
         self.topology = Some(topology);
         Ok(())
     }
@@ -487,13 +488,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         })
     }
 
-    /// Run the whole simulation.
-    pub fn run(
-        &mut self,
-        dt_override: Option<f64>,
-        steps_override: Option<u64>,
-    ) -> Result<RunSummary, RunError> {
-        let start = std::time::Instant::now();
+    /// The step size of a run and the stable-step estimate it used (if any).
+    fn resolve_dt(&mut self, dt_override: Option<f64>) -> Result<(f64, Option<f64>), RunError> {
         let estimate = match (self.scene.dt, dt_override, self.estimate) {
             (_, _, Some(e)) => Some(e),
             (DtChoice::Auto { .. }, None, None) => Some(self.stable_dt_estimate()?),
@@ -508,40 +504,72 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if !dt.is_finite() || dt <= 0.0 {
             return Err(RunError(format!("no usable time step (estimate {dt} s)")));
         }
+        Ok((dt, estimate))
+    }
+
+    /// The entities forward kernel `k` runs over.
+    fn kernel_range(&self, k: usize) -> Range<usize> {
+        let n_mat = self.scene.material_ranges.len();
+        let n_ch = self.scene.chamber_ranges.len();
+        if k < n_mat {
+            self.scene.material_ranges[k].clone()
+        } else if k < n_mat + n_ch {
+            self.scene.chamber_ranges[k - n_mat].clone()
+        } else {
+            0..self.scene.mesh.nodes.len()
+        }
+    }
+
+    /// Element and pressure forces at the current state and time.
+    fn run_force_kernels(&mut self) -> Result<(), RunError> {
+        self.run_element_kernels()?;
+        let n_mat = self.scene.material_ranges.len();
+        for c in 0..self.scene.chamber_ranges.len() {
+            let range = self.scene.chamber_ranges[c].clone();
+            self.backend
+                .run(n_mat + c, range, &self.uniforms)
+                .map_err(RunError)?;
+        }
+        Ok(())
+    }
+
+    /// One step from state `step` to `step + 1`.
+    fn step(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
+        self.uniforms.0.insert("t".into(), step as f64 * dt);
+        self.run_force_kernels()?;
+        let node_kernel = self.scene.material_ranges.len() + self.scene.chamber_ranges.len();
+        self.backend
+            .run(node_kernel, 0..self.scene.mesh.nodes.len(), &self.uniforms)
+            .map_err(RunError)?;
+        self.backend.swap(self.ids.x, self.ids.x_next);
+        self.backend.swap(self.ids.v, self.ids.v_next);
+        Ok(())
+    }
+
+    /// Run the whole simulation.
+    pub fn run(
+        &mut self,
+        dt_override: Option<f64>,
+        steps_override: Option<u64>,
+    ) -> Result<RunSummary, RunError> {
+        let start = std::time::Instant::now();
+        let (dt, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
         self.uniforms.0.insert("dt".into(), dt);
         let loss_fn = loss::Loss::build(self.scene, dt, steps).map_err(RunError)?;
         let mut loss_sum = 0.0;
-        let n_mat = self.scene.material_ranges.len();
-        let n_ch = self.scene.chamber_ranges.len();
-        let n_nodes = self.scene.mesh.nodes.len();
         for step in 0..steps {
-            self.uniforms.0.insert("t".into(), step as f64 * dt);
             if self
                 .vtk
                 .as_ref()
                 .is_some_and(|o| step % o.every.max(1) == 0)
             {
+                self.uniforms.0.insert("t".into(), step as f64 * dt);
                 self.write_vtk(step as f64 * dt)?;
             }
-            self.run_element_kernels()?;
-            for c in 0..n_ch {
-                let range = self.scene.chamber_ranges[c].clone();
-                self.backend
-                    .run(n_mat + c, range, &self.uniforms)
-                    .map_err(RunError)?;
-            }
-            self.backend
-                .run(n_mat + n_ch, 0..n_nodes, &self.uniforms)
-                .map_err(RunError)?;
-            self.backend.swap(self.ids.x, self.ids.x_next);
-            self.backend.swap(self.ids.v, self.ids.v_next);
+            self.step(step, dt)?;
             if let Some(l) = &loss_fn {
-                let t_after = (step + 1) as f64 * dt;
-                if l.in_window(t_after, dt) {
-                    let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
-                    loss_sum += l.eval(self.scene, &x, &v, t_after, &self.uniforms.0);
-                }
+                loss_sum += self.loss_term(l, step + 1, dt);
             }
             if step % CHECK_EVERY == 0 || step + 1 == steps {
                 self.check_state(step, dt)?;
@@ -569,6 +597,17 @@ impl<'s, B: Backend> Simulation<'s, B> {
             x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
             v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
         })
+    }
+
+    /// The windowed loss's term at state `k` (the state after `k` steps), 0 outside the
+    /// window and for losses taken at the end.
+    fn loss_term(&self, l: &loss::Loss, k: u64, dt: f64) -> f64 {
+        let t = k as f64 * dt;
+        if !l.in_window(t, dt) {
+            return 0.0;
+        }
+        let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
+        l.eval(self.scene, &x, &v, t, &self.uniforms.0)
     }
 
     fn write_vtk(&mut self, t: f64) -> Result<(), RunError> {

@@ -1,0 +1,399 @@
+//! The backward pass: d loss / d param for every param, by running the adjoint kernels of the
+//! scene (`passes::adjoint`) step by step in reverse, with states recomputed from checkpoints
+//! as a [`Schedule`] says.
+//!
+//! The forward run is the schedule's prefix; it also evaluates the loss. Reversing step k needs
+//! state k in the buffers and ∂L/∂(state k+1) in `adj_*_next`; it leaves ∂L/∂(state k) there
+//! (after the swap), to which the loss's own derivative at state k is added for windowed
+//! losses. Param derivatives accumulate per entity in the `grad@…` buffers and are summed on
+//! the host in entity order, so the result is deterministic and the same for every schedule.
+
+use super::checkpoint::{Action, Schedule};
+use super::loss::{Loss, LossWindow};
+use super::{Backend, CHECK_EVERY, RunError, RunSummary, Simulation};
+use std::collections::BTreeMap;
+
+/// Which states the backward pass keeps.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Checkpointing {
+    /// The fewest snapshots that keep recomputation within 3 forward runs, within the budget.
+    Auto,
+    StoreAll,
+    Periodic(u64),
+    Revolve(usize),
+}
+
+#[derive(Clone, Debug)]
+pub struct GradOptions {
+    pub checkpoint: Checkpointing,
+    /// Bytes the stored states may take (host copies of x and v).
+    pub memory_budget: Option<u64>,
+    /// Differentiate through at most this many of the last steps (truncated back-propagation).
+    pub truncate: Option<u64>,
+}
+
+impl Default for GradOptions {
+    fn default() -> Self {
+        GradOptions {
+            checkpoint: Checkpointing::Auto,
+            memory_budget: None,
+            truncate: None,
+        }
+    }
+}
+
+/// The adjoint's size at one point of the backward pass.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HealthSample {
+    /// The state whose adjoint this is (∂L/∂x_step, ∂L/∂v_step).
+    pub step: u64,
+    pub adj_x_norm: f64,
+    pub adj_v_norm: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct GradientReport {
+    pub summary: RunSummary,
+    /// d loss / d uniform for every `param.*` uniform of the scene (SI units).
+    pub gradients: BTreeMap<String, f64>,
+    /// The schedule used (`revolve(snapshots: 27)`).
+    pub schedule: String,
+    /// States stored at once at most, and the bytes of one state.
+    pub stored_states: usize,
+    pub state_bytes: usize,
+    /// Forward steps run in all (forward run + recomputation) over the run's steps.
+    pub recompute_ratio: f64,
+    /// Steps reversed (fewer than the run's with `truncate`).
+    pub reversed_steps: u64,
+    pub forward_seconds: f64,
+    pub backward_seconds: f64,
+    /// Norms of ∂L/∂x and ∂L/∂v every [`CHECK_EVERY`] reversed steps, from the last step back.
+    pub health: Vec<HealthSample>,
+}
+
+impl GradientReport {
+    /// Growth of the adjoint's norm per 1000 reversed steps (a factor; > 1 grows), from the
+    /// first and last nonzero health samples.
+    pub fn growth_per_1000_steps(&self) -> Option<f64> {
+        let norm = |h: &HealthSample| h.adj_x_norm.hypot(h.adj_v_norm);
+        let first = self.health.iter().find(|h| norm(h) > 0.0)?;
+        let last = self.health.iter().rev().find(|h| norm(h) > 0.0)?;
+        let span = first.step.checked_sub(last.step).filter(|s| *s > 0)? as f64;
+        Some((norm(last) / norm(first)).powf(1000.0 / span))
+    }
+}
+
+/// Positions and velocities copied to the host.
+type HostState = (Vec<f64>, Vec<f64>);
+
+impl<B: Backend> Simulation<'_, B> {
+    fn save_state(&self) -> HostState {
+        (self.backend.get(self.ids.x), self.backend.get(self.ids.v))
+    }
+
+    fn load_state(&mut self, s: &HostState) {
+        self.backend.set(self.ids.x, &s.0);
+        self.backend.set(self.ids.v, &s.1);
+    }
+
+    /// Add the loss's own derivative at the current state (state `k`, time `t`) to the
+    /// adjoint of that state, and its direct param derivatives to `direct`.
+    fn add_loss_gradient(&mut self, l: &Loss, t: f64, direct: &mut BTreeMap<String, f64>) -> f64 {
+        let adj = &self.scene.lowered.adjoint;
+        let (x, v) = self.save_state();
+        let (value, ds) = l.eval_grad(self.scene, &x, &v, t, &self.uniforms.0);
+        let (ax, av) = (adj.state[0].adj_next, adj.state[1].adj_next);
+        let mut gx = self.backend.get(ax);
+        let mut gv = self.backend.get(av);
+        for (name, d) in l.args().iter().zip(ds) {
+            if let Some(rest) = name.strip_prefix("state.") {
+                let mut parts = rest.split('.');
+                let field = parts.next().unwrap_or("");
+                let node: usize = parts.next().and_then(|p| p.parse().ok()).unwrap_or(0);
+                let c: usize = parts.next().and_then(|p| p.parse().ok()).unwrap_or(0);
+                match field {
+                    "x" => gx[3 * node + c] += d,
+                    "v" => gv[3 * node + c] += d,
+                    _ => {}
+                }
+            } else if name.starts_with("param.") {
+                *direct.entry(name.clone()).or_insert(0.0) += d;
+            }
+        }
+        self.backend.set(ax, &gx);
+        self.backend.set(av, &gv);
+        value
+    }
+
+    /// The adjoint of step `k`: state `k` is current, ∂L/∂(state k+1) in `adj_*_next`.
+    fn reverse_step(&mut self, k: u64, dt: f64) -> Result<(), RunError> {
+        let adj = &self.scene.lowered.adjoint;
+        self.uniforms.0.insert("t".into(), k as f64 * dt);
+        if adj.needs_forward {
+            self.run_force_kernels()?;
+        }
+        for rk in &adj.reverse {
+            let range = match rk.range_of {
+                Some(f) => self.kernel_range(f),
+                None => 0..super::domain_len(self.scene, adj.module.kernels[rk.kernel].domain),
+            };
+            self.backend
+                .run(rk.kernel, range, &self.uniforms)
+                .map_err(RunError)?;
+        }
+        for s in &adj.state {
+            self.backend.swap(s.adj, s.adj_next);
+        }
+        Ok(())
+    }
+
+    /// Norms of ∂L/∂x and ∂L/∂v of state `k`; a non-finite value stops the pass.
+    fn adjoint_health(&self, k: u64, dt: f64) -> Result<HealthSample, RunError> {
+        let adj = &self.scene.lowered.adjoint;
+        let mut norms = [0.0; 2];
+        for (i, s) in adj.state.iter().take(2).enumerate() {
+            let g = self.backend.get(s.adj_next);
+            if let Some(p) = g.iter().position(|x| !x.is_finite()) {
+                return Err(RunError(format!(
+                    "the gradient became non-finite in the backward pass at step {k} \
+                     (t = {:.6} s): ∂loss/∂{} of node {} is {}. The adjoint grew without bound: \
+                     differentiate through fewer steps (`truncate = N` in the optimize block), \
+                     lower `gradient_scale`, or use f64",
+                    k as f64 * dt,
+                    s.name,
+                    p / 3,
+                    g[p]
+                )));
+            }
+            norms[i] = g.iter().map(|x| x * x).sum::<f64>().sqrt();
+        }
+        Ok(HealthSample {
+            step: k,
+            adj_x_norm: norms[0],
+            adj_v_norm: norms[1],
+        })
+    }
+
+    /// One forward run and one backward pass: the loss and its gradient with respect to every
+    /// param. The backend must have been built from the scene's adjoint module.
+    pub fn gradient(
+        &mut self,
+        dt_override: Option<f64>,
+        steps_override: Option<u64>,
+        options: &GradOptions,
+    ) -> Result<GradientReport, RunError> {
+        let start = std::time::Instant::now();
+        let (dt, estimate) = self.resolve_dt(dt_override)?;
+        let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
+        self.uniforms.0.insert("dt".into(), dt);
+        let loss = Loss::build(self.scene, dt, steps)
+            .map_err(RunError)?
+            .ok_or_else(|| {
+                RunError(
+                    "the script has no `loss`: there is nothing to differentiate. Add e.g. \
+                     `loss = sum(n in tip) (x[n].z - x0[n].z)^2 at end`"
+                        .into(),
+                )
+            })?;
+        let adj = &self.scene.lowered.adjoint;
+        let n_nodes = self.scene.mesh.nodes.len();
+        let state_bytes = 2 * 3 * n_nodes * std::mem::size_of::<f64>();
+        let reversed = options.truncate.map_or(steps, |t| t.min(steps));
+        let schedule = {
+            let budget_states = options.memory_budget.map(|b| {
+                ((b / state_bytes.max(1) as u64) as usize)
+                    .saturating_sub(1)
+                    .max(1)
+            });
+            let s = match options.checkpoint {
+                Checkpointing::StoreAll => Schedule::store_all(steps),
+                Checkpointing::Periodic(k) => Schedule::periodic(steps, k),
+                Checkpointing::Revolve(n) => Schedule::revolve(steps, n),
+                Checkpointing::Auto => Schedule::auto(steps, budget_states.unwrap_or(usize::MAX)),
+            };
+            if let Some(max) = budget_states
+                && s.slots > max
+            {
+                return Err(RunError(format!(
+                    "the checkpoint schedule {} stores {} states of {} bytes, more than \
+                     memory_budget allows ({max} states); use `checkpoint = auto` or a larger budget",
+                    s.kind, s.slots, state_bytes
+                )));
+            }
+            s
+        };
+        // Zero the adjoint state and the param accumulators.
+        for s in &adj.state {
+            let len = super::domain_len(self.scene, adj.module.buffers[s.adj.0 as usize].domain)
+                * adj.module.buffers[s.adj.0 as usize].width as usize;
+            self.backend.set(s.adj, &vec![0.0; len]);
+            self.backend.set(s.adj_next, &vec![0.0; len]);
+        }
+        let grad_buffers: Vec<_> = {
+            let mut b: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
+            b.sort();
+            b.dedup();
+            b
+        };
+        for &b in &grad_buffers {
+            let buf = &adj.module.buffers[b.0 as usize];
+            let len = super::domain_len(self.scene, buf.domain) * buf.width as usize;
+            self.backend.set(b, &vec![0.0; len]);
+        }
+
+        // The forward run: the schedule's prefix, then the last step.
+        let prefix = schedule.forward_prefix();
+        let mut slots: Vec<Option<(u64, HostState)>> = vec![None; schedule.slots + 1];
+        let mut current = 0u64;
+        let mut loss_sum = 0.0;
+        let mut direct = BTreeMap::new();
+        let mut forward_steps = 0u64;
+        for a in &schedule.actions[..prefix] {
+            match *a {
+                Action::Advance { to } => {
+                    while current < to {
+                        self.step(current, dt)?;
+                        current += 1;
+                        forward_steps += 1;
+                        loss_sum += self.loss_term(&loss, current, dt);
+                        if current % CHECK_EVERY == 1 {
+                            self.check_state(current - 1, dt)?;
+                        }
+                    }
+                }
+                Action::Store { slot } => slots[slot] = Some((current, self.save_state())),
+                _ => unreachable!("the prefix only advances and stores"),
+            }
+        }
+        let t_end = steps as f64 * dt;
+        let loss_value;
+        let final_state;
+        if steps > 0 {
+            if current + 1 != steps {
+                return Err(RunError(format!(
+                    "internal error: the checkpoint schedule's forward run ends at step {current}, not {}",
+                    steps - 1
+                )));
+            }
+            let before_last = self.save_state();
+            self.step(current, dt)?;
+            forward_steps += 1;
+            self.check_state(current, dt)?;
+            final_state = self.save_state();
+            let in_window = loss.in_window(t_end, dt) || loss.window == LossWindow::End;
+            let value = if in_window {
+                self.add_loss_gradient(&loss, t_end, &mut direct)
+            } else {
+                0.0
+            };
+            loss_value = match loss.window {
+                LossWindow::End => value,
+                LossWindow::Over { .. } => loss_sum + value,
+            };
+            self.load_state(&before_last);
+        } else {
+            final_state = self.save_state();
+            loss_value = self.add_loss_gradient(&loss, 0.0, &mut direct);
+        }
+        let forward_seconds = start.elapsed().as_secs_f64();
+
+        // The backward pass.
+        let back_start = std::time::Instant::now();
+        let stop_at = steps - reversed;
+        let mut health = Vec::new();
+        if steps > 0 {
+            health.push(self.adjoint_health(steps, dt)?);
+        }
+        let mut done = false;
+        for a in &schedule.actions[prefix..] {
+            if done {
+                break;
+            }
+            match *a {
+                Action::Advance { to } => {
+                    while current < to {
+                        self.step(current, dt)?;
+                        current += 1;
+                        forward_steps += 1;
+                    }
+                }
+                Action::Store { slot } => slots[slot] = Some((current, self.save_state())),
+                Action::Restore { slot } => {
+                    let (k, s) = slots[slot]
+                        .take()
+                        .expect("the schedule restores a stored slot");
+                    self.load_state(&s);
+                    slots[slot] = Some((k, s));
+                    current = k;
+                }
+                Action::Free { slot } => slots[slot] = None,
+                Action::Reverse { step } => {
+                    debug_assert_eq!(current, step);
+                    self.reverse_step(step, dt)?;
+                    if step >= 1 && loss.window != LossWindow::End {
+                        let t = step as f64 * dt;
+                        if loss.in_window(t, dt) {
+                            self.add_loss_gradient(&loss, t, &mut direct);
+                        }
+                    }
+                    if step % CHECK_EVERY == 0 || step == stop_at {
+                        health.push(self.adjoint_health(step, dt)?);
+                    }
+                    if step == stop_at {
+                        done = true;
+                    }
+                }
+            }
+        }
+        let _ = current;
+        // Param derivatives: per-entity partial sums, added up in entity order.
+        let mut gradients: BTreeMap<String, f64> = self
+            .scene
+            .uniforms
+            .keys()
+            .filter(|k| k.starts_with("param."))
+            .map(|k| (k.clone(), 0.0))
+            .collect();
+        let mut cache = BTreeMap::new();
+        for p in &adj.params {
+            let width = adj.module.buffers[p.buffer.0 as usize].width as usize;
+            let data = cache
+                .entry(p.buffer)
+                .or_insert_with(|| self.backend.get(p.buffer));
+            let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
+            *gradients.entry(p.uniform.clone()).or_insert(0.0) += sum;
+        }
+        for (name, d) in direct {
+            *gradients.entry(name).or_insert(0.0) += d;
+        }
+        let backward_seconds = back_start.elapsed().as_secs_f64();
+        Ok(GradientReport {
+            summary: RunSummary {
+                loss: Some(loss_value),
+                steps,
+                dt,
+                dt_stable_estimate: estimate,
+                wall_seconds: start.elapsed().as_secs_f64(),
+                x: final_state
+                    .0
+                    .chunks(3)
+                    .map(|c| [c[0], c[1], c[2]])
+                    .collect(),
+                v: final_state
+                    .1
+                    .chunks(3)
+                    .map(|c| [c[0], c[1], c[2]])
+                    .collect(),
+            },
+            gradients,
+            schedule: schedule.kind.clone(),
+            stored_states: schedule.slots + 1,
+            state_bytes,
+            recompute_ratio: forward_steps as f64 / steps.max(1) as f64,
+            reversed_steps: reversed,
+            forward_seconds,
+            backward_seconds,
+            health,
+        })
+    }
+}

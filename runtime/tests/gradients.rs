@@ -1,0 +1,275 @@
+//! Gradients from the adjoint kernels: every kind of parameter against central finite
+//! differences in f64, every example, checkpoint schedules bit-identical to storing every
+//! state, the interpreter bit-identical to the Cranelift code, and clear errors.
+
+use softc::engine::adjoint::{Checkpointing, GradOptions, GradientReport};
+use softc::engine::scene::Scene;
+use softc::engine::{Cpu, Interpreter, Simulation};
+use softc_compiler::back::Precision;
+use std::path::{Path, PathBuf};
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+fn load(path: &str) -> Scene {
+    let full = if Path::new(path).is_absolute() {
+        PathBuf::from(path)
+    } else {
+        root().join(path)
+    };
+    Scene::load(&full, &[]).unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
+/// A copy of an example with one piece of text replaced, its mesh paths made absolute.
+fn variant(example: &str, from: &str, to: &str) -> String {
+    let text = std::fs::read_to_string(root().join("examples").join(example)).unwrap();
+    assert!(text.contains(from), "{example}: {from}");
+    let text = text
+        .replace(from, to)
+        .replace("\"../meshes/", &format!("\"{}/meshes/", root().display()));
+    let dir = std::env::temp_dir().join(format!("softc-grad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(example);
+    std::fs::write(&path, text).unwrap();
+    path.display().to_string()
+}
+
+fn gradient(scene: &Scene, steps: u64, options: &GradOptions) -> GradientReport {
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let mut sim = Simulation::new(scene, cpu);
+    sim.gradient(None, Some(steps), options).unwrap()
+}
+
+/// The loss of a forward run with one uniform changed.
+fn loss_with(scene: &Scene, steps: u64, uniform: &str, value: f64) -> f64 {
+    let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
+    let mut sim = Simulation::new(scene, cpu);
+    sim.uniforms.0.insert(uniform.to_string(), value);
+    sim.run(None, Some(steps)).unwrap().loss.unwrap()
+}
+
+/// Central difference of the loss with respect to one uniform, step `h`.
+fn central(scene: &Scene, steps: u64, uniform: &str, h: f64) -> f64 {
+    let p = scene.uniforms[uniform];
+    (loss_with(scene, steps, uniform, p + h) - loss_with(scene, steps, uniform, p - h)) / (2.0 * h)
+}
+
+/// Every param's adjoint derivative against a central difference with a relative step `rel`
+/// (an absolute step `rel` for params that are 0; of arrays, the components `keep` accepts).
+fn check_params(path: &str, steps: u64, rel: f64, tol: f64, keep: impl Fn(&str) -> bool) {
+    let scene = load(path);
+    let g = gradient(&scene, steps, &GradOptions::default());
+    assert!(!g.gradients.is_empty(), "{path}: no params");
+    let mut report = Vec::new();
+    for (name, &adj) in g.gradients.iter().filter(|(n, _)| keep(n)) {
+        let p = scene.uniforms[name];
+        // Zero-initialised params (controller weights) take an absolute step.
+        let h = if p == 0.0 { rel } else { rel * p.abs() };
+        let fd = central(&scene, steps, name, h);
+        let err = (adj - fd).abs() / fd.abs().max(1e-300);
+        report.push(format!(
+            "{name}: adjoint {adj:e}, central {fd:e}, rel err {err:.1e}"
+        ));
+        assert!(adj != 0.0, "{path}: {name} has a zero gradient");
+        assert!(err < tol, "{path}:\n{}", report.join("\n"));
+    }
+    eprintln!("{path}:\n{}", report.join("\n"));
+}
+
+fn check_all_params(path: &str, steps: u64, rel: f64, tol: f64) {
+    check_params(path, steps, rel, tol, |_| true)
+}
+
+#[test]
+fn every_parameter_kind_matches_central_differences() {
+    // A chamber pressure, a material constant (Yeoh c10), per-window damping (4 windows),
+    // controller weights fed by an input, and a windowed loss on positions and velocities.
+    check_all_params(
+        "runtime/tests/fixtures/grad/all_kinds.soft",
+        200,
+        1e-4,
+        1e-5,
+    );
+}
+
+#[test]
+fn benchmark_gradient_over_4000_steps_matches_central_differences() {
+    // The canonical scene's full horizon (BENCHMARK.md): 4000 steps of 40 µs, d loss/d p_peak.
+    let scene = load("examples/benchmark-1k.soft");
+    let g = gradient(&scene, 4000, &GradOptions::default());
+    let adj = g.gradients["param.p_peak"];
+    let fd = central(&scene, 4000, "param.p_peak", 1.0);
+    assert!(
+        adj.is_finite() && adj < 0.0,
+        "more pressure bends the tip down: {adj:e}"
+    );
+    assert!(
+        (adj - fd).abs() < 1e-6 * fd.abs(),
+        "adjoint {adj:e}, central {fd:e}"
+    );
+    // The memory is a small multiple of one state, at a bounded recomputation.
+    assert!(g.stored_states <= 40, "{} states", g.stored_states);
+    assert!(g.recompute_ratio <= 3.0, "{}", g.recompute_ratio);
+}
+
+#[test]
+fn example_gradients_match_central_differences() {
+    // Short rollouts of the examples with a loss (the cuboid: 11,520 tets). In a few hundred
+    // steps the tip moves nanometres: against the 10 mm target the loss would change in its
+    // 12th digit and a central difference would drown in round-off, so the target is 0 here
+    // (same kernels, same shape of loss). The positions' own round-off (1e-18 m against
+    // displacements of 1e-7 m) bounds the central difference's accuracy to about 1e-6.
+    let pressure = variant("pressure_optimization.soft", "+ 10 mm)^2", ")^2");
+    check_all_params(&pressure, 60, 1e-3, 1e-5);
+    // Meta-optimization with 1 ms windows so that 5 of its 30 damping windows are in the run.
+    let meta = variant("meta_optimization.soft", "+ 10 mm)^2", ")^2");
+    let meta = std::fs::read_to_string(&meta)
+        .unwrap()
+        .replace("window(t, 50 ms)", "window(t, 1 ms)")
+        .replace("duration = 1.5 s", "duration = 30 ms");
+    let path =
+        std::env::temp_dir().join(format!("softc-grad-{}/meta-1ms.soft", std::process::id()));
+    std::fs::write(&path, meta).unwrap();
+    let path = path.display().to_string();
+    // Damping changes the loss weakly (dlnL/dlnβ ~ 0.1): a 1e-2 relative step keeps the
+    // difference well above the round-off (measured: 1e-3 gives 8e-5 error, 1e-2 gives 4e-6).
+    check_params(&path, 300, 1e-2, 1e-5, |n| {
+        ["param.beta.0", "param.beta.2", "param.beta.4"].contains(&n)
+    });
+    // Controller synthesis (the endoscope, 37,828 tets) with one fixed target instead of the
+    // sampled batch: the weights of the two nonzero features of that target.
+    let controller = variant(
+        "controller_synthesis.soft",
+        "from circle_quadrants(radius: 5 mm, plane: \"yz\", seed: 7)",
+        "from [[0, 2.5, 4.33]] mm",
+    );
+    // The weights start at 0. A step of 1 /m moves the sigmoid's argument by 0.0025: the
+    // central difference's truncation error is then 5e-7 (10 /m gave 5.2e-5, which is
+    // h^2 sigma'''/(6 sigma')), and 200 steps lift the response above the round-off.
+    check_params(&controller, 200, 1.0, 1e-5, |n| {
+        ["param.w.0.0", "param.w.2.2"].contains(&n)
+    });
+    // Windows after the run cannot matter: their derivative is exactly 0.
+    let g = gradient(&load(&path), 300, &GradOptions::default());
+    assert_eq!(g.gradients["param.beta.29"], 0.0);
+    assert!(g.gradients["param.beta.1"] != 0.0);
+}
+
+#[test]
+fn checkpoint_schedules_give_bit_identical_gradients() {
+    let scene = load("runtime/tests/fixtures/grad/all_kinds.soft");
+    let with = |c| {
+        gradient(
+            &scene,
+            200,
+            &GradOptions {
+                checkpoint: c,
+                ..GradOptions::default()
+            },
+        )
+    };
+    let all = with(Checkpointing::StoreAll);
+    assert_eq!(all.recompute_ratio, 1.0);
+    for c in [
+        Checkpointing::Revolve(1),
+        Checkpointing::Revolve(4),
+        Checkpointing::Periodic(7),
+        Checkpointing::Auto,
+    ] {
+        let other = with(c);
+        assert!(other.stored_states < all.stored_states);
+        assert_eq!(
+            other.summary.loss.unwrap().to_bits(),
+            all.summary.loss.unwrap().to_bits()
+        );
+        for (name, g) in &all.gradients {
+            assert_eq!(
+                other.gradients[name].to_bits(),
+                g.to_bits(),
+                "{c:?}: {name} differs from store_all"
+            );
+        }
+    }
+}
+
+#[test]
+fn interpreter_and_cranelift_gradients_are_bit_identical() {
+    let scene = load("runtime/tests/fixtures/grad/all_kinds.soft");
+    let cpu = gradient(&scene, 30, &GradOptions::default());
+    let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.adjoint.module));
+    let interp = sim
+        .gradient(None, Some(30), &GradOptions::default())
+        .unwrap();
+    for (name, g) in &cpu.gradients {
+        assert_eq!(interp.gradients[name].to_bits(), g.to_bits(), "{name}");
+    }
+    // And with two threads.
+    let two = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(2)).unwrap();
+    let mut sim = Simulation::new(&scene, two);
+    let threaded = sim
+        .gradient(None, Some(30), &GradOptions::default())
+        .unwrap();
+    for (name, g) in &cpu.gradients {
+        assert_eq!(threaded.gradients[name].to_bits(), g.to_bits(), "{name}");
+    }
+}
+
+#[test]
+fn truncation_keeps_only_the_last_steps() {
+    let scene = load("examples/benchmark-1k.soft");
+    let full = gradient(&scene, 100, &GradOptions::default());
+    let cut = gradient(
+        &scene,
+        100,
+        &GradOptions {
+            truncate: Some(10),
+            ..GradOptions::default()
+        },
+    );
+    assert_eq!(cut.reversed_steps, 10);
+    let (a, b) = (
+        full.gradients["param.p_peak"],
+        cut.gradients["param.p_peak"],
+    );
+    assert!(
+        b != 0.0 && b.abs() < a.abs(),
+        "truncated {b:e} vs full {a:e}"
+    );
+}
+
+#[test]
+fn a_budget_too_small_for_the_schedule_is_a_clear_error() {
+    let scene = load("examples/benchmark-1k.soft");
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let mut sim = Simulation::new(&scene, cpu);
+    let e = sim
+        .gradient(
+            None,
+            Some(100),
+            &GradOptions {
+                checkpoint: Checkpointing::StoreAll,
+                memory_budget: Some(100_000),
+                truncate: None,
+            },
+        )
+        .unwrap_err();
+    assert!(
+        e.0.contains("memory_budget") && e.0.contains("store_all"),
+        "{}",
+        e.0
+    );
+    // `auto` fits the budget instead.
+    let g = gradient(
+        &scene,
+        100,
+        &GradOptions {
+            memory_budget: Some(100_000),
+            ..GradOptions::default()
+        },
+    );
+    assert!(g.stored_states * g.state_bytes <= 100_000 + g.state_bytes);
+}
