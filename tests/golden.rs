@@ -66,3 +66,50 @@ fn compile_reports_script_errors_and_unsupported_emits() {
     assert_eq!(code, 2);
     assert!(err.contains("not implemented yet"), "{err}");
 }
+
+#[test]
+fn bench_prints_a_table_and_well_formed_json() {
+    let json = std::env::temp_dir().join(format!("softc-bench-{}.json", std::process::id()));
+    let examples = root().join("examples");
+    let (code, out, err) = softc(&[
+        "bench",
+        "--sizes",
+        "1k",
+        "--repeats",
+        "1",
+        "--steps",
+        "20",
+        "--examples",
+        examples.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.starts_with("size"), "{out}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let rows = v["rows"].as_array().unwrap();
+    let backends: Vec<&str> = rows
+        .iter()
+        .map(|r| r["backend"].as_str().unwrap())
+        .collect();
+    assert_eq!(backends, ["cpu-f64", "cpu-f32", "interp", "reference"]);
+    for r in rows {
+        assert!(r["forward_steps_per_second"].as_f64().unwrap() > 0.0, "{r}");
+        assert!(r["tip_mean_z"].as_f64().unwrap().is_finite(), "{r}");
+        assert!(out.contains(r["backend"].as_str().unwrap()));
+    }
+    // cpu f64 and the reference simulate the same physics: the same tip after 20 steps.
+    let z = |i: usize| rows[i]["tip_mean_z"].as_f64().unwrap();
+    assert!(
+        (z(0) - z(3)).abs() <= 1e-6 * z(3).abs(),
+        "{} vs {}",
+        z(0),
+        z(3)
+    );
+    std::fs::remove_file(&json).ok();
+    // An unknown size is a usage error naming the valid ones.
+    let (code, _, err) = softc(&["bench", "--sizes", "2k"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("1k, 10k or 50k"), "{err}");
+}

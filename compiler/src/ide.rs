@@ -440,6 +440,10 @@ pub const RESERVED_DOCS: &[(&str, &str)] = &[
     ),
     ("I2bar", "second isochoric invariant (thesis eq. 2.12)"),
     ("J", "volume ratio det F (thesis eq. 2.13)"),
+    (
+        "I1",
+        "first invariant tr(FᵀF), not isochoric: W(I1, J) is evaluated without J^(-2/3) (inversion-safe laws)",
+    ),
     ("loss", "the current loss, inside `stop when`"),
     (
         "grad_norm",

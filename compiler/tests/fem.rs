@@ -200,6 +200,41 @@ fn neo_hookean_stress_matches_the_closed_form_under_triaxial_stretch() {
 }
 
 #[test]
+fn stable_neo_hookean_has_the_lame_parameters_at_small_strain_and_no_isochoric_factor() {
+    // Unit right-angled tet (P = −6 f on nodes 1..3): at F = I + εG the stress is the linear
+    // elastic 2μ·sym(εG) + λ·tr(εG)·I of the Lamé parameters given, up to O(ε²).
+    let (mu, lambda) = (0.3e6 / 2.9, 0.3e6 * 0.45 / (1.45 * 0.1));
+    let eps = 1e-6;
+    let g = [[0.3, -0.7, 0.2], [0.5, 0.1, -0.4], [0.9, 0.6, -0.2]];
+    let rest = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 1.0],
+    ];
+    let x = rest.map(|p: [f64; 3]| {
+        [0, 1, 2].map(|r| p[r] + eps * (0..3).map(|c| g[r][c] * p[c]).sum::<f64>())
+    });
+    let (_, module, k) = kernels().into_iter().find(|(n, _, _)| n == "snh").unwrap();
+    let (f, _) = run(&module, &k, &Tet { rest, x });
+    let tr = eps * (g[0][0] + g[1][1] + g[2][2]);
+    for r in 0..3 {
+        for c in 0..3 {
+            let lin = mu * eps * (g[r][c] + g[c][r]) + if r == c { lambda * tr } else { 0.0 };
+            // Column c of −P/6 acts on node c+1.
+            let got = -6.0 * f[c + 1][r];
+            assert!(
+                (got - lin).abs() < 1e-5 * (mu * eps),
+                "P[{r}][{c}] = {got}, linear elasticity {lin}"
+            );
+        }
+    }
+    // Written in I1 and J: the kernel has no cube root (J^(-2/3)) and no division by J.
+    let ir = format!("{:?}", k.body.insts);
+    assert!(!ir.contains("Pow"), "isochoric factor generated for snh");
+}
+
+#[test]
 fn materials_without_i2bar_generate_no_i2bar_terms() {
     // Specialization is visible in the kernel: Yeoh has no W2 term, Mooney-Rivlin does.
     let count = |name: &str| {

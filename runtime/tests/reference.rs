@@ -219,6 +219,49 @@ material series = yeoh_series(c: [0.08, 0.03, -0.001] MPa, d: [2.0, 8.0] /MPa, d
 }
 
 #[test]
+fn spring_mesh_example_agrees_with_the_engine() {
+    agree(&example("spring_mesh"), Some(60e-6), 400);
+}
+
+/// The spring mesh with several materials: edges shared by tets of two materials get each
+/// side's stiffness weighted by its volume (the reference sums per unique edge, the kernels
+/// per tet), and a material with Ī2.
+#[test]
+fn spring_mesh_with_several_materials_agrees() {
+    let materials = format!(
+        r#"{RUBBER}
+material mr = mooney_rivlin(c10: 0.05 MPa, c01: 0.02 MPa, c11: 0.005 MPa, d1: 5 /MPa, density: 1000 kg/m^3)
+material silicone = yeoh(c10: 0.11 MPa, c20: 0.02 MPa, d1: 1.0 /MPa, density: 1070 kg/m^3)"#
+    );
+    let p = bench_variant(
+        "springs",
+        &materials,
+        "  damping = 10 /s\n  model = springs(volume_stiffness: 2 kPa/mm)\n  use rubber\n  use mr in front\n  use silicone in top\n  pressure cavity = p_peak * ramp(t, 4 ms)",
+        "",
+    );
+    let scene = load(&p);
+    assert!(scene.lowered.springs);
+    assert_eq!(scene.lowered.materials.len(), 3);
+    drop(scene);
+    agree(&p, None, VARIANT_STEPS);
+}
+
+/// The inversion-safe stable neo-Hookean (W in I1 and J) agrees as well.
+#[test]
+fn stable_neo_hookean_agrees() {
+    let p = bench_variant(
+        "snh",
+        "material rubber = stable_neo_hookean(mu: lame_mu(0.3 MPa, 0.45), lambda: lame_lambda(0.3 MPa, 0.45), density: 1070 kg/m^3)",
+        "  damping = 10 /s\n  pressure cavity = p_peak * ramp(t, 4 ms)",
+        "",
+    );
+    let scene = load(&p);
+    assert_eq!(scene.lowered.inversion_safe, vec![true]);
+    drop(scene);
+    agree(&p, None, VARIANT_STEPS);
+}
+
+#[test]
 fn windowed_damping_agrees() {
     let p = bench_variant(
         "windows",

@@ -11,7 +11,8 @@
 //! (the thesis' eq. 2.14 states the Cauchy form with typos; this is derived directly from W).
 //! The nodal forces are f = −∂(V₀·W)/∂x: the columns of H = −V₀·P·Dm⁻ᵀ act on nodes 1–3 and
 //! node 0 takes minus their sum. Terms of W that a material does not have (no Ī2 in Yeoh) are
-//! not generated.
+//! not generated. A W written in I1 = tr C and J (an inversion-safe law such as the prelude's
+//! stable neo-Hookean) gets P = W_I1·2F + W_J·cof F: no J^(−2/3), no F⁻ᵀ, finite for J ≤ 0.
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, LVal, Program};
@@ -163,26 +164,49 @@ fn energy_and_stress(
     let i1 = b.sum(&[c[0][0], c[1][1], c[2][2]]);
     let cc = matmul(b, &c, &c);
     let tr_cc = b.sum(&[cc[0][0], cc[1][1], cc[2][2]]);
-    let i1sq = b.mul(i1, i1);
-    let diff = b.sub(i1sq, tr_cc);
-    let i2 = b.scale(0.5, diff);
-    let j23 = b.powf(j, -2.0 / 3.0);
-    // One cube root serves both isochoric factors: J^(-4/3) = (J^(-2/3))².
-    let j43 = b.mul(j23, j23);
-    let i1b = b.mul(j23, i1);
-    let i2b = b.mul(j43, i2);
+    // Isochoric invariants only for a W written in them: a W of I1 = tr C and J (an
+    // inversion-safe law) gets no J^(-2/3) factor, so it stays finite for J <= 0.
+    let isochoric = material_is_isochoric(program, material)?;
+    let (mut i2, mut j23, mut j43) = (V(0), V(0), V(0));
+    let (i1b, i2b) = if isochoric {
+        let i1sq = b.mul(i1, i1);
+        let diff = b.sub(i1sq, tr_cc);
+        i2 = b.scale(0.5, diff);
+        j23 = b.powf(j, -2.0 / 3.0);
+        // One cube root serves both isochoric factors: J^(-4/3) = (J^(-2/3))².
+        j43 = b.mul(j23, j23);
+        (b.mul(j23, i1), b.mul(j43, i2))
+    } else {
+        let zero = b.constant(0.0);
+        (zero, zero)
+    };
 
-    // W and its partial derivatives in the invariants, built as a function of three
-    // independent arguments (differentiating inside the kernel would give total derivatives:
-    // Ī1 and Ī2 depend on J), then inlined at this element's invariants.
+    // W and its partial derivatives in the invariants, built as a function of independent
+    // arguments (differentiating inside the kernel would give total derivatives: Ī1 and Ī2
+    // depend on J), then inlined at this element's invariants.
     let mut sub = KernelBuilder::new("W", Domain::Element, material);
-    let inv = [sub.uniform("I1bar"), sub.uniform("I2bar"), sub.uniform("J")];
-    let w = material_energy(program, &mut sub, material, inv[0], inv[1], inv[2])?;
+    let inv = [
+        sub.uniform("I1bar"),
+        sub.uniform("I2bar"),
+        sub.uniform("J"),
+        sub.uniform("I1"),
+    ];
+    let w = material_energy(
+        program,
+        &mut sub,
+        material,
+        Invariants {
+            i1: inv[3],
+            i1b: inv[0],
+            i2b: inv[1],
+            j: inv[2],
+        },
+    )?;
     let (sub_args, func) = sub.into_parts();
     let (mut func, g) = ad::gradient(func, w, &inv);
-    func.outputs = vec![w, g[0], g[1], g[2]];
-    let outs = k.inline(&sub_args, &func, &[i1b, i2b, j]);
-    let (w, w1, w2, wj) = (outs[0], outs[1], outs[2], outs[3]);
+    func.outputs = vec![w, g[0], g[1], g[2], g[3]];
+    let outs = k.inline(&sub_args, &func, &[i1b, i2b, j, i1]);
+    let (w, w1, w2, wj, wi1) = (outs[0], outs[1], outs[2], outs[3], outs[4]);
     let b = &mut k.b;
 
     let mut p = [[V(0); 3]; 3];
@@ -191,7 +215,7 @@ fn energy_and_stress(
     for r in 0..3 {
         for col in 0..3 {
             let mut terms = Vec::new();
-            if used(b, w1) {
+            if isochoric && used(b, w1) {
                 // W1 J^(-2/3) (2F − ⅔ I1 F⁻ᵀ)
                 let two_f = b.scale(2.0, f[r][col]);
                 let t = b.mul(i1, finv_t[r][col]);
@@ -200,7 +224,7 @@ fn energy_and_stress(
                 let d = b.mul(j23, d);
                 terms.push(b.mul(w1, d));
             }
-            if used(b, w2) {
+            if isochoric && used(b, w2) {
                 // W2 J^(-4/3) (2(I1 F − F C) − ⁴⁄₃ I2 F⁻ᵀ)
                 let i1f = b.mul(i1, f[r][col]);
                 let s = b.sub(i1f, fc[r][col]);
@@ -210,6 +234,11 @@ fn energy_and_stress(
                 let d = b.sub(s, t);
                 let d = b.mul(j43, d);
                 terms.push(b.mul(w2, d));
+            }
+            if used(b, wi1) {
+                // W_I1 ∂I1/∂F = W_I1 2F
+                let two_f = b.scale(2.0, f[r][col]);
+                terms.push(b.mul(wi1, two_f));
             }
             if used(b, wj) {
                 // WJ J F⁻ᵀ = WJ cof(F)
@@ -221,14 +250,33 @@ fn energy_and_stress(
     Ok((w, p, j))
 }
 
+/// The values a strain energy may read: I1 = tr(FᵀF), the isochoric Ī1, Ī2, and J.
+#[derive(Clone, Copy, Debug)]
+pub struct Invariants {
+    pub i1: V,
+    pub i1b: V,
+    pub i2b: V,
+    pub j: V,
+}
+
+/// Whether a material's W is written in the isochoric invariants (`I1bar`, `I2bar`); one
+/// written in `I1` and `J` is not (the checker forbids mixing them) and is evaluated without
+/// the J^(−2/3) factors, so it stays finite through inversion.
+pub fn material_is_isochoric(program: &Program, material: &str) -> Result<bool, LowerError> {
+    let mut k = KernelBuilder::new("W", Domain::Single, material);
+    let (stmts, _) = material_body(program, &mut k, material)?;
+    Ok(!stmts.iter().any(|s| match &s.kind {
+        StmtKind::Energy { args, .. } => args.iter().any(|a| a.name == "I1"),
+        _ => false,
+    }))
+}
+
 /// Lower a material's strain energy at the given invariants.
 pub fn material_energy(
     program: &Program,
     k: &mut KernelBuilder,
     material: &str,
-    i1b: V,
-    i2b: V,
-    j: V,
+    inv: Invariants,
 ) -> Result<V, LowerError> {
     let (stmts, env) = material_body(program, k, material)?;
     let mut lw = ExprLowerer::new(program);
@@ -242,9 +290,10 @@ pub fn material_energy(
             StmtKind::Energy { args, body, .. } => {
                 for a in args {
                     let v = match a.name.as_str() {
-                        "I1bar" => i1b,
-                        "I2bar" => i2b,
-                        _ => j,
+                        "I1bar" => inv.i1b,
+                        "I2bar" => inv.i2b,
+                        "I1" => inv.i1,
+                        _ => inv.j,
                     };
                     env.insert(a.name.clone(), LVal::S(v));
                 }

@@ -4,6 +4,7 @@
 pub mod expr;
 pub mod fem;
 pub mod scene;
+pub mod springs;
 
 use std::fmt;
 

@@ -5,7 +5,8 @@
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, Program};
-use super::fem::{FemBuffers, element_force_kernel};
+use super::fem::{FemBuffers, element_force_kernel, material_is_isochoric};
+use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, CmpOp, Domain, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
@@ -20,6 +21,13 @@ pub struct SceneModule {
     pub chambers: Vec<String>,
     /// The adjoint of a step: `module` followed by the reverse-step kernels.
     pub adjoint: Adjoint,
+    /// `model = springs(…)`: the element kernels are spring-mesh kernels (they read the
+    /// `edge_l0` buffer and write no `elem_energy`).
+    pub springs: bool,
+    /// Per material (kernel order): whether its elements may pass through inversion (a FEM
+    /// material whose W is written in I1 and J, evaluated without isochoric factors); the
+    /// runtime then stops only on non-finite values, not at J <= 0.
+    pub inversion_safe: Vec<bool>,
 }
 
 /// Lower the scene described by a checked script.
@@ -37,7 +45,6 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     for s in sim {
         if let StmtKind::Assign { name, value } = &s.kind {
             let unsupported = match (name.name.as_str(), &value.kind) {
-                ("model", ExprKind::Call { .. }) => Some("the spring-mesh model `springs(…)`"),
                 ("integrator", ExprKind::Name(n)) if n.name == "quasi_static" => {
                     Some("the quasi-static integrator")
                 }
@@ -45,7 +52,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
             };
             if let Some(what) = unsupported {
                 return Err(LowerError::new(format!(
-                    "{what} is not implemented yet; use `model = fem` and `integrator = semi_implicit_euler`"
+                    "{what} is not implemented yet; use `integrator = semi_implicit_euler`"
                 )));
             }
         }
@@ -73,11 +80,26 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
             _ => return Err(LowerError::new("the sim block assigns no material")),
         }
     }
-    let fem = FemBuffers::declare(&mut module);
+    let model = force_model(script)?;
+    // The spring mesh declares its own buffers (no dm_inv, no elem_energy).
+    let x_buf = match model {
+        ForceModel::Fem => FemBuffers::declare(&mut module).x,
+        ForceModel::Springs { .. } => SpringBuffers::declare(&mut module).x,
+    };
+    let mut inversion_safe = Vec::new();
     for m in &materials {
-        let k = element_force_kernel(program, &mut module, m)?;
+        let k = match model {
+            ForceModel::Fem => element_force_kernel(program, &mut module, m)?,
+            ForceModel::Springs { volume_stiffness } => {
+                spring_force_kernel(program, &mut module, m, volume_stiffness)?
+            }
+        };
         module.kernels.push(k);
+        // Only FEM evaluates W at the element's own J; the spring mesh inverts like any other.
+        inversion_safe
+            .push(matches!(model, ForceModel::Fem) && !material_is_isochoric(program, m)?);
     }
+
     let mut chambers = Vec::new();
     let tri_force = module.buffer(
         "tri_force",
@@ -89,7 +111,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         if let StmtKind::Pressure { chamber, value } = &s.kind {
             module.kernels.push(pressure_kernel(
                 program,
-                &fem,
+                x_buf,
                 tri_force,
                 &chamber.name,
                 value,
@@ -113,6 +135,8 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         materials,
         chambers,
         adjoint,
+        springs: !matches!(model, ForceModel::Fem),
+        inversion_safe,
     })
 }
 
@@ -127,12 +151,44 @@ fn constant(program: &Program, e: &Expr, what: &str) -> Result<f64, LowerError> 
         .ok_or_else(|| LowerError::new(format!("`{what}` must be a constant")))
 }
 
+/// The sim block's `model` setting.
+enum ForceModel<'a> {
+    Fem,
+    Springs { volume_stiffness: &'a Expr },
+}
+
+fn force_model(script: &Script) -> Result<ForceModel<'_>, LowerError> {
+    match script.sim_setting("model").map(|e| &e.kind) {
+        None => Ok(ForceModel::Fem),
+        Some(ExprKind::Name(n)) if n.name == "fem" => Ok(ForceModel::Fem),
+        Some(ExprKind::Call { callee, args }) if matches!(&callee.kind, ExprKind::Name(n) if n.name == "springs") =>
+        {
+            let alpha = args
+                .iter()
+                .find(|a| a.name.as_ref().is_some_and(|n| n.name == "volume_stiffness"))
+                .or_else(|| args.first().filter(|a| a.name.is_none()))
+                .map(|a| &a.value)
+                .ok_or_else(|| {
+                    LowerError::new(
+                        "`springs(…)` needs its volume stiffness, e.g. `springs(volume_stiffness: 1 kPa/mm)`",
+                    )
+                })?;
+            Ok(ForceModel::Springs {
+                volume_stiffness: alpha,
+            })
+        }
+        Some(_) => Err(LowerError::new(
+            "`model` is `fem` or `springs(volume_stiffness: …)`",
+        )),
+    }
+}
+
 /// Follower pressure load (thesis eq. 2.15): each corner of a chamber triangle gets
 /// p·A·n/3 = p/6 · (x1 − x0) × (x2 − x0), with triangles wound so the normal points into
 /// the solid. The pressure expression is evaluated in the kernel (it depends on `t` and params).
 fn pressure_kernel(
     program: &Program,
-    fem: &FemBuffers,
+    x_buf: crate::ir::BufferId,
     tri_force: crate::ir::BufferId,
     chamber: &str,
     pressure: &Expr,
@@ -148,7 +204,7 @@ fn pressure_kernel(
         .map(|c| {
             [0, 1, 2].map(|d| {
                 k.load(ArgSource::Corner {
-                    buffer: fem.x,
+                    buffer: x_buf,
                     corner: c,
                     component: d,
                 })

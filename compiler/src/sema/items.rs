@@ -721,15 +721,27 @@ impl Checker {
                         self.err(Diagnostic::error("E0315", w.span, msg));
                     }
                     self.push_scope();
+                    let has = |n: &str| args.iter().any(|a| a.name == n);
+                    if has("I1") && (has("I1bar") || has("I2bar")) {
+                        let at = args.iter().find(|a| a.name == "I1").expect("listed");
+                        self.err(
+                            Diagnostic::error(
+                                "E0315",
+                                at.span,
+                                "W takes either the isochoric invariants (`I1bar`, `I2bar`) or `I1`, not both",
+                            )
+                            .with_hint("`I1 = J^(2/3) * I1bar`: write W in `I1bar, I2bar, J`, or in `I1, J` for an inversion-safe law"),
+                        );
+                    }
                     for a in args {
-                        let invariants = ["I1bar", "I2bar", "J"];
+                        let invariants = ["I1bar", "I2bar", "J", "I1"];
                         if !invariants.contains(&a.name.as_str()) {
                             let msg = format!("`{}` is not an invariant", a.name);
                             let hint = match did_you_mean(&a.name, invariants) {
                                 Some(s) => format!(
-                                    "did you mean `{s}`? W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13)"
+                                    "did you mean `{s}`? W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13), or I1 and J"
                                 ),
-                                None => "W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13)"
+                                None => "W takes any of I1bar, I2bar and J (thesis eq. 2.10–2.13), or I1 and J"
                                     .into(),
                             };
                             self.err(Diagnostic::error("E0315", a.span, msg).with_hint(hint));

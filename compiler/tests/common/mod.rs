@@ -13,10 +13,11 @@ material custom {
   density = 1.2 g/cm^3
   W(I1bar, I2bar, J) = 0.05 MPa * (I1bar - 3)^2 + 0.01 MPa * exp(I2bar - 3) - 0.01 MPa + k / 2 * ln(J)^2
 }
+material snh = stable_neo_hookean(mu: lame_mu(0.3 MPa, 0.45), lambda: lame_lambda(0.3 MPa, 0.45), density: 1070 kg/m^3)
 sim { dt = 1 us; steps = 1; use nh }
 "#;
 
-pub const NAMES: [&str; 6] = ["yeoh3", "mr", "nh", "nhln", "series", "custom"];
+pub const NAMES: [&str; 7] = ["yeoh3", "mr", "nh", "nhln", "series", "custom", "snh"];
 
 /// Signed volume of a tet from its four corners (positive for positive orientation).
 pub fn signed_volume(r: [[f64; 3]; 4]) -> f64 {

@@ -3,6 +3,7 @@
 //! Exit status: 0 success, 1 a problem in the user's input (script, mesh), 2 a usage error
 //! (bad flags, unreadable file, a command that is not implemented yet).
 
+pub mod bench;
 pub mod mesh;
 pub mod run;
 
@@ -57,6 +58,8 @@ pub enum Command {
     },
     /// Simulate a script and print a JSON summary (optimization comes with the adjoint).
     Run(run::RunArgs),
+    /// Forward speed of every backend on the canonical benchmark scene (table, `--json`).
+    Bench(bench::BenchArgs),
     /// Generate, inspect and convert tetrahedral meshes.
     Mesh {
         #[command(subcommand)]
@@ -107,6 +110,7 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         Command::Fmt { files, check } => fmt_files(&files, check, out, err),
         Command::Compile { file, emit } => compile_file(&file, emit, out, err),
         Command::Run(args) => run::run(args, out, err),
+        Command::Bench(args) => bench::run(args, out, err),
         Command::Mesh { command } => mesh::run(command),
         Command::Lsp => crate::lsp::run_stdio(),
     }

@@ -278,6 +278,23 @@ impl Backend for Cpu {
     }
 }
 
+/// Rest length of the six edges of every tet (spring mesh, `edge_l0`), in
+/// `softc_compiler::lower::springs::TET_EDGES` order.
+fn edge_rest_lengths(scene: &Scene) -> Vec<f64> {
+    let nodes = &scene.mesh.nodes;
+    scene
+        .mesh
+        .tets
+        .iter()
+        .flat_map(|t| {
+            softc_compiler::lower::springs::TET_EDGES.map(|(a, b)| {
+                let (p, q) = (nodes[t[a as usize] as usize], nodes[t[b as usize] as usize]);
+                ((q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2)).sqrt()
+            })
+        })
+        .collect()
+}
+
 /// A failure during a run, with where and why.
 #[derive(Debug)]
 pub struct RunError(pub String);
@@ -377,6 +394,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .copied()
                 .collect(),
         );
+        if m.buffer_named("edge_l0").is_some() {
+            fill("edge_l0", edge_rest_lengths(scene));
+        }
         let mut uniforms = Uniforms(scene.uniforms.clone());
         uniforms.0.insert("t".into(), 0.0);
         uniforms.0.insert("dt".into(), 0.0);
@@ -635,6 +655,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .map(|(e, v0)| e / v0)
             .collect();
         use crate::mesh::writers::Field;
+        // The spring mesh has no strain energy: its elements carry J only.
+        let mut cell_fields = vec![("J", Field::Scalar(&j))];
+        if !density.is_empty() {
+            cell_fields.insert(0, ("strain_energy_density", Field::Scalar(&density)));
+        }
         let out = self.vtk.as_mut().expect("vtk output");
         out.series
             .write_step(
@@ -645,10 +670,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                     ("displacement", Field::Vector(&disp)),
                     ("velocity", Field::Vector(&vel)),
                 ],
-                &[
-                    ("strain_energy_density", Field::Scalar(&density)),
-                    ("J", Field::Scalar(&j)),
-                ],
+                &cell_fields,
             )
             .map(|_| ())
             .map_err(|e| RunError(format!("cannot write the VTK output: {e}")))
@@ -656,6 +678,25 @@ impl<'s, B: Backend> Simulation<'s, B> {
 
     fn check_state(&self, step: u64, dt: f64) -> Result<(), RunError> {
         let t = (step + 1) as f64 * dt;
+        // An inversion is reported first: it is usually why positions went non-finite
+        // (J^(-2/3) of a negative J). Inversion-safe materials may pass through J <= 0.
+        let js = self.backend.get(self.ids.elem_j);
+        let safe = |e: usize| {
+            let lowered = &self.scene.lowered;
+            self.scene
+                .material_ranges
+                .iter()
+                .position(|r| r.contains(&e))
+                .is_some_and(|m| lowered.inversion_safe.get(m).copied().unwrap_or(false))
+        };
+        if let Some((e, j)) = js.iter().enumerate().find(|&(e, j)| *j <= 0.0 && !safe(e)) {
+            return Err(RunError(format!(
+                "element {e} inverted at step {} (t = {t:.6} s): J = {j:e}. \
+                 Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element; \
+                 an inversion-safe material such as `stable_neo_hookean` may pass through inversion",
+                step + 1
+            )));
+        }
         let xs = self.backend.get(self.ids.x);
         if let Some(i) = xs.iter().position(|v| !v.is_finite()) {
             return Err(RunError(format!(
@@ -667,15 +708,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 self.estimate.map_or(dt / 4.0, |e| 0.9 * e)
             )));
         }
-        let js = self.backend.get(self.ids.elem_j);
-        if let Some((e, j)) = js
-            .iter()
-            .enumerate()
-            .find(|(_, j)| **j <= 0.0 || !j.is_finite())
-        {
+        if let Some((e, j)) = js.iter().enumerate().find(|(_, j)| !j.is_finite()) {
             return Err(RunError(format!(
-                "element {e} inverted at step {} (t = {t:.6} s): J = {j:e}. \
-                 Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element",
+                "element {e} became non-finite at step {} (t = {t:.6} s): J = {j:e}. \
+                 Reduce dt (now {dt:e} s) or the load rate",
                 step + 1
             )));
         }

@@ -40,9 +40,13 @@ struct Material<'a> {
     name: String,
     density: f64,
     scope: Scope<'a>,
-    /// Derivative slot (0 = Ī1, 1 = Ī2, 2 = J) of each argument of W, with its name.
+    /// Derivative slot (0 = Ī1, or I1 for a non-isochoric W; 1 = Ī2; 2 = J) of each argument
+    /// of W, with its name.
     args: Vec<(&'a str, usize)>,
     body: &'a Expr,
+    /// W is written in Ī1, Ī2 (else in I1 = tr C and J: no isochoric factors, finite and
+    /// evaluated for J ≤ 0, i.e. inversion-safe).
+    isochoric: bool,
 }
 
 /// What one element contributes at a deformed configuration.
@@ -72,6 +76,23 @@ pub struct Reference<'a> {
     pressures: Vec<&'a Expr>,
     damping: Option<&'a Expr>,
     gravity: Option<Vec3>,
+    /// `model = springs(…)`: the spring mesh instead of FEM.
+    springs: Option<SpringMesh>,
+}
+
+/// The spring mesh (thesis eq. 2.3–2.7, 2.16), built per unique edge here (the kernels add
+/// each tet's share instead).
+struct SpringMesh {
+    /// The volume-conservation scale α, N/m³.
+    alpha: f64,
+    edges: Vec<SpringEdge>,
+}
+
+struct SpringEdge {
+    nodes: [usize; 2],
+    l0: f64,
+    /// Rest volume of the edge's tets per material: (material, V0).
+    volumes: Vec<(usize, f64)>,
 }
 
 impl<'a> Reference<'a> {
@@ -145,6 +166,22 @@ impl<'a> Reference<'a> {
             dm_inv.push(inv);
             rest_volume.push(v0);
         }
+        let springs = match scene.ast.sim_setting("model").map(|e| &e.kind) {
+            Some(ExprKind::Call { args, .. }) => {
+                let a = args
+                    .iter()
+                    .find(|a| {
+                        a.name
+                            .as_ref()
+                            .is_some_and(|n| n.name == "volume_stiffness")
+                    })
+                    .or_else(|| args.first())
+                    .ok_or("`springs(…)` without a volume stiffness")?;
+                let alpha = ev.eval(&Scope::root(), &a.value)?.scalar()?.v;
+                Some(spring_mesh(scene, &elem_material, &rest_volume, alpha))
+            }
+            _ => None,
+        };
         Ok(Reference {
             scene,
             materials,
@@ -152,6 +189,7 @@ impl<'a> Reference<'a> {
             dm_inv,
             rest_volume,
             mass,
+            springs,
             pressures: pressure_stmts.into_iter().map(|(_, e)| e).collect(),
             damping: scene.ast.sim_setting("damping"),
             gravity,
@@ -194,6 +232,22 @@ impl<'a> Reference<'a> {
         let ds = Matrix3::from_columns(&[x[1] - x[0], x[2] - x[0], x[3] - x[0]]);
         let f = ds * dm_inv;
         let j = f.determinant();
+        let m = self.elem_material[e];
+        let vol0 = self.rest_volume[e];
+        if !self.materials[m].isochoric {
+            // W(I1, J): P = W_I1·2F + W_J·cof(F), defined for any F (inversion-safe).
+            let i1 = (f.transpose() * f).trace();
+            let w = self.energy(m, [i1, 0.0, j])?;
+            let [w1, _, wj] = w.d;
+            let p = f * (2.0 * w1) + cofactor(&f) * wj;
+            let h = p * dm_inv.transpose() * (-vol0);
+            return Ok(Local {
+                h,
+                p,
+                energy: vol0 * w.v,
+                j,
+            });
+        }
         if !(j > 0.0 && j.is_finite()) {
             return Ok(Local {
                 h: Matrix3::zeros(),
@@ -211,14 +265,13 @@ impl<'a> Reference<'a> {
         let i2 = 0.5 * (i1 * i1 - (c * c).trace());
         let j23 = j.powf(-2.0 / 3.0);
         let j43 = j.powf(-4.0 / 3.0);
-        let w = self.energy(self.elem_material[e], [j23 * i1, j43 * i2, j])?;
+        let w = self.energy(m, [j23 * i1, j43 * i2, j])?;
         let [w1, w2, wj] = w.d;
         // ∂Ī1/∂F = J^(−2/3)(2F − ⅔ I1 F⁻ᵀ), ∂Ī2/∂F = J^(−4/3)(2(I1 F − F C) − ⁴⁄₃ I2 F⁻ᵀ),
         // ∂J/∂F = J F⁻ᵀ.
         let mut p = (f * 2.0 - finv_t * (2.0 / 3.0 * i1)) * (w1 * j23);
         p += ((f * i1 - f * c) * 2.0 - finv_t * (4.0 / 3.0 * i2)) * (w2 * j43);
         p += finv_t * (wj * j);
-        let vol0 = self.rest_volume[e];
         let h = p * dm_inv.transpose() * (-vol0);
         Ok(Local {
             h,
@@ -251,10 +304,15 @@ impl<'a> Reference<'a> {
     /// an error `(element, J)`.
     fn internal_forces(&mut self, x: &[Vec3], out: &mut [Vec3]) -> Result<(), InvertedOr> {
         out.iter_mut().for_each(|f| *f = Vec3::zeros());
+        if self.springs.is_some() {
+            return self.spring_forces(x, out);
+        }
         for (e, tet) in self.scene.mesh.tets.iter().enumerate() {
             let xs = tet.map(|n| x[n as usize]);
             let l = self.element_at(e, &xs).map_err(InvertedOr::Other)?;
-            if !(l.j > 0.0 && l.j.is_finite()) {
+            let inverted = !(l.j > 0.0 && l.j.is_finite());
+            let safe = !self.materials[self.elem_material[e]].isochoric;
+            if inverted && !safe {
                 return Err(InvertedOr::Inverted(e, l.j));
             }
             let (c0, c1, c2) = (l.h.column(0), l.h.column(1), l.h.column(2));
@@ -264,6 +322,63 @@ impl<'a> Reference<'a> {
             out[tet[0] as usize] -= c0 + c1 + c2;
         }
         Ok(())
+    }
+
+    /// Nominal uniaxial stress P(λ) = dW/dλ of material `m` along incompressible uniaxial
+    /// tension (Ī1 = λ² + 2/λ, Ī2 = 2λ + 1/λ², J = 1; I1 = Ī1 there).
+    fn uniaxial_stress(&mut self, m: usize, lam: f64) -> Result<f64, String> {
+        let w = self.energy(
+            m,
+            [lam * lam + 2.0 / lam, 2.0 * lam + 1.0 / (lam * lam), 1.0],
+        )?;
+        let [w1, w2, _] = w.d;
+        Ok(w1 * (2.0 * lam - 2.0 / (lam * lam)) + w2 * (2.0 - 2.0 / (lam * lam * lam)))
+    }
+
+    /// E(λ) = dP/dλ, the slope of the stress–strain curve (eq. 2.3): a central difference of
+    /// the exact P (error ~1e-8 relative), a different method from the kernels' second AD.
+    fn tangent_modulus(&mut self, m: usize, lam: f64) -> Result<f64, String> {
+        let h = 1e-4 * lam;
+        Ok((self.uniaxial_stress(m, lam + h)? - self.uniaxial_stress(m, lam - h)?) / (2.0 * h))
+    }
+
+    /// Spring-mesh forces: every unique edge (eq. 2.3–2.5), then the volume-conservation
+    /// force of every tet (eq. 2.16).
+    fn spring_forces(&mut self, x: &[Vec3], out: &mut [Vec3]) -> Result<(), InvertedOr> {
+        let sm = self.springs.take().expect("spring mesh");
+        let result = (|| {
+            for edge in &sm.edges {
+                let [a, b] = edge.nodes;
+                let d = x[b] - x[a];
+                let l = d.norm();
+                let lam = l / edge.l0;
+                let mut k = 0.0;
+                for &(m, v0) in &edge.volumes {
+                    k += self.tangent_modulus(m, lam).map_err(InvertedOr::Other)? * v0;
+                }
+                let f = d * (k / (edge.l0 * edge.l0) * (l - edge.l0) / l);
+                out[a] += f;
+                out[b] -= f;
+            }
+            for (e, tet) in self.scene.mesh.tets.iter().enumerate() {
+                let p = tet.map(|n| x[n as usize]);
+                let vol = Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]])
+                    .determinant()
+                    / 6.0;
+                let v0 = self.rest_volume[e];
+                if !(vol > 0.0 && vol.is_finite()) {
+                    return Err(InvertedOr::Inverted(e, vol / v0));
+                }
+                let bc = (p[0] + p[1] + p[2] + p[3]) / 4.0;
+                for (c, &n) in tet.iter().enumerate() {
+                    let r = bc - p[c];
+                    out[n as usize] += r * (sm.alpha * (vol - v0) / r.norm());
+                }
+            }
+            Ok(())
+        })();
+        self.springs = Some(sm);
+        result
     }
 
     fn scalar_at(&mut self, e: &'a Expr, what: &str) -> Result<f64, String> {
@@ -566,7 +681,7 @@ fn material<'a>(ev: &mut Evaluator<'a>, name: &str) -> Result<Material<'a>, Stri
                 let args = args
                     .iter()
                     .map(|a| match a.name.as_str() {
-                        "I1bar" => Ok((a.name.as_str(), 0)),
+                        "I1bar" | "I1" => Ok((a.name.as_str(), 0)),
                         "I2bar" => Ok((a.name.as_str(), 1)),
                         "J" => Ok((a.name.as_str(), 2)),
                         other => Err(format!(
@@ -581,12 +696,60 @@ fn material<'a>(ev: &mut Evaluator<'a>, name: &str) -> Result<Material<'a>, Stri
     }
     let (args, body) = energy.ok_or_else(|| format!("material `{name}` has no strain energy"))?;
     let density = density.ok_or_else(|| format!("material `{name}` has no density"))?;
+    let isochoric = !args.iter().any(|(n, _)| *n == "I1");
+    if !isochoric && args.iter().any(|(n, _)| *n == "I1bar" || *n == "I2bar") {
+        return Err(format!(
+            "material `{name}`: W mixes I1 with the isochoric invariants"
+        ));
+    }
     Ok(Material {
         name: name.to_string(),
         density,
         scope,
         args,
         body,
+        isochoric,
+    })
+}
+
+/// The unique edges of the mesh with their rest lengths and the rest volume of their tets
+/// per material.
+fn spring_mesh(
+    scene: &Scene,
+    elem_material: &[usize],
+    rest_volume: &[f64],
+    alpha: f64,
+) -> SpringMesh {
+    let mut map: std::collections::BTreeMap<(usize, usize), Vec<(usize, f64)>> = Default::default();
+    for (e, tet) in scene.mesh.tets.iter().enumerate() {
+        for (i, j) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
+            let (a, b) = (tet[i] as usize, tet[j] as usize);
+            let key = (a.min(b), a.max(b));
+            let vols = map.entry(key).or_default();
+            let m = elem_material[e];
+            match vols.iter_mut().find(|(mm, _)| *mm == m) {
+                Some((_, v)) => *v += rest_volume[e],
+                None => vols.push((m, rest_volume[e])),
+            }
+        }
+    }
+    let edges = map
+        .into_iter()
+        .map(|((a, b), volumes)| SpringEdge {
+            nodes: [a, b],
+            l0: (Vec3::from(scene.mesh.nodes[b]) - Vec3::from(scene.mesh.nodes[a])).norm(),
+            volumes,
+        })
+        .collect();
+    SpringMesh { alpha, edges }
+}
+
+/// The cofactor matrix of F (J·F⁻ᵀ for an invertible F, defined for any F).
+fn cofactor(f: &Matrix3<f64>) -> Matrix3<f64> {
+    Matrix3::from_fn(|r, c| {
+        let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
+        let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
+        f[(r1, c1)] * f[(r2, c2)] - f[(r1, c2)] * f[(r2, c1)]
     })
 }
 
