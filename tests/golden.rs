@@ -77,12 +77,19 @@ fn specialization_cases_match_their_golden_wgsl() {
     let trainable = variant(
         "benchmark-1k.soft",
         "benchmark-1k-trainable-E",
-        &[("let E = 0.3 MPa", "param E: pressure = 0.3 MPa in [0.1 MPa, 1 MPa]")],
+        &[(
+            "let E = 0.3 MPa",
+            "param E: pressure = 0.3 MPa in [0.1 MPa, 1 MPa]",
+        )],
     );
     let cases: Vec<(&str, PathBuf, &str)> = vec![
         ("benchmark-1k-f64", ex("benchmark-1k.soft"), "f64"),
         ("meta_optimization-f64", ex("meta_optimization.soft"), "f64"),
-        ("controller_synthesis-f64", ex("controller_synthesis.soft"), "f64"),
+        (
+            "controller_synthesis-f64",
+            ex("controller_synthesis.soft"),
+            "f64",
+        ),
         ("benchmark-1k-trainable-E", trainable.clone(), "f32"),
     ];
     let mut texts = std::collections::HashMap::new();

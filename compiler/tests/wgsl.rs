@@ -20,8 +20,15 @@ fn everything() -> Module {
 
     // Element kernel: corners, own, uniforms, all unary/binary/compare ops, select.
     let mut k = KernelBuilder::new("elem", Domain::Element, "material test");
-    let a = k.load(ArgSource::Corner { buffer: x, corner: 3, component: 2 });
-    let b = k.load(ArgSource::Own { buffer: w1, component: 0 });
+    let a = k.load(ArgSource::Corner {
+        buffer: x,
+        corner: 3,
+        component: 2,
+    });
+    let b = k.load(ArgSource::Own {
+        buffer: w1,
+        component: 0,
+    });
     let t = k.uniform("t");
     let p = k.uniform("param.w.1.3");
     let mut acc = k.b.add(a, b);
@@ -41,11 +48,25 @@ fn everything() -> Module {
         let u = k.b.un(op, acc);
         acc = k.b.add(acc, u);
     }
-    for op in [BinOp::Sub, BinOp::Mul, BinOp::Div, BinOp::Pow, BinOp::Min, BinOp::Max] {
+    for op in [
+        BinOp::Sub,
+        BinOp::Mul,
+        BinOp::Div,
+        BinOp::Pow,
+        BinOp::Min,
+        BinOp::Max,
+    ] {
         let u = k.b.bin(op, acc, t);
         acc = k.b.add(acc, u);
     }
-    for op in [CmpOp::Lt, CmpOp::Le, CmpOp::Gt, CmpOp::Ge, CmpOp::Eq, CmpOp::Ne] {
+    for op in [
+        CmpOp::Lt,
+        CmpOp::Le,
+        CmpOp::Gt,
+        CmpOp::Ge,
+        CmpOp::Eq,
+        CmpOp::Ne,
+    ] {
         let c = k.b.cmp(op, acc, p);
         acc = k.b.select(c, acc, t);
     }
@@ -61,7 +82,11 @@ fn everything() -> Module {
 
     // Triangle kernel.
     let mut k = KernelBuilder::new("pressure_cavity", Domain::Triangle, "pressure cavity");
-    let a = k.load(ArgSource::Corner { buffer: x, corner: 2, component: 0 });
+    let a = k.load(ArgSource::Corner {
+        buffer: x,
+        corner: 2,
+        component: 0,
+    });
     let p = k.uniform("param.p_peak");
     let v = k.b.mul(a, p);
     for c in 0..9 {
@@ -71,10 +96,28 @@ fn everything() -> Module {
 
     // Node kernel: gathers over both CSR lists.
     let mut k = KernelBuilder::new("integrate", Domain::Node, "sim");
-    let g1 = k.load(ArgSource::Gather { buffer: ef, over: Domain::Element, stride: 3, component: 1 });
-    let g2 = k.load(ArgSource::Gather { buffer: tf, over: Domain::Triangle, stride: 3, component: 2 });
-    let g3 = k.load(ArgSource::Gather { buffer: w1, over: Domain::Element, stride: 0, component: 0 });
-    let own = k.load(ArgSource::Own { buffer: x, component: 1 });
+    let g1 = k.load(ArgSource::Gather {
+        buffer: ef,
+        over: Domain::Element,
+        stride: 3,
+        component: 1,
+    });
+    let g2 = k.load(ArgSource::Gather {
+        buffer: tf,
+        over: Domain::Triangle,
+        stride: 3,
+        component: 2,
+    });
+    let g3 = k.load(ArgSource::Gather {
+        buffer: w1,
+        over: Domain::Element,
+        stride: 0,
+        component: 0,
+    });
+    let own = k.load(ArgSource::Own {
+        buffer: x,
+        component: 1,
+    });
     let s1 = k.b.add(g1, g2);
     let s2 = k.b.add(g3, own);
     k.store(out, 0, s1);
@@ -83,7 +126,10 @@ fn everything() -> Module {
 
     // Single kernel.
     let mut k = KernelBuilder::new("reduce", Domain::Single, "loss");
-    let a = k.load(ArgSource::Own { buffer: s, component: 0 });
+    let a = k.load(ArgSource::Own {
+        buffer: s,
+        component: 0,
+    });
     let d = k.uniform("dt");
     let v = k.b.mul(a, d);
     k.store(s, 0, v);
@@ -106,14 +152,32 @@ fn every_argument_source_domain_and_operation_validates_in_f32_and_f64() {
         assert_eq!(w.kernels[0].uniforms, ["t", "param.w.1.3"]);
         assert_eq!(w.kernels[0].launch_size, 8 + 2 * p.size() as u64);
         // Each gather loop sums in CSR order, once per CSR list.
-        assert_eq!(w.source.matches("for (var j = node_elem_offsets[e]").count(), 1);
-        assert_eq!(w.source.matches("for (var j = node_tri_offsets[e]").count(), 1);
+        assert_eq!(
+            w.source
+                .matches("for (var j = node_elem_offsets[e]")
+                .count(),
+            1
+        );
+        assert_eq!(
+            w.source.matches("for (var j = node_tri_offsets[e]").count(),
+            1
+        );
         // The declaration that produced a kernel is named above it.
-        assert!(w.source.contains("// ======== kernel pressure_cavity over triangle (from pressure cavity)"));
+        assert!(
+            w.source.contains(
+                "// ======== kernel pressure_cavity over triangle (from pressure cavity)"
+            )
+        );
         // Non-finite constants have no literal.
         assert!(w.source.contains("softc_inf()"));
         if p == Precision::F64 {
-            for f in ["softc_exp", "softc_ln", "softc_sincos", "softc_tanh", "softc_pow"] {
+            for f in [
+                "softc_exp",
+                "softc_ln",
+                "softc_sincos",
+                "softc_tanh",
+                "softc_pow",
+            ] {
                 assert!(w.source.contains(&format!("fn {f}(")), "{f}");
             }
             assert!(!w.source.contains(" exp(") && !w.source.contains(" log("));
@@ -133,15 +197,24 @@ fn names_that_are_wgsl_words_are_renamed() {
     let b = m.buffer("v1", Domain::Node, 1, "");
     let c = m.buffer("launch_x", Domain::Node, 1, "");
     let mut k = KernelBuilder::new("loop", Domain::Node, "odd names");
-    let x = k.load(ArgSource::Own { buffer: a, component: 0 });
-    let y = k.load(ArgSource::Own { buffer: b, component: 0 });
+    let x = k.load(ArgSource::Own {
+        buffer: a,
+        component: 0,
+    });
+    let y = k.load(ArgSource::Own {
+        buffer: b,
+        component: 0,
+    });
     let u = k.uniform("struct");
     let s = k.b.add(x, y);
     let s = k.b.add(s, u);
     k.store(c, 0, s);
     m.kernels.push(k.finish());
     let mut k = KernelBuilder::new("var", Domain::Node, "clashes with a buffer");
-    let x = k.load(ArgSource::Own { buffer: a, component: 0 });
+    let x = k.load(ArgSource::Own {
+        buffer: a,
+        component: 0,
+    });
     k.store(c, 0, x);
     m.kernels.push(k.finish());
     for p in [Precision::F32, Precision::F64] {
@@ -157,7 +230,11 @@ fn malformed_kernels_are_refused_with_a_message() {
     let mut m = Module::default();
     let x = m.buffer("x", Domain::Node, 3, "");
     let mut k = KernelBuilder::new("bad", Domain::Node, "test");
-    let a = k.load(ArgSource::Corner { buffer: x, corner: 0, component: 0 });
+    let a = k.load(ArgSource::Corner {
+        buffer: x,
+        corner: 0,
+        component: 0,
+    });
     k.store(x, 0, a);
     m.kernels.push(k.finish());
     let e = wgsl::emit(&m, Precision::F32).unwrap_err();
@@ -166,7 +243,10 @@ fn malformed_kernels_are_refused_with_a_message() {
     let mut m = Module::default();
     let x = m.buffer("x", Domain::Node, 3, "");
     let mut k = KernelBuilder::new("wide", Domain::Node, "test");
-    let a = k.load(ArgSource::Own { buffer: x, component: 3 });
+    let a = k.load(ArgSource::Own {
+        buffer: x,
+        component: 3,
+    });
     k.store(x, 0, a);
     m.kernels.push(k.finish());
     let e = wgsl::emit(&m, Precision::F32).unwrap_err();
@@ -178,7 +258,10 @@ fn constants_are_exact_in_their_precision() {
     let mut m = Module::default();
     let x = m.buffer("x", Domain::Single, 1, "");
     let mut k = KernelBuilder::new("c", Domain::Single, "constants");
-    let a = k.load(ArgSource::Own { buffer: x, component: 0 });
+    let a = k.load(ArgSource::Own {
+        buffer: x,
+        component: 0,
+    });
     let c = k.b.constant(0.1);
     let v = k.b.mul(a, c);
     let nan = k.b.constant(f64::NAN);

@@ -14,9 +14,14 @@ pub struct RunArgs {
     /// Which backend runs the kernels.
     #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
     pub backend: BackendChoice,
-    /// Floating-point precision of the kernels (the cpu backend; the interpreter is f64).
+    /// Floating-point precision of the kernels (cpu: default f64; gpu: default f32; the
+    /// interpreter is f64). The script's `precision` setting applies when this is not given.
     #[arg(long, value_enum)]
     pub precision: Option<PrecisionChoice>,
+    /// The GPU adapter of `--backend gpu`: a case-insensitive part of its name (or a backend
+    /// name such as `vulkan`); default: a discrete GPU, else integrated, else software.
+    #[arg(long, value_name = "NAME")]
+    pub adapter: Option<String>,
     /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -52,6 +57,8 @@ pub enum BackendChoice {
     Interp,
     /// The plain-Rust f64 reference simulator (the test oracle).
     Reference,
+    /// WGSL kernels on a GPU through wgpu (Vulkan, Metal, DX12; lavapipe without a GPU).
+    Gpu,
 }
 
 /// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
@@ -152,6 +159,34 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             sim.run(dt, args.steps)
                 .map(|s| (s, "interp"))
                 .map_err(|e| e.0)
+        }
+        BackendChoice::Gpu => {
+            let precision = match (args.precision, scene.precision_setting()) {
+                (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
+                _ => Precision::F32,
+            };
+            let gpu = match crate::devices::gpu::Gpu::new(
+                &scene.lowered.module,
+                precision,
+                args.adapter.as_deref(),
+            ) {
+                Ok(g) => g,
+                Err(e) => {
+                    let _ = writeln!(err, "{}: {e}", args.file.display());
+                    return 1;
+                }
+            };
+            let _ = writeln!(err, "adapter: {}; kernels in {precision}", gpu.adapter());
+            let mut sim = Simulation::new(&scene, gpu);
+            sim.vtk = match vtk_output(&args, &scene, err) {
+                Ok(v) => v,
+                Err(code) => return code,
+            };
+            if let Err(e) = announce_dt(&mut sim, dt, err) {
+                let _ = writeln!(err, "{}: {e}", args.file.display());
+                return 1;
+            }
+            sim.run(dt, args.steps).map(|s| (s, "gpu")).map_err(|e| e.0)
         }
         _ => {
             let precision = match (args.precision, scene.precision_setting()) {

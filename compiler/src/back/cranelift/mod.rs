@@ -56,9 +56,9 @@ mod libm;
 
 pub use crate::back::Precision;
 use crate::ir::{ArgSource, BufferId, Domain, Module};
-use codegen::{Imports, MinMax, Translator};
 /// The layout checks of a kernel against its module (shared with the WGSL backend).
 pub(crate) use codegen::validate as validate_kernel;
+use codegen::{Imports, MinMax, Translator};
 use cranelift_codegen::{Context, settings, settings::Configurable};
 use cranelift_frontend::FunctionBuilderContext;
 use cranelift_jit::{JITBuilder, JITModule};

@@ -107,10 +107,16 @@ impl Helpers {
         let need_trig = f64_mode && (u(Fun::Sin) || u(Fun::Cos) || u(Fun::Tan));
         if need_exp {
             let c = inv_factorials(13);
-            let _ = writeln!(w, "// e^x: x = k ln2 + r, |r| <= ln2/2; degree-13 Taylor of e^r.");
+            let _ = writeln!(
+                w,
+                "// e^x: x = k ln2 + r, |r| <= ln2/2; degree-13 Taylor of e^r."
+            );
             let _ = writeln!(w, "fn softc_exp(x: real) -> real {{");
             let _ = writeln!(w, "    if (x != x) {{ return x; }}");
-            let _ = writeln!(w, "    if (x > 709.782712893384lf) {{ return softc_inf(); }}");
+            let _ = writeln!(
+                w,
+                "    if (x > 709.782712893384lf) {{ return softc_inf(); }}"
+            );
             let _ = writeln!(w, "    if (x < -745.2lf) {{ return 0.0lf; }}");
             let _ = writeln!(w, "    let k = round(x * 1.4426950408889634lf);");
             let _ = writeln!(
@@ -139,14 +145,23 @@ impl Helpers {
             // exact powers of two into f32's range, take the exponent from an f32 log2, correct.
             let _ = writeln!(w, "    var y = x;");
             let _ = writeln!(w, "    var ex = 0.0lf;");
-            let _ = writeln!(w, "    while (y > 1e30lf) {{ y = ldexp(y, -100); ex += 100.0lf; }}");
-            let _ = writeln!(w, "    while (y < 1e-30lf) {{ y = ldexp(y, 100); ex -= 100.0lf; }}");
+            let _ = writeln!(
+                w,
+                "    while (y > 1e30lf) {{ y = ldexp(y, -100); ex += 100.0lf; }}"
+            );
+            let _ = writeln!(
+                w,
+                "    while (y < 1e-30lf) {{ y = ldexp(y, 100); ex -= 100.0lf; }}"
+            );
             let _ = writeln!(w, "    let k = floor(log2(f32(y)));");
             let _ = writeln!(w, "    var m = ldexp(y, -i32(k));");
             let _ = writeln!(w, "    ex += real(k);");
             let _ = writeln!(w, "    if (m >= 2.0lf) {{ m *= 0.5lf; ex += 1.0lf; }}");
             let _ = writeln!(w, "    if (m < 1.0lf) {{ m *= 2.0lf; ex -= 1.0lf; }}");
-            let _ = writeln!(w, "    if (m > 1.4142135623730951lf) {{ m *= 0.5lf; ex += 1.0lf; }}");
+            let _ = writeln!(
+                w,
+                "    if (m > 1.4142135623730951lf) {{ m *= 0.5lf; ex += 1.0lf; }}"
+            );
             let _ = writeln!(w, "    let s = (m - 1.0lf) / (m + 1.0lf);");
             let _ = writeln!(w, "    let z = s * s;");
             let _ = writeln!(w, "    let lm = 2.0lf * s * ({});", horner(&c, "z"));
@@ -240,10 +255,7 @@ impl Helpers {
             let _ = writeln!(w, "    if (b == {zero} || a == {one}) {{ return {one}; }}");
             let _ = writeln!(w, "    let m = abs(a);");
             let _ = writeln!(w, "    if (m == {zero}) {{");
-            let _ = writeln!(
-                w,
-                "        return select({zero}, softc_inf(), b < {zero});"
-            );
+            let _ = writeln!(w, "        return select({zero}, softc_inf(), b < {zero});");
             let _ = writeln!(w, "    }}");
             if f64_mode {
                 let _ = writeln!(w, "    var r = softc_exp(b * softc_ln(m));");

@@ -147,32 +147,222 @@ impl WgslModule {
 /// Identifiers WGSL reserves or defines (keywords, reserved words, predeclared types and
 /// functions a name could shadow); a script name equal to one of them gets a `_` suffix.
 const RESERVED: &[&str] = &[
-    "alias", "array", "atomic", "bitcast", "bool", "break", "case", "const", "const_assert",
-    "continue", "continuing", "default", "diagnostic", "discard", "else", "enable", "f16",
-    "f32", "f64", "false", "fn", "for", "if", "i32", "let", "loop", "mat2x2", "mat3x3",
-    "mat4x4", "override", "ptr", "requires", "return", "sampler", "struct", "switch", "true",
-    "u32", "var", "vec2", "vec3", "vec4", "while", "NULL", "Self", "abstract", "active",
-    "alignas", "alignof", "as", "asm", "asm_fragment", "async", "attribute", "auto", "await",
-    "become", "binding_array", "cast", "catch", "class", "co_await", "co_return", "co_yield",
-    "coherent", "column_major", "common", "compile", "compile_fragment", "concept",
-    "const_cast", "consteval", "constexpr", "constinit", "crate", "debugger", "decltype",
-    "delete", "demote", "demote_to_helper", "do", "dynamic_cast", "enum", "explicit", "export",
-    "extends", "extern", "external", "fallthrough", "filter", "final", "finally", "friend",
-    "from", "fxgroup", "get", "goto", "groupshared", "highp", "impl", "implements", "import",
-    "inline", "instanceof", "interface", "layout", "lowp", "macro", "macro_rules", "match",
-    "mediump", "meta", "mod", "module", "move", "mut", "mutable", "namespace", "new", "nil",
-    "noexcept", "noinline", "nointerpolation", "noperspective", "null", "nullptr", "of",
-    "operator", "package", "packoffset", "partition", "pass", "patch", "pixelfragment",
-    "precise", "precision", "premerge", "priv", "protected", "pub", "public", "readonly", "ref",
-    "regardless", "register", "reinterpret_cast", "require", "resource", "restrict", "self",
-    "set", "shared", "sizeof", "smooth", "snorm", "static", "static_assert", "static_cast",
-    "std", "subroutine", "super", "target", "template", "this", "thread_local", "throw",
-    "trait", "try", "type", "typedef", "typeid", "typename", "typeof", "union", "unless",
-    "unorm", "unsafe", "unsized", "use", "using", "varying", "virtual", "volatile", "wgsl",
-    "where", "with", "writeonly", "yield", "real", "main", "abs", "exp", "log", "pow", "sin",
-    "cos", "tan", "tanh", "sqrt", "floor", "ceil", "min", "max", "select", "round", "ldexp",
-    "frexp", "fract", "sign", "uniform", "storage", "read", "read_write", "function",
-    "private", "workgroup",
+    "alias",
+    "array",
+    "atomic",
+    "bitcast",
+    "bool",
+    "break",
+    "case",
+    "const",
+    "const_assert",
+    "continue",
+    "continuing",
+    "default",
+    "diagnostic",
+    "discard",
+    "else",
+    "enable",
+    "f16",
+    "f32",
+    "f64",
+    "false",
+    "fn",
+    "for",
+    "if",
+    "i32",
+    "let",
+    "loop",
+    "mat2x2",
+    "mat3x3",
+    "mat4x4",
+    "override",
+    "ptr",
+    "requires",
+    "return",
+    "sampler",
+    "struct",
+    "switch",
+    "true",
+    "u32",
+    "var",
+    "vec2",
+    "vec3",
+    "vec4",
+    "while",
+    "NULL",
+    "Self",
+    "abstract",
+    "active",
+    "alignas",
+    "alignof",
+    "as",
+    "asm",
+    "asm_fragment",
+    "async",
+    "attribute",
+    "auto",
+    "await",
+    "become",
+    "binding_array",
+    "cast",
+    "catch",
+    "class",
+    "co_await",
+    "co_return",
+    "co_yield",
+    "coherent",
+    "column_major",
+    "common",
+    "compile",
+    "compile_fragment",
+    "concept",
+    "const_cast",
+    "consteval",
+    "constexpr",
+    "constinit",
+    "crate",
+    "debugger",
+    "decltype",
+    "delete",
+    "demote",
+    "demote_to_helper",
+    "do",
+    "dynamic_cast",
+    "enum",
+    "explicit",
+    "export",
+    "extends",
+    "extern",
+    "external",
+    "fallthrough",
+    "filter",
+    "final",
+    "finally",
+    "friend",
+    "from",
+    "fxgroup",
+    "get",
+    "goto",
+    "groupshared",
+    "highp",
+    "impl",
+    "implements",
+    "import",
+    "inline",
+    "instanceof",
+    "interface",
+    "layout",
+    "lowp",
+    "macro",
+    "macro_rules",
+    "match",
+    "mediump",
+    "meta",
+    "mod",
+    "module",
+    "move",
+    "mut",
+    "mutable",
+    "namespace",
+    "new",
+    "nil",
+    "noexcept",
+    "noinline",
+    "nointerpolation",
+    "noperspective",
+    "null",
+    "nullptr",
+    "of",
+    "operator",
+    "package",
+    "packoffset",
+    "partition",
+    "pass",
+    "patch",
+    "pixelfragment",
+    "precise",
+    "precision",
+    "premerge",
+    "priv",
+    "protected",
+    "pub",
+    "public",
+    "readonly",
+    "ref",
+    "regardless",
+    "register",
+    "reinterpret_cast",
+    "require",
+    "resource",
+    "restrict",
+    "self",
+    "set",
+    "shared",
+    "sizeof",
+    "smooth",
+    "snorm",
+    "static",
+    "static_assert",
+    "static_cast",
+    "std",
+    "subroutine",
+    "super",
+    "target",
+    "template",
+    "this",
+    "thread_local",
+    "throw",
+    "trait",
+    "try",
+    "type",
+    "typedef",
+    "typeid",
+    "typename",
+    "typeof",
+    "union",
+    "unless",
+    "unorm",
+    "unsafe",
+    "unsized",
+    "use",
+    "using",
+    "varying",
+    "virtual",
+    "volatile",
+    "wgsl",
+    "where",
+    "with",
+    "writeonly",
+    "yield",
+    "real",
+    "main",
+    "abs",
+    "exp",
+    "log",
+    "pow",
+    "sin",
+    "cos",
+    "tan",
+    "tanh",
+    "sqrt",
+    "floor",
+    "ceil",
+    "min",
+    "max",
+    "select",
+    "round",
+    "ldexp",
+    "frexp",
+    "fract",
+    "sign",
+    "uniform",
+    "storage",
+    "read",
+    "read_write",
+    "function",
+    "private",
+    "workgroup",
 ];
 
 /// A valid WGSL identifier for a script name, distinct from every name in `taken`; added to it.
@@ -192,12 +382,14 @@ fn ident(name: &str, taken: &mut BTreeSet<String>) -> String {
         s == "_"
             || s.starts_with("softc_")
             || s.starts_with("launch_")
-            || ["v", "arg", "n", "g", "e", "i", "j", "gid", "nwg", "ent", "corner"]
-                .iter()
-                .any(|p| {
-                    s.strip_prefix(p)
-                        .is_some_and(|r| r.is_empty() || r.chars().all(|c| c.is_ascii_digit()))
-                })
+            || [
+                "v", "arg", "n", "g", "e", "i", "j", "gid", "nwg", "ent", "corner",
+            ]
+            .iter()
+            .any(|p| {
+                s.strip_prefix(p)
+                    .is_some_and(|r| r.is_empty() || r.chars().all(|c| c.is_ascii_digit()))
+            })
     };
     if RESERVED.contains(&s.as_str()) || local(&s) {
         s.push('_');
@@ -285,7 +477,10 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
         module.buffers.len()
     );
     let _ = writeln!(w, "\nalias real = {real};\n");
-    let _ = writeln!(w, "// ---- buffers: len(domain) x width values, entity-major");
+    let _ = writeln!(
+        w,
+        "// ---- buffers: len(domain) x width values, entity-major"
+    );
     for (i, b) in module.buffers.iter().enumerate() {
         let access = if written.contains(&(i as u32)) {
             "read_write"
@@ -312,7 +507,10 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
     }
     let _ = writeln!(w, "\n// ---- connectivity");
     let _ = writeln!(w, "// 4 nodes per element, 3 per chamber triangle");
-    let _ = writeln!(w, "// node CSR lists: offsets (nodes + 1), entries as (entity, corner) pairs");
+    let _ = writeln!(
+        w,
+        "// node CSR lists: offsets (nodes + 1), entries as (entity, corner) pairs"
+    );
     for t in TopoArray::ALL {
         let _ = writeln!(
             w,
@@ -398,7 +596,11 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
                 )
             })
             .collect();
-        bindings.extend(used_topo.iter().map(|&t| (topo_binding(t), Binding::Topo(t))));
+        bindings.extend(
+            used_topo
+                .iter()
+                .map(|&t| (topo_binding(t), Binding::Topo(t))),
+        );
         let storage_buffers = bindings.len() as u32;
         bindings.push((lb, Binding::Launch));
 
@@ -408,10 +610,7 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
             "fn {}(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {{",
             entries[ki]
         );
-        let _ = writeln!(
-            w,
-            "    let i = gid.x + gid.y * nwg.x * {WORKGROUP_SIZE}u;"
-        );
+        let _ = writeln!(w, "    let i = gid.x + gid.y * nwg.x * {WORKGROUP_SIZE}u;");
         let _ = writeln!(w, "    if (i >= {launch}.count) {{");
         let _ = writeln!(w, "        return;");
         let _ = writeln!(w, "    }}");
