@@ -137,9 +137,20 @@ fn usage_errors_exit_with_status_2() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("cannot read"), "{err}");
     let bench = root().join("examples/benchmark-1k.soft");
-    // The GPU backend comes with issue 5: not a choice yet, so a usage error.
-    let (code, _, _) = softc(&["run", "--backend", "gpu", bench.to_str().unwrap()]);
-    assert_eq!(code, 2);
+    // An adapter that does not exist (or no adapter at all) is an error with a message.
+    let (code, _, err) = softc(&[
+        "run",
+        "--backend",
+        "gpu",
+        "--adapter",
+        "no-such-adapter-xyz",
+        bench.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("no GPU adapter matches") || err.contains("mesa-vulkan-drivers"),
+        "{err}"
+    );
     let (code, _, err) = softc(&["run", "--set", "nope=3kPa", bench.to_str().unwrap()]);
     assert_eq!(code, 2);
     assert!(err.contains("no param `nope`"), "{err}");

@@ -1,9 +1,126 @@
 //! Generated kernels are golden files: `tests/golden/ir/NAME.ir` holds the kernel IR of every
-//! example, so a change to generated code shows in review. Update after an intended change:
+//! example and `tests/golden/wgsl/NAME.wgsl` its WGSL (f32), with specialization cases
+//! (f64, a trainable material constant, …) in `tests/golden/wgsl/cases/`, so a change to
+//! generated code shows in review. Update after an intended change:
 //!     SOFTC_BLESS=1 cargo test -p softc-tests --test golden
 //! and read the diff.
 
 use softc_tests::{bless, files_with_ext, root, softc};
+use std::path::{Path, PathBuf};
+
+/// Compare `out` with a golden file (or write it when blessing); a mismatch is pushed.
+fn check_golden(golden: &Path, out: &str, what: &str, failures: &mut Vec<String>) {
+    if bless() {
+        std::fs::create_dir_all(golden.parent().unwrap()).unwrap();
+        std::fs::write(golden, out).unwrap();
+        return;
+    }
+    let expected = std::fs::read_to_string(golden).unwrap_or_default();
+    if expected != out {
+        failures.push(format!(
+            "{what} differs from {} (run with SOFTC_BLESS=1 and review the diff)",
+            golden.display()
+        ));
+    }
+}
+
+/// A copy of an example with some text replaced, written next to the example (so its mesh
+/// paths still resolve) under a name that cannot clash with a real example.
+fn variant(example: &str, name: &str, edits: &[(&str, &str)]) -> PathBuf {
+    let mut text = std::fs::read_to_string(root().join("examples").join(example)).unwrap();
+    for (from, to) in edits {
+        assert!(text.contains(from), "{example}: `{from}` not found");
+        text = text.replace(from, to);
+    }
+    let dir = std::env::temp_dir().join(format!("softc-golden-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let text = text.replace("\"../meshes/", &format!("\"{}/meshes/", root().display()));
+    let path = dir.join(format!("{name}.soft"));
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn wgsl_of(script: &Path, precision: &str) -> String {
+    let (code, out, err) = softc(&[
+        "compile",
+        "--emit",
+        "wgsl",
+        "--precision",
+        precision,
+        script.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{}: {err}", script.display());
+    out
+}
+
+/// `softc compile --emit wgsl` validates every module with naga before printing it, so a
+/// zero exit status here also means naga accepted the module.
+#[test]
+fn example_kernels_match_their_golden_wgsl() {
+    let dir = root().join("tests/golden/wgsl");
+    let mut failures = Vec::new();
+    for script in files_with_ext(&root().join("examples"), "soft") {
+        let out = wgsl_of(&script, "f32");
+        let golden = dir.join(script.file_stem().unwrap()).with_extension("wgsl");
+        check_golden(&golden, &out, &script.display().to_string(), &mut failures);
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// Specialization cases: the same scene in f64 (software transcendental functions), and with
+/// a trainable instead of a constant material modulus (a uniform instead of a folded literal).
+#[test]
+fn specialization_cases_match_their_golden_wgsl() {
+    let dir = root().join("tests/golden/wgsl/cases");
+    let mut failures = Vec::new();
+    let ex = |n: &str| root().join("examples").join(n);
+    let trainable = variant(
+        "benchmark-1k.soft",
+        "benchmark-1k-trainable-E",
+        &[(
+            "let E = 0.3 MPa",
+            "param E: pressure = 0.3 MPa in [0.1 MPa, 1 MPa]",
+        )],
+    );
+    let cases: Vec<(&str, PathBuf, &str)> = vec![
+        ("benchmark-1k-f64", ex("benchmark-1k.soft"), "f64"),
+        ("meta_optimization-f64", ex("meta_optimization.soft"), "f64"),
+        (
+            "controller_synthesis-f64",
+            ex("controller_synthesis.soft"),
+            "f64",
+        ),
+        ("benchmark-1k-trainable-E", trainable.clone(), "f32"),
+    ];
+    let mut texts = std::collections::HashMap::new();
+    for (name, script, precision) in &cases {
+        let out = wgsl_of(script, precision);
+        let golden = dir.join(name).with_extension("wgsl");
+        check_golden(&golden, &out, name, &mut failures);
+        texts.insert(*name, out);
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    // What the specializations must show.
+    let bench = wgsl_of(&ex("benchmark-1k.soft"), "f32");
+    let meta = wgsl_of(&ex("meta_optimization.soft"), "f32");
+    let controller = wgsl_of(&ex("controller_synthesis.soft"), "f32");
+    // One pressure entry point per chamber: 1 in the benchmark, 3 in the controller study.
+    assert_eq!(bench.matches("over triangle").count(), 1);
+    assert_eq!(controller.matches("over triangle").count(), 3);
+    // Constant damping is a literal; windowed damping selects among the window's params.
+    assert!(!bench.contains("param_beta"));
+    assert!(meta.contains("param_beta_29: real, // param.beta.29"));
+    assert!(meta.contains("select("));
+    // f32 uses the built-in functions, f64 the software ones (SPIR-V has no f64 exp/log).
+    assert!(bench.contains("alias real = f32;") && bench.contains("log("));
+    let f64_bench = &texts["benchmark-1k-f64"];
+    assert!(f64_bench.contains("alias real = f64;"));
+    assert!(f64_bench.contains("fn softc_ln(") && f64_bench.contains("softc_pow("));
+    // A trainable modulus is read from the launch block instead of folded.
+    let tr = &texts["benchmark-1k-trainable-E"];
+    assert!(tr.contains("param_E: real, // param.E"), "{tr}");
+    assert!(!bench.contains("param_E"));
+}
 
 #[test]
 fn example_kernels_match_their_golden_ir() {
@@ -13,18 +130,7 @@ fn example_kernels_match_their_golden_ir() {
         let (code, out, err) = softc(&["compile", "--emit", "ir", script.to_str().unwrap()]);
         assert_eq!(code, 0, "{}: {err}", script.display());
         let golden = dir.join(script.file_stem().unwrap()).with_extension("ir");
-        if bless() {
-            std::fs::write(&golden, &out).unwrap();
-            continue;
-        }
-        let expected = std::fs::read_to_string(&golden).unwrap_or_default();
-        if expected != out {
-            failures.push(format!(
-                "{} differs from {} (run with SOFTC_BLESS=1 and review the diff)",
-                script.display(),
-                golden.display()
-            ));
-        }
+        check_golden(&golden, &out, &script.display().to_string(), &mut failures);
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
@@ -62,9 +168,16 @@ fn compile_reports_script_errors_and_unsupported_emits() {
     assert_eq!(code, 1);
     assert!(err.contains("E0201"), "{err}");
     let good = root().join("examples/benchmark-1k.soft");
-    let (code, _, err) = softc(&["compile", "--emit", "wgsl", good.to_str().unwrap()]);
+    let (code, _, err) = softc(&[
+        "compile",
+        "--emit",
+        "ir",
+        "--precision",
+        "f64",
+        good.to_str().unwrap(),
+    ]);
     assert_eq!(code, 2);
-    assert!(err.contains("not implemented yet"), "{err}");
+    assert!(err.contains("--precision applies to --emit wgsl"), "{err}");
 }
 
 #[test]

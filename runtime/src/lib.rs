@@ -2,6 +2,7 @@
 //! outputs, plus the `softc` command line.
 
 pub mod cli;
+pub mod devices;
 pub mod engine;
 pub mod lsp;
 pub mod mesh;

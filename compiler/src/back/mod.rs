@@ -2,8 +2,10 @@
 //!
 //! - [`cranelift`]: native CPU code through the Cranelift JIT, f64 or f32, bit-identical to
 //!   the IR interpreter in f64, run on any number of threads with identical results.
+//! - [`wgsl`]: WGSL compute shaders for wgpu (any GPU, or lavapipe), f32 or f64.
 
 pub mod cranelift;
+pub mod wgsl;
 
 /// The floating-point type of every value and buffer of a compiled module.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

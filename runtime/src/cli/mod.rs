@@ -51,10 +51,13 @@ pub enum Command {
     /// Compile a script and print its kernels.
     Compile {
         file: PathBuf,
-        /// What to print: the kernel IR or the Cranelift IR of the CPU backend (`wgsl` comes with
-        /// the GPU backend).
+        /// What to print: the kernel IR, the Cranelift IR of the CPU backend, or the WGSL of the
+        /// GPU backend.
         #[arg(long, value_enum, default_value_t = Emit::Ir)]
         emit: Emit,
+        /// Precision of `--emit wgsl` (default: the script's `precision` setting, else f32).
+        #[arg(long, value_enum)]
+        precision: Option<run::PrecisionChoice>,
     },
     /// Simulate a script and print a JSON summary (optimization comes with the adjoint).
     Run(run::RunArgs),
@@ -75,7 +78,8 @@ pub enum Emit {
     Ir,
     /// Cranelift IR of the CPU backend (f64).
     Clif,
-    /// WGSL (not implemented yet).
+    /// WGSL of the GPU backend (f32 unless `--precision f64` or the script says `precision f64`),
+    /// validated with naga.
     Wgsl,
 }
 
@@ -108,7 +112,11 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             deny_warnings,
         } => check_files(&files, message_format, deny_warnings, out, err),
         Command::Fmt { files, check } => fmt_files(&files, check, out, err),
-        Command::Compile { file, emit } => compile_file(&file, emit, out, err),
+        Command::Compile {
+            file,
+            emit,
+            precision,
+        } => compile_file(&file, emit, precision, out, err),
         Command::Run(args) => run::run(args, out, err),
         Command::Bench(args) => bench::run(args, out, err),
         Command::Mesh { command } => mesh::run(command),
@@ -136,11 +144,6 @@ pub fn main_with_args(args: Vec<String>) -> i32 {
             101
         }
     }
-}
-
-fn not_implemented(what: &str, err: &mut dyn Write) -> i32 {
-    let _ = writeln!(err, "softc {what}: not implemented yet");
-    2
 }
 
 /// Read a file (or standard input for `-`), reporting failures as usage errors.
@@ -220,9 +223,16 @@ fn check_options(path: &Path) -> CheckOptions {
     }
 }
 
-fn compile_file(path: &Path, emit: Emit, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
-    if emit == Emit::Wgsl {
-        return not_implemented("compile --emit wgsl", err);
+fn compile_file(
+    path: &Path,
+    emit: Emit,
+    precision: Option<run::PrecisionChoice>,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
+    if precision.is_some() && emit != Emit::Wgsl {
+        let _ = writeln!(err, "softc compile: --precision applies to --emit wgsl");
+        return 2;
     }
     let Some(bytes) = read_input(path, err) else {
         return 2;
@@ -256,6 +266,29 @@ fn compile_file(path: &Path, emit: Emit, out: &mut dyn Write, err: &mut dyn Writ
                 }
                 Err(e) => {
                     let _ = writeln!(err, "{name}: the kernels do not compile: {e}");
+                    1
+                }
+            }
+        }
+        Ok(scene) if emit == Emit::Wgsl => {
+            use softc_compiler::back::{Precision, wgsl};
+            let p = match (precision, ast.sim_setting("precision").map(|e| &e.kind)) {
+                (Some(run::PrecisionChoice::F64), _) => Precision::F64,
+                (Some(run::PrecisionChoice::F32), _) => Precision::F32,
+                (None, Some(softc_compiler::front::ast::ExprKind::Name(n))) if n.name == "f64" => {
+                    Precision::F64
+                }
+                _ => Precision::F32,
+            };
+            let checked =
+                wgsl::emit(&scene.module, p).and_then(|m| wgsl::validate(&m.source, p).map(|()| m));
+            match checked {
+                Ok(m) => {
+                    let _ = write!(out, "{}", m.source);
+                    0
+                }
+                Err(e) => {
+                    let _ = writeln!(err, "{name}: the kernels do not compile to WGSL: {e}");
                     1
                 }
             }

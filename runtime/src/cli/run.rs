@@ -15,9 +15,14 @@ pub struct RunArgs {
     /// Which backend runs the kernels.
     #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
     pub backend: BackendChoice,
-    /// Floating-point precision of the kernels (the cpu backend; the interpreter is f64).
+    /// Floating-point precision of the kernels (cpu: default f64; gpu: default f32; the
+    /// interpreter is f64). The script's `precision` setting applies when this is not given.
     #[arg(long, value_enum)]
     pub precision: Option<PrecisionChoice>,
+    /// The GPU adapter of `--backend gpu`: a case-insensitive part of its name (or a backend
+    /// name such as `vulkan`); default: a discrete GPU, else integrated, else software.
+    #[arg(long, value_name = "NAME")]
+    pub adapter: Option<String>,
     /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -64,6 +69,8 @@ pub enum BackendChoice {
     Interp,
     /// The plain-Rust f64 reference simulator (the test oracle).
     Reference,
+    /// WGSL kernels on a GPU through wgpu (Vulkan, Metal, DX12; lavapipe without a GPU).
+    Gpu,
 }
 
 /// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
@@ -165,6 +172,24 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 &scene.lowered.module
             };
             simulate(&scene, Interpreter::new(module), &args, dt, err).map(|o| (o, "interp"))
+        }
+        BackendChoice::Gpu => {
+            let precision = match (args.precision, scene.precision_setting()) {
+                (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
+                _ => Precision::F32,
+            };
+            let module = if args.grad {
+                &scene.lowered.adjoint.module
+            } else {
+                &scene.lowered.module
+            };
+            match crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()) {
+                Ok(gpu) => {
+                    let _ = writeln!(err, "adapter: {}; kernels in {precision}", gpu.adapter());
+                    simulate(&scene, gpu, &args, dt, err).map(|o| (o, "gpu"))
+                }
+                Err(e) => Err(e),
+            }
         }
         BackendChoice::Cpu => {
             let precision = match (args.precision, scene.precision_setting()) {

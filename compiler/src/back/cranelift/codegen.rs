@@ -41,7 +41,7 @@ pub(super) fn corners(d: Domain) -> Option<u32> {
 /// Check that a kernel is well formed against its module: every access it makes stays inside
 /// buffers laid out as `Module::buffers` says. The run-time checks (buffer lengths, entity
 /// ranges, connectivity) then make the generated code memory safe.
-pub(super) fn validate(m: &Module, k: &Kernel) -> Result<(), String> {
+pub(crate) fn validate(m: &Module, k: &Kernel) -> Result<(), String> {
     let err = |msg: String| Err(format!("kernel `{}`: {msg}", k.name));
     if k.body.n_args as usize != k.args.len() {
         return err(format!(

@@ -1,0 +1,274 @@
+//! Math helpers emitted into WGSL modules, only those a module uses.
+//!
+//! f32: WGSL's built-ins, except `pow` (undefined in WGSL for negative bases, so it follows
+//! Rust's `powf` for negative bases with integral exponents and zero bases) and `tanh` (exactly
+//! ±1 for large arguments: some drivers compute it as a quotient of exponentials that
+//! overflows to NaN).
+//!
+//! f64: SPIR-V's GLSL.std.450 transcendental functions take only 16/32-bit floats, so these
+//! are software implementations: `exp` by reduction to `r = x − k ln 2` (ln 2 in two parts,
+//! `|r| ≤ ln2/2`) and a degree-13 Taylor polynomial, then `ldexp`; `ln` from the
+//! mantissa moved into `[√½, √2)` (by exact `ldexp` scaling and an f32 `log2` estimate of the
+//! exponent: naga's f64 `frexp` needs 64-bit integers) and the `atanh` series of `s = (m−1)/(m+1)` (`|s| ≤ 0.172`,
+//! to `s^23`); `sin`/`cos`/`tan` by Cody–Waite reduction modulo π/2 (three parts of π/2, exact
+//! products for `|x| < 2^20`) and Taylor polynomials to degree 17/18 on `|r| ≤ π/4`; `tanh`
+//! from `expm1` (series below 0.5, so small arguments keep their relative accuracy). Truncation
+//! errors of the polynomials are below 1e-17 relative; rounding adds a few ulps.
+
+use super::Precision;
+use std::collections::BTreeSet;
+use std::fmt::Write as _;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub(super) enum Fun {
+    Exp,
+    Ln,
+    Sin,
+    Cos,
+    Tan,
+    Tanh,
+    Pow,
+}
+
+#[derive(Default)]
+pub(super) struct Helpers {
+    used: BTreeSet<Fun>,
+}
+
+/// `1/n!` for `n = 0..=max`.
+fn inv_factorials(max: u32) -> Vec<f64> {
+    let mut f = 1.0f64;
+    let mut out = vec![1.0];
+    for n in 1..=max {
+        f *= f64::from(n);
+        out.push(1.0 / f);
+    }
+    out
+}
+
+fn lit(c: f64) -> String {
+    format!("{c:?}lf")
+}
+
+/// Horner evaluation of `sum coeffs[i] * z^i` as a WGSL expression in `z`.
+fn horner(coeffs: &[f64], z: &str) -> String {
+    let mut s = lit(*coeffs.last().unwrap_or(&0.0));
+    for c in coeffs.iter().rev().skip(1) {
+        s = format!("{} + {z} * ({s})", lit(*c));
+    }
+    s
+}
+
+impl Helpers {
+    /// The name of the function computing `f`, recorded as used.
+    pub(super) fn use_fn(&mut self, f: Fun, p: Precision) -> &'static str {
+        match (f, p) {
+            (Fun::Exp, Precision::F32) => "exp",
+            (Fun::Ln, Precision::F32) => "log",
+            (Fun::Sin, Precision::F32) => "sin",
+            (Fun::Cos, Precision::F32) => "cos",
+            (Fun::Tan, Precision::F32) => "tan",
+            _ => {
+                self.used.insert(f);
+                match f {
+                    Fun::Exp => "softc_exp",
+                    Fun::Ln => "softc_ln",
+                    Fun::Sin => "softc_sin",
+                    Fun::Cos => "softc_cos",
+                    Fun::Tan => "softc_tan",
+                    Fun::Tanh => "softc_tanh",
+                    Fun::Pow => "softc_pow",
+                }
+            }
+        }
+    }
+
+    /// The helpers' source (empty when none is used). Infinity and NaN helpers are always
+    /// there: literals of non-finite constants call them.
+    pub(super) fn source(&self, p: Precision) -> String {
+        let mut s = String::new();
+        let w = &mut s;
+        let _ = writeln!(
+            w,
+            "// Non-finite values, computed at run time (WGSL has no literal for them)."
+        );
+        let _ = writeln!(w, "fn softc_inf() -> real {{");
+        let _ = writeln!(w, "    var zero = real(0);");
+        let _ = writeln!(w, "    return real(1) / zero;");
+        let _ = writeln!(w, "}}");
+        let _ = writeln!(w, "fn softc_nan() -> real {{");
+        let _ = writeln!(w, "    var zero = real(0);");
+        let _ = writeln!(w, "    return zero / zero;");
+        let _ = writeln!(w, "}}");
+        let u = |f: Fun| self.used.contains(&f);
+        let f64_mode = p == Precision::F64;
+        let need_exp = f64_mode && (u(Fun::Exp) || u(Fun::Pow) || u(Fun::Tanh));
+        let need_ln = f64_mode && (u(Fun::Ln) || u(Fun::Pow));
+        let need_trig = f64_mode && (u(Fun::Sin) || u(Fun::Cos) || u(Fun::Tan));
+        if need_exp {
+            let c = inv_factorials(13);
+            let _ = writeln!(
+                w,
+                "// e^x: x = k ln2 + r, |r| <= ln2/2; degree-13 Taylor of e^r."
+            );
+            let _ = writeln!(w, "fn softc_exp(x: real) -> real {{");
+            let _ = writeln!(w, "    if (x != x) {{ return x; }}");
+            let _ = writeln!(
+                w,
+                "    if (x > 709.782712893384lf) {{ return softc_inf(); }}"
+            );
+            let _ = writeln!(w, "    if (x < -745.2lf) {{ return 0.0lf; }}");
+            let _ = writeln!(w, "    let k = round(x * 1.4426950408889634lf);");
+            let _ = writeln!(
+                w,
+                "    let r = (x - k * 6.93147180369123816490e-01lf) - k * 1.90821492927058770002e-10lf;"
+            );
+            let _ = writeln!(w, "    let p = {};", horner(&c, "r"));
+            let _ = writeln!(w, "    return ldexp(p, i32(k));");
+            let _ = writeln!(w, "}}");
+        }
+        if need_ln {
+            let c: Vec<f64> = (0..12).map(|i| 1.0 / f64::from(2 * i + 1)).collect();
+            let _ = writeln!(
+                w,
+                "// ln x: x = m 2^e, m in [sqrt(1/2), sqrt(2)); ln m = 2 atanh((m-1)/(m+1))."
+            );
+            let _ = writeln!(w, "fn softc_ln(x: real) -> real {{");
+            let _ = writeln!(w, "    if (!(x > 0.0lf)) {{");
+            let _ = writeln!(
+                w,
+                "        return select(softc_nan(), -softc_inf(), x == 0.0lf);"
+            );
+            let _ = writeln!(w, "    }}");
+            let _ = writeln!(w, "    if (x == softc_inf()) {{ return x; }}");
+            // No frexp: naga's f64 frexp result has an i64 exponent (SHADER_INT64). Scale by
+            // exact powers of two into f32's range, take the exponent from an f32 log2, correct.
+            let _ = writeln!(w, "    var y = x;");
+            let _ = writeln!(w, "    var ex = 0.0lf;");
+            let _ = writeln!(
+                w,
+                "    while (y > 1e30lf) {{ y = ldexp(y, -100); ex += 100.0lf; }}"
+            );
+            let _ = writeln!(
+                w,
+                "    while (y < 1e-30lf) {{ y = ldexp(y, 100); ex -= 100.0lf; }}"
+            );
+            let _ = writeln!(w, "    let k = floor(log2(f32(y)));");
+            let _ = writeln!(w, "    var m = ldexp(y, -i32(k));");
+            let _ = writeln!(w, "    ex += real(k);");
+            let _ = writeln!(w, "    if (m >= 2.0lf) {{ m *= 0.5lf; ex += 1.0lf; }}");
+            let _ = writeln!(w, "    if (m < 1.0lf) {{ m *= 2.0lf; ex -= 1.0lf; }}");
+            let _ = writeln!(
+                w,
+                "    if (m > 1.4142135623730951lf) {{ m *= 0.5lf; ex += 1.0lf; }}"
+            );
+            let _ = writeln!(w, "    let s = (m - 1.0lf) / (m + 1.0lf);");
+            let _ = writeln!(w, "    let z = s * s;");
+            let _ = writeln!(w, "    let lm = 2.0lf * s * ({});", horner(&c, "z"));
+            let _ = writeln!(
+                w,
+                "    return ex * 6.93147180369123816490e-01lf + (ex * 1.90821492927058770002e-10lf + lm);"
+            );
+            let _ = writeln!(w, "}}");
+        }
+        if need_trig {
+            let f = inv_factorials(18);
+            // sin r = r (1 - r²/3! + r⁴/5! ...), cos r = 1 - r²/2! + ...
+            let sc: Vec<f64> = (0..9)
+                .map(|i| if i % 2 == 0 { 1.0 } else { -1.0 } * f[2 * i + 1])
+                .collect();
+            let cc: Vec<f64> = (0..10)
+                .map(|i| if i % 2 == 0 { 1.0 } else { -1.0 } * f[2 * i])
+                .collect();
+            let _ = writeln!(
+                w,
+                "// sin and cos of x: x = q pi/2 + r (Cody-Waite, 3 parts), |r| <= pi/4, Taylor in r."
+            );
+            let _ = writeln!(w, "fn softc_sincos(x: real) -> vec2<real> {{");
+            let _ = writeln!(w, "    let q = round(x * 0.6366197723675814lf);");
+            let _ = writeln!(
+                w,
+                "    let r = ((x - q * 1.57079632673412561417e+00lf) - q * 6.07710050630396597660e-11lf) - q * 2.02226624871116645580e-21lf;"
+            );
+            let _ = writeln!(w, "    let z = r * r;");
+            let _ = writeln!(w, "    let s = r * ({});", horner(&sc, "z"));
+            let _ = writeln!(w, "    let c = {};", horner(&cc, "z"));
+            let _ = writeln!(w, "    let quadrant = i32(q - 4.0lf * floor(q * 0.25lf));");
+            let _ = writeln!(w, "    switch quadrant {{");
+            let _ = writeln!(w, "        case 0: {{ return vec2<real>(s, c); }}");
+            let _ = writeln!(w, "        case 1: {{ return vec2<real>(c, -s); }}");
+            let _ = writeln!(w, "        case 2: {{ return vec2<real>(-s, -c); }}");
+            let _ = writeln!(w, "        default: {{ return vec2<real>(-c, s); }}");
+            let _ = writeln!(w, "    }}");
+            let _ = writeln!(w, "}}");
+            if u(Fun::Sin) {
+                let _ = writeln!(w, "fn softc_sin(x: real) -> real {{");
+                let _ = writeln!(w, "    return softc_sincos(x).x;");
+                let _ = writeln!(w, "}}");
+            }
+            if u(Fun::Cos) {
+                let _ = writeln!(w, "fn softc_cos(x: real) -> real {{");
+                let _ = writeln!(w, "    return softc_sincos(x).y;");
+                let _ = writeln!(w, "}}");
+            }
+            if u(Fun::Tan) {
+                let _ = writeln!(w, "fn softc_tan(x: real) -> real {{");
+                let _ = writeln!(w, "    let sc = softc_sincos(x);");
+                let _ = writeln!(w, "    return sc.x / sc.y;");
+                let _ = writeln!(w, "}}");
+            }
+        }
+        if u(Fun::Tanh) {
+            if f64_mode {
+                let c: Vec<f64> = inv_factorials(18).into_iter().skip(1).collect();
+                let _ = writeln!(
+                    w,
+                    "// tanh x = sign(x) em1 / (em1 + 2), em1 = e^(2|x|) - 1 (series below 0.5)."
+                );
+                let _ = writeln!(w, "fn softc_tanh(x: real) -> real {{");
+                let _ = writeln!(w, "    let a = abs(x);");
+                let _ = writeln!(w, "    if (a > 22.0lf) {{ return sign(x); }}");
+                let _ = writeln!(w, "    let y = 2.0lf * a;");
+                let _ = writeln!(w, "    var em1 = softc_exp(y) - 1.0lf;");
+                let _ = writeln!(w, "    if (y < 0.5lf) {{");
+                let _ = writeln!(w, "        em1 = y * ({});", horner(&c, "y"));
+                let _ = writeln!(w, "    }}");
+                let _ = writeln!(w, "    let t = em1 / (em1 + 2.0lf);");
+                let _ = writeln!(w, "    return select(t, -t, x < 0.0lf);");
+                let _ = writeln!(w, "}}");
+            } else {
+                let _ = writeln!(w, "// tanh, exactly +-1 where it rounds to it.");
+                let _ = writeln!(w, "fn softc_tanh(x: real) -> real {{");
+                let _ = writeln!(w, "    return select(tanh(x), sign(x), abs(x) > 10.0f);");
+                let _ = writeln!(w, "}}");
+            }
+        }
+        if u(Fun::Pow) {
+            let one = if f64_mode { "1.0lf" } else { "1.0f" };
+            let zero = if f64_mode { "0.0lf" } else { "0.0f" };
+            let half = if f64_mode { "0.5lf" } else { "0.5f" };
+            let _ = writeln!(
+                w,
+                "// a^b as Rust's powf: negative bases with integral exponents, zero bases."
+            );
+            let _ = writeln!(w, "fn softc_pow(a: real, b: real) -> real {{");
+            let _ = writeln!(w, "    if (b == {zero} || a == {one}) {{ return {one}; }}");
+            let _ = writeln!(w, "    let m = abs(a);");
+            let _ = writeln!(w, "    if (m == {zero}) {{");
+            let _ = writeln!(w, "        return select({zero}, softc_inf(), b < {zero});");
+            let _ = writeln!(w, "    }}");
+            if f64_mode {
+                let _ = writeln!(w, "    var r = softc_exp(b * softc_ln(m));");
+            } else {
+                let _ = writeln!(w, "    var r = pow(m, b);");
+            }
+            let _ = writeln!(w, "    if (a < {zero}) {{");
+            let _ = writeln!(w, "        if (b != floor(b)) {{ return softc_nan(); }}");
+            let _ = writeln!(w, "        if (fract(b * {half}) != {zero}) {{ r = -r; }}");
+            let _ = writeln!(w, "    }}");
+            let _ = writeln!(w, "    return r;");
+            let _ = writeln!(w, "}}");
+        }
+        s
+    }
+}

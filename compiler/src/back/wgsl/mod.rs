@@ -1,0 +1,879 @@
+//! The WGSL backend: a module's kernels as one WGSL compute module, run by wgpu on any GPU
+//! (Vulkan, Metal, DX12) or on Mesa's software Vulkan driver (lavapipe).
+//!
+//! One WGSL module per IR module, one `@compute` entry point per kernel (named after it). One
+//! module rather than one per kernel because the kernels of a scene share their buffers: each
+//! buffer is declared once, under its own name, with one binding number, so the generated file
+//! reads like the scene's data flow and is a single golden file per example. Each entry point
+//! statically uses only its own bindings, so a pipeline's (automatically derived) layout holds
+//! just what that kernel touches; [`WgslKernel::bindings`] lists them for the runtime.
+//!
+//! Layout, all in bind group 0:
+//! - binding `b` for buffer `b` of the module ([`BufferId`] order): `array<real>` holding
+//!   `len(domain) × width` values, entity-major. Buffers some kernel stores to are
+//!   `read_write`, the others `read`.
+//! - then the connectivity as `array<u32>`: `elem_conn` (4 nodes per element), `tri_conn` (3 per
+//!   triangle), and the node CSR lists `node_elem_offsets`/`node_elem_entries` and
+//!   `node_tri_offsets`/`node_tri_entries` (entries are `(entity, corner)` pairs), as
+//!   [`crate::back::cranelift::Topology`] builds them.
+//! - then one uniform block per kernel, `launch_<kernel>`: the first entity `begin`, the entity
+//!   `count` of the launch, and the kernel's uniforms (`t`, `dt`, params, …) in the order of
+//!   [`WgslKernel::uniforms`], as `real` fields. The runtime binds it with a dynamic offset, so
+//!   many launches with different uniforms are recorded into one submission.
+//!
+//! Entity `i` of a launch is `begin + i`, with `i` from the global invocation id (x, plus y
+//! rows of `num_workgroups.x × WORKGROUP_SIZE` when a launch needs more than 65,535
+//! workgroups). Gathers loop over the node's CSR range in list order, one accumulator per
+//! gathered value starting at 0: the same order as the interpreter, no atomics.
+//!
+//! Precision: `alias real = f32;` (default) or `f64` (needs wgpu's `SHADER_F64`, naga's
+//! `FLOAT64`). In f32, constants are rounded to f32. SPIR-V's GLSL.std.450 `exp`, `log`, `pow`,
+//! `sin`, `cos`, `tan`, `tanh` take only 16/32-bit floats, so in f64 these are software
+//! functions emitted into the module (`softc_exp`, …: range reduction and polynomials,
+//! within a few ulps for arguments of moderate size: trigonometric reduction is accurate for
+//! `|x| < 2^20`). `pow` follows Rust's `powf` for negative bases with integral exponents and
+//! for zero bases in both precisions.
+//!
+//! ```
+//! use softc_compiler::back::{Precision, wgsl};
+//! use softc_compiler::ir::{ArgSource, Domain, KernelBuilder, Module};
+//!
+//! let mut m = Module::default();
+//! let x = m.buffer("x", Domain::Node, 1, "");
+//! let y = m.buffer("y", Domain::Element, 1, "");
+//! let mut k = KernelBuilder::new("demo", Domain::Element, "doc example");
+//! let a = k.load(ArgSource::Corner { buffer: x, corner: 0, component: 0 });
+//! let s = k.uniform("scale");
+//! let v = k.b.mul(s, a);
+//! k.store(y, 0, v);
+//! m.kernels.push(k.finish());
+//!
+//! let w = wgsl::emit(&m, Precision::F32).unwrap();
+//! assert!(w.source.contains("@compute @workgroup_size(64)\nfn demo("));
+//! assert_eq!(w.kernels[0].uniforms, ["scale"]);
+//! wgsl::validate(&w.source, Precision::F32).unwrap();
+//! ```
+
+mod math;
+
+pub use crate::back::Precision;
+use crate::ir::{ArgSource, BinOp, BufferId, CmpOp, Domain, Inst, Kernel, Module, UnOp, V};
+use std::collections::BTreeSet;
+use std::fmt::Write as _;
+
+/// Invocations per workgroup of every entry point.
+pub const WORKGROUP_SIZE: u32 = 64;
+
+/// Connectivity arrays a kernel may read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum TopoArray {
+    ElemConn,
+    TriConn,
+    NodeElemOffsets,
+    NodeElemEntries,
+    NodeTriOffsets,
+    NodeTriEntries,
+}
+
+impl TopoArray {
+    pub const ALL: [TopoArray; 6] = [
+        TopoArray::ElemConn,
+        TopoArray::TriConn,
+        TopoArray::NodeElemOffsets,
+        TopoArray::NodeElemEntries,
+        TopoArray::NodeTriOffsets,
+        TopoArray::NodeTriEntries,
+    ];
+
+    /// Its name in the generated code.
+    pub fn name(self) -> &'static str {
+        match self {
+            TopoArray::ElemConn => "elem_conn",
+            TopoArray::TriConn => "tri_conn",
+            TopoArray::NodeElemOffsets => "node_elem_offsets",
+            TopoArray::NodeElemEntries => "node_elem_entries",
+            TopoArray::NodeTriOffsets => "node_tri_offsets",
+            TopoArray::NodeTriEntries => "node_tri_entries",
+        }
+    }
+
+    fn index(self) -> u32 {
+        TopoArray::ALL.iter().position(|t| *t == self).unwrap_or(0) as u32
+    }
+}
+
+/// What a binding of bind group 0 holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Binding {
+    /// A buffer of the module (`array<real>`), `read_write` when some kernel stores to it.
+    Buffer { id: BufferId, writable: bool },
+    /// A connectivity array (`array<u32>`).
+    Topo(TopoArray),
+    /// The kernel's launch block (uniform, bound with a dynamic offset).
+    Launch,
+}
+
+/// One kernel's entry point.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WgslKernel {
+    pub name: String,
+    /// The entry point's name in the module.
+    pub entry: String,
+    pub domain: Domain,
+    /// The uniforms of the launch block, in its field order (after `begin` and `count`).
+    pub uniforms: Vec<String>,
+    /// `(binding number, what it holds)` for every binding the entry point uses.
+    pub bindings: Vec<(u32, Binding)>,
+    /// Bytes of the launch block (`begin`, `count`, then one `real` per uniform).
+    pub launch_size: u64,
+    /// Storage buffers the entry point binds (buffers and connectivity).
+    pub storage_buffers: u32,
+}
+
+/// A module's kernels as WGSL.
+#[derive(Clone, Debug, PartialEq)]
+pub struct WgslModule {
+    pub precision: Precision,
+    pub source: String,
+    pub kernels: Vec<WgslKernel>,
+}
+
+impl WgslModule {
+    pub fn kernel_index(&self, name: &str) -> Option<usize> {
+        self.kernels.iter().position(|k| k.name == name)
+    }
+}
+
+/// Identifiers WGSL reserves or defines (keywords, reserved words, predeclared types and
+/// functions a name could shadow); a script name equal to one of them gets a `_` suffix.
+const RESERVED: &[&str] = &[
+    "alias",
+    "array",
+    "atomic",
+    "bitcast",
+    "bool",
+    "break",
+    "case",
+    "const",
+    "const_assert",
+    "continue",
+    "continuing",
+    "default",
+    "diagnostic",
+    "discard",
+    "else",
+    "enable",
+    "f16",
+    "f32",
+    "f64",
+    "false",
+    "fn",
+    "for",
+    "if",
+    "i32",
+    "let",
+    "loop",
+    "mat2x2",
+    "mat3x3",
+    "mat4x4",
+    "override",
+    "ptr",
+    "requires",
+    "return",
+    "sampler",
+    "struct",
+    "switch",
+    "true",
+    "u32",
+    "var",
+    "vec2",
+    "vec3",
+    "vec4",
+    "while",
+    "NULL",
+    "Self",
+    "abstract",
+    "active",
+    "alignas",
+    "alignof",
+    "as",
+    "asm",
+    "asm_fragment",
+    "async",
+    "attribute",
+    "auto",
+    "await",
+    "become",
+    "binding_array",
+    "cast",
+    "catch",
+    "class",
+    "co_await",
+    "co_return",
+    "co_yield",
+    "coherent",
+    "column_major",
+    "common",
+    "compile",
+    "compile_fragment",
+    "concept",
+    "const_cast",
+    "consteval",
+    "constexpr",
+    "constinit",
+    "crate",
+    "debugger",
+    "decltype",
+    "delete",
+    "demote",
+    "demote_to_helper",
+    "do",
+    "dynamic_cast",
+    "enum",
+    "explicit",
+    "export",
+    "extends",
+    "extern",
+    "external",
+    "fallthrough",
+    "filter",
+    "final",
+    "finally",
+    "friend",
+    "from",
+    "fxgroup",
+    "get",
+    "goto",
+    "groupshared",
+    "highp",
+    "impl",
+    "implements",
+    "import",
+    "inline",
+    "instanceof",
+    "interface",
+    "layout",
+    "lowp",
+    "macro",
+    "macro_rules",
+    "match",
+    "mediump",
+    "meta",
+    "mod",
+    "module",
+    "move",
+    "mut",
+    "mutable",
+    "namespace",
+    "new",
+    "nil",
+    "noexcept",
+    "noinline",
+    "nointerpolation",
+    "noperspective",
+    "null",
+    "nullptr",
+    "of",
+    "operator",
+    "package",
+    "packoffset",
+    "partition",
+    "pass",
+    "patch",
+    "pixelfragment",
+    "precise",
+    "precision",
+    "premerge",
+    "priv",
+    "protected",
+    "pub",
+    "public",
+    "readonly",
+    "ref",
+    "regardless",
+    "register",
+    "reinterpret_cast",
+    "require",
+    "resource",
+    "restrict",
+    "self",
+    "set",
+    "shared",
+    "sizeof",
+    "smooth",
+    "snorm",
+    "static",
+    "static_assert",
+    "static_cast",
+    "std",
+    "subroutine",
+    "super",
+    "target",
+    "template",
+    "this",
+    "thread_local",
+    "throw",
+    "trait",
+    "try",
+    "type",
+    "typedef",
+    "typeid",
+    "typename",
+    "typeof",
+    "union",
+    "unless",
+    "unorm",
+    "unsafe",
+    "unsized",
+    "use",
+    "using",
+    "varying",
+    "virtual",
+    "volatile",
+    "wgsl",
+    "where",
+    "with",
+    "writeonly",
+    "yield",
+    "real",
+    "main",
+    "abs",
+    "exp",
+    "log",
+    "pow",
+    "sin",
+    "cos",
+    "tan",
+    "tanh",
+    "sqrt",
+    "floor",
+    "ceil",
+    "min",
+    "max",
+    "select",
+    "round",
+    "ldexp",
+    "frexp",
+    "fract",
+    "sign",
+    "uniform",
+    "storage",
+    "read",
+    "read_write",
+    "function",
+    "private",
+    "workgroup",
+];
+
+/// A valid WGSL identifier for a script name, distinct from every name in `taken`; added to it.
+fn ident(name: &str, taken: &mut BTreeSet<String>) -> String {
+    let mut s: String = name
+        .chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect();
+    if s.is_empty() || s.starts_with(|c: char| c.is_ascii_digit()) {
+        s.insert(0, 'k');
+    }
+    if s.starts_with("__") {
+        s.insert(0, 'k');
+    }
+    // Names the generated code uses for locals, helpers and the launch blocks stay free.
+    let local = |s: &str| {
+        s == "_"
+            || s.starts_with("softc_")
+            || s.starts_with("launch_")
+            || [
+                "v", "arg", "n", "g", "e", "i", "j", "gid", "nwg", "ent", "corner",
+            ]
+            .iter()
+            .any(|p| {
+                s.strip_prefix(p)
+                    .is_some_and(|r| r.is_empty() || r.chars().all(|c| c.is_ascii_digit()))
+            })
+    };
+    if RESERVED.contains(&s.as_str()) || local(&s) {
+        s.push('_');
+    }
+    while taken.contains(&s) || RESERVED.contains(&s.as_str()) {
+        s.push('_');
+    }
+    taken.insert(s.clone());
+    s
+}
+
+fn corners(d: Domain) -> Option<u32> {
+    match d {
+        Domain::Element => Some(4),
+        Domain::Triangle => Some(3),
+        _ => None,
+    }
+}
+
+/// A constant as a `real` literal (f32 constants are rounded to f32 first, so the literal is
+/// exactly the value the f32 code computes with).
+fn literal(c: f64, p: Precision) -> String {
+    let (finite, text) = match p {
+        Precision::F32 => {
+            let c = c as f32;
+            (c.is_finite(), format!("{c:?}f"))
+        }
+        Precision::F64 => (c.is_finite(), format!("{c:?}lf")),
+    };
+    if finite {
+        return text;
+    }
+    // WGSL has no literal for infinities or NaN: computed at run time.
+    if c.is_nan() {
+        "softc_nan()".into()
+    } else if c > 0.0 {
+        "softc_inf()".into()
+    } else {
+        "(-softc_inf())".into()
+    }
+}
+
+/// Emit the WGSL module of `module`. Errors describe a kernel that does not fit its module
+/// (an access outside a buffer's declared layout), as the Cranelift backend checks them.
+pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String> {
+    for k in &module.kernels {
+        crate::back::cranelift::validate_kernel(module, k)?;
+    }
+    let nb = module.buffers.len() as u32;
+    let topo_binding = |t: TopoArray| nb + t.index();
+    let launch_binding = |k: usize| nb + TopoArray::ALL.len() as u32 + k as u32;
+
+    let mut taken = BTreeSet::new();
+    let buf_names: Vec<String> = module
+        .buffers
+        .iter()
+        .map(|b| ident(&b.name, &mut taken))
+        .collect();
+    for t in TopoArray::ALL {
+        taken.insert(t.name().to_string());
+    }
+    let entries: Vec<String> = module
+        .kernels
+        .iter()
+        .map(|k| ident(&k.name, &mut taken))
+        .collect();
+
+    let written: BTreeSet<u32> = module
+        .kernels
+        .iter()
+        .flat_map(|k| k.stores.iter().map(|s| s.buffer.0))
+        .collect();
+
+    let real = match precision {
+        Precision::F32 => "f32",
+        Precision::F64 => "f64",
+    };
+    let mut out = String::new();
+    let w = &mut out;
+    let _ = writeln!(w, "// Generated by softc from the kernel IR: do not edit.");
+    let _ = writeln!(
+        w,
+        "// {} kernels, {} buffers; one entry point per kernel, workgroups of {WORKGROUP_SIZE}.",
+        module.kernels.len(),
+        module.buffers.len()
+    );
+    let _ = writeln!(w, "\nalias real = {real};\n");
+    let _ = writeln!(
+        w,
+        "// ---- buffers: len(domain) x width values, entity-major"
+    );
+    for (i, b) in module.buffers.iter().enumerate() {
+        let access = if written.contains(&(i as u32)) {
+            "read_write"
+        } else {
+            "read"
+        };
+        let doc = if b.doc.is_empty() {
+            String::new()
+        } else {
+            format!(": {}", b.doc)
+        };
+        let _ = writeln!(
+            w,
+            "// {} per {}, width {}{doc}",
+            b.name,
+            domain_word(b.domain),
+            b.width
+        );
+        let _ = writeln!(
+            w,
+            "@group(0) @binding({i}) var<storage, {access}> {}: array<real>;",
+            buf_names[i]
+        );
+    }
+    let _ = writeln!(w, "\n// ---- connectivity");
+    let _ = writeln!(w, "// 4 nodes per element, 3 per chamber triangle");
+    let _ = writeln!(
+        w,
+        "// node CSR lists: offsets (nodes + 1), entries as (entity, corner) pairs"
+    );
+    for t in TopoArray::ALL {
+        let _ = writeln!(
+            w,
+            "@group(0) @binding({}) var<storage, read> {}: array<u32>;",
+            topo_binding(t),
+            t.name()
+        );
+    }
+
+    let mut helpers = math::Helpers::default();
+    let mut kernels = Vec::new();
+    let mut bodies = String::new();
+    for (ki, k) in module.kernels.iter().enumerate() {
+        let uniforms = uniform_names(k);
+        let mut fields = BTreeSet::new();
+        let field_names: Vec<String> = uniforms.iter().map(|u| ident(u, &mut fields)).collect();
+        let launch = format!("launch_{}", entries[ki]);
+        let struct_name = format!("Launch_{}", entries[ki]);
+        let w = &mut bodies;
+        let _ = writeln!(
+            w,
+            "\n// ======== kernel {} over {} (from {})",
+            k.name,
+            domain_word(k.domain),
+            k.origin
+        );
+        let _ = writeln!(w, "struct {struct_name} {{");
+        let _ = writeln!(w, "    begin: u32,");
+        let _ = writeln!(w, "    count: u32,");
+        for (f, u) in field_names.iter().zip(&uniforms) {
+            if f == u {
+                let _ = writeln!(w, "    {f}: real,");
+            } else {
+                let _ = writeln!(w, "    {f}: real, // {u}");
+            }
+        }
+        let _ = writeln!(w, "}}");
+        let lb = launch_binding(ki);
+        let _ = writeln!(
+            w,
+            "@group(0) @binding({lb}) var<uniform> {launch}: {struct_name};"
+        );
+
+        // Bindings this entry uses.
+        let mut used_bufs: BTreeSet<u32> = BTreeSet::new();
+        let mut used_topo: BTreeSet<TopoArray> = BTreeSet::new();
+        for a in &k.args {
+            match a {
+                ArgSource::Own { buffer, .. } => {
+                    used_bufs.insert(buffer.0);
+                }
+                ArgSource::Corner { buffer, .. } => {
+                    used_bufs.insert(buffer.0);
+                    used_topo.insert(if k.domain == Domain::Element {
+                        TopoArray::ElemConn
+                    } else {
+                        TopoArray::TriConn
+                    });
+                }
+                ArgSource::Gather { buffer, over, .. } => {
+                    used_bufs.insert(buffer.0);
+                    if *over == Domain::Element {
+                        used_topo.insert(TopoArray::NodeElemOffsets);
+                        used_topo.insert(TopoArray::NodeElemEntries);
+                    } else {
+                        used_topo.insert(TopoArray::NodeTriOffsets);
+                        used_topo.insert(TopoArray::NodeTriEntries);
+                    }
+                }
+                ArgSource::Uniform(_) => {}
+            }
+        }
+        used_bufs.extend(k.stores.iter().map(|s| s.buffer.0));
+        let mut bindings: Vec<(u32, Binding)> = used_bufs
+            .iter()
+            .map(|&b| {
+                (
+                    b,
+                    Binding::Buffer {
+                        id: BufferId(b),
+                        writable: written.contains(&b),
+                    },
+                )
+            })
+            .collect();
+        bindings.extend(
+            used_topo
+                .iter()
+                .map(|&t| (topo_binding(t), Binding::Topo(t))),
+        );
+        let storage_buffers = bindings.len() as u32;
+        bindings.push((lb, Binding::Launch));
+
+        let _ = writeln!(w, "\n@compute @workgroup_size({WORKGROUP_SIZE})");
+        let _ = writeln!(
+            w,
+            "fn {}(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {{",
+            entries[ki]
+        );
+        let _ = writeln!(w, "    let i = gid.x + gid.y * nwg.x * {WORKGROUP_SIZE}u;");
+        let _ = writeln!(w, "    if (i >= {launch}.count) {{");
+        let _ = writeln!(w, "        return;");
+        let _ = writeln!(w, "    }}");
+        let _ = writeln!(w, "    let e = {launch}.begin + i;");
+        emit_body(
+            w,
+            module,
+            k,
+            &buf_names,
+            &launch,
+            &uniforms,
+            &field_names,
+            precision,
+            &mut helpers,
+        );
+        let _ = writeln!(w, "}}");
+
+        let size = 8 + uniforms.len() as u64 * precision.size() as u64;
+        kernels.push(WgslKernel {
+            name: k.name.clone(),
+            entry: entries[ki].clone(),
+            domain: k.domain,
+            uniforms,
+            bindings,
+            launch_size: size,
+            storage_buffers,
+        });
+    }
+    let h = helpers.source(precision);
+    if !h.is_empty() {
+        let _ = writeln!(out, "\n// ---- math helpers");
+        out.push_str(&h);
+    }
+    out.push_str(&bodies);
+    Ok(WgslModule {
+        precision,
+        source: out,
+        kernels,
+    })
+}
+
+fn domain_word(d: Domain) -> &'static str {
+    match d {
+        Domain::Element => "element",
+        Domain::Triangle => "triangle",
+        Domain::Node => "node",
+        Domain::Single => "single",
+    }
+}
+
+/// The uniforms a kernel reads, in first-use order (the launch block's field order).
+pub fn uniform_names(k: &Kernel) -> Vec<String> {
+    let mut names: Vec<String> = Vec::new();
+    for a in &k.args {
+        if let ArgSource::Uniform(n) = a
+            && !names.contains(n)
+        {
+            names.push(n.clone());
+        }
+    }
+    names
+}
+
+#[allow(clippy::too_many_arguments)]
+fn emit_body(
+    w: &mut String,
+    module: &Module,
+    k: &Kernel,
+    buf_names: &[String],
+    launch: &str,
+    uniforms: &[String],
+    fields: &[String],
+    p: Precision,
+    helpers: &mut math::Helpers,
+) {
+    let width = |b: BufferId| module.buffers[b.0 as usize].width;
+    let row = |b: BufferId, entity: &str, comp: String| {
+        let wd = width(b);
+        let name = &buf_names[b.0 as usize];
+        if wd == 1 {
+            if comp == "0u" {
+                format!("{name}[{entity}]")
+            } else {
+                format!("{name}[{entity} + {comp}]")
+            }
+        } else {
+            format!("{name}[{wd}u * {entity} + {comp}]")
+        }
+    };
+    // Node indices of the corners this kernel reads.
+    let mut corners_used: BTreeSet<u32> = BTreeSet::new();
+    for a in &k.args {
+        if let ArgSource::Corner { corner, .. } = a {
+            corners_used.insert(*corner);
+        }
+    }
+    if let Some(nc) = corners(k.domain) {
+        let conn = if k.domain == Domain::Element {
+            "elem_conn"
+        } else {
+            "tri_conn"
+        };
+        for c in &corners_used {
+            let _ = writeln!(w, "    let n{c} = {conn}[{nc}u * e + {c}u];");
+        }
+    }
+    // Plain loads.
+    for (i, a) in k.args.iter().enumerate() {
+        match a {
+            ArgSource::Own { buffer, component } => {
+                let _ = writeln!(
+                    w,
+                    "    let arg{i} = {};",
+                    row(*buffer, "e", format!("{component}u"))
+                );
+            }
+            ArgSource::Corner {
+                buffer,
+                corner,
+                component,
+            } => {
+                let _ = writeln!(
+                    w,
+                    "    let arg{i} = {};",
+                    row(*buffer, &format!("n{corner}"), format!("{component}u"))
+                );
+            }
+            ArgSource::Uniform(name) => {
+                let j = uniforms.iter().position(|u| u == name).unwrap_or(0);
+                let _ = writeln!(w, "    let arg{i} = {launch}.{};", fields[j]);
+            }
+            ArgSource::Gather { .. } => {}
+        }
+    }
+    // Gathers: one loop per CSR list, one accumulator per gathered value, in list order.
+    for over in [Domain::Element, Domain::Triangle] {
+        let gathers: Vec<(usize, BufferId, u32, u32)> = k
+            .args
+            .iter()
+            .enumerate()
+            .filter_map(|(i, a)| match a {
+                ArgSource::Gather {
+                    buffer,
+                    over: o,
+                    stride,
+                    component,
+                } if *o == over => Some((i, *buffer, *stride, *component)),
+                _ => None,
+            })
+            .collect();
+        if gathers.is_empty() {
+            continue;
+        }
+        let (offsets, entries) = if over == Domain::Element {
+            ("node_elem_offsets", "node_elem_entries")
+        } else {
+            ("node_tri_offsets", "node_tri_entries")
+        };
+        let _ = writeln!(
+            w,
+            "    // sum over the node's incident {}s, in CSR order",
+            domain_word(over)
+        );
+        for (i, ..) in &gathers {
+            let _ = writeln!(w, "    var arg{i}: real = {};", literal(0.0, p));
+        }
+        let _ = writeln!(
+            w,
+            "    for (var j = {offsets}[e]; j < {offsets}[e + 1u]; j += 1u) {{"
+        );
+        let _ = writeln!(w, "        let ent = {entries}[2u * j];");
+        let _ = writeln!(w, "        let corner = {entries}[2u * j + 1u];");
+        for (i, buffer, stride, component) in &gathers {
+            let comp = match (*stride, *component) {
+                (0, c) => format!("{c}u"),
+                (1, 0) => "corner".to_string(),
+                (1, c) => format!("corner + {c}u"),
+                (s, 0) => format!("{s}u * corner"),
+                (s, c) => format!("{s}u * corner + {c}u"),
+            };
+            let _ = writeln!(w, "        arg{i} += {};", row(*buffer, "ent", comp));
+        }
+        let _ = writeln!(w, "    }}");
+    }
+    // The body.
+    let name = |v: V, names: &[String]| names[v.0 as usize].clone();
+    let mut names: Vec<String> = Vec::with_capacity(k.body.insts.len());
+    for (n, inst) in k.body.insts.iter().enumerate() {
+        let expr = match *inst {
+            Inst::Arg(a) => {
+                names.push(format!("arg{a}"));
+                continue;
+            }
+            Inst::Const(c) => literal(c, p),
+            Inst::Un(op, a) => {
+                let a = name(a, &names);
+                match op {
+                    UnOp::Neg => format!("-{a}"),
+                    UnOp::Abs => format!("abs({a})"),
+                    UnOp::Sqrt => format!("sqrt({a})"),
+                    UnOp::Floor => format!("floor({a})"),
+                    UnOp::Ceil => format!("ceil({a})"),
+                    UnOp::Exp => format!("{}({a})", helpers.use_fn(math::Fun::Exp, p)),
+                    UnOp::Ln => format!("{}({a})", helpers.use_fn(math::Fun::Ln, p)),
+                    UnOp::Sin => format!("{}({a})", helpers.use_fn(math::Fun::Sin, p)),
+                    UnOp::Cos => format!("{}({a})", helpers.use_fn(math::Fun::Cos, p)),
+                    UnOp::Tan => format!("{}({a})", helpers.use_fn(math::Fun::Tan, p)),
+                    UnOp::Tanh => format!("{}({a})", helpers.use_fn(math::Fun::Tanh, p)),
+                }
+            }
+            Inst::Bin(op, a, b) => {
+                let (a, b) = (name(a, &names), name(b, &names));
+                match op {
+                    BinOp::Add => format!("{a} + {b}"),
+                    BinOp::Sub => format!("{a} - {b}"),
+                    BinOp::Mul => format!("{a} * {b}"),
+                    BinOp::Div => format!("{a} / {b}"),
+                    BinOp::Min => format!("min({a}, {b})"),
+                    BinOp::Max => format!("max({a}, {b})"),
+                    BinOp::Pow => format!("{}({a}, {b})", helpers.use_fn(math::Fun::Pow, p)),
+                }
+            }
+            Inst::Cmp(op, a, b) => {
+                let (a, b) = (name(a, &names), name(b, &names));
+                let o = match op {
+                    CmpOp::Lt => "<",
+                    CmpOp::Le => "<=",
+                    CmpOp::Gt => ">",
+                    CmpOp::Ge => ">=",
+                    CmpOp::Eq => "==",
+                    CmpOp::Ne => "!=",
+                };
+                format!(
+                    "select({}, {}, {a} {o} {b})",
+                    literal(0.0, p),
+                    literal(1.0, p)
+                )
+            }
+            Inst::Select(c, a, b) => {
+                let (c, a, b) = (name(c, &names), name(a, &names), name(b, &names));
+                format!("select({b}, {a}, {c} != {})", literal(0.0, p))
+            }
+        };
+        let _ = writeln!(w, "    let v{n}: real = {expr};");
+        names.push(format!("v{n}"));
+    }
+    for s in &k.stores {
+        let v = k.body.outputs[s.output];
+        let target = row(s.buffer, "e", format!("{}u", s.component));
+        let _ = writeln!(w, "    {target} = {};", name(v, &names));
+    }
+}
+
+/// Validate a WGSL module with naga (`FLOAT64` allowed in f64). The error shows the offending
+/// source lines.
+pub fn validate(source: &str, precision: Precision) -> Result<(), String> {
+    let module = naga::front::wgsl::parse_str(source).map_err(|e| e.emit_to_string(source))?;
+    let caps = match precision {
+        Precision::F32 => naga::valid::Capabilities::default(),
+        Precision::F64 => naga::valid::Capabilities::default() | naga::valid::Capabilities::FLOAT64,
+    };
+    naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps)
+        .validate(&module)
+        .map_err(|e| e.emit_to_string(source))?;
+    Ok(())
+}

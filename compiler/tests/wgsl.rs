@@ -1,0 +1,277 @@
+//! The WGSL backend: every generated module is valid WGSL for naga (f32, and f64 with
+//! `FLOAT64`), for every kind of argument, domain and operation the IR has, and for script
+//! names that clash with WGSL's reserved words; malformed kernels are refused with a message.
+//! (The examples' modules are validated by the golden tests; running them is
+//! `runtime/tests/gpu.rs`.)
+
+use softc_compiler::back::{Precision, wgsl};
+use softc_compiler::ir::{ArgSource, BinOp, CmpOp, Domain, KernelBuilder, Module, UnOp};
+
+/// A module with kernels over every domain, reading through every argument source and using
+/// every operation.
+fn everything() -> Module {
+    let mut m = Module::default();
+    let x = m.buffer("x", Domain::Node, 3, "positions");
+    let ef = m.buffer("elem_force", Domain::Element, 12, "");
+    let tf = m.buffer("tri_force", Domain::Triangle, 9, "");
+    let out = m.buffer("out", Domain::Node, 2, "");
+    let s = m.buffer("total", Domain::Single, 1, "");
+    let w1 = m.buffer("weights", Domain::Element, 1, "");
+
+    // Element kernel: corners, own, uniforms, all unary/binary/compare ops, select.
+    let mut k = KernelBuilder::new("elem", Domain::Element, "material test");
+    let a = k.load(ArgSource::Corner {
+        buffer: x,
+        corner: 3,
+        component: 2,
+    });
+    let b = k.load(ArgSource::Own {
+        buffer: w1,
+        component: 0,
+    });
+    let t = k.uniform("t");
+    let p = k.uniform("param.w.1.3");
+    let mut acc = k.b.add(a, b);
+    for op in [
+        UnOp::Neg,
+        UnOp::Abs,
+        UnOp::Sqrt,
+        UnOp::Exp,
+        UnOp::Ln,
+        UnOp::Sin,
+        UnOp::Cos,
+        UnOp::Tan,
+        UnOp::Tanh,
+        UnOp::Floor,
+        UnOp::Ceil,
+    ] {
+        let u = k.b.un(op, acc);
+        acc = k.b.add(acc, u);
+    }
+    for op in [
+        BinOp::Sub,
+        BinOp::Mul,
+        BinOp::Div,
+        BinOp::Pow,
+        BinOp::Min,
+        BinOp::Max,
+    ] {
+        let u = k.b.bin(op, acc, t);
+        acc = k.b.add(acc, u);
+    }
+    for op in [
+        CmpOp::Lt,
+        CmpOp::Le,
+        CmpOp::Gt,
+        CmpOp::Ge,
+        CmpOp::Eq,
+        CmpOp::Ne,
+    ] {
+        let c = k.b.cmp(op, acc, p);
+        acc = k.b.select(c, acc, t);
+    }
+    let inf = k.b.constant(f64::INFINITY);
+    let big = k.b.constant(1e300);
+    let acc2 = k.b.bin(BinOp::Min, acc, inf);
+    let acc3 = k.b.bin(BinOp::Max, acc2, big);
+    for c in 0..12 {
+        k.store(ef, c, acc3);
+    }
+    k.store(w1, 0, acc);
+    m.kernels.push(k.finish());
+
+    // Triangle kernel.
+    let mut k = KernelBuilder::new("pressure_cavity", Domain::Triangle, "pressure cavity");
+    let a = k.load(ArgSource::Corner {
+        buffer: x,
+        corner: 2,
+        component: 0,
+    });
+    let p = k.uniform("param.p_peak");
+    let v = k.b.mul(a, p);
+    for c in 0..9 {
+        k.store(tf, c, v);
+    }
+    m.kernels.push(k.finish());
+
+    // Node kernel: gathers over both CSR lists.
+    let mut k = KernelBuilder::new("integrate", Domain::Node, "sim");
+    let g1 = k.load(ArgSource::Gather {
+        buffer: ef,
+        over: Domain::Element,
+        stride: 3,
+        component: 1,
+    });
+    let g2 = k.load(ArgSource::Gather {
+        buffer: tf,
+        over: Domain::Triangle,
+        stride: 3,
+        component: 2,
+    });
+    let g3 = k.load(ArgSource::Gather {
+        buffer: w1,
+        over: Domain::Element,
+        stride: 0,
+        component: 0,
+    });
+    let own = k.load(ArgSource::Own {
+        buffer: x,
+        component: 1,
+    });
+    let s1 = k.b.add(g1, g2);
+    let s2 = k.b.add(g3, own);
+    k.store(out, 0, s1);
+    k.store(out, 1, s2);
+    m.kernels.push(k.finish());
+
+    // Single kernel.
+    let mut k = KernelBuilder::new("reduce", Domain::Single, "loss");
+    let a = k.load(ArgSource::Own {
+        buffer: s,
+        component: 0,
+    });
+    let d = k.uniform("dt");
+    let v = k.b.mul(a, d);
+    k.store(s, 0, v);
+    m.kernels.push(k.finish());
+    m
+}
+
+#[test]
+fn every_argument_source_domain_and_operation_validates_in_f32_and_f64() {
+    let m = everything();
+    for p in [Precision::F32, Precision::F64] {
+        let w = wgsl::emit(&m, p).unwrap();
+        if let Err(e) = wgsl::validate(&w.source, p) {
+            panic!("{p}: {e}\n{}", w.source);
+        }
+        assert_eq!(w.kernels.len(), 4);
+        let integ = &w.kernels[2];
+        // Gathers bind both CSR lists, and the three gathered buffers.
+        assert_eq!(integ.storage_buffers, 3 + 1 + 1 + 4);
+        assert_eq!(w.kernels[0].uniforms, ["t", "param.w.1.3"]);
+        assert_eq!(w.kernels[0].launch_size, 8 + 2 * p.size() as u64);
+        // Each gather loop sums in CSR order, once per CSR list.
+        assert_eq!(
+            w.source
+                .matches("for (var j = node_elem_offsets[e]")
+                .count(),
+            1
+        );
+        assert_eq!(
+            w.source.matches("for (var j = node_tri_offsets[e]").count(),
+            1
+        );
+        // The declaration that produced a kernel is named above it.
+        assert!(
+            w.source.contains(
+                "// ======== kernel pressure_cavity over triangle (from pressure cavity)"
+            )
+        );
+        // Non-finite constants have no literal.
+        assert!(w.source.contains("softc_inf()"));
+        if p == Precision::F64 {
+            for f in [
+                "softc_exp",
+                "softc_ln",
+                "softc_sincos",
+                "softc_tanh",
+                "softc_pow",
+            ] {
+                assert!(w.source.contains(&format!("fn {f}(")), "{f}");
+            }
+            assert!(!w.source.contains(" exp(") && !w.source.contains(" log("));
+        } else {
+            assert!(w.source.contains("exp(") && w.source.contains("fn softc_pow("));
+        }
+    }
+    // Without FLOAT64, naga refuses the f64 module: validation is real.
+    let w = wgsl::emit(&m, Precision::F64).unwrap();
+    assert!(wgsl::validate(&w.source, Precision::F32).is_err());
+}
+
+#[test]
+fn names_that_are_wgsl_words_are_renamed() {
+    let mut m = Module::default();
+    let a = m.buffer("var", Domain::Node, 1, "");
+    let b = m.buffer("v1", Domain::Node, 1, "");
+    let c = m.buffer("launch_x", Domain::Node, 1, "");
+    let mut k = KernelBuilder::new("loop", Domain::Node, "odd names");
+    let x = k.load(ArgSource::Own {
+        buffer: a,
+        component: 0,
+    });
+    let y = k.load(ArgSource::Own {
+        buffer: b,
+        component: 0,
+    });
+    let u = k.uniform("struct");
+    let s = k.b.add(x, y);
+    let s = k.b.add(s, u);
+    k.store(c, 0, s);
+    m.kernels.push(k.finish());
+    let mut k = KernelBuilder::new("var", Domain::Node, "clashes with a buffer");
+    let x = k.load(ArgSource::Own {
+        buffer: a,
+        component: 0,
+    });
+    k.store(c, 0, x);
+    m.kernels.push(k.finish());
+    for p in [Precision::F32, Precision::F64] {
+        let w = wgsl::emit(&m, p).unwrap();
+        wgsl::validate(&w.source, p).unwrap_or_else(|e| panic!("{e}\n{}", w.source));
+        assert_eq!(w.kernels[0].entry, "loop_");
+        assert_ne!(w.kernels[1].entry, "var_");
+    }
+}
+
+#[test]
+fn malformed_kernels_are_refused_with_a_message() {
+    let mut m = Module::default();
+    let x = m.buffer("x", Domain::Node, 3, "");
+    let mut k = KernelBuilder::new("bad", Domain::Node, "test");
+    let a = k.load(ArgSource::Corner {
+        buffer: x,
+        corner: 0,
+        component: 0,
+    });
+    k.store(x, 0, a);
+    m.kernels.push(k.finish());
+    let e = wgsl::emit(&m, Precision::F32).unwrap_err();
+    assert!(e.contains("kernel `bad`") && e.contains("corner"), "{e}");
+
+    let mut m = Module::default();
+    let x = m.buffer("x", Domain::Node, 3, "");
+    let mut k = KernelBuilder::new("wide", Domain::Node, "test");
+    let a = k.load(ArgSource::Own {
+        buffer: x,
+        component: 3,
+    });
+    k.store(x, 0, a);
+    m.kernels.push(k.finish());
+    let e = wgsl::emit(&m, Precision::F32).unwrap_err();
+    assert!(e.contains("component 3"), "{e}");
+}
+
+#[test]
+fn constants_are_exact_in_their_precision() {
+    let mut m = Module::default();
+    let x = m.buffer("x", Domain::Single, 1, "");
+    let mut k = KernelBuilder::new("c", Domain::Single, "constants");
+    let a = k.load(ArgSource::Own {
+        buffer: x,
+        component: 0,
+    });
+    let c = k.b.constant(0.1);
+    let v = k.b.mul(a, c);
+    let nan = k.b.constant(f64::NAN);
+    let v = k.b.add(v, nan);
+    k.store(x, 0, v);
+    m.kernels.push(k.finish());
+    let f32s = wgsl::emit(&m, Precision::F32).unwrap().source;
+    let f64s = wgsl::emit(&m, Precision::F64).unwrap().source;
+    assert!(f32s.contains("0.1f"), "{f32s}");
+    assert!(f64s.contains("0.1lf"), "{f64s}");
+    assert!(f64s.contains("softc_nan()"));
+    wgsl::validate(&f64s, Precision::F64).unwrap();
+}
