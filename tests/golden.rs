@@ -104,9 +104,11 @@ fn specialization_cases_match_their_golden_wgsl() {
     let bench = wgsl_of(&ex("benchmark-1k.soft"), "f32");
     let meta = wgsl_of(&ex("meta_optimization.soft"), "f32");
     let controller = wgsl_of(&ex("controller_synthesis.soft"), "f32");
-    // One pressure entry point per chamber: 1 in the benchmark, 3 in the controller study.
-    assert_eq!(bench.matches("over triangle").count(), 1);
-    assert_eq!(controller.matches("over triangle").count(), 3);
+    // One pressure entry point per chamber: 1 in the benchmark, 3 in the controller study,
+    // and the adjoint of each.
+    assert_eq!(bench.matches("kernel pressure_").count(), 1);
+    assert_eq!(controller.matches("kernel pressure_").count(), 3);
+    assert_eq!(controller.matches("kernel adj_pressure_").count(), 3);
     // Constant damping is a literal; windowed damping selects among the window's params.
     assert!(!bench.contains("param_beta"));
     assert!(meta.contains("param_beta_29: real, // param.beta.29"));

@@ -371,3 +371,54 @@ fn softc_run_backend_gpu_reports_the_adapter_and_a_summary() {
     assert_eq!(v["backend"], "gpu");
     assert_eq!(v["steps"], 60);
 }
+
+#[test]
+fn gpu_gradients_match_the_cpu() {
+    // The adjoint kernels are ordinary IR kernels: the WGSL backend runs them unchanged.
+    // f64 on the GPU differs from the CPU only by the software exp/ln/pow (measured 1.4e-14
+    // on lavapipe). In f32 the error is f32 round-off, which differs per param (3e-6 for the
+    // benchmark's p_peak, 7e-3 for a damping window whose velocities are tiny): the GPU must
+    // stay within 3x the Cranelift f32 error against f64, and within 1e-2 anyway: WGSL's f32
+    // pow/exp are a few ulp off libm's, which the second derivatives of W amplify (c10:
+    // measured 3.6e-3 on lavapipe, Cranelift f32 1e-4).
+    use softc::engine::adjoint::GradOptions;
+    let scene = Scene::load(
+        &root().join("runtime/tests/fixtures/grad/all_kinds.soft"),
+        &[],
+    )
+    .unwrap();
+    let module = &scene.lowered.adjoint.module;
+    let cpu = Cpu::new(module, Precision::F64, Some(1)).unwrap();
+    let reference = Simulation::new(&scene, cpu)
+        .gradient(None, Some(80), &GradOptions::default())
+        .unwrap();
+    let cpu32 = Cpu::new(module, Precision::F32, Some(1)).unwrap();
+    let cpu32 = Simulation::new(&scene, cpu32)
+        .gradient(None, Some(80), &GradOptions::default())
+        .unwrap();
+    let rel = |a: f64, b: f64| {
+        if b == 0.0 {
+            a.abs()
+        } else {
+            (a - b).abs() / b.abs()
+        }
+    };
+    for precision in [Precision::F64, Precision::F32] {
+        let Some(g) = gpu(module, precision) else {
+            continue;
+        };
+        let got = Simulation::new(&scene, g)
+            .gradient(None, Some(80), &GradOptions::default())
+            .unwrap();
+        for (name, want) in &reference.gradients {
+            let have = got.gradients[name];
+            // Windows after the run have exactly 0 on both.
+            let tol = match precision {
+                Precision::F64 => 1e-10,
+                Precision::F32 => (3.0 * rel(cpu32.gradients[name], *want)).max(1e-2),
+            };
+            let err = rel(have, *want);
+            assert!(err < tol, "{precision}: {name}: gpu {have:e}, cpu {want:e}");
+        }
+    }
+}

@@ -5,8 +5,9 @@
 //! `--repeats` timed runs of `--steps` steps after one untimed warm-up run, and the tip's mean
 //! z-displacement after those steps (a correctness check beside the speed). Speed ratios are
 //! taken against the reference measured in the same invocation. A row is one (size, backend);
-//! the adjoint's columns (backward steps/s, gradient) are `None` until the adjoint lands, so
-//! the table and JSON keep their shape when they are filled.
+//! the cpu rows also time one forward+backward pass (`--grad` with the default checkpointing)
+//! over the same steps: forward+backward steps/s (median), the bytes of states it stored, its
+//! recompute ratio and d loss / d p_peak.
 
 use crate::engine::scene::Scene;
 use crate::engine::{Backend, Cpu, Interpreter, Simulation};
@@ -50,8 +51,47 @@ pub struct Row {
     pub steps: u64,
     /// Mean z-displacement of the `tip` node set after `steps` steps, m.
     pub tip_mean_z: f64,
-    /// Filled once the adjoint exists.
-    pub backward_steps_per_second: Option<f64>,
+    /// Steps / wall time of one forward and backward pass (cpu rows).
+    pub forward_backward_steps_per_second: Option<f64>,
+    /// Bytes of the states the backward pass stored at most.
+    pub adjoint_stored_bytes: Option<usize>,
+    /// Forward steps the forward+backward pass ran, over `steps`.
+    pub recompute_ratio: Option<f64>,
+    /// d loss / d p_peak, per Pa.
+    pub gradient_p_peak: Option<f64>,
+}
+
+/// Warm up once, then time `repeats` forward+backward passes of the adjoint module on the cpu.
+fn time_gradient(
+    scene: &Scene,
+    precision: Precision,
+    args: &BenchArgs,
+) -> Result<(f64, usize, f64, f64), String> {
+    let module = &scene.lowered.adjoint.module;
+    let run = || -> Result<(f64, crate::engine::adjoint::GradientReport), String> {
+        let cpu = Cpu::new(module, precision, args.threads)?;
+        let mut sim = Simulation::new(scene, cpu);
+        let start = Instant::now();
+        let g = sim
+            .gradient(None, Some(args.steps), &Default::default())
+            .map_err(|e| e.0)?;
+        Ok((args.steps as f64 / start.elapsed().as_secs_f64(), g))
+    };
+    run()?;
+    let mut speeds = Vec::new();
+    let mut last = None;
+    for _ in 0..args.repeats.max(1) {
+        let (sps, g) = run()?;
+        speeds.push(sps);
+        last = Some(g);
+    }
+    let g = last.expect("at least one run");
+    Ok((
+        median(speeds),
+        g.stored_states * g.state_bytes,
+        g.recompute_ratio,
+        g.gradients.get("param.p_peak").copied().unwrap_or(f64::NAN),
+    ))
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -127,32 +167,40 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
     let scene = Scene::load(&path, &[]).map_err(|e| e.0)?;
     let module = &scene.lowered.module;
     let mut rows = Vec::new();
-    let mut push = |backend: &str, compile: f64, (sps, z): (f64, f64)| {
-        rows.push(Row {
-            size: size.to_string(),
-            backend: backend.to_string(),
-            compile_seconds: compile,
-            forward_steps_per_second: sps,
-            forward_speedup_vs_reference: None,
-            steps: args.steps,
-            tip_mean_z: z,
-            backward_steps_per_second: None,
-        })
+    let row = |backend: &str, compile: f64, (sps, z): (f64, f64)| Row {
+        size: size.to_string(),
+        backend: backend.to_string(),
+        compile_seconds: compile,
+        forward_steps_per_second: sps,
+        forward_speedup_vs_reference: None,
+        steps: args.steps,
+        tip_mean_z: z,
+        forward_backward_steps_per_second: None,
+        adjoint_stored_bytes: None,
+        recompute_ratio: None,
+        gradient_p_peak: None,
     };
     for (name, precision) in [("cpu-f64", Precision::F64), ("cpu-f32", Precision::F32)] {
         let start = Instant::now();
         Cpu::new(module, precision, args.threads)?;
         let compile = start.elapsed().as_secs_f64();
         let timed = time_engine(&scene, &|| Cpu::new(module, precision, args.threads), args)?;
-        push(name, compile, timed);
+        let (sps, bytes, ratio, g) = time_gradient(&scene, precision, args)?;
+        rows.push(Row {
+            forward_backward_steps_per_second: Some(sps),
+            adjoint_stored_bytes: Some(bytes),
+            recompute_ratio: Some(ratio),
+            gradient_p_peak: Some(g),
+            ..row(name, compile, timed)
+        });
     }
     // The IR interpreter is the semantics, not a fast path: only on the smallest scene.
     if size == "1k" {
         let timed = time_engine(&scene, &|| Ok(Interpreter::new(module)), args)?;
-        push("interp", 0.0, timed);
+        rows.push(row("interp", 0.0, timed));
     }
     let (setup, sps, z) = time_reference(&scene, args)?;
-    push("reference", setup, (sps, z));
+    rows.push(row("reference", setup, (sps, z)));
     let reference = sps;
     for r in &mut rows {
         r.forward_speedup_vs_reference = Some(r.forward_steps_per_second / reference);
@@ -181,20 +229,33 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     }
     let _ = writeln!(
         out,
-        "{:<5} {:<10} {:>10} {:>14} {:>12} {:>16} {:>12}",
-        "size", "backend", "compile_s", "fwd_steps/s", "x_reference", "tip_mean_z_m", "bwd_steps/s"
+        "{:<5} {:<10} {:>10} {:>14} {:>12} {:>16} {:>16} {:>12} {:>10} {:>14}",
+        "size",
+        "backend",
+        "compile_s",
+        "fwd_steps/s",
+        "x_reference",
+        "tip_mean_z_m",
+        "fwd+bwd_steps/s",
+        "adj_bytes",
+        "recompute",
+        "dloss/dp_peak"
     );
     for r in &rows {
         let _ = writeln!(
             out,
-            "{:<5} {:<10} {:>10.3} {:>14.1} {:>12.2} {:>16.6e} {:>12}",
+            "{:<5} {:<10} {:>10.3} {:>14.1} {:>12.2} {:>16.6e} {:>16} {:>12} {:>10} {:>14}",
             r.size,
             r.backend,
             r.compile_seconds,
             r.forward_steps_per_second,
             r.forward_speedup_vs_reference.unwrap_or(f64::NAN),
             r.tip_mean_z,
-            "-"
+            r.forward_backward_steps_per_second
+                .map_or("-".into(), |v| format!("{v:.1}")),
+            r.adjoint_stored_bytes.map_or("-".into(), |v| v.to_string()),
+            r.recompute_ratio.map_or("-".into(), |v| format!("{v:.2}")),
+            r.gradient_p_peak.map_or("-".into(), |v| format!("{v:.6e}")),
         );
     }
     let _ = writeln!(

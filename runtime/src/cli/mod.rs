@@ -280,8 +280,8 @@ fn compile_file(
                 }
                 _ => Precision::F32,
             };
-            let checked =
-                wgsl::emit(&scene.module, p).and_then(|m| wgsl::validate(&m.source, p).map(|()| m));
+            let checked = wgsl::emit(&scene.adjoint.module, p)
+                .and_then(|m| wgsl::validate(&m.source, p).map(|()| m));
             match checked {
                 Ok(m) => {
                     let _ = write!(out, "{}", m.source);
