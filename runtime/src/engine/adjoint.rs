@@ -345,7 +345,6 @@ impl<B: Backend> Simulation<'_, B> {
                 }
             }
         }
-        let _ = current;
         // Param derivatives: per-entity partial sums, added up in entity order.
         let mut gradients: BTreeMap<String, f64> = self
             .scene
