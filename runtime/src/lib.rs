@@ -6,4 +6,5 @@ pub mod devices;
 pub mod engine;
 pub mod lsp;
 pub mod mesh;
+pub mod optim;
 pub mod reference;

@@ -5,6 +5,7 @@
 
 pub mod bench;
 pub mod mesh;
+pub mod optimize;
 pub mod run;
 
 use clap::{Parser, Subcommand, ValueEnum};

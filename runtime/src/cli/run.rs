@@ -53,6 +53,20 @@ pub struct RunArgs {
     /// block's `memory_budget`).
     #[arg(long, value_name = "BYTES")]
     pub memory_budget: Option<String>,
+    /// Write every output of an optimization into this folder: the optimizer state (saved
+    /// atomically after every iteration), plots, the final run's VTK series and `result.json`.
+    #[arg(long, value_name = "DIR", conflicts_with = "resume")]
+    pub out: Option<PathBuf>,
+    /// Continue the optimization saved in this folder (by `--out DIR`) where it stopped.
+    #[arg(long, value_name = "DIR")]
+    pub resume: Option<PathBuf>,
+    /// Override the optimize block's number of iterations.
+    #[arg(long)]
+    pub iterations: Option<u64>,
+    /// Run the simulation once with the params' initial values even if the script has an
+    /// `optimize` block.
+    #[arg(long)]
+    pub no_optimize: bool,
 }
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
@@ -142,6 +156,16 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         if !known {
             let _ = writeln!(err, "softc: --set {name}: the script has no param `{name}`");
             return 2;
+        }
+    }
+    if !args.grad && !args.no_optimize {
+        match crate::optim::Plan::from_scene(&scene) {
+            Ok(Some(plan)) => return super::optimize::optimize(&args, &scene, plan, dt, out, err),
+            Ok(None) => {}
+            Err(e) => {
+                let _ = writeln!(err, "{}: optimize: {e}", args.file.display());
+                return 1;
+            }
         }
     }
     if args.grad && args.backend == BackendChoice::Reference {
@@ -318,7 +342,7 @@ fn vtk_output(
 }
 
 /// `output vtk every N steps` in the sim block.
-fn vtk_every(scene: &Scene) -> Option<u64> {
+pub(super) fn vtk_every(scene: &Scene) -> Option<u64> {
     use softc_compiler::front::ast::{ExprKind, ItemKind, StmtKind};
     scene.ast.items.iter().find_map(|i| match &i.kind {
         ItemKind::Sim(stmts) => stmts.iter().find_map(|s| match &s.kind {
@@ -404,7 +428,7 @@ fn simulate<B: crate::engine::Backend>(
 
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
 /// `truncate`, overridden by `--checkpoint` and `--memory-budget`.
-fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions, String> {
+pub(super) fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions, String> {
     use softc_compiler::front::ast::ExprKind;
     let mut o = GradOptions::default();
     let program = scene.program();

@@ -410,6 +410,16 @@ impl<'s, B: Backend> Simulation<'s, B> {
         }
     }
 
+    /// Back to the initial state (rest positions, zero velocity, t = 0), keeping the buffers,
+    /// the compiled kernels and the stable-step estimate: the next run starts afresh.
+    pub fn reset(&mut self) {
+        let x: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        let zeros = vec![0.0; x.len()];
+        self.backend.set(self.ids.x, &x);
+        self.backend.set(self.ids.v, &zeros);
+        self.uniforms.0.insert("t".into(), 0.0);
+    }
+
     fn run_element_kernels(&mut self) -> Result<(), RunError> {
         for (k, range) in self.scene.material_ranges.iter().enumerate() {
             self.backend
@@ -525,6 +535,19 @@ impl<'s, B: Backend> Simulation<'s, B> {
             return Err(RunError(format!("no usable time step (estimate {dt} s)")));
         }
         Ok((dt, estimate))
+    }
+
+    /// The step size and number of steps a run would use.
+    pub fn time_steps(
+        &mut self,
+        dt_override: Option<f64>,
+        steps_override: Option<u64>,
+    ) -> Result<(f64, u64), RunError> {
+        let (dt, _) = self.resolve_dt(dt_override)?;
+        Ok((
+            dt,
+            steps_override.unwrap_or_else(|| self.scene.steps_for(dt)),
+        ))
     }
 
     /// The entities forward kernel `k` runs over.

@@ -97,6 +97,8 @@ pub struct Scene {
     pub duration: Option<f64>,
     /// Values of the uniforms `param.*` and `input.*` (first scene of a batch).
     pub uniforms: BTreeMap<String, f64>,
+    /// The declared params with their bounds, in source order.
+    pub params: Vec<softc_compiler::sema::ParamInfo>,
 }
 
 impl Scene {
@@ -207,6 +209,7 @@ impl Scene {
             steps,
             duration,
             uniforms,
+            params: checked_script.params.clone(),
         })
     }
 
@@ -717,7 +720,7 @@ fn uniform_values(
     Ok(out)
 }
 
-fn shape_of(ty: &TypeExpr) -> Vec<usize> {
+pub(crate) fn shape_of(ty: &TypeExpr) -> Vec<usize> {
     ty.shape
         .iter()
         .map(|s| match s {
@@ -728,7 +731,7 @@ fn shape_of(ty: &TypeExpr) -> Vec<usize> {
 }
 
 /// `prefix.i.j` for the flat index of a row-major array of the given shape.
-fn uniform_name(prefix: &str, shape: &[usize], flat: usize) -> String {
+pub(crate) fn uniform_name(prefix: &str, shape: &[usize], flat: usize) -> String {
     let mut name = prefix.to_string();
     let mut rest = flat;
     let mut strides: Vec<usize> = shape

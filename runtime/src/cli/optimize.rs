@@ -1,0 +1,463 @@
+//! `softc run` on a script with an `optimize` block: the training loop with a progress bar and a
+//! log line per iteration, the state saved atomically into `--out DIR` after every iteration
+//! (`--resume DIR` continues it), plots, the final optimized run's VTK series and the JSON
+//! summary with `history` and `params`.
+
+use super::run::{BackendChoice, PrecisionChoice, RunArgs, gradients_json, summary_json};
+use crate::engine::scene::Scene;
+use crate::engine::{Backend, Cpu, Interpreter, Simulation};
+use crate::optim::Plan;
+use crate::optim::train::{Record, SceneRecord, Stopped, TrainState, Trainer};
+use softc_compiler::back::Precision;
+use std::collections::BTreeMap;
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+
+const STATE_FILE: &str = "state.json";
+
+/// Run the optimization; the exit status.
+pub fn optimize(
+    args: &RunArgs,
+    scene: &Scene,
+    mut plan: Plan,
+    dt: Option<f64>,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
+    if let Some(n) = args.iterations {
+        plan.iterations = n.max(1);
+    }
+    let dir = args.resume.as_ref().or(args.out.as_ref()).cloned();
+    let resume = match &args.resume {
+        Some(d) => match load_state(d) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                let _ = writeln!(err, "softc: --resume {}: {e}", d.display());
+                return 2;
+            }
+        },
+        None => None,
+    };
+    if let Some(d) = &args.out
+        && args.resume.is_none()
+        && d.join(STATE_FILE).exists()
+    {
+        let _ = writeln!(
+            err,
+            "softc: `{}` already holds an optimization run; continue it with `--resume {}` \
+             or choose another --out folder",
+            d.display(),
+            d.display()
+        );
+        return 2;
+    }
+    if let Some(d) = &dir
+        && let Err(e) = std::fs::create_dir_all(d)
+    {
+        let _ = writeln!(err, "softc: cannot create `{}`: {e}", d.display());
+        return 2;
+    }
+    let ctx = Context {
+        args,
+        scene,
+        dir,
+        dt,
+        resume,
+    };
+    let members = Trainer::<Cpu>::scenes_per_iteration(&plan);
+    let module = &scene.lowered.adjoint.module;
+    let result = match args.backend {
+        BackendChoice::Reference => Err(
+            "the optimization needs gradients: use --backend cpu, interp or gpu (the reference \
+             oracle runs forward only)"
+                .to_string(),
+        ),
+        BackendChoice::Interp => train(&ctx, plan, members, || Ok(Interpreter::new(module)), err),
+        BackendChoice::Cpu => {
+            let precision = match (args.precision, scene.precision_setting()) {
+                (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
+                _ => Precision::F64,
+            };
+            // Scenes of a batch run on their own threads: one kernel thread each.
+            let threads = args.threads.or((members > 1).then_some(1));
+            train(
+                &ctx,
+                plan,
+                members,
+                || {
+                    Cpu::new(module, precision, threads)
+                        .map_err(|e| format!("the kernels do not compile: {e}"))
+                },
+                err,
+            )
+        }
+        BackendChoice::Gpu => {
+            let precision = match (args.precision, scene.precision_setting()) {
+                (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
+                _ => Precision::F32,
+            };
+            train(
+                &ctx,
+                plan,
+                members,
+                || crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()),
+                err,
+            )
+        }
+    };
+    let json = match result {
+        Ok(j) => j,
+        Err(e) if e.is_empty() => return 2,
+        Err(e) => {
+            let _ = writeln!(err, "{}: {e}", args.file.display());
+            return 1;
+        }
+    };
+    let text = serde_json::to_string_pretty(&json).unwrap_or_default();
+    let mut targets: Vec<PathBuf> = args.json.iter().cloned().collect();
+    if let Some(d) = &ctx.dir {
+        targets.push(d.join("result.json"));
+    }
+    for path in &targets {
+        if let Err(e) = super::write_atomically(path, text.as_bytes()) {
+            let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
+            return 2;
+        }
+    }
+    if args.json.is_none() {
+        let _ = writeln!(out, "{text}");
+    }
+    0
+}
+
+struct Context<'a> {
+    args: &'a RunArgs,
+    scene: &'a Scene,
+    dir: Option<PathBuf>,
+    dt: Option<f64>,
+    resume: Option<TrainState>,
+}
+
+fn load_state(dir: &Path) -> Result<TrainState, String> {
+    let path = dir.join(STATE_FILE);
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| format!("cannot read `{}`: {e}", path.display()))?;
+    serde_json::from_str(&text).map_err(|e| {
+        format!(
+            "`{}` is not a softc optimization state ({e}); it was not written by `softc run --out`",
+            path.display()
+        )
+    })
+}
+
+/// What a resumed run must agree with: the script, the overrides and the numerics (not the
+/// number of iterations: `--resume DIR --iterations N` extends a finished run).
+fn fingerprint(args: &RunArgs, scene: &Scene) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut feed = |bytes: &[u8]| {
+        for b in bytes {
+            h ^= *b as u64;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+        h ^= 0xff;
+        h = h.wrapping_mul(0x0100_0000_01b3);
+    };
+    feed(scene.source.as_bytes());
+    for s in &args.set {
+        feed(s.as_bytes());
+    }
+    feed(format!("{:?}", args.dt).as_bytes());
+    feed(format!("{:?}", args.steps).as_bytes());
+    feed(format!("{:?} {:?}", args.backend, args.precision).as_bytes());
+    format!("{h:016x}")
+}
+
+/// A short rendering of the trained values: `p_max = 1523.4` or `w = [0.1, -0.2, … 12 values]`.
+fn describe(params: &BTreeMap<String, f64>) -> String {
+    let mut by: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
+    for (k, v) in params {
+        let name = k.trim_start_matches("param.");
+        by.entry(name.split('.').next().unwrap_or(name))
+            .or_default()
+            .push(*v);
+    }
+    by.into_iter()
+        .map(|(name, vs)| match vs.as_slice() {
+            [v] => format!("{name} = {v:.6e}"),
+            _ => {
+                let shown: Vec<String> = vs.iter().take(3).map(|v| format!("{v:.3e}")).collect();
+                format!("{name} = [{}, … {} values]", shown.join(", "), vs.len())
+            }
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn log_line(r: &Record, total: u64) -> String {
+    format!(
+        "iteration {}/{}: loss {:.6e}, {}, grad_norm {:.3e}, lr {:.3e}, {:.2} s",
+        r.iteration + 1,
+        total,
+        r.loss,
+        describe(&r.params),
+        r.grad_norm,
+        r.lr,
+        r.seconds
+    )
+}
+
+fn train<B: Backend + Send>(
+    ctx: &Context,
+    plan: Plan,
+    members: usize,
+    make: impl Fn() -> Result<B, String>,
+    err: &mut dyn Write,
+) -> Result<serde_json::Value, String> {
+    let (args, scene) = (ctx.args, ctx.scene);
+    let mut sims = Vec::new();
+    for _ in 0..members {
+        sims.push(Simulation::new(scene, make()?));
+    }
+    let iterations = plan.iterations;
+    let script_name = scene
+        .script
+        .file_name()
+        .map_or("script".into(), |n| n.to_string_lossy().into_owned());
+    let mut trainer = Trainer::new(
+        plan,
+        sims,
+        super::run::grad_options(scene, args)?,
+        ctx.dt,
+        args.steps,
+        fingerprint(args, scene),
+        ctx.resume.clone(),
+    )
+    .map_err(|e| e.0)?;
+    let _ = writeln!(
+        err,
+        "optimizing {} values with {} over {} scene(s) per iteration: {} steps of {:e} s each{}",
+        trainer.plan.entries.len(),
+        trainer.plan.method.name(),
+        members,
+        trainer.state.steps,
+        trainer.state.dt,
+        if trainer.state.iteration > 0 {
+            format!(", resuming after iteration {}", trainer.state.iteration)
+        } else {
+            String::new()
+        }
+    );
+    let bar = if std::io::stderr().is_terminal() {
+        let b = indicatif::ProgressBar::new(iterations);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} iterations, {elapsed} elapsed, ~{eta} left  {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b.set_position(trainer.state.iteration);
+        Some(b)
+    } else {
+        None
+    };
+    while !trainer.finished() {
+        let record = trainer.step().map_err(|e| e.0)?.clone();
+        let line = log_line(&record, iterations);
+        match &bar {
+            Some(b) => {
+                b.println(&line);
+                b.set_position(record.iteration + 1);
+                b.set_message(format!("loss {:.3e}", record.loss));
+            }
+            None => {
+                let _ = writeln!(err, "{line}");
+            }
+        }
+        if let Some(d) = &ctx.dir {
+            let text = serde_json::to_string(&trainer.state).map_err(|e| e.to_string())?;
+            super::write_atomically(&d.join(STATE_FILE), text.as_bytes())
+                .map_err(|e| format!("cannot save the optimization state: {e}"))?;
+            write_plots(d, &script_name, &trainer.state.history, &trainer)?;
+        }
+    }
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    match &trainer.state.stopped {
+        Some(Stopped::Condition { iteration }) => {
+            let _ = writeln!(
+                err,
+                "stopped at iteration {}: `stop when` holds",
+                iteration + 1
+            );
+        }
+        _ => {
+            let _ = writeln!(err, "finished {} iterations", trainer.state.iteration);
+        }
+    }
+
+    // The optimized run: its VTK series and the summary.
+    let vtk = match &ctx.dir {
+        Some(d) => {
+            let folder = d.join("vtk");
+            std::fs::create_dir_all(&folder)
+                .map_err(|e| format!("cannot create `{}`: {e}", folder.display()))?;
+            Some(crate::engine::VtkOutput {
+                series: crate::mesh::writers::PvdSeries::new(
+                    &folder,
+                    "optimized",
+                    crate::mesh::LengthUnit::Millimetre,
+                ),
+                every: super::run::vtk_every(scene).unwrap_or(100),
+            })
+        }
+        None => None,
+    };
+    let first_inputs = trainer
+        .state
+        .history
+        .first()
+        .and_then(|r| r.scenes.first())
+        .map(|s| s.inputs.clone())
+        .unwrap_or_default();
+    let summary = trainer.forward(&first_inputs, vtk).map_err(|e| e.0)?;
+    let validation = trainer.validate().map_err(|e| e.0)?;
+    for v in &validation {
+        let _ = writeln!(
+            err,
+            "held-out scene {:?}: loss {:.6e}",
+            v.inputs.values().collect::<Vec<_>>(),
+            v.loss
+        );
+    }
+    let mut json = summary_json(
+        scene,
+        &summary,
+        &format!("{:?}", args.backend).to_lowercase(),
+    );
+    let history: Vec<serde_json::Value> = trainer
+        .state
+        .history
+        .iter()
+        .map(|r| {
+            serde_json::json!({
+                "iteration": r.iteration,
+                "loss": r.loss,
+                "params": gradients_json(&r.params),
+                "gradients": gradients_json(&r.gradient),
+                "scaled_gradient": r.scaled_gradient,
+                "grad_norm": r.grad_norm,
+                "lr": r.lr,
+                "scenes": r.scenes.iter().map(scene_json).collect::<Vec<_>>(),
+                "seconds": r.seconds,
+            })
+        })
+        .collect();
+    json["history"] = history.into();
+    json["params"] = gradients_json(&trainer.result());
+    json["iterations"] = trainer.state.history.len().into();
+    json["stopped"] = match &trainer.state.stopped {
+        Some(Stopped::Condition { iteration }) => {
+            serde_json::json!({"reason": "stop when", "iteration": iteration})
+        }
+        _ => serde_json::json!({"reason": "iterations"}),
+    };
+    json["validation"] = validation.iter().map(scene_json).collect::<Vec<_>>().into();
+    Ok(json)
+}
+
+fn scene_json(s: &SceneRecord) -> serde_json::Value {
+    serde_json::json!({"inputs": s.inputs, "loss": s.loss})
+}
+
+/// `optimization.png`/`.svg` in the output folder: loss (mean and per scene), the trained
+/// values, the raw gradient and the step the optimizer received, per iteration (thesis
+/// Fig. 5.2, 5.3, 6.2, 7.1, 7.2). Rewritten after every iteration.
+fn write_plots<B: Backend + Send>(
+    dir: &Path,
+    name: &str,
+    history: &[Record],
+    trainer: &Trainer<B>,
+) -> Result<(), String> {
+    use crate::optim::plot::{Panel, Series, write_figure};
+    let entries: Vec<&str> = trainer
+        .plan
+        .entries
+        .iter()
+        .map(|e| e.uniform.as_str())
+        .collect();
+    let label = |u: &str| u.trim_start_matches("param.").to_string();
+    let mut loss = vec![Series {
+        label: if history.first().is_some_and(|r| r.scenes.len() > 1) {
+            "batch mean".into()
+        } else {
+            "loss".into()
+        },
+        values: history.iter().map(|r| r.loss).collect(),
+    }];
+    let scenes = history.first().map_or(0, |r| r.scenes.len());
+    let quadrants = trainer.plan.inputs.iter().any(|i| {
+        matches!(
+            i.source,
+            crate::optim::batch::InputSource::CircleQuadrants { .. }
+        )
+    });
+    if scenes > 1 {
+        for k in 0..scenes {
+            loss.push(Series {
+                label: if quadrants {
+                    format!("quadrant {}", k % 4 + 1)
+                } else {
+                    format!("scene {}", k + 1)
+                },
+                values: history
+                    .iter()
+                    .map(|r| r.scenes.get(k).map_or(f64::NAN, |s| s.loss))
+                    .collect(),
+            });
+        }
+    }
+    let per_entry = |f: &dyn Fn(&Record, usize, &str) -> f64| -> Vec<Series> {
+        entries
+            .iter()
+            .enumerate()
+            .map(|(i, u)| Series {
+                label: label(u),
+                values: history.iter().map(|r| f(r, i, u)).collect(),
+            })
+            .collect()
+    };
+    let panels = [
+        Panel {
+            title: "loss".into(),
+            y_label: "loss (SI)".into(),
+            log_y: true,
+            series: loss,
+        },
+        Panel {
+            title: "trained values".into(),
+            y_label: "value (SI)".into(),
+            log_y: false,
+            series: per_entry(&|r, _, u| r.params.get(u).copied().unwrap_or(f64::NAN)),
+        },
+        Panel {
+            title: "|d loss / d param| (unscaled)".into(),
+            y_label: "|gradient| (SI)".into(),
+            log_y: true,
+            series: per_entry(&|r, _, u| r.gradient.get(u).map_or(f64::NAN, |g| g.abs())),
+        },
+        Panel {
+            title: "step direction (normalized, clipped gradient w.r.t. u)".into(),
+            y_label: "scaled gradient".into(),
+            log_y: false,
+            series: per_entry(&|r, i, _| r.scaled_gradient.get(i).copied().unwrap_or(f64::NAN)),
+        },
+    ];
+    let title = format!(
+        "{} — {} over {} scene(s) per iteration",
+        name,
+        trainer.plan.method.name(),
+        scenes.max(1)
+    );
+    write_figure(&dir.join("optimization"), &title, &panels).map(|_| ())
+}

@@ -1,0 +1,347 @@
+//! The optimization loop end to end: a short study converges, bounds hold, batches average
+//! their scenes, circle_quadrants draws one target per quadrant, and a run killed with SIGKILL
+//! resumes to exactly the result of an uninterrupted one.
+
+use softc::engine::adjoint::GradOptions;
+use softc::engine::scene::Scene;
+use softc::engine::{Cpu, Simulation};
+use softc::optim::Plan;
+use softc::optim::train::Trainer;
+use softc_compiler::back::Precision;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+fn fixture(name: &str) -> PathBuf {
+    root().join("runtime/tests/fixtures/optim").join(name)
+}
+
+/// A fresh scratch folder for this test.
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-optim-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A copy of a fixture with text replaced (the mesh path made absolute).
+fn variant(name: &str, edits: &[(&str, &str)], dir: &Path) -> PathBuf {
+    let mut text = std::fs::read_to_string(fixture(name)).unwrap();
+    for (from, to) in edits {
+        assert!(text.contains(from), "{name}: `{from}`");
+        text = text.replace(from, to);
+    }
+    let text = text.replace(
+        "\"../../../../meshes/",
+        &format!("\"{}/meshes/", root().display()),
+    );
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn softc(args: &[&str]) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_softc"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+fn losses(json: &serde_json::Value) -> Vec<f64> {
+    json["history"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["loss"].as_f64().unwrap())
+        .collect()
+}
+
+#[test]
+fn a_short_pressure_optimization_reaches_its_target() {
+    let dir = scratch("converge");
+    let json = dir.join("run.json");
+    let out = dir.join("out");
+    let (code, _, err) = softc(&[
+        "run",
+        fixture("pressure.soft").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let j = read_json(&json);
+    let l = losses(&j);
+    // Measured: 5.36e-10 → 7.96e-12 m² at iteration 14, where `stop when` (8e-6 mm²) holds.
+    assert!(l[0] / l[l.len() - 1] > 50.0, "losses {l:?}");
+    assert_eq!(j["stopped"]["reason"], "stop when", "{err}");
+    assert!(*l.last().unwrap() < 8e-12);
+    assert!(l.len() < 30, "took {} iterations", l.len());
+    // The history has what a plot needs, and the progress was logged per iteration.
+    let h0 = &j["history"][0];
+    assert_eq!(h0["iteration"], 0);
+    assert_eq!(h0["params"]["p_peak"], 1000.0);
+    assert!(h0["gradients"]["p_peak"].as_f64().unwrap() < 0.0);
+    assert!(err.contains("iteration 1/30: loss 5.357"), "{err}");
+    let p = j["params"]["p_peak"].as_f64().unwrap();
+    assert!((3500.0..4800.0).contains(&p), "p_peak = {p}");
+    // Everything went into --out.
+    for f in [
+        "state.json",
+        "result.json",
+        "vtk/optimized.pvd",
+        "optimization.png",
+        "optimization.svg",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing in --out");
+    }
+    assert_eq!(read_json(&out.join("result.json")), j);
+    // A second --out into the same folder refuses to overwrite the run.
+    let (code, _, err) = softc(&[
+        "run",
+        fixture("pressure.soft").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2);
+    assert!(err.contains("--resume"), "{err}");
+}
+
+#[test]
+fn bounded_params_never_leave_their_bounds() {
+    // The optimum (~4 kPa) lies beyond the upper bound: the iterates crowd against it from below.
+    let dir = scratch("bounds");
+    let script = variant(
+        "pressure.soft",
+        &[
+            ("in [0 kPa, 50 kPa]", "in [0 kPa, 2 kPa]"),
+            ("nadam(lr: 0.2) for 30", "gd(lr: 5.0) for 12"),
+        ],
+        &dir,
+    );
+    let json = dir.join("run.json");
+    let (code, _, err) = softc(&[
+        "run",
+        script.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let j = read_json(&json);
+    let ps: Vec<f64> = j["history"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["params"]["p_peak"].as_f64().unwrap())
+        .collect();
+    for p in ps.iter().chain([&j["params"]["p_peak"].as_f64().unwrap()]) {
+        assert!(
+            *p > 0.0 && *p < 2000.0,
+            "p_peak = {p} left [0, 2 kPa]: {ps:?}"
+        );
+    }
+    assert!(*ps.last().unwrap() > 1900.0, "{ps:?}");
+}
+
+#[test]
+fn a_killed_run_resumes_to_the_uninterrupted_result() {
+    let dir = scratch("resume");
+    // No stop condition: both runs take all 10 iterations.
+    let script = variant(
+        "pressure.soft",
+        &[
+            ("  stop when loss < 8e-6 mm^2\n", ""),
+            ("for 30 iterations", "for 10 iterations"),
+        ],
+        &dir,
+    );
+    let script = script.to_str().unwrap();
+    let whole = dir.join("whole");
+    let (code, _, err) = softc(&["run", script, "--out", whole.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+
+    // Kill -9 the second run once it has saved a few iterations.
+    let part = dir.join("part");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_softc"))
+        .args(["run", script, "--out", part.to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let state = part.join("state.json");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    loop {
+        // The state file is replaced atomically: whenever it exists it parses.
+        if state.exists() {
+            let s = read_json(&state);
+            if s["iteration"].as_u64().unwrap() >= 3 {
+                break;
+            }
+        }
+        assert!(std::time::Instant::now() < deadline, "no progress");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    let saved = read_json(&state)["iteration"].as_u64().unwrap();
+    assert!(saved < 10, "the run finished before it could be killed");
+
+    let (code, _, err) = softc(&["run", script, "--resume", part.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        err.contains(&format!("resuming after iteration {saved}")),
+        "{err}"
+    );
+    let (a, b) = (
+        read_json(&whole.join("result.json")),
+        read_json(&part.join("result.json")),
+    );
+    // Bit for bit: the same params, losses and gradients at every iteration.
+    assert_eq!(a["params"], b["params"]);
+    assert_eq!(a["loss"], b["loss"]);
+    let strip = |j: &serde_json::Value| {
+        j["history"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| {
+                (
+                    r["loss"].clone(),
+                    r["params"].clone(),
+                    r["gradients"].clone(),
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(strip(&a), strip(&b));
+
+    // A changed script cannot resume the old state.
+    let changed = variant(
+        "pressure.soft",
+        &[("+ 0.03 mm)^2", "+ 0.04 mm)^2")],
+        &dir.join("part"),
+    );
+    let (code, _, err) = softc(&[
+        "run",
+        changed.to_str().unwrap(),
+        "--resume",
+        part.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1);
+    assert!(err.contains("different script"), "{err}");
+}
+
+/// A trainer on the CPU backend with one simulation per scene of the batch.
+fn trainer(scene: &Scene) -> Trainer<'_, Cpu> {
+    let plan = Plan::from_scene(scene).unwrap().unwrap();
+    let n = Trainer::<Cpu>::scenes_per_iteration(&plan);
+    let sims = (0..n)
+        .map(|_| {
+            let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+            Simulation::new(scene, cpu)
+        })
+        .collect();
+    Trainer::new(
+        plan,
+        sims,
+        GradOptions::default(),
+        None,
+        None,
+        String::new(),
+        None,
+    )
+    .unwrap()
+}
+
+#[test]
+fn a_batch_averages_loss_and_gradient_over_its_scenes() {
+    let scene = Scene::load(&fixture("batch.soft"), &[]).unwrap();
+    let mut t = trainer(&scene);
+    assert_eq!(t.plan.batch, 3);
+    let r = t.step().unwrap().clone();
+    assert_eq!(r.scenes.len(), 3);
+    // Each scene alone, through the plain gradient path.
+    let mut mean_loss = 0.0;
+    let mut mean_grad = 0.0;
+    for s in &r.scenes {
+        let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+        let mut sim = Simulation::new(&scene, cpu);
+        for (k, v) in &s.inputs {
+            sim.uniforms.0.insert(k.clone(), *v);
+        }
+        let g = sim.gradient(None, None, &GradOptions::default()).unwrap();
+        assert_eq!(g.summary.loss.unwrap(), s.loss);
+        mean_loss += s.loss / 3.0;
+        mean_grad += g.gradients["param.p_peak"] / 3.0;
+    }
+    let goals: Vec<f64> = r.scenes.iter().map(|s| s.inputs["input.goal"]).collect();
+    assert_eq!(goals, vec![-0.01e-3, -0.03e-3, -0.05e-3]);
+    assert_eq!(r.loss, mean_loss);
+    assert_eq!(r.gradient["param.p_peak"], mean_grad);
+    // Mini-batches: with batch = 2 of 3 scenes, SGD draws a different pair each iteration.
+    let dir = scratch("minibatch");
+    let script = variant("batch.soft", &[("batch = 3", "batch = 2")], &dir);
+    let scene = Scene::load(&script, &[]).unwrap();
+    let mut t = trainer(&scene);
+    let mut pairs = std::collections::BTreeSet::new();
+    for _ in 0..4 {
+        let r = t.step().unwrap();
+        assert_eq!(r.scenes.len(), 2);
+        let mut g: Vec<i64> = r
+            .scenes
+            .iter()
+            .map(|s| (s.inputs["input.goal"] * 1e8).round() as i64)
+            .collect();
+        g.sort();
+        pairs.insert(g);
+    }
+    assert!(pairs.len() >= 2, "{pairs:?}");
+}
+
+#[test]
+fn circle_quadrants_trains_on_one_target_per_quadrant() {
+    let scene = Scene::load(&fixture("quadrants.soft"), &[]).unwrap();
+    let mut t = trainer(&scene);
+    let first = t.step().unwrap().clone();
+    let second = t.step().unwrap().clone();
+    for r in [&first, &second] {
+        assert_eq!(r.scenes.len(), 4);
+        for (q, s) in r.scenes.iter().enumerate() {
+            let (y, z) = (s.inputs["input.target.1"], s.inputs["input.target.2"]);
+            assert_eq!(s.inputs["input.target.0"], 0.0);
+            assert!(y.hypot(z) <= 0.05e-3 + 1e-15);
+            let expected = [(1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0)][q];
+            assert!(
+                y * expected.0 >= 0.0 && z * expected.1 >= 0.0,
+                "scene {q}: {y}, {z}"
+            );
+        }
+    }
+    // Fresh targets every iteration.
+    assert_ne!(first.scenes[0].inputs, second.scenes[0].inputs);
+    // The weights got a nonzero gradient (a controller fed by the target).
+    assert!(
+        first.gradient.values().any(|g| *g != 0.0),
+        "{:?}",
+        first.gradient
+    );
+    // Held-out targets are evaluated with the trained weights.
+    let v = t.validate().unwrap();
+    assert_eq!(v.len(), 2);
+    assert!(v.iter().all(|s| s.loss.is_finite() && s.loss > 0.0));
+}
