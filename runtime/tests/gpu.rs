@@ -93,9 +93,11 @@ const ROLLOUTS: &[(&str, u64, Option<f64>)] = &[
     // dt = auto scripts get a fixed step: the stable-step estimate perturbs positions by
     // 1e-6 of an element size, below f32 resolution, so in f32 it is not meaningful.
     ("verification.soft", 400, Some(1e-5)),
-    ("pressure_optimization.soft", 400, Some(1e-5)),
-    ("meta_optimization.soft", 400, Some(1e-5)),
-    ("controller_synthesis.soft", 400, Some(2.5e-6)),
+    // The three studies scale masses by 100 (their targets are steady states), which allows
+    // a 10x larger step: the same motion per step as an unscaled scene at dt/10.
+    ("pressure_optimization.soft", 400, Some(1e-4)),
+    ("meta_optimization.soft", 400, Some(1e-4)),
+    ("controller_synthesis.soft", 400, Some(2.5e-5)),
     ("benchmark-10k.soft", 100, None),
 ];
 
@@ -421,4 +423,73 @@ fn gpu_gradients_match_the_cpu() {
             assert!(err < tol, "{precision}: {name}: gpu {have:e}, cpu {want:e}");
         }
     }
+}
+
+#[test]
+fn an_optimization_runs_on_the_gpu() {
+    // The short pressure study of tests/optim.rs, trained with the WGSL kernels in f32: the
+    // loss falls as on the CPU (there: 5.36e-10 → 8e-12 m² in 14 iterations).
+    let script = root().join("runtime/tests/fixtures/optim/pressure.soft");
+    let mut out = Vec::new();
+    let mut err = Vec::new();
+    let args: Vec<String> = [
+        "softc",
+        "run",
+        script.to_str().unwrap(),
+        "--backend",
+        "gpu",
+        "--iterations",
+        "8",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let code = softc::cli::run(&args, &mut out, &mut err);
+    let err = String::from_utf8_lossy(&err);
+    if code != 0 && err.contains("no GPU adapter found") {
+        assert!(std::env::var("CI").as_deref() != Ok("true"), "{err}");
+        eprintln!("note: GPU test skipped: {err}");
+        return;
+    }
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    assert_eq!(v["backend"], "gpu");
+    let losses: Vec<f64> = v["history"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["loss"].as_f64().unwrap())
+        .collect();
+    assert_eq!(losses.len(), 8);
+    assert!(
+        losses[0] / losses.iter().copied().fold(f64::INFINITY, f64::min) > 20.0,
+        "{losses:?}"
+    );
+}
+
+#[test]
+fn the_stable_step_estimate_holds_in_f32() {
+    // The estimate probes the forces with a small displacement; in f32 it must be large enough
+    // to be resolved (a 1e-6-element probe gave garbage and dt = auto blew up on the GPU).
+    // Measured: 1k benchmark f64 5.2083e-5 s, cpu f32 5.2099e-5 s, gpu f32 5.2097e-5 s.
+    let scene = Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
+    let module = &scene.lowered.module;
+    let f64_estimate = Simulation::new(&scene, Cpu::new(module, Precision::F64, None).unwrap())
+        .stable_dt_estimate()
+        .unwrap();
+    let cpu32 = Simulation::new(&scene, Cpu::new(module, Precision::F32, None).unwrap())
+        .stable_dt_estimate()
+        .unwrap();
+    assert!(
+        (cpu32 / f64_estimate - 1.0).abs() < 0.01,
+        "{cpu32} vs {f64_estimate}"
+    );
+    let Some(g) = gpu(module, Precision::F32) else {
+        return;
+    };
+    let gpu32 = Simulation::new(&scene, g).stable_dt_estimate().unwrap();
+    assert!(
+        (gpu32 / f64_estimate - 1.0).abs() < 0.01,
+        "{gpu32} vs {f64_estimate}"
+    );
 }

@@ -111,7 +111,7 @@ fn benchmark_50k_agrees_with_the_engine() {
 // (the longer rollouts below hold both to 1e-6).
 #[test]
 fn pressure_optimization_agrees_with_the_engine() {
-    agree_to(&example("pressure_optimization"), Some(13.5e-6), 40, 1e-5);
+    agree_to(&example("pressure_optimization"), Some(135e-6), 40, 1e-5);
 }
 
 #[test]
@@ -121,12 +121,12 @@ fn verification_agrees_with_the_engine() {
 
 #[test]
 fn meta_optimization_agrees_with_the_engine() {
-    agree_to(&example("meta_optimization"), Some(13.5e-6), 40, 1e-5);
+    agree_to(&example("meta_optimization"), Some(135e-6), 40, 1e-5);
 }
 
 #[test]
 fn controller_synthesis_agrees_with_the_engine() {
-    agree_to(&example("controller_synthesis"), Some(5.5e-6), 20, 1e-5);
+    agree_to(&example("controller_synthesis"), Some(55e-6), 20, 1e-5);
 }
 
 /// Steps of the variants below (30 µs each: 7.5 ms, the load ramps over 4–5 ms).

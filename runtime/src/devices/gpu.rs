@@ -585,6 +585,10 @@ impl Gpu {
 }
 
 impl Backend for Gpu {
+    fn precision(&self) -> Precision {
+        self.module.precision
+    }
+
     fn name(&self) -> &'static str {
         "gpu"
     }

@@ -28,6 +28,10 @@ pub trait Backend {
     fn swap(&mut self, a: BufferId, b: BufferId);
     /// Run kernel `k` of the module over the entities in `range`.
     fn run(&mut self, k: usize, range: Range<usize>, uniforms: &Uniforms) -> Result<(), String>;
+    /// The kernels' floating-point precision (the stable-step estimate sizes its probe by it).
+    fn precision(&self) -> Precision {
+        Precision::F64
+    }
 }
 
 /// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`) by name.
@@ -240,6 +244,10 @@ impl Cpu {
 impl Backend for Cpu {
     fn name(&self) -> &'static str {
         "cpu"
+    }
+
+    fn precision(&self) -> Precision {
+        self.module.precision()
     }
 
     fn prepare(&mut self, scene: &Scene) -> Result<(), String> {
@@ -481,7 +489,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .copied()
             .fold(f64::INFINITY, f64::min)
             .max(1e-12)
-            * 1e-6;
+            // The probe must be resolved by the kernels' arithmetic: positions of ~0.1 m carry
+            // ~1e-8 m of f32 round-off, so 1e-6 of an element would be noise in f32 (dt = auto
+            // then blew up on the GPU). 1e-3 of an element is thousands of f32 ulps, and its
+            // linearization error (~1e-3 relative) is far inside dt = auto's safety factor.
+            * match self.backend.precision() {
+                Precision::F32 => 1e-3,
+                _ => 1e-6,
+            };
         let mut lambda: f64 = 0.0;
         for _ in 0..60 {
             let norm = u.iter().map(|x| x * x).sum::<f64>().sqrt();

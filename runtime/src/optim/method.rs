@@ -239,8 +239,8 @@ mod tests {
             eps: 1e-8,
         };
         for (method, lr, n, tol) in [
-            (Method::Gd, 0.1, 200, 1e-6),
-            (Method::Sgd { momentum: 0.5 }, 0.05, 300, 1e-6),
+            (Method::Gd, 0.1, 600, 1e-6),
+            (Method::Sgd { momentum: 0.5 }, 0.05, 600, 1e-6),
             (adam, 0.1, 2000, 1e-3),
             (nadam, 0.1, 2000, 1e-3),
         ] {
