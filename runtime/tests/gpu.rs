@@ -343,30 +343,32 @@ fn bad_adapter_choices_are_reported() {
     assert!(e.contains("outside 0..10"), "{e}");
 }
 
-#[test]
-fn softc_run_backend_gpu_reports_the_adapter_and_a_summary() {
-    let bench = root().join("examples/benchmark-1k.soft");
+/// `softc run SCRIPT --backend gpu ARGS…` in-process: its status, stdout and stderr, or `None`
+/// when there is no adapter (not allowed under CI=true).
+fn softc_run_gpu(script: &Path, extra: &[&str]) -> Option<(i32, Vec<u8>, String)> {
     let mut out = Vec::new();
     let mut err = Vec::new();
-    let args: Vec<String> = [
-        "softc",
-        "run",
-        bench.to_str().unwrap(),
-        "--backend",
-        "gpu",
-        "--steps",
-        "60",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
+    let args: Vec<String> = ["softc", "run", script.to_str().unwrap(), "--backend", "gpu"]
+        .iter()
+        .chain(extra)
+        .map(|s| s.to_string())
+        .collect();
     let code = softc::cli::run(&args, &mut out, &mut err);
-    let err = String::from_utf8_lossy(&err);
+    let err = String::from_utf8_lossy(&err).into_owned();
     if code != 0 && err.contains("no GPU adapter found") {
         assert!(std::env::var("CI").as_deref() != Ok("true"), "{err}");
         eprintln!("note: GPU test skipped: {err}");
-        return;
+        return None;
     }
+    Some((code, out, err))
+}
+
+#[test]
+fn softc_run_backend_gpu_reports_the_adapter_and_a_summary() {
+    let bench = root().join("examples/benchmark-1k.soft");
+    let Some((code, out, err)) = softc_run_gpu(&bench, &["--steps", "60"]) else {
+        return;
+    };
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("adapter: "), "{err}");
     let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
@@ -430,27 +432,9 @@ fn an_optimization_runs_on_the_gpu() {
     // The short pressure study of tests/optim.rs, trained with the WGSL kernels in f32: the
     // loss falls as on the CPU (there: 5.36e-10 → 8e-12 m² in 14 iterations).
     let script = root().join("runtime/tests/fixtures/optim/pressure.soft");
-    let mut out = Vec::new();
-    let mut err = Vec::new();
-    let args: Vec<String> = [
-        "softc",
-        "run",
-        script.to_str().unwrap(),
-        "--backend",
-        "gpu",
-        "--iterations",
-        "8",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    let code = softc::cli::run(&args, &mut out, &mut err);
-    let err = String::from_utf8_lossy(&err);
-    if code != 0 && err.contains("no GPU adapter found") {
-        assert!(std::env::var("CI").as_deref() != Ok("true"), "{err}");
-        eprintln!("note: GPU test skipped: {err}");
+    let Some((code, out, err)) = softc_run_gpu(&script, &["--iterations", "8"]) else {
         return;
-    }
+    };
     assert_eq!(code, 0, "{err}");
     let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
     assert_eq!(v["backend"], "gpu");
