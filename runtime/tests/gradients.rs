@@ -483,6 +483,25 @@ fn a_material_with_a_field_outside_its_set_is_refused() {
 }
 
 #[test]
+fn a_field_entry_inside_the_simulation_is_a_clear_error() {
+    // `mu[e]` needs the set's elements, known only once the mesh is loaded: the loss has them,
+    // the simulation's kernels (compiled before) do not.
+    let path = field_variant(
+        "field-in-pressure",
+        &[(
+            "p0 * ramp(t, 1 ms)",
+            "p0 * ramp(t, 1 ms) * mean(e in near) mu[e] / 20 kPa",
+        )],
+    );
+    let e = Scene::load(Path::new(&path), &[]).unwrap_err();
+    assert!(
+        e.0.contains("a reduction over the element set `near` is evaluated only in the loss"),
+        "{}",
+        e.0
+    );
+}
+
+#[test]
 fn set_broadcasts_to_every_entry_of_a_field() {
     let path = root().join("runtime/tests/fixtures/grad/field.soft");
     let scene = Scene::load(&path, &[("mu".to_string(), 35e3)]).unwrap();

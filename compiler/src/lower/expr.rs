@@ -389,6 +389,24 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 rhs,
             } = &domain.kind
             else {
+                if let ExprKind::Name(set) = &domain.kind
+                    && let Some(Item {
+                        kind:
+                            ItemKind::Decl {
+                                kind: kind @ (DeclKind::Nodes | DeclKind::Elements),
+                                ..
+                            },
+                        ..
+                    }) = self.program.find(&set.name)
+                {
+                    return Err(LowerError::new(format!(
+                        "a reduction over the {} `{}` is evaluated only in the loss (and the \
+                         lets it uses): the simulation's kernels are compiled before the mesh \
+                         says which entities the set holds",
+                        kind.noun(),
+                        set.name
+                    )));
+                }
                 return Err(LowerError::new(format!(
                     "the reduction's domain `{}` is not a known node set or range",
                     crate::fmt::expr(domain)

@@ -81,10 +81,10 @@ pub fn material_fields(program: &Program, material: &str) -> Result<Vec<String>,
             && let Some(item) = program.find(&id.name)
         {
             match &item.kind {
-                ItemKind::Param(p) if super::expr::field_set(item).is_some() => {
-                    if !found.contains(&p.name.name) {
-                        found.push(p.name.name.clone());
-                    }
+                ItemKind::Param(p)
+                    if super::expr::field_set(item).is_some() && !found.contains(&p.name.name) =>
+                {
+                    found.push(p.name.name.clone());
                 }
                 ItemKind::Let(l) => stack.push((&l.value, depth + 1)),
                 ItemKind::Fn(f) => stack.push((&f.body, depth + 1)),
