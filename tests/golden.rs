@@ -91,6 +91,7 @@ fn specialization_cases_match_their_golden_wgsl() {
             "f64",
         ),
         ("benchmark-1k-trainable-E", trainable.clone(), "f32"),
+        ("field-mu", field_fixture(), "f32"),
     ];
     let mut texts = std::collections::HashMap::new();
     for (name, script, precision) in &cases {
@@ -122,6 +123,51 @@ fn specialization_cases_match_their_golden_wgsl() {
     let tr = &texts["benchmark-1k-trainable-E"];
     assert!(tr.contains("param_E: real, // param.E"), "{tr}");
     assert!(!bench.contains("param_E"));
+    // A per-element param is a storage buffer read at the element, not a launch uniform, and
+    // its adjoint accumulates into a per-element buffer.
+    let field = &texts["field-mu"];
+    assert!(
+        field.contains("var<storage, read> param_mu: array<real>;"),
+        "{field}"
+    );
+    assert!(field.contains("param_mu[e]"), "{field}");
+    assert!(field.contains("var<storage, read_write> grad_param_mu: array<real>;"));
+    assert!(!field.contains("param_mu_0"));
+}
+
+/// The gradient tests' scene with a per-element shear modulus.
+fn field_fixture() -> PathBuf {
+    root().join("runtime/tests/fixtures/grad/field.soft")
+}
+
+/// A per-element param in the kernel IR: the element kernel of the material that reads it
+/// loads `param.mu[self]`, the other material's kernel does not, and the adjoint of the
+/// former adds its derivative into `grad_param.mu[self]`.
+#[test]
+fn per_element_params_are_element_buffers_in_the_ir() {
+    let (code, out, err) = softc(&["compile", "--emit", "ir", field_fixture().to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let mut failures = Vec::new();
+    check_golden(
+        &root().join("tests/golden/ir/cases/field-mu.ir"),
+        &out,
+        "field.soft",
+        &mut failures,
+    );
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert!(out.contains("buffer param.mu: element × 1"), "{out}");
+    assert!(out.contains("buffer grad_param.mu: element × 1"), "{out}");
+    let kernel = |name: &str| {
+        let start = out.find(&format!("kernel {name} over")).unwrap();
+        let rest = &out[start..];
+        rest[..rest[1..].find("\nkernel ").map_or(rest.len(), |e| e + 1)].to_string()
+    };
+    assert!(kernel("fem_graded").contains("= param.mu[self].0"));
+    assert!(!kernel("fem_gel").contains("param.mu"));
+    let adj = kernel("adj_fem_graded");
+    assert!(adj.contains("= param.mu[self].0") && adj.contains("= grad_param.mu[self].0"));
+    assert!(adj.contains("store grad_param.mu[self].0"));
+    assert!(!kernel("adj_fem_gel").contains("grad_param.mu"));
 }
 
 #[test]

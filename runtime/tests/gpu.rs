@@ -477,3 +477,55 @@ fn the_stable_step_estimate_holds_in_f32() {
         "{gpu32} vs {f64_estimate}"
     );
 }
+
+#[test]
+fn per_element_params_on_the_gpu_match_the_cpu() {
+    // The field buffer `param.mu` is an ordinary element buffer of the WGSL module, read by
+    // the element kernel and accumulated per element by its adjoint.
+    use softc::engine::adjoint::GradOptions;
+    let mut scene =
+        Scene::load(&root().join("runtime/tests/fixtures/grad/field.soft"), &[]).unwrap();
+    for (k, v) in scene.uniforms.iter_mut() {
+        if let Some(i) = k.strip_prefix("param.mu.") {
+            *v = 20e3 * (1.0 + 0.5 * (i.parse::<f64>().unwrap() * 0.7).sin());
+        }
+    }
+    let module = &scene.lowered.adjoint.module;
+    let steps = 40;
+    let want = Simulation::new(&scene, Cpu::new(module, Precision::F64, Some(1)).unwrap())
+        .gradient(None, Some(steps), &GradOptions::default())
+        .unwrap();
+    let mu: Vec<(&String, f64)> = want
+        .gradients
+        .iter()
+        .filter(|(k, _)| k.starts_with("param.mu."))
+        .map(|(k, v)| (k, *v))
+        .collect();
+    assert_eq!(mu.len(), scene.fields[0].elements.len());
+    let scale = mu.iter().map(|(_, v)| v.abs()).fold(0.0, f64::max);
+    assert!(scale > 0.0);
+    // Measured on lavapipe: f64 8e-14, f32 2.3e-4 (f32 round-off of the 40-step adjoint).
+    for (precision, tol) in [(Precision::F64, 1e-10), (Precision::F32, 3e-3)] {
+        let Some(g) = gpu(module, precision) else {
+            continue;
+        };
+        let got = Simulation::new(&scene, g)
+            .gradient(None, Some(steps), &GradOptions::default())
+            .unwrap();
+        let loss = want.summary.loss.unwrap();
+        let dl = (got.summary.loss.unwrap() - loss).abs() / loss;
+        assert!(dl < tol, "{precision}: loss {dl:e}");
+        // Relative to the largest entry: small entries are round-off in f32.
+        let mut worst: f64 = 0.0;
+        for (name, d) in &mu {
+            let err = (got.gradients[*name] - d).abs() / scale;
+            worst = worst.max(err);
+            assert!(
+                err < tol,
+                "{precision}: {name}: gpu {:e}, cpu {d:e}",
+                got.gradients[*name]
+            );
+        }
+        eprintln!("{precision}: loss {dl:.1e}, worst entry {worst:.1e} of the largest");
+    }
+}

@@ -276,3 +276,245 @@ fn a_budget_too_small_for_the_schedule_is_a_clear_error() {
     );
     assert!(g.stored_states * g.state_bytes <= 100_000 + g.state_bytes);
 }
+
+/// The field fixture with its loss or its `mu` declaration edited (mesh path made absolute).
+fn field_variant(name: &str, edits: &[(&str, &str)]) -> String {
+    let mut text =
+        std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/field.soft")).unwrap();
+    for (from, to) in edits {
+        assert!(text.contains(from), "field.soft: {from}");
+        text = text.replace(from, to);
+    }
+    let text = text.replace(
+        "\"../../../../meshes/",
+        &format!("\"{}/meshes/", root().display()),
+    );
+    let dir = std::env::temp_dir().join(format!("softc-grad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(format!("{name}.soft"));
+    std::fs::write(&path, text).unwrap();
+    path.display().to_string()
+}
+
+/// Entry indices of `param.mu.*` ordered by decreasing |gradient|.
+fn by_magnitude(g: &GradientReport) -> Vec<(usize, f64)> {
+    let mut v: Vec<(usize, f64)> = g
+        .gradients
+        .iter()
+        .filter_map(|(k, &d)| Some((k.strip_prefix("param.mu.")?.parse().ok()?, d)))
+        .collect();
+    v.sort_by(|a, b| b.1.abs().total_cmp(&a.1.abs()));
+    v
+}
+
+#[test]
+fn per_element_param_matches_central_differences() {
+    // d loss / d mu[e] for single elements of a per-element shear modulus, against central
+    // differences that perturb that element's value alone.
+    let scene = load("runtime/tests/fixtures/grad/field.soft");
+    let field = &scene.fields[0];
+    assert_eq!(field.name, "mu");
+    let n = field.elements.len();
+    assert!(
+        n > 100 && n < scene.mesh.tets.len(),
+        "{n} elements in `near`"
+    );
+    let g = gradient(&scene, 200, &GradOptions::default());
+    // One entry per element of the set, each its own derivative.
+    let entries = by_magnitude(&g);
+    assert_eq!(entries.len(), n);
+    assert!(entries.iter().all(|(_, d)| d.is_finite()));
+    let nonzero = entries.iter().filter(|(_, d)| *d != 0.0).count();
+    assert!(
+        nonzero > n / 2,
+        "only {nonzero} of {n} entries have a gradient"
+    );
+    // The three most influential elements, one of middling influence, and p0.
+    let picks = [entries[0].0, entries[1].0, entries[2].0, entries[n / 4].0];
+    let mut report = Vec::new();
+    for i in picks {
+        let name = format!("param.mu.{i}");
+        let adj = g.gradients[&name];
+        let p = scene.uniforms[&name];
+        let fd = central(&scene, 200, &name, 1e-3 * p);
+        let err = (adj - fd).abs() / fd.abs();
+        report.push(format!(
+            "{name} (element {}): adjoint {adj:e}, central {fd:e}, rel err {err:.1e}",
+            field.elements[i]
+        ));
+        assert!(err < 1e-5, "{}", report.join("\n"));
+    }
+    let adj = g.gradients["param.p0"];
+    let fd = central(&scene, 200, "param.p0", 1e-4 * scene.uniforms["param.p0"]);
+    report.push(format!("param.p0: adjoint {adj:e}, central {fd:e}"));
+    assert!((adj - fd).abs() < 1e-5 * fd.abs(), "{}", report.join("\n"));
+    eprintln!("{}", report.join("\n"));
+}
+
+#[test]
+fn a_per_element_param_with_equal_entries_is_the_scalar_param() {
+    // The same scene with `mu` one scalar param: the forward run is bit-identical (the kernel
+    // reads the same value from a buffer instead of a uniform) and d loss / d mu is the sum of
+    // the per-element derivatives.
+    let field = load("runtime/tests/fixtures/grad/field.soft");
+    let scalar = load(&field_variant(
+        "field-scalar",
+        &[("param mu: pressure[near]", "param mu: pressure")],
+    ));
+    assert!(scalar.fields.is_empty());
+    let gf = gradient(&field, 100, &GradOptions::default());
+    let gs = gradient(&scalar, 100, &GradOptions::default());
+    assert_eq!(
+        gf.summary.loss.unwrap().to_bits(),
+        gs.summary.loss.unwrap().to_bits()
+    );
+    for (a, b) in gf.summary.x.iter().zip(&gs.summary.x) {
+        assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits));
+    }
+    let sum: f64 = by_magnitude(&gf).iter().map(|(_, d)| d).sum();
+    let want = gs.gradients["param.mu"];
+    assert!(
+        (sum - want).abs() < 1e-10 * want.abs(),
+        "sum of entries {sum:e}, scalar {want:e}"
+    );
+    assert_eq!(
+        gf.gradients["param.p0"].to_bits(),
+        gs.gradients["param.p0"].to_bits()
+    );
+}
+
+#[test]
+fn a_loss_reading_field_entries_adds_their_direct_derivative() {
+    // `mu[e]` in the loss: each entry gets 2 (mu - 10 kPa) · (1 um / 1 MPa)^2 on top of its
+    // derivative through the simulation. The entries are made unequal first.
+    let plain = load("runtime/tests/fixtures/grad/field.soft");
+    let mut with = load(&field_variant(
+        "field-regularized",
+        &[(
+            "(x[n].z - x0[n].z)^2 at end",
+            "(x[n].z - x0[n].z)^2 + sum(e in near) ((mu[e] - 10 kPa) / 1 MPa * 1 um)^2 at end",
+        )],
+    ));
+    let mut plain = plain;
+    for scene in [&mut plain, &mut with] {
+        for (i, v) in scene
+            .uniforms
+            .iter_mut()
+            .filter(|(k, _)| k.starts_with("param.mu."))
+            .enumerate()
+        {
+            *v.1 = 20e3 + 100.0 * (i % 7) as f64;
+        }
+    }
+    let a = gradient(&plain, 50, &GradOptions::default());
+    let b = gradient(&with, 50, &GradOptions::default());
+    let mut checked = 0;
+    for (name, &d) in &a.gradients {
+        let Some(_) = name.strip_prefix("param.mu.") else {
+            continue;
+        };
+        let mu = with.uniforms[name];
+        let direct = 2.0 * (mu - 10e3) * (1e-6 / 1e6_f64).powi(2);
+        let got = b.gradients[name] - d;
+        // The difference of two sums is exact up to the round-off of the larger term.
+        assert!(
+            (got - direct).abs() <= 1e-9 * direct.abs() + 1e-15 * d.abs(),
+            "{name}: {got:e} vs {direct:e}"
+        );
+        checked += 1;
+    }
+    assert_eq!(checked, plain.fields[0].elements.len());
+    let extra: f64 = (0..checked)
+        .map(|i| ((with.uniforms[&format!("param.mu.{i}")] - 10e3) / 1e6 * 1e-6).powi(2))
+        .sum();
+    let (la, lb) = (a.summary.loss.unwrap(), b.summary.loss.unwrap());
+    assert!(
+        ((lb - la) - extra).abs() <= 1e-9 * extra,
+        "{la:e} {lb:e} {extra:e}"
+    );
+}
+
+#[test]
+fn per_element_gradients_are_bit_identical_across_backends_and_schedules() {
+    let scene = load("runtime/tests/fixtures/grad/field.soft");
+    let cpu = gradient(&scene, 30, &GradOptions::default());
+    let mut sim = Simulation::new(&scene, Interpreter::new(&scene.lowered.adjoint.module));
+    let interp = sim
+        .gradient(None, Some(30), &GradOptions::default())
+        .unwrap();
+    let two = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(2)).unwrap();
+    let threaded = Simulation::new(&scene, two)
+        .gradient(None, Some(30), &GradOptions::default())
+        .unwrap();
+    let revolve = gradient(
+        &scene,
+        30,
+        &GradOptions {
+            checkpoint: Checkpointing::Revolve(3),
+            ..GradOptions::default()
+        },
+    );
+    assert!(cpu.gradients.len() > 100);
+    for (name, g) in &cpu.gradients {
+        for (other, what) in [
+            (&interp, "interp"),
+            (&threaded, "2 threads"),
+            (&revolve, "revolve"),
+        ] {
+            assert_eq!(
+                other.gradients[name].to_bits(),
+                g.to_bits(),
+                "{what}: {name}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_material_with_a_field_outside_its_set_is_refused() {
+    let path = field_variant(
+        "field-everywhere",
+        &[("  use gel\n  use graded in near\n", "  use graded\n")],
+    );
+    let e = Scene::load(Path::new(&path), &[]).unwrap_err();
+    assert!(
+        e.0.contains("material `graded` takes `mu` per element of `near`")
+            && e.0.contains("use graded in near"),
+        "{}",
+        e.0
+    );
+}
+
+#[test]
+fn a_field_entry_inside_the_simulation_is_a_clear_error() {
+    // `mu[e]` needs the set's elements, known only once the mesh is loaded: the loss has them,
+    // the simulation's kernels (compiled before) do not.
+    let path = field_variant(
+        "field-in-pressure",
+        &[(
+            "p0 * ramp(t, 1 ms)",
+            "p0 * ramp(t, 1 ms) * mean(e in near) mu[e] / 20 kPa",
+        )],
+    );
+    let e = Scene::load(Path::new(&path), &[]).unwrap_err();
+    assert!(
+        e.0.contains("a reduction over the element set `near` is evaluated only in the loss"),
+        "{}",
+        e.0
+    );
+}
+
+#[test]
+fn set_broadcasts_to_every_entry_of_a_field() {
+    let path = root().join("runtime/tests/fixtures/grad/field.soft");
+    let scene = Scene::load(&path, &[("mu".to_string(), 35e3)]).unwrap();
+    let n = scene.fields[0].elements.len();
+    assert_eq!(
+        scene
+            .uniforms
+            .iter()
+            .filter(|(k, v)| k.starts_with("param.mu.") && **v == 35e3)
+            .count(),
+        n
+    );
+}

@@ -6,10 +6,16 @@
 //! bindings, then through the script's and the prelude's declarations; params and inputs
 //! become uniforms of the kernel (`param.NAME[.i]`, `input.NAME[.i]`), `t` becomes the
 //! uniform `t`.
+//!
+//! A per-element param (`param mu: pressure[soft_part]`, a *field*) has two forms: passed whole
+//! (a material constant), it is an `Own` read of the element buffer `param.NAME` — available
+//! only where the caller provides that buffer ([`ExprLowerer::element_fields`], the element
+//! force kernels); indexed by an element of a reduction over an element set (`mu[e]` in a loss
+//! or let), it is the uniform `param.NAME.i`, `i` the element's position in the field's set.
 
 use super::LowerError;
 use crate::front::ast::*;
-use crate::ir::{BinOp, CmpOp, KernelBuilder, UnOp, V};
+use crate::ir::{ArgSource, BinOp, BufferId, CmpOp, KernelBuilder, UnOp, V};
 use crate::sema::units;
 use std::collections::HashMap;
 
@@ -79,8 +85,16 @@ pub struct ExprLowerer<'p, 'a> {
     pub constants: HashMap<String, f64>,
     /// Node sets by name (for reductions over nodes in losses): node indices.
     pub node_sets: HashMap<String, Vec<u32>>,
+    /// Element sets by name (for reductions over elements, `mu[e]`): element indices of the
+    /// mesh, in the set's order.
+    pub element_sets: HashMap<String, Vec<u32>>,
+    /// Per-element params readable whole in this kernel (an element kernel): the buffer of
+    /// each, by param name.
+    pub element_fields: HashMap<String, BufferId>,
     /// Reduction variables currently bound to a node.
     node_binders: HashMap<String, u32>,
+    /// Reduction variables currently bound to an element (a mesh element index).
+    element_binders: HashMap<String, u32>,
     depth: usize,
 }
 
@@ -90,7 +104,10 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             program,
             constants: HashMap::new(),
             node_sets: HashMap::new(),
+            element_sets: HashMap::new(),
+            element_fields: HashMap::new(),
             node_binders: HashMap::new(),
+            element_binders: HashMap::new(),
             depth: 0,
         }
     }
@@ -182,6 +199,37 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                             .collect(),
                     ));
                 }
+                // A field at an element bound by a reduction: `param.NAME.i`.
+                if let (ExprKind::Name(b), [index]) = (&base.kind, indices.as_slice())
+                    && !env.contains_key(&b.name)
+                    && let Some(set) = self.program.find(&b.name).and_then(field_set)
+                {
+                    let ExprKind::Name(ev) = &index.kind else {
+                        return Err(LowerError::new(format!(
+                            "the per-element param `{}` is indexed by an element of a reduction",
+                            b.name
+                        )));
+                    };
+                    let element = *self.element_binders.get(&ev.name).ok_or_else(|| {
+                        LowerError::new(format!(
+                            "`{}` is not an element bound by a reduction over an element set",
+                            ev.name
+                        ))
+                    })?;
+                    let members = self.element_sets.get(&set.name).ok_or_else(|| {
+                        LowerError::new(format!(
+                            "the element set `{}` has no elements here",
+                            set.name
+                        ))
+                    })?;
+                    let i = members.iter().position(|&m| m == element).ok_or_else(|| {
+                        LowerError::new(format!(
+                            "element {element} is not in `{}`, the set of the per-element param `{}`",
+                            set.name, b.name
+                        ))
+                    })?;
+                    return Ok(LVal::S(k.uniform(&format!("param.{}.{i}", b.name))));
+                }
                 let mut v = self.lower(k, env, base)?;
                 for ie in indices {
                     let i = self.lower(k, env, ie)?.scalar()?;
@@ -230,10 +278,18 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         match &item.kind {
             ItemKind::Let(l) => self.inline(k, &Env::new(), &l.value),
             ItemKind::Param(p) => {
-                if p.ty.shape.iter().any(|s| matches!(s, ShapeItem::Set(_))) {
-                    return Err(LowerError::new(format!(
-                        "the per-element param `{name}` is not supported by the kernel lowering yet"
-                    )));
+                if field_set(item).is_some() {
+                    let buffer = self.element_fields.get(name).ok_or_else(|| {
+                        LowerError::new(format!(
+                            "the per-element param `{name}` has a value only in an element's \
+                             material (a material constant) or at an element bound by a \
+                             reduction over its set (`{name}[e]`)"
+                        ))
+                    })?;
+                    return Ok(LVal::S(k.load(ArgSource::Own {
+                        buffer: *buffer,
+                        component: 0,
+                    })));
                 }
                 Ok(uniforms(k, &format!("param.{name}"), &p.ty))
             }
@@ -307,6 +363,16 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
     ) -> Result<LVal, LowerError> {
         let mut terms = Vec::new();
         if let ExprKind::Name(set) = &domain.kind
+            && let Some(elements) = self.element_sets.get(&set.name).cloned()
+        {
+            // Over the elements of a set, in the set's order.
+            for element in elements {
+                self.element_binders.insert(var.name.clone(), element);
+                let t = self.lower(k, env, body);
+                self.element_binders.remove(&var.name);
+                terms.push(t?);
+            }
+        } else if let ExprKind::Name(set) = &domain.kind
             && let Some(nodes) = self.node_sets.get(&set.name).cloned()
         {
             // Over the nodes of a set, in index order (a fixed order: reproducible sums).
@@ -323,6 +389,24 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 rhs,
             } = &domain.kind
             else {
+                if let ExprKind::Name(set) = &domain.kind
+                    && let Some(Item {
+                        kind:
+                            ItemKind::Decl {
+                                kind: kind @ (DeclKind::Nodes | DeclKind::Elements),
+                                ..
+                            },
+                        ..
+                    }) = self.program.find(&set.name)
+                {
+                    return Err(LowerError::new(format!(
+                        "a reduction over the {} `{}` is evaluated only in the loss (and the \
+                         lets it uses): the simulation's kernels are compiled before the mesh \
+                         says which entities the set holds",
+                        kind.noun(),
+                        set.name
+                    )));
+                }
                 return Err(LowerError::new(format!(
                     "the reduction's domain `{}` is not a known node set or range",
                     crate::fmt::expr(domain)
@@ -495,6 +579,17 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
 }
 
 type BinOp_ = crate::front::ast::BinOp;
+
+/// The element set of a per-element param (a field), `None` for any other item.
+pub fn field_set(item: &Item) -> Option<&Ident> {
+    let ItemKind::Param(p) = &item.kind else {
+        return None;
+    };
+    p.ty.shape.iter().find_map(|s| match s {
+        ShapeItem::Set(id) => Some(id),
+        _ => None,
+    })
+}
 
 fn unit_factor(u: &Unit) -> Result<f64, LowerError> {
     let mut f = 1.0;

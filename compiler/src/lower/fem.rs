@@ -13,11 +13,97 @@
 //! node 0 takes minus their sum. Terms of W that a material does not have (no Ī2 in Yeoh) are
 //! not generated. A W written in I1 = tr C and J (an inversion-safe law such as the prelude's
 //! stable neo-Hookean) gets P = W_I1·2F + W_J·cof F: no J^(−2/3), no F⁻ᵀ, finite for J ≤ 0.
+//!
+//! A material constant given by a per-element param (`neo_hookean(mu: mu, …)` with `param mu:
+//! pressure[soft_part]`) is read per element from the buffer `param.mu` (element × 1, kernel
+//! element order), declared here for the fields the material reads ([`material_fields`]).
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, LVal, Program};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, BufferId, Builder, Domain, KernelBuilder, Module, V, ad};
+use std::collections::HashMap;
+
+/// Per-element params readable in an element kernel: the buffer of each, by param name.
+pub type Fields = HashMap<String, BufferId>;
+
+/// Declare the element buffer `param.NAME` of every per-element param a material reads, and
+/// return them for [`ExprLowerer::element_fields`].
+pub fn declare_fields(
+    program: &Program,
+    module: &mut Module,
+    material: &str,
+) -> Result<Fields, LowerError> {
+    Ok(material_fields(program, material)?
+        .into_iter()
+        .map(|f| {
+            let b = module.buffer(
+                &format!("param.{f}"),
+                Domain::Element,
+                1,
+                &format!("per-element param {f} (SI), one value per element"),
+            );
+            (f, b)
+        })
+        .collect())
+}
+
+/// The per-element params (fields) a material's constants read, by name, in the order they
+/// appear: names in its template arguments (or its body), through `let`s and `fn`s.
+pub fn material_fields(program: &Program, material: &str) -> Result<Vec<String>, LowerError> {
+    let item = program
+        .find(material)
+        .ok_or_else(|| LowerError::new(format!("unknown material `{material}`")))?;
+    let ItemKind::Material(m) = &item.kind else {
+        return Err(LowerError::new(format!("`{material}` is not a material")));
+    };
+    let mut found = Vec::new();
+    let mut stack: Vec<(&Expr, usize)> = Vec::new();
+    match &m.body {
+        MaterialBody::Expr(e) => stack.push((e, 0)),
+        MaterialBody::Block(stmts) => {
+            for s in stmts {
+                match &s.kind {
+                    StmtKind::Let(l) => stack.push((&l.value, 0)),
+                    StmtKind::Assign { value, .. } => stack.push((value, 0)),
+                    StmtKind::Energy { body, .. } => stack.push((body, 0)),
+                    _ => {}
+                }
+            }
+        }
+    }
+    while let Some((e, depth)) = stack.pop() {
+        if depth > 64 {
+            return Err(LowerError::new("definitions nested too deeply"));
+        }
+        // Names (callees included: they are children of their call).
+        if let ExprKind::Name(id) = &e.kind
+            && let Some(item) = program.find(&id.name)
+        {
+            match &item.kind {
+                ItemKind::Param(p)
+                    if super::expr::field_set(item).is_some() && !found.contains(&p.name.name) =>
+                {
+                    found.push(p.name.name.clone());
+                }
+                ItemKind::Let(l) => stack.push((&l.value, depth + 1)),
+                ItemKind::Fn(f) => stack.push((&f.body, depth + 1)),
+                _ => {}
+            }
+        }
+        e.for_each_child(|c| stack.push((c, depth)));
+    }
+    Ok(found)
+}
+
+/// Stand-ins for the field buffers of a material whose constants are evaluated outside an
+/// element kernel (its density, the form of its W): the reads they give are never run.
+fn placeholder_fields(program: &Program, material: &str) -> Result<Fields, LowerError> {
+    Ok(material_fields(program, material)?
+        .into_iter()
+        .map(|f| (f, BufferId(u32::MAX)))
+        .collect())
+}
 
 /// The buffers the element force kernel uses.
 pub struct FemBuffers {
@@ -65,6 +151,7 @@ pub fn element_force_kernel(
     material: &str,
 ) -> Result<crate::ir::Kernel, LowerError> {
     let bufs = FemBuffers::declare(module);
+    let fields = declare_fields(program, module, material)?;
     let mut k = KernelBuilder::new(
         &format!("fem_{material}"),
         Domain::Element,
@@ -96,7 +183,7 @@ pub fn element_force_kernel(
     // Ds[r][c] = x_{c+1}[r] − x_0[r]
     let ds: [[V; 3]; 3] = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k.b.sub(xs[c + 1][r], xs[0][r])));
     let f = matmul(&mut k.b, &ds, &dmi);
-    let (w, p, j) = energy_and_stress(program, &mut k, material, &f)?;
+    let (w, p, j) = energy_and_stress(program, &mut k, material, &f, &fields)?;
     // H = −V0 · P · Dm⁻ᵀ: H[r][c] = −V0 Σ_k P[r][k] Dm⁻¹[c][k]
     let nv0 = k.b.neg(vol0);
     let mut h = [[V(0); 3]; 3];
@@ -143,6 +230,7 @@ fn energy_and_stress(
     k: &mut KernelBuilder,
     material: &str,
     f: &[[V; 3]; 3],
+    fields: &Fields,
 ) -> Result<(V, [[V; 3]; 3], V), LowerError> {
     let b = &mut k.b;
     // Cofactor matrix: cof[r][c] = (F_{r+1,c+1} F_{r+2,c+2} − F_{r+1,c+2} F_{r+2,c+1}).
@@ -201,6 +289,7 @@ fn energy_and_stress(
             i2b: inv[1],
             j: inv[2],
         },
+        fields,
     )?;
     let (sub_args, func) = sub.into_parts();
     let (mut func, g) = ad::gradient(func, w, &inv);
@@ -264,22 +353,26 @@ pub struct Invariants {
 /// the J^(−2/3) factors, so it stays finite through inversion.
 pub fn material_is_isochoric(program: &Program, material: &str) -> Result<bool, LowerError> {
     let mut k = KernelBuilder::new("W", Domain::Single, material);
-    let (stmts, _) = material_body(program, &mut k, material)?;
+    let fields = placeholder_fields(program, material)?;
+    let (stmts, _) = material_body(program, &mut k, material, &fields)?;
     Ok(!stmts.iter().any(|s| match &s.kind {
         StmtKind::Energy { args, .. } => args.iter().any(|a| a.name == "I1"),
         _ => false,
     }))
 }
 
-/// Lower a material's strain energy at the given invariants.
+/// Lower a material's strain energy at the given invariants; `fields` are the buffers of the
+/// per-element params it reads ([`declare_fields`]).
 pub fn material_energy(
     program: &Program,
     k: &mut KernelBuilder,
     material: &str,
     inv: Invariants,
+    fields: &Fields,
 ) -> Result<V, LowerError> {
-    let (stmts, env) = material_body(program, k, material)?;
+    let (stmts, env) = material_body(program, k, material, fields)?;
     let mut lw = ExprLowerer::new(program);
+    lw.element_fields = fields.clone();
     let mut env = env;
     for s in stmts {
         match &s.kind {
@@ -310,8 +403,10 @@ pub fn material_energy(
 /// A material's density in kg/m³ (a constant).
 pub fn material_density(program: &Program, material: &str) -> Result<f64, LowerError> {
     let mut k = KernelBuilder::new("density", Domain::Single, material);
-    let (stmts, mut env) = material_body(program, &mut k, material)?;
+    let fields = placeholder_fields(program, material)?;
+    let (stmts, mut env) = material_body(program, &mut k, material, &fields)?;
     let mut lw = ExprLowerer::new(program);
+    lw.element_fields = fields;
     for s in stmts {
         match &s.kind {
             StmtKind::Let(l) => {
@@ -337,6 +432,7 @@ fn material_body<'a>(
     program: &Program<'a>,
     k: &mut KernelBuilder,
     material: &str,
+    fields: &Fields,
 ) -> Result<(&'a [Stmt], Env), LowerError> {
     let item = program
         .find(material)
@@ -377,6 +473,7 @@ fn material_body<'a>(
                 .map(|p| (p.name.name.as_str(), p.default.as_ref()))
                 .collect();
             let mut lw = ExprLowerer::new(program);
+            lw.element_fields = fields.clone();
             let env = lw.bind(k, &Env::new(), &ps, args)?;
             Ok((stmts, env))
         }

@@ -5,7 +5,7 @@
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, Program};
-use super::fem::{FemBuffers, element_force_kernel, material_is_isochoric};
+use super::fem::{FemBuffers, element_force_kernel, material_fields, material_is_isochoric};
 use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, CmpOp, Domain, KernelBuilder, Module, V};
@@ -28,6 +28,10 @@ pub struct SceneModule {
     /// material whose W is written in I1 and J, evaluated without isochoric factors); the
     /// runtime then stops only on non-finite values, not at J <= 0.
     pub inversion_safe: Vec<bool>,
+    /// Per material (kernel order): the per-element params (fields) its constants read, each
+    /// from the element buffer `param.NAME`. The runtime applies such a material only to
+    /// elements of the field's set.
+    pub material_fields: Vec<Vec<String>>,
 }
 
 /// Lower the scene described by a checked script.
@@ -55,6 +59,19 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
                     "{what} is not implemented yet; use `integrator = semi_implicit_euler`"
                 )));
             }
+        }
+    }
+    // Per-element params: one value per element of one set.
+    for item in &script.items {
+        if let ItemKind::Param(p) = &item.kind
+            && let Some(set) = super::expr::field_set(item)
+            && p.ty.shape.len() != 1
+        {
+            return Err(LowerError::new(format!(
+                "the per-element param `{}` has more than one axis; a per-element param has \
+                 exactly one, its element set (`{}[{}]`), and one scalar value per element",
+                p.name.name, p.name.name, set.name
+            )));
         }
     }
     let mut module = Module::default();
@@ -87,7 +104,9 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         ForceModel::Springs { .. } => SpringBuffers::declare(&mut module).x,
     };
     let mut inversion_safe = Vec::new();
+    let mut fields_of = Vec::new();
     for m in &materials {
+        fields_of.push(material_fields(program, m)?);
         let k = match model {
             ForceModel::Fem => element_force_kernel(program, &mut module, m)?,
             ForceModel::Springs { volume_stiffness } => {
@@ -137,6 +156,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         adjoint,
         springs: !matches!(model, ForceModel::Fem),
         inversion_safe,
+        material_fields: fields_of,
     })
 }
 

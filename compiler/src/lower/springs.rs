@@ -20,7 +20,7 @@
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, Program};
-use super::fem::{Invariants, material_energy};
+use super::fem::{Invariants, declare_fields, material_energy};
 use crate::front::ast::Expr;
 use crate::ir::{ArgSource, BufferId, Domain, KernelBuilder, Module, V, ad};
 
@@ -69,6 +69,7 @@ pub fn spring_force_kernel(
     alpha: &Expr,
 ) -> Result<crate::ir::Kernel, LowerError> {
     let bufs = SpringBuffers::declare(module);
+    let fields = declare_fields(program, module, material)?;
     let l0_buf = bufs.edge_l0;
     let mut k = KernelBuilder::new(
         &format!("springs_{material}"),
@@ -101,6 +102,7 @@ pub fn spring_force_kernel(
             i2b,
             j: one,
         },
+        &fields,
     )?;
     let (sub_args, func) = sub.into_parts();
     let (func, dw) = ad::gradient(func, w, &[lam]);

@@ -14,6 +14,7 @@
 //! | `Corner` `B[node k]` | partial `adj_B@G[self][k]` | `Gather` over this domain (CSR) |
 //! | `Gather` of `B` (node kernel) | `adjg_B@G[node]` | `Corner` in B's domain |
 //! | `Uniform` `param.*` | `grad@G[self] += …` | the host, summed in entity order |
+//! | `Own` `param.F[self]` (a per-element param) | `grad_param.F[self] += …` | the host, per entity |
 //!
 //! (`G` names the group of forward kernels that write the same buffer over disjoint entity
 //! ranges, e.g. one element kernel per material: they share partial buffers.) Finally one node
@@ -39,6 +40,9 @@ pub struct Adjoint {
     pub state: Vec<AdjointState>,
     /// Where the partial derivatives with respect to each param uniform accumulate.
     pub params: Vec<ParamGradient>,
+    /// Per-element params (buffers `param.NAME` the step reads but never writes): where the
+    /// derivative with respect to each entity's value accumulates.
+    pub fields: Vec<FieldGradient>,
     /// Whether the reverse kernels read buffers the forward kernels compute within a step
     /// (then the forward kernels run again at that step's state first).
     pub needs_forward: bool,
@@ -69,6 +73,18 @@ pub struct ParamGradient {
     pub uniform: String,
     pub buffer: BufferId,
     pub component: u32,
+}
+
+/// `buffer[entity]` summed over steps is ∂L/∂(the param's value at that entity): no sum over
+/// entities, each one is its own parameter.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FieldGradient {
+    /// The param's name (`mu` for the buffer `param.mu`).
+    pub param: String,
+    /// The forward buffer of its values.
+    pub values: BufferId,
+    /// The accumulator, same domain and width.
+    pub buffer: BufferId,
 }
 
 /// How the adjoint of a buffer's value at one entity is read: the sum of every contribution.
@@ -150,6 +166,13 @@ pub fn adjoint(
     let active = |b: BufferId| states.iter().any(|s| s.next == b) || read.contains(&b);
     let differentiable =
         |b: BufferId| state_in.contains(&b) || (written.contains(&b) && !is_next(&states, b));
+    let field_param = |m: &Module, b: BufferId| {
+        m.buffers[b.0 as usize]
+            .name
+            .strip_prefix("param.")
+            .filter(|_| !written.contains(&b))
+            .map(str::to_string)
+    };
 
     // Groups: kernels writing the same (first active) buffer run over disjoint entities.
     let group_of = |k: &Kernel| -> String {
@@ -175,6 +198,7 @@ pub fn adjoint(
     let mut contributions: BTreeMap<BufferId, Vec<Contribution>> = BTreeMap::new();
     let mut reverse = Vec::new();
     let mut params = Vec::new();
+    let mut fields: Vec<FieldGradient> = Vec::new();
     for (ki, k) in module.kernels.iter().enumerate().rev() {
         let active_stores: Vec<_> = k.stores.iter().filter(|s| active(s.buffer)).collect();
         if active_stores.is_empty() {
@@ -261,6 +285,47 @@ pub fn adjoint(
                     );
                     kb.store(p, *component, g);
                 }
+                ArgSource::Own { buffer, component } if field_param(&m, *buffer).is_some() => {
+                    let param = field_param(&m, *buffer).expect("checked");
+                    let (domain, width) = {
+                        let b = &m.buffers[buffer.0 as usize];
+                        (b.domain, b.width)
+                    };
+                    if domain != k.domain {
+                        return Err(format!(
+                            "kernel `{}` reads the per-element param `{param}` outside its domain",
+                            k.name
+                        ));
+                    }
+                    let acc = m.buffer(
+                        &format!("grad_param.{param}"),
+                        domain,
+                        width,
+                        &format!("∂L/∂{param} summed over steps, per entity"),
+                    );
+                    if !fields.iter().any(|f| f.buffer == acc) {
+                        fields.push(FieldGradient {
+                            param,
+                            values: *buffer,
+                            buffer: acc,
+                        });
+                    }
+                    let before = kb.load(ArgSource::Own {
+                        buffer: acc,
+                        component: *component,
+                    });
+                    let sum = kb.b.add(before, g);
+                    kb.store(acc, *component, sum);
+                }
+                ArgSource::Corner { buffer, .. } | ArgSource::Gather { buffer, .. }
+                    if field_param(&m, *buffer).is_some() =>
+                {
+                    return Err(format!(
+                        "kernel `{}` reads the per-element buffer `{}` at another entity; its \
+                         adjoint is not defined",
+                        k.name, m.buffers[buffer.0 as usize].name
+                    ));
+                }
                 ArgSource::Uniform(u) if u.starts_with("param.") => {
                     let names = &group_params[&group];
                     let c = names.iter().position(|n| n == u).expect("collected") as u32;
@@ -341,6 +406,7 @@ pub fn adjoint(
         reverse,
         state: states,
         params,
+        fields,
         needs_forward,
     })
 }

@@ -7,6 +7,8 @@
 //! (after the swap), to which the loss's own derivative at state k is added for windowed
 //! losses. Param derivatives accumulate per entity in the `grad@…` buffers and are summed on
 //! the host in entity order, so the result is deterministic and the same for every schedule.
+//! A per-element param's derivatives accumulate in `grad_param.NAME`, one entry per element,
+//! which is reported as is: `param.NAME.i` for the set's `i`-th element.
 
 use super::checkpoint::{Action, Schedule};
 use super::loss::{Loss, LossWindow};
@@ -183,6 +185,7 @@ impl<B: Backend> Simulation<'_, B> {
         options: &GradOptions,
     ) -> Result<GradientReport, RunError> {
         let start = std::time::Instant::now();
+        self.upload_fields();
         let (dt, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
         self.uniforms.0.insert("dt".into(), dt);
@@ -231,6 +234,7 @@ impl<B: Backend> Simulation<'_, B> {
         }
         let grad_buffers: Vec<_> = {
             let mut b: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
+            b.extend(adj.fields.iter().map(|f| f.buffer));
             b.sort();
             b.dedup();
             b
@@ -361,6 +365,23 @@ impl<B: Backend> Simulation<'_, B> {
                 .or_insert_with(|| self.backend.get(p.buffer));
             let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
             *gradients.entry(p.uniform.clone()).or_insert(0.0) += sum;
+        }
+        // Per-element params: each element's accumulator is the derivative of its entry.
+        for f in &adj.fields {
+            let data = self.backend.get(f.buffer);
+            let field = self
+                .scene
+                .fields
+                .iter()
+                .find(|s| s.name == f.param)
+                .ok_or_else(|| {
+                    RunError(format!("the scene has no per-element param `{}`", f.param))
+                })?;
+            for (i, &e) in field.elements.iter().enumerate() {
+                *gradients
+                    .entry(format!("param.{}.{i}", f.param))
+                    .or_insert(0.0) += data[e as usize];
+            }
         }
         for (name, d) in direct {
             *gradients.entry(name).or_insert(0.0) += d;

@@ -42,6 +42,11 @@ impl Loss {
         lw.constants.insert("t_end".into(), t_end);
         lw.constants.insert("dt".into(), dt);
         lw.node_sets = scene.node_sets.iter().cloned().collect::<HashMap<_, _>>();
+        lw.element_sets = scene
+            .element_sets
+            .iter()
+            .cloned()
+            .collect::<HashMap<_, _>>();
         let mut k = KernelBuilder::new("loss", Domain::Single, "loss");
         let v = lw
             .lower(&mut k, &Env::new(), &decl.value)

@@ -408,13 +408,34 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let mut uniforms = Uniforms(scene.uniforms.clone());
         uniforms.0.insert("t".into(), 0.0);
         uniforms.0.insert("dt".into(), 0.0);
-        Simulation {
+        let mut sim = Simulation {
             scene,
             backend,
             uniforms,
             vtk: None,
             estimate: None,
             ids,
+        };
+        sim.upload_fields();
+        sim
+    }
+
+    /// Copy the per-element params' values from [`Simulation::uniforms`] (`param.NAME.i`, the
+    /// set's `i`-th element) into their element buffers `param.NAME`, in kernel element order.
+    /// Elements outside the set get NaN: no kernel reads them there (a material reading a field
+    /// is applied only within its set). `run` and `gradient` call this first, so a changed
+    /// uniform takes effect in the next run.
+    pub fn upload_fields(&mut self) {
+        let m = &self.scene.lowered.module;
+        for f in &self.scene.fields {
+            let Some(b) = m.buffer_named(&format!("param.{}", f.name)) else {
+                continue;
+            };
+            let mut data = vec![f64::NAN; self.scene.mesh.tets.len()];
+            for (i, &e) in f.elements.iter().enumerate() {
+                data[e as usize] = self.uniforms.get(&format!("param.{}.{i}", f.name));
+            }
+            self.backend.set(b, &data);
         }
     }
 
@@ -611,6 +632,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         steps_override: Option<u64>,
     ) -> Result<RunSummary, RunError> {
         let start = std::time::Instant::now();
+        self.upload_fields();
         let (dt, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
         self.uniforms.0.insert("dt".into(), dt);

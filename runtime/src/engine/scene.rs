@@ -63,6 +63,19 @@ impl Csr {
     }
 }
 
+/// A per-element param (`param mu: pressure[soft_part]`): entry `i` is the uniform
+/// `param.NAME.i` (in [`Scene::uniforms`] and the gradients), the value at the set's `i`-th
+/// element; the kernels read it from the element buffer `param.NAME`.
+#[derive(Debug, Clone)]
+pub struct FieldParam {
+    pub name: String,
+    /// The element set.
+    pub set: String,
+    /// The position in the kernels' element order (the mesh grouped by material) of each
+    /// entry's element.
+    pub elements: Vec<u32>,
+}
+
 /// How the time step was chosen.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum DtChoice {
@@ -92,6 +105,11 @@ pub struct Scene {
     pub fixed: Vec<bool>,
     /// Every declared node set with its nodes (for outputs).
     pub node_sets: Vec<(String, Vec<u32>)>,
+    /// Every declared element set with its elements, as indices of the mesh file's element
+    /// order (before the grouping by material), in the set's order.
+    pub element_sets: Vec<(String, Vec<u32>)>,
+    /// The per-element params: where each entry's element is in the kernels' element order.
+    pub fields: Vec<FieldParam>,
     pub dt: DtChoice,
     pub steps: Option<u64>,
     pub duration: Option<f64>,
@@ -132,7 +150,18 @@ impl Scene {
         let ast = softc_compiler::front::parse(&source)
             .map_err(|d| SceneError(SourceFile::new(&name, &source).render(&d)))?;
         let checked_script = checked.script.unwrap_or_default();
-        let (mesh, lowered, material_of, chamber_tris, fixed, node_sets, uniforms, dt, steps) = {
+        let (
+            mesh,
+            lowered,
+            material_of,
+            chamber_tris,
+            fixed,
+            node_sets,
+            element_sets,
+            uniforms,
+            dt,
+            steps,
+        ) = {
             let program = Program::new(&ast, softc_compiler::sema::prelude_ast());
             let lowered =
                 lower_scene(&program, &ast).map_err(|e| SceneError(format!("{name}: {e}")))?;
@@ -141,7 +170,9 @@ impl Scene {
             let chamber_tris = chambers(&program, &ast, &mesh, &lowered)?;
             let fixed = fixed_nodes(&program, &ast, &mesh)?;
             let node_sets = all_node_sets(&program, &ast, &mesh)?;
-            let uniforms = uniform_values(&program, &ast, &checked_script, overrides)?;
+            let element_sets = all_element_sets(&program, &ast, &mesh)?;
+            let uniforms =
+                uniform_values(&program, &ast, &checked_script, &element_sets, overrides)?;
             let (dt, steps) = time_settings(&program, &ast)?;
             (
                 mesh,
@@ -150,11 +181,13 @@ impl Scene {
                 chamber_tris,
                 fixed,
                 node_sets,
+                element_sets,
                 uniforms,
                 dt,
                 steps,
             )
         };
+        let fields = fields(&ast, &lowered, &mesh, &material_of, &element_sets)?;
         // Group elements by material (stable), so each element kernel runs over a range.
         let mut order: Vec<usize> = (0..mesh.tets.len()).collect();
         order.sort_by_key(|&e| material_of[e]);
@@ -162,6 +195,18 @@ impl Scene {
         mesh.tets = order.iter().map(|&e| mesh.tets[e]).collect();
         mesh.tet_tags = order.iter().map(|&e| mesh.tet_tags[e]).collect();
         let sorted_mat: Vec<usize> = order.iter().map(|&e| material_of[e]).collect();
+        // The fields' elements in kernel order.
+        let mut position = vec![0u32; order.len()];
+        for (new, &old) in order.iter().enumerate() {
+            position[old] = new as u32;
+        }
+        let fields: Vec<FieldParam> = fields
+            .into_iter()
+            .map(|f| FieldParam {
+                elements: f.elements.iter().map(|&e| position[e as usize]).collect(),
+                ..f
+            })
+            .collect();
         let material_ranges: Vec<Range<usize>> = (0..lowered.materials.len())
             .map(|m| {
                 let start = sorted_mat.partition_point(|&x| x < m);
@@ -205,6 +250,8 @@ impl Scene {
             node_tris,
             fixed,
             node_sets,
+            element_sets,
+            fields,
             dt,
             steps,
             duration,
@@ -657,21 +704,126 @@ fn all_node_sets(
         .collect()
 }
 
+fn all_element_sets(
+    program: &Program,
+    ast: &Script,
+    mesh: &Mesh,
+) -> Result<Vec<(String, Vec<u32>)>, SceneError> {
+    ast.items
+        .iter()
+        .filter_map(|i| match &i.kind {
+            ItemKind::Decl {
+                kind: DeclKind::Elements,
+                name,
+                value,
+            } => Some((name, value)),
+            _ => None,
+        })
+        .map(|(name, value)| {
+            let mut seen = vec![false; mesh.tets.len()];
+            let elements = selection(program, ast, mesh, value, true)?
+                .into_iter()
+                .filter(|&e| !std::mem::replace(&mut seen[e as usize], true))
+                .collect();
+            Ok((name.name.clone(), elements))
+        })
+        .collect()
+}
+
+/// The per-element params with their elements (mesh-file indices, the set's order), after
+/// checking that every material reading one is applied only to elements of its set.
+fn fields(
+    ast: &Script,
+    lowered: &SceneModule,
+    mesh: &Mesh,
+    material_of: &[usize],
+    element_sets: &[(String, Vec<u32>)],
+) -> Result<Vec<FieldParam>, SceneError> {
+    let mut out = Vec::new();
+    for item in &ast.items {
+        let ItemKind::Param(p) = &item.kind else {
+            continue;
+        };
+        let Some(set) = softc_compiler::lower::expr::field_set(item) else {
+            continue;
+        };
+        let elements = element_sets
+            .iter()
+            .find(|(n, _)| *n == set.name)
+            .map(|(_, e)| e.clone())
+            .ok_or_else(|| SceneError(format!("unknown element set `{}`", set.name)))?;
+        let mut member = vec![false; mesh.tets.len()];
+        for &e in &elements {
+            member[e as usize] = true;
+        }
+        for (m, reads) in lowered.material_fields.iter().enumerate() {
+            if !reads.contains(&p.name.name) {
+                continue;
+            }
+            if let Some(e) = (0..mesh.tets.len()).find(|&e| material_of[e] == m && !member[e]) {
+                let material = &lowered.materials[m];
+                return err(format!(
+                    "material `{material}` takes `{}` per element of `{}`, but it is applied to \
+                     element {e}, which is not in `{}`: apply `{material}` only there (`use \
+                     {material} in {}`, after a `use` of another material for the rest of the \
+                     mesh)",
+                    p.name.name, set.name, set.name, set.name
+                ));
+            }
+        }
+        out.push(FieldParam {
+            name: p.name.name.clone(),
+            set: set.name.clone(),
+            elements,
+        });
+    }
+    Ok(out)
+}
+
 /// `param.NAME[.i…]` and `input.NAME[.i…]` values: initial values (or `--set` overrides) and
-/// the first scene of each input batch.
+/// the first scene of each input batch. A per-element param has one entry per element of its
+/// set, `param.NAME.i`, all starting at its (scalar) initial value.
 fn uniform_values(
     program: &Program,
     ast: &Script,
     checked: &softc_compiler::sema::CheckedScript,
+    element_sets: &[(String, Vec<u32>)],
     overrides: &[(String, f64)],
 ) -> Result<BTreeMap<String, f64>, SceneError> {
+    use softc_compiler::sema::types::Len;
     let mut out = BTreeMap::new();
     for p in &checked.params {
+        if let [Len::PerElement(set)] = p.ty.shape() {
+            let n = element_sets
+                .iter()
+                .find(|(name, _)| name == set)
+                .map_or(0, |(_, e)| e.len());
+            if n == 0 {
+                return err(format!(
+                    "the per-element param `{}` has no entries: the element set `{set}` is empty",
+                    p.name
+                ));
+            }
+            let [init] = p.init[..] else {
+                return err(format!(
+                    "the per-element param `{}` needs one initial value for every element",
+                    p.name
+                ));
+            };
+            let v = overrides
+                .iter()
+                .find(|(name, _)| *name == p.name)
+                .map_or(init, |(_, v)| *v);
+            for i in 0..n {
+                out.insert(format!("param.{}.{i}", p.name), v);
+            }
+            continue;
+        }
         let shape: Vec<usize> =
             p.ty.shape()
                 .iter()
                 .map(|l| match l {
-                    softc_compiler::sema::types::Len::Fixed(n) => *n,
+                    Len::Fixed(n) => *n,
                     _ => 0,
                 })
                 .collect();

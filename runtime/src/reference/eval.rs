@@ -5,7 +5,9 @@
 //! `pi`), user `fn`s and `controller`s with positional, named and default arguments, arithmetic
 //! with scalar broadcast, comparisons and logic (1 for true, 0 for false), `if`, `@`, indexing
 //! (a run-time index picks the first entry whose position is not below it, the last past the
-//! end), `.x/.y/.z`, reductions over integer ranges and the built-in functions.
+//! end), `.x/.y/.z`, reductions over integer ranges and the built-in functions. A per-element
+//! param (a field) has a value at the current element ([`Evaluator::element`]): the uniform
+//! `param.NAME.i` of that element's entry `i` in the field's set.
 
 use super::dual::Dual;
 use softc_compiler::front::ast::*;
@@ -124,6 +126,12 @@ pub struct Evaluator<'a> {
     uniforms: &'a BTreeMap<String, f64>,
     pub t: f64,
     pub dt: f64,
+    /// The element (kernel order) whose material constants are being evaluated, if any.
+    pub element: Option<usize>,
+    /// Per field: the entry of each element (kernel order), `None` outside its set.
+    fields: HashMap<String, Vec<Option<usize>>>,
+    /// How many field values were read (to tell per-element material constants apart).
+    pub field_reads: usize,
     depth: usize,
 }
 
@@ -157,8 +165,16 @@ impl<'a> Evaluator<'a> {
             uniforms,
             t: 0.0,
             dt: 0.0,
+            element: None,
+            fields: HashMap::new(),
+            field_reads: 0,
             depth: 0,
         }
+    }
+
+    /// Declare a per-element param: `entries[e]` is the entry of element `e` (kernel order).
+    pub fn add_field(&mut self, name: &str, entries: Vec<Option<usize>>) {
+        self.fields.insert(name.to_string(), entries);
     }
 
     pub fn find(&self, name: &str) -> Option<&'a Item> {
@@ -338,9 +354,25 @@ impl<'a> Evaluator<'a> {
             ItemKind::Let(l) => self.nested(&Scope::root(), &l.value),
             ItemKind::Param(p) => {
                 if p.ty.shape.iter().any(|s| matches!(s, ShapeItem::Set(_))) {
-                    return Err(format!(
-                        "the per-element param `{name}` is not supported by the reference simulator"
-                    ));
+                    let Some(e) = self.element else {
+                        return Err(format!(
+                            "the per-element param `{name}` has a value only at an element"
+                        ));
+                    };
+                    let entry = self
+                        .fields
+                        .get(name)
+                        .and_then(|f| f.get(e).copied().flatten())
+                        .ok_or_else(|| {
+                            format!("the per-element param `{name}` has no value at element {e}")
+                        })?;
+                    self.field_reads += 1;
+                    let key = format!("param.{name}.{entry}");
+                    return self
+                        .uniforms
+                        .get(&key)
+                        .map(|&x| num(x))
+                        .ok_or_else(|| format!("`{key}` has no value"));
                 }
                 self.uniform(&format!("param.{name}"), &p.ty)
             }

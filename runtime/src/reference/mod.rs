@@ -35,7 +35,8 @@ use softc_compiler::front::ast::*;
 
 type Vec3 = Vector3<f64>;
 
-/// A material ready to evaluate: its template arguments and `let`s, and its W.
+/// A material ready to evaluate: its template arguments and `let`s, and its W. A material
+/// whose constants read a per-element param has one of these per element.
 struct Material<'a> {
     name: String,
     density: f64,
@@ -66,7 +67,10 @@ pub struct ElementResult {
 pub struct Reference<'a> {
     scene: &'a Scene,
     ev: Evaluator<'a>,
+    /// Materials as evaluated: one per material, or one per element for a material whose
+    /// constants vary per element.
     materials: Vec<Material<'a>>,
+    /// The entry of `materials` of each element.
     elem_material: Vec<usize>,
     dm_inv: Vec<Matrix3<f64>>,
     rest_volume: Vec<f64>,
@@ -99,18 +103,37 @@ impl<'a> Reference<'a> {
     pub fn new(scene: &'a Scene) -> Result<Self, String> {
         let prelude = softc_compiler::sema::prelude_ast();
         let mut ev = Evaluator::new(&scene.ast, prelude, &scene.uniforms);
-        let materials = scene
-            .lowered
-            .materials
-            .iter()
-            .map(|m| material(&mut ev, m))
-            .collect::<Result<Vec<_>, _>>()?;
-        let mut elem_material = vec![usize::MAX; scene.mesh.tets.len()];
-        for (m, range) in scene.material_ranges.iter().enumerate() {
+        let n_tets = scene.mesh.tets.len();
+        for f in &scene.fields {
+            let mut entries = vec![None; n_tets];
+            for (i, &e) in f.elements.iter().enumerate() {
+                entries[e as usize] = Some(i);
+            }
+            ev.add_field(&f.name, entries);
+        }
+        // Each material once, evaluated at its first element; again at every element if its
+        // constants read a per-element param.
+        let mut materials = Vec::new();
+        let mut elem_material = vec![usize::MAX; n_tets];
+        for (name, range) in scene.lowered.materials.iter().zip(&scene.material_ranges) {
+            ev.element = Some(range.start);
+            ev.field_reads = 0;
+            if range.is_empty() {
+                continue;
+            }
+            let first = material(&mut ev, name)?;
+            if ev.field_reads == 0 {
+                elem_material[range.clone()].fill(materials.len());
+                materials.push(first);
+                continue;
+            }
             for e in range.clone() {
-                elem_material[e] = m;
+                ev.element = Some(e);
+                elem_material[e] = materials.len();
+                materials.push(material(&mut ev, name)?);
             }
         }
+        ev.element = None;
         if let Some(e) = elem_material.iter().position(|&m| m == usize::MAX) {
             return Err(format!("element {e} has no material"));
         }
