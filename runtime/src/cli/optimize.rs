@@ -14,6 +14,8 @@ use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 
 const STATE_FILE: &str = "state.json";
+/// Trained entries drawn in the plots (all are in the JSON history).
+const PLOTTED_ENTRIES: usize = 12;
 
 /// Run the optimization; the exit status.
 pub fn optimize(
@@ -417,10 +419,12 @@ fn write_plots<B: Backend + Send>(
             });
         }
     }
+    // Per-element fields have hundreds of entries: the plots show the first few.
     let per_entry = |f: &dyn Fn(&Record, usize, &str) -> f64| -> Vec<Series> {
         entries
             .iter()
             .enumerate()
+            .take(PLOTTED_ENTRIES)
             .map(|(i, u)| Series {
                 label: label(u),
                 values: history.iter().map(|r| f(r, i, u)).collect(),

@@ -108,7 +108,7 @@ impl Plan {
                 .collect();
             if names.is_empty() {
                 return Err(format!(
-                    "the param `{}` has no value the kernels read (per-element fields cannot be trained yet)",
+                    "the param `{}` has no entries to train (an empty element set?)",
                     info.name
                 ));
             }
