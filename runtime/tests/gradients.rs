@@ -4,7 +4,7 @@
 
 use softc::engine::adjoint::{Checkpointing, GradOptions, GradientReport};
 use softc::engine::scene::Scene;
-use softc::engine::{Cpu, Interpreter, Simulation};
+use softc::engine::{Backend, Cpu, Interpreter, Simulation};
 use softc_compiler::back::Precision;
 use std::path::{Path, PathBuf};
 
@@ -517,4 +517,74 @@ fn set_broadcasts_to_every_entry_of_a_field() {
             .count(),
         n
     );
+}
+
+#[test]
+fn initial_state_gradients_match_central_differences() {
+    // d loss / d x(0) and d loss / d v(0) of single nodes: the adjoint of state 0 that the
+    // backward pass ends with. The loss's `x0` is the mesh's rest position (a constant), so
+    // perturbing the simulation's initial state is an initial deformation or kick.
+    let scene = load("examples/benchmark-1k.soft");
+    let steps = 200;
+    let g = gradient(&scene, steps, &GradOptions::default());
+    let (gx, gv) = g
+        .initial_state
+        .clone()
+        .expect("the whole horizon was reversed");
+    let m = &scene.lowered.module;
+    let loss_from = |field: &str, index: usize, delta: f64| {
+        let cpu = Cpu::new(m, Precision::F64, Some(1)).unwrap();
+        let mut sim = Simulation::new(&scene, cpu);
+        let id = m.buffer_named(field).unwrap();
+        let mut data = if field == "x" {
+            scene
+                .mesh
+                .nodes
+                .iter()
+                .flatten()
+                .copied()
+                .collect::<Vec<f64>>()
+        } else {
+            vec![0.0; 3 * scene.mesh.nodes.len()]
+        };
+        data[index] += delta;
+        sim.backend.set(id, &data);
+        sim.run(None, Some(steps)).unwrap().loss.unwrap()
+    };
+    let tip = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap().1[0] as usize;
+    // A free node halfway along the beam.
+    let mid = (0..scene.mesh.nodes.len())
+        .find(|&i| !scene.fixed[i] && (scene.mesh.nodes[i][0] - 0.03).abs() < 1e-3)
+        .unwrap();
+    for (field, grad, node, h) in [
+        ("v", &gv, tip, 1e-3),
+        ("v", &gv, mid, 1e-3),
+        ("x", &gx, mid, 1e-7),
+    ] {
+        let i = 3 * node + 2;
+        let fd = (loss_from(field, i, h) - loss_from(field, i, -h)) / (2.0 * h);
+        let err = (grad[i] - fd).abs() / fd.abs();
+        eprintln!(
+            "d loss/d {field}0[{node}].z: adjoint {:e}, central {fd:e}, rel err {err:.1e}",
+            grad[i]
+        );
+        assert!(
+            err < 1e-5,
+            "{field} node {node}: adjoint {:e}, central {fd:e}",
+            grad[i]
+        );
+    }
+    // Fixed nodes cannot move: their initial velocity has no effect.
+    let fixed = scene.fixed.iter().position(|f| *f).unwrap();
+    assert_eq!(gv[3 * fixed + 2], 0.0);
+    // A truncated pass does not reach state 0.
+    let t = gradient(
+        &scene,
+        steps,
+        &GradOptions {
+            truncate: Some(50),
+            ..GradOptions::default()
+        },
+    );
+    assert!(t.initial_state.is_none());
 }

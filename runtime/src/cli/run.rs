@@ -53,6 +53,10 @@ pub struct RunArgs {
     /// block's `memory_budget`).
     #[arg(long, value_name = "BYTES")]
     pub memory_budget: Option<String>,
+    /// With `--grad`: also report d loss / d (initial position) and d loss / d (initial
+    /// velocity) of every node (`initial_state_gradients` in the JSON).
+    #[arg(long, requires = "grad")]
+    pub initial_state: bool,
     /// Write every output of an optimization into this folder: the optimizer state (saved
     /// atomically after every iteration), plots, the final run's VTK series and `result.json`.
     #[arg(long, value_name = "DIR", conflicts_with = "resume")]
@@ -244,6 +248,13 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     if let Some(g) = &grad {
         json["gradients"] = gradients_json(&g.gradients);
         json["adjoint"] = adjoint_json(g);
+        if args.initial_state {
+            let nodes = |v: &[f64]| v.chunks(3).map(|c| c.to_vec()).collect::<Vec<_>>();
+            json["initial_state_gradients"] = match &g.initial_state {
+                Some((x, v)) => serde_json::json!({"x": nodes(x), "v": nodes(v)}),
+                None => serde_json::Value::Null,
+            };
+        }
         let _ = writeln!(
             err,
             "{}: backward pass over {} steps in {:.3} s ({}; {} states of {} bytes stored at most; \

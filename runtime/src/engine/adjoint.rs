@@ -71,6 +71,9 @@ pub struct GradientReport {
     pub backward_seconds: f64,
     /// Norms of ∂L/∂x and ∂L/∂v every [`CHECK_EVERY`] reversed steps, from the last step back.
     pub health: Vec<HealthSample>,
+    /// ∂L/∂x and ∂L/∂v of the initial state (3 per node; the velocity part includes
+    /// `gradient_scale`), when the whole horizon was reversed (no `truncate` cut).
+    pub initial_state: Option<(Vec<f64>, Vec<f64>)>,
 }
 
 impl GradientReport {
@@ -309,6 +312,7 @@ impl<B: Backend> Simulation<'_, B> {
             health.push(self.adjoint_health(steps, dt)?);
         }
         let mut done = false;
+        let mut initial_state = None;
         for a in &schedule.actions[prefix..] {
             if done {
                 break;
@@ -344,6 +348,12 @@ impl<B: Backend> Simulation<'_, B> {
                         health.push(self.adjoint_health(step, dt)?);
                     }
                     if step == stop_at {
+                        if step == 0 {
+                            initial_state = Some((
+                                self.backend.get(adj.state[0].adj_next),
+                                self.backend.get(adj.state[1].adj_next),
+                            ));
+                        }
                         done = true;
                     }
                 }
@@ -414,6 +424,7 @@ impl<B: Backend> Simulation<'_, B> {
             forward_seconds,
             backward_seconds,
             health,
+            initial_state,
         })
     }
 }
