@@ -249,7 +249,7 @@ fn a_killed_run_resumes_to_the_uninterrupted_result() {
 /// A trainer on the CPU backend with one simulation per scene of the batch.
 fn trainer(scene: &Scene) -> Trainer<'_, Cpu> {
     let plan = Plan::from_scene(scene).unwrap().unwrap();
-    let n = Trainer::<Cpu>::scenes_per_iteration(&plan);
+    let n = plan.scenes_per_iteration();
     let sims = (0..n)
         .map(|_| {
             let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();

@@ -66,7 +66,7 @@ pub fn optimize(
         dt,
         resume,
     };
-    let members = Trainer::<Cpu>::scenes_per_iteration(&plan);
+    let members = plan.scenes_per_iteration();
     let module = &scene.lowered.adjoint.module;
     let result = match args.backend {
         BackendChoice::Reference => Err(

@@ -443,20 +443,7 @@ pub(super) fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions,
     use softc_compiler::front::ast::ExprKind;
     let mut o = GradOptions::default();
     let program = scene.program();
-    let constant = |e: &softc_compiler::front::ast::Expr| -> Result<f64, String> {
-        let mut k = softc_compiler::ir::KernelBuilder::new(
-            "setting",
-            softc_compiler::ir::Domain::Single,
-            "setting",
-        );
-        let v = softc_compiler::lower::expr::ExprLowerer::new(&program)
-            .lower(&mut k, &softc_compiler::lower::expr::Env::new(), e)
-            .and_then(|v| v.scalar())
-            .map_err(|e| e.to_string())?;
-        k.b.func
-            .constant(v)
-            .ok_or_else(|| "a setting of the optimize block is not constant".to_string())
-    };
+    let constant = |e: &softc_compiler::front::ast::Expr| crate::optim::constant(&program, e);
     if let Some(e) = scene.ast.optimize_setting("checkpoint") {
         o.checkpoint = match &e.kind {
             ExprKind::Name(n) if n.name == "store_all" => Checkpointing::StoreAll,

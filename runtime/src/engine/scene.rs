@@ -680,21 +680,24 @@ fn fixed_nodes(program: &Program, ast: &Script, mesh: &Mesh) -> Result<Vec<bool>
     Ok(fixed)
 }
 
+/// The `nodes` (or `elements`) declarations of a script: name and selection.
+fn declared_sets(ast: &Script, kind: DeclKind) -> impl Iterator<Item = (&Ident, &Expr)> {
+    ast.items.iter().filter_map(move |i| match &i.kind {
+        ItemKind::Decl {
+            kind: k,
+            name,
+            value,
+        } if *k == kind => Some((name, value)),
+        _ => None,
+    })
+}
+
 fn all_node_sets(
     program: &Program,
     ast: &Script,
     mesh: &Mesh,
 ) -> Result<Vec<(String, Vec<u32>)>, SceneError> {
-    ast.items
-        .iter()
-        .filter_map(|i| match &i.kind {
-            ItemKind::Decl {
-                kind: DeclKind::Nodes,
-                name,
-                value,
-            } => Some((name, value)),
-            _ => None,
-        })
+    declared_sets(ast, DeclKind::Nodes)
         .map(|(name, value)| {
             Ok((
                 name.name.clone(),
@@ -709,17 +712,9 @@ fn all_element_sets(
     ast: &Script,
     mesh: &Mesh,
 ) -> Result<Vec<(String, Vec<u32>)>, SceneError> {
-    ast.items
-        .iter()
-        .filter_map(|i| match &i.kind {
-            ItemKind::Decl {
-                kind: DeclKind::Elements,
-                name,
-                value,
-            } => Some((name, value)),
-            _ => None,
-        })
+    declared_sets(ast, DeclKind::Elements)
         .map(|(name, value)| {
+            // A named set from the mesh file may list an element twice: keep the first.
             let mut seen = vec![false; mesh.tets.len()];
             let elements = selection(program, ast, mesh, value, true)?
                 .into_iter()

@@ -245,6 +245,15 @@ impl Plan {
         }))
     }
 
+    /// Scenes per iteration (the number of simulations a [`train::Trainer`] needs).
+    pub fn scenes_per_iteration(&self) -> usize {
+        if self.inputs.is_empty() {
+            1
+        } else {
+            batch::members(self.scenes, self.batch, 0, self.seed, false).len()
+        }
+    }
+
     /// Whether the stop condition holds for this iteration's loss and gradient norm.
     pub fn should_stop(
         &self,

@@ -175,15 +175,6 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         })
     }
 
-    /// Scenes per iteration for a plan (the number of simulations [`Trainer::new`] needs).
-    pub fn scenes_per_iteration(plan: &Plan) -> usize {
-        if plan.inputs.is_empty() {
-            1
-        } else {
-            batch::members(plan.scenes, plan.batch, 0, plan.seed, false).len()
-        }
-    }
-
     pub fn finished(&self) -> bool {
         self.state.stopped.is_some()
     }
