@@ -347,3 +347,185 @@ fn run_grad_reports_a_per_element_param_as_one_entry_per_element() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A copy of the 1k benchmark scene in a temp folder, with its mesh spec beside its mesh (so
+/// `bench --tradeoff` can refine it), and the given lines replaced.
+fn bench_variant(dir: &std::path::Path, name: &str, edits: &[(&str, &str)]) -> std::path::PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let mesh = dir.join("beam.msh");
+    if !mesh.exists() {
+        std::fs::copy(root().join("meshes/bench_1k.msh"), &mesh).unwrap();
+        std::fs::copy(root().join("meshes/bench_1k.toml"), dir.join("beam.toml")).unwrap();
+    }
+    let mut text = std::fs::read_to_string(root().join("examples/benchmark-1k.soft")).unwrap();
+    text = text.replace("../meshes/bench_1k.msh", "beam.msh");
+    for (from, to) in edits {
+        assert!(text.contains(from), "{from}");
+        text = text.replace(from, to);
+    }
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+#[test]
+fn run_simulates_every_scene_of_a_listed_input_and_writes_csv_logs() {
+    let dir = std::env::temp_dir().join(format!("softc-scenes-{}", std::process::id()));
+    let script = bench_variant(
+        &dir,
+        "scenes.soft",
+        &[
+            (
+                "param p_peak: pressure = 3 kPa in [0 kPa, 50 kPa]",
+                "input p_peak: pressure from [2 kPa, 4 kPa]",
+            ),
+            ("  fix base\n", "  fix base\n  output csv(tip) every 2 ms\n"),
+        ],
+    );
+    let (json, csv) = (dir.join("out.json"), dir.join("csv"));
+    let run = |extra: &[&str]| {
+        let mut args = vec!["run", script.to_str().unwrap(), "--steps", "200", "--json"];
+        args.push(json.to_str().unwrap());
+        args.extend_from_slice(extra);
+        let (code, _, err) = softc(&args);
+        assert_eq!(code, 0, "{err}");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        (v, err)
+    };
+    let (v, err) = run(&["--csv", csv.to_str().unwrap()]);
+    let scenes = v["scenes"].as_array().unwrap();
+    assert_eq!(scenes.len(), 2, "{err}");
+    let uz = |s: &serde_json::Value| s["sets"]["tip"]["mean_displacement"][2].as_f64().unwrap();
+    assert_eq!(scenes[0]["inputs"]["p_peak"].as_f64(), Some(2000.0));
+    assert_eq!(scenes[1]["inputs"]["p_peak"].as_f64(), Some(4000.0));
+    // Small strains: twice the pressure, about twice the (downward) deflection.
+    let ratio = uz(&scenes[1]) / uz(&scenes[0]);
+    assert!(
+        uz(&scenes[0]) < 0.0 && (1.9..2.1).contains(&ratio),
+        "{ratio}"
+    );
+    let mean = (scenes[0]["loss"].as_f64().unwrap() + scenes[1]["loss"].as_f64().unwrap()) / 2.0;
+    assert_eq!(v["loss"].as_f64(), Some(mean));
+    // `--set` on an input runs that one scene, bit for bit the same as in the list.
+    let (single, _) = run(&["--set", "p_peak=4kPa"]);
+    assert!(single.get("scenes").is_none());
+    assert_eq!(uz(&single), uz(&scenes[1]));
+    // The logs: every 2 ms = 50 steps of 40 µs, from step 0 to the last, in SI units; the last
+    // row is the JSON's final state.
+    for (k, scene) in scenes.iter().enumerate() {
+        let text = std::fs::read_to_string(csv.join(format!("scene{k}/tip.csv"))).unwrap();
+        let rows: Vec<Vec<&str>> = text.lines().map(|l| l.split(',').collect()).collect();
+        assert_eq!(rows[0][..3], ["step", "t_s", "mean_ux_m"]);
+        let steps: Vec<&str> = rows[1..].iter().map(|r| r[0]).collect();
+        assert_eq!(steps, ["0", "50", "100", "150", "200"]);
+        assert_eq!(rows[1][4].parse::<f64>().unwrap(), 0.0);
+        let last: f64 = rows[5][4].parse().unwrap();
+        assert_eq!(last, uz(scene));
+        assert!((rows[5][1].parse::<f64>().unwrap() - 8e-3).abs() < 1e-12);
+    }
+    // Without --csv the log is not written, and a note says how to get it.
+    let (_, err) = run(&[]);
+    assert!(err.contains("add --csv DIR"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bench_tradeoff_measures_error_against_wall_time_and_marks_the_pareto_front() {
+    let dir = std::env::temp_dir().join(format!("softc-tradeoff-{}", std::process::id()));
+    // A quasi-static version of the beam: heavy nodes for a large stable step.
+    let script = bench_variant(
+        &dir,
+        "quasi.soft",
+        &[(
+            "  dt = 40 us\n  steps = 4000\n",
+            "  dt = auto\n  duration = 2 s\n  mass_scaling = 100\n",
+        )],
+    );
+    // A small beam whose cavity lies on the grid planes at both resolutions (cells of 4 × 2 × 2
+    // and 2 × 1 × 1 mm), so refining changes the discretization, not the geometry.
+    let spec = std::fs::read_to_string(dir.join("beam.toml"))
+        .unwrap()
+        .replace("n = [12, 4, 4]", "n = [10, 4, 4]")
+        .replace("max = [60, 10, 10]", "max = [40, 8, 8]")
+        .replace("min = [5, 2.5, 4]", "min = [4, 2, 4]")
+        .replace("max = [55, 7.5, 8]", "max = [36, 6, 6]");
+    std::fs::write(dir.join("beam.toml"), spec).unwrap();
+    let out = dir.join("trade");
+    let (code, table, err) = softc(&[
+        "bench",
+        "--tradeoff",
+        script.to_str().unwrap(),
+        "--resolutions",
+        "1,2",
+        "--safeties",
+        "0.9,0.45",
+        "--settle",
+        "1e-2,1e-3",
+        "--springs",
+        "1 kPa/mm",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    println!("{table}");
+    assert!(
+        table.contains("pareto") && table.contains("reference"),
+        "{table}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("tradeoff.json")).unwrap()).unwrap();
+    // Two resolutions cannot be extrapolated: the finest f64 FEM run is the reference.
+    let method = v["reference"]["method"].as_str().unwrap();
+    assert!(
+        method.contains("finest f64 FEM solution (resolution 2"),
+        "{method}"
+    );
+    let points = v["points"].as_array().unwrap();
+    // 2 resolutions × 2 precisions, 1 more dt, 1 more tolerance, 2 spring meshes.
+    assert_eq!(points.len(), 8, "{table}");
+    let get = |p: &serde_json::Value, k: &str| p[k].as_f64().unwrap();
+    assert!(points.iter().all(|p| p["settled"] == true), "{table}");
+    assert!(
+        points
+            .iter()
+            .all(|p| get(p, "value") < 0.0 && get(p, "error").is_finite())
+    );
+    assert!(points.iter().any(|p| p["pareto"] == true));
+    let find = |res: f64, prec: &str, model: &str, safety: f64, settle: f64| {
+        points
+            .iter()
+            .find(|p| {
+                get(p, "resolution") == res
+                    && p["precision"] == prec
+                    && p["model"] == model
+                    && get(p, "safety") == safety
+                    && get(p, "settle") == settle
+            })
+            .unwrap_or_else(|| panic!("{res} {prec} {model} {safety} {settle}\n{table}"))
+    };
+    let base = find(1.0, "f64", "fem", 0.9, 1e-3);
+    let fine = find(2.0, "f64", "fem", 0.9, 1e-3);
+    assert_eq!(get(fine, "error"), 0.0);
+    assert!(get(base, "error") > 0.0 && get(fine, "tets") > 7.0 * get(base, "tets"));
+    // f32 at the same resolution reaches the same steady state to f32 round-off; a smaller dt
+    // the same one as well (a steady state does not depend on the step).
+    for other in [
+        find(1.0, "f32", "fem", 0.9, 1e-3),
+        find(1.0, "f64", "fem", 0.45, 1e-3),
+    ] {
+        let (a, b) = (get(base, "value"), get(other, "value"));
+        assert!(((a - b) / a).abs() < 1e-3, "{a} {b}\n{table}");
+    }
+    // A loose tolerance stops earlier.
+    let loose = find(1.0, "f64", "fem", 0.9, 1e-2);
+    assert!(get(loose, "steps") < get(base, "steps"), "{table}");
+    for f in ["tradeoff.png", "tradeoff.svg"] {
+        assert!(std::fs::metadata(out.join(f)).unwrap().len() > 1000, "{f}");
+    }
+    // Every point is a script `softc run` reruns.
+    let variant = points[0]["script"].as_str().unwrap();
+    let (code, _, err) = softc(&["run", variant, "--steps", "10"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

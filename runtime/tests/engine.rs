@@ -453,3 +453,44 @@ fn cantilever_deflection_converges_to_beam_theory() {
     assert!(errors[2] < 0.2, "{errors:?}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_run_to_steady_state_stops_once_settled_and_matches_a_long_run() {
+    use softc::engine::Cpu;
+    use softc_compiler::back::Precision;
+    // The benchmark beam as a quasi-static scene: heavy nodes, the step from the estimate.
+    let path = variant(
+        "benchmark-1k.soft",
+        &[(
+            "  dt = 40 us\n  steps = 4000\n",
+            "  dt = auto\n  duration = 2 s\n  mass_scaling = 100\n",
+        )],
+    );
+    let scene = Scene::load(&path, &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.module, Precision::F64, None).unwrap();
+    let mut sim = Simulation::new(&scene, cpu);
+    let (dt, steps) = sim.time_steps(None, None).unwrap();
+    let steady = sim.run_to_steady_state(Some(dt), 4 * steps, 1e-4).unwrap();
+    assert!(steady.settled);
+    // The ramp ends at 0.5 s: settling cannot be declared during it.
+    let settled_at = steady.summary.steps as f64 * dt;
+    assert!(
+        settled_at > 0.5 && steady.summary.steps < 4 * steps,
+        "{settled_at}"
+    );
+    sim.reset();
+    let long = sim.run(Some(dt), Some(4 * steps)).unwrap();
+    let (a, b) = (
+        tip_mean_z(&scene, &steady.summary.x),
+        tip_mean_z(&scene, &long.x),
+    );
+    println!(
+        "settled after {settled_at:.3} s: tip {a:e} m; after {:.1} s: {b:e} m",
+        4.0 * steps as f64 * dt
+    );
+    assert!(((a - b) / b).abs() < 1e-3, "{a} vs {b}");
+    // A loose tolerance stops earlier and is less accurate.
+    sim.reset();
+    let loose = sim.run_to_steady_state(Some(dt), 4 * steps, 1e-1).unwrap();
+    assert!(loose.settled && loose.summary.steps < steady.summary.steps);
+}

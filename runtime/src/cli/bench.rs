@@ -28,6 +28,9 @@ pub struct BenchArgs {
     /// Steps per timed run.
     #[arg(long, default_value_t = 200)]
     pub steps: u64,
+    /// Steps of each timed forward+backward pass.
+    #[arg(long, default_value_t = 1000)]
+    pub grad_steps: u64,
     /// Threads of the cpu backend (default: its own choice).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -37,6 +40,44 @@ pub struct BenchArgs {
     /// Also write the results as JSON to this file (written atomically).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Instead of the benchmark table: where the time of a step goes on the cpu backend (f64
+    /// and f32) — per kernel its share of the time, the bytes it moves and the bandwidth that
+    /// achieves — against this machine's memory bandwidth measured by a streaming triad.
+    #[arg(long, conflicts_with = "tradeoff")]
+    pub profile: bool,
+    /// Instead of the benchmark table: speed against accuracy for a quasi-static SCRIPT. One
+    /// output (`--output`) at steady state from variants that differ in one knob at a time —
+    /// mesh resolution, precision, dt, FEM or spring mesh, settling tolerance — each with its
+    /// error against a converged reference and its wall time; the Pareto front is marked.
+    /// Writes a table, `OUT/tradeoff.json`, `OUT/tradeoff.png`/`.svg` and every variant as a
+    /// script under `OUT/variants/`.
+    #[arg(long, value_name = "SCRIPT")]
+    pub tradeoff: Option<PathBuf>,
+    /// With --tradeoff: the output, a node set and an axis (mean displacement).
+    #[arg(long, value_name = "SET.AXIS", default_value = "tip.z")]
+    pub output: String,
+    /// With --tradeoff: mesh refinement factors (cell counts of the mesh's `.toml` spec scaled).
+    #[arg(long, default_value = "0.5,1,1.5")]
+    pub resolutions: String,
+    /// With --tradeoff: precisions (the first is the baseline's).
+    #[arg(long, default_value = "f64,f32")]
+    pub precisions: String,
+    /// With --tradeoff: dt = SAFETY × the stable-step estimate (the first is the baseline's).
+    #[arg(long, default_value = "0.9,0.5,0.25")]
+    pub safeties: String,
+    /// With --tradeoff: settling tolerances — settled when max speed × time ≤ TOL × max
+    /// displacement (the smallest is the baseline's).
+    #[arg(long, default_value = "1e-2,1e-3,1e-4")]
+    pub settle: String,
+    /// With --tradeoff: also spring-mesh variants with this volume stiffness (`1kPa/mm`).
+    #[arg(long, value_name = "ALPHA")]
+    pub springs: Option<String>,
+    /// With --tradeoff: a param or input value, with its unit (`--set p_peak=3kPa`).
+    #[arg(long = "set", value_name = "NAME=VALUE")]
+    pub set: Vec<String>,
+    /// With --tradeoff: the output folder.
+    #[arg(long, value_name = "DIR", default_value = "tradeoff")]
+    pub out: PathBuf,
 }
 
 /// One (size, backend) measurement.
@@ -59,25 +100,39 @@ pub struct Row {
     pub recompute_ratio: Option<f64>,
     /// d loss / d p_peak, per Pa.
     pub gradient_p_peak: Option<f64>,
+    /// Growth of peak resident memory during one forward+backward pass (Linux), bytes.
+    pub forward_backward_peak_rss_bytes: Option<u64>,
 }
 
-/// Warm up once, then time `repeats` forward+backward passes of the adjoint module on the cpu.
-fn time_gradient(
+/// What one timed forward+backward configuration measured.
+struct GradientTiming {
+    steps_per_second: f64,
+    stored_bytes: usize,
+    recompute_ratio: f64,
+    gradient: f64,
+    /// Growth of the process's peak resident memory during one pass (Linux), bytes.
+    peak_rss_bytes: Option<u64>,
+}
+
+/// Warm up once, then time `repeats` forward+backward passes of `--grad-steps` steps.
+fn time_gradient<B: Backend>(
     scene: &Scene,
-    precision: Precision,
+    make: &dyn Fn() -> Result<B, String>,
     args: &BenchArgs,
-) -> Result<(f64, usize, f64, f64), String> {
-    let module = &scene.lowered.adjoint.module;
+) -> Result<GradientTiming, String> {
+    let steps = args.grad_steps;
     let run = || -> Result<(f64, crate::engine::adjoint::GradientReport), String> {
-        let cpu = Cpu::new(module, precision, args.threads)?;
-        let mut sim = Simulation::new(scene, cpu);
+        let mut sim = Simulation::new(scene, make()?);
         let start = Instant::now();
         let g = sim
-            .gradient(None, Some(args.steps), &Default::default())
+            .gradient(None, Some(steps), &Default::default())
             .map_err(|e| e.0)?;
-        Ok((args.steps as f64 / start.elapsed().as_secs_f64(), g))
+        Ok((steps as f64 / start.elapsed().as_secs_f64(), g))
     };
+    // The peak memory of one pass: reset the high-water mark, run, read it back.
+    let before = reset_peak_rss();
     run()?;
+    let peak_rss_bytes = before.and_then(|b| peak_rss().map(|p| p.saturating_sub(b)));
     let mut speeds = Vec::new();
     let mut last = None;
     for _ in 0..args.repeats.max(1) {
@@ -86,12 +141,47 @@ fn time_gradient(
         last = Some(g);
     }
     let g = last.expect("at least one run");
-    Ok((
-        median(speeds),
-        g.stored_states * g.state_bytes,
-        g.recompute_ratio,
-        g.gradients.get("param.p_peak").copied().unwrap_or(f64::NAN),
-    ))
+    Ok(GradientTiming {
+        steps_per_second: median(speeds),
+        stored_bytes: g.stored_states * g.state_bytes,
+        recompute_ratio: g.recompute_ratio,
+        gradient: g.gradients.get("param.p_peak").copied().unwrap_or(f64::NAN),
+        peak_rss_bytes,
+    })
+}
+
+/// Reset the kernel's peak-RSS mark of this process (Linux `clear_refs` 5) and return the
+/// current resident size, the baseline the next peak is measured from.
+fn reset_peak_rss() -> Option<u64> {
+    std::fs::write("/proc/self/clear_refs", "5").ok()?;
+    status_kib("VmRSS:")
+}
+
+fn peak_rss() -> Option<u64> {
+    status_kib("VmHWM:")
+}
+
+fn status_kib(key: &str) -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with(key))?;
+    let kib: u64 = line[key.len()..]
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()?;
+    Some(kib * 1024)
+}
+
+fn with_gradient(row: Row, g: GradientTiming) -> Row {
+    Row {
+        forward_backward_steps_per_second: Some(g.steps_per_second),
+        adjoint_stored_bytes: Some(g.stored_bytes),
+        recompute_ratio: Some(g.recompute_ratio),
+        gradient_p_peak: Some(g.gradient),
+        forward_backward_peak_rss_bytes: g.peak_rss_bytes,
+        ..row
+    }
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -179,20 +269,30 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         adjoint_stored_bytes: None,
         recompute_ratio: None,
         gradient_p_peak: None,
+        forward_backward_peak_rss_bytes: None,
     };
     for (name, precision) in [("cpu-f64", Precision::F64), ("cpu-f32", Precision::F32)] {
         let start = Instant::now();
         Cpu::new(module, precision, args.threads)?;
         let compile = start.elapsed().as_secs_f64();
         let timed = time_engine(&scene, &|| Cpu::new(module, precision, args.threads), args)?;
-        let (sps, bytes, ratio, g) = time_gradient(&scene, precision, args)?;
-        rows.push(Row {
-            forward_backward_steps_per_second: Some(sps),
-            adjoint_stored_bytes: Some(bytes),
-            recompute_ratio: Some(ratio),
-            gradient_p_peak: Some(g),
-            ..row(name, compile, timed)
-        });
+        let adjoint = &scene.lowered.adjoint.module;
+        let g = time_gradient(&scene, &|| Cpu::new(adjoint, precision, args.threads), args)?;
+        rows.push(with_gradient(row(name, compile, timed), g));
+    }
+    // The GPU rows, when this machine has an adapter (lavapipe counts: it is one).
+    for (name, precision) in [("gpu-f32", Precision::F32), ("gpu-f64", Precision::F64)] {
+        use crate::devices::gpu::Gpu;
+        let start = Instant::now();
+        if let Err(e) = Gpu::new(module, precision, None) {
+            eprintln!("note: no {name} row: {e}");
+            continue;
+        }
+        let compile = start.elapsed().as_secs_f64();
+        let timed = time_engine(&scene, &|| Gpu::new(module, precision, None), args)?;
+        let adjoint = &scene.lowered.adjoint.module;
+        let g = time_gradient(&scene, &|| Gpu::new(adjoint, precision, None), args)?;
+        rows.push(with_gradient(row(name, compile, timed), g));
     }
     // The IR interpreter is the semantics, not a fast path: only on the smallest scene.
     if size == "1k" {
@@ -209,6 +309,24 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
 }
 
 pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    if args.profile {
+        return match profile(&args, out) {
+            Ok(()) => 0,
+            Err(e) => {
+                let _ = writeln!(err, "error: {e}");
+                1
+            }
+        };
+    }
+    if let Some(script) = &args.tradeoff {
+        return match sweep(&args, script).and_then(|s| super::tradeoff::run(&s, out, err)) {
+            Ok(()) => 0,
+            Err(e) => {
+                let _ = writeln!(err, "error: {}: {e}", script.display());
+                1
+            }
+        };
+    }
     let sizes: Vec<&str> = args.sizes.split(',').map(str::trim).collect();
     if let Some(bad) = sizes.iter().find(|s| !["1k", "10k", "50k"].contains(s)) {
         let _ = writeln!(
@@ -229,7 +347,7 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     }
     let _ = writeln!(
         out,
-        "{:<5} {:<10} {:>10} {:>14} {:>12} {:>16} {:>16} {:>12} {:>10} {:>14}",
+        "{:<5} {:<10} {:>10} {:>14} {:>12} {:>16} {:>16} {:>12} {:>12} {:>10} {:>14}",
         "size",
         "backend",
         "compile_s",
@@ -238,13 +356,14 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         "tip_mean_z_m",
         "fwd+bwd_steps/s",
         "adj_bytes",
+        "peak_rss_MB",
         "recompute",
         "dloss/dp_peak"
     );
     for r in &rows {
         let _ = writeln!(
             out,
-            "{:<5} {:<10} {:>10.3} {:>14.1} {:>12.2} {:>16.6e} {:>16} {:>12} {:>10} {:>14}",
+            "{:<5} {:<10} {:>10.3} {:>14.1} {:>12.2} {:>16.6e} {:>16} {:>12} {:>12} {:>10} {:>14}",
             r.size,
             r.backend,
             r.compile_seconds,
@@ -254,20 +373,25 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             r.forward_backward_steps_per_second
                 .map_or("-".into(), |v| format!("{v:.1}")),
             r.adjoint_stored_bytes.map_or("-".into(), |v| v.to_string()),
+            r.forward_backward_peak_rss_bytes
+                .map_or("-".into(), |v| format!("{:.1}", v as f64 / 1e6)),
             r.recompute_ratio.map_or("-".into(), |v| format!("{v:.2}")),
             r.gradient_p_peak.map_or("-".into(), |v| format!("{v:.6e}")),
         );
     }
     let _ = writeln!(
         out,
-        "median of {} timed runs of {} steps after a warm-up; tip_mean_z after those steps; \
-         x_reference = speed over the reference in this run",
+        "median of {} timed runs of {} steps (forward+backward: {} steps) after a warm-up; \
+         tip_mean_z after those steps; x_reference = speed over the reference in this run; \
+         peak_rss_MB = growth of the process's peak resident memory during one forward+backward pass",
         args.repeats.max(1),
-        args.steps
+        args.steps,
+        args.grad_steps
     );
     if let Some(path) = &args.json {
         let json = serde_json::json!({
             "steps": args.steps,
+            "grad_steps": args.grad_steps,
             "repeats": args.repeats.max(1),
             "rows": rows,
         });
@@ -278,4 +402,130 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     0
+}
+
+/// The `--tradeoff` options as a sweep.
+fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<super::tradeoff::Sweep, String> {
+    fn list<T>(
+        what: &str,
+        text: &str,
+        parse: impl Fn(&str) -> Option<T>,
+    ) -> Result<Vec<T>, String> {
+        let v: Vec<T> = text
+            .split(',')
+            .map(|s| parse(s.trim()).ok_or_else(|| format!("--{what}: cannot read `{s}`")))
+            .collect::<Result<_, _>>()?;
+        if v.is_empty() {
+            return Err(format!("--{what} needs at least one value"));
+        }
+        Ok(v)
+    }
+    let positive = |s: &str| s.parse::<f64>().ok().filter(|v| *v > 0.0 && v.is_finite());
+    let (set, axis) = args
+        .output
+        .rsplit_once('.')
+        .and_then(|(set, a)| Some((set, ["x", "y", "z"].iter().position(|x| *x == a)?)))
+        .ok_or_else(|| format!("--output `{}`: expected SET.x, SET.y or SET.z", args.output))?;
+    let mut overrides = Vec::new();
+    for s in &args.set {
+        let (name, value) = s
+            .split_once('=')
+            .ok_or_else(|| format!("--set expects NAME=VALUE, found `{s}`"))?;
+        let (v, _) = super::run::parse_quantity(value).map_err(|e| format!("--set {name}: {e}"))?;
+        overrides.push((name.trim().to_string(), v));
+    }
+    let safeties = list("safeties", &args.safeties, positive)?;
+    if safeties.iter().any(|s| *s > 1.0) {
+        return Err("--safeties: a safety factor is at most 1".into());
+    }
+    Ok(super::tradeoff::Sweep {
+        script: script.to_path_buf(),
+        set: set.to_string(),
+        axis,
+        resolutions: list("resolutions", &args.resolutions, positive)?,
+        precisions: list("precisions", &args.precisions, |s| match s {
+            "f64" => Some(Precision::F64),
+            "f32" => Some(Precision::F32),
+            _ => None,
+        })?,
+        safeties,
+        settle: list("settle", &args.settle, positive)?,
+        springs: args.springs.clone(),
+        overrides,
+        threads: args.threads,
+        out: args.out.clone(),
+    })
+}
+
+/// `--profile`: per-kernel time and bytes of `--steps` steps of each size on the cpu backend.
+fn profile(args: &BenchArgs, out: &mut dyn Write) -> Result<(), String> {
+    use crate::engine::profile::{Profiled, memory_bandwidth};
+    let threads_all = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let (bw1, bw_all) = (memory_bandwidth(1), memory_bandwidth(threads_all));
+    let _ = writeln!(
+        out,
+        "memory bandwidth (triad a = b + s*c over 3 x 64 MiB, best of 5): {:.1} GB/s on 1 thread, \
+         {:.1} GB/s on {threads_all}",
+        bw1 / 1e9,
+        bw_all / 1e9
+    );
+    for size in args.sizes.split(',').map(str::trim) {
+        let path = args.examples.join(format!("benchmark-{size}.soft"));
+        let scene = Scene::load(&path, &[]).map_err(|e| e.0)?;
+        let module = &scene.lowered.module;
+        for precision in [Precision::F64, Precision::F32] {
+            let cpu = Cpu::new(module, precision, args.threads)?;
+            let mut sim = Simulation::new(&scene, Profiled::new(cpu, module, &scene));
+            // One untimed run for the JIT and caches, then the profiled one.
+            sim.run(None, Some(args.steps.min(50))).map_err(|e| e.0)?;
+            sim.reset();
+            sim.backend.reset_costs();
+            let start = Instant::now();
+            sim.run(None, Some(args.steps)).map_err(|e| e.0)?;
+            let wall = start.elapsed().as_secs_f64();
+            let costs = &sim.backend.costs;
+            let kernel_time: f64 = costs.iter().map(|c| c.time.as_secs_f64()).sum();
+            let bytes: u64 = costs.iter().map(|c| c.bytes).sum();
+            let steps = args.steps as f64;
+            let _ = writeln!(
+                out,
+                "\nbenchmark-{size} ({} nodes, {} tets), cpu {precision}, {} steps: {:.1} steps/s; \
+                 kernels {:.0} % of the wall time, the rest host work (state checks, swaps)",
+                scene.mesh.nodes.len(),
+                scene.mesh.tets.len(),
+                args.steps,
+                steps / wall,
+                100.0 * kernel_time / wall
+            );
+            let _ = writeln!(
+                out,
+                "{:<28} {:<8} {:>10} {:>8} {:>12} {:>10}",
+                "kernel", "domain", "us/step", "share", "bytes/step", "GB/s"
+            );
+            for c in costs.iter().filter(|c| c.launches > 0) {
+                let t = c.time.as_secs_f64();
+                let _ = writeln!(
+                    out,
+                    "{:<28} {:<8} {:>10.1} {:>7.1}% {:>12} {:>10.2}",
+                    c.name,
+                    c.domain,
+                    1e6 * t / steps,
+                    100.0 * t / kernel_time.max(1e-12),
+                    c.bytes / args.steps.max(1),
+                    c.bytes as f64 / t.max(1e-12) / 1e9
+                );
+            }
+            let achieved = bytes as f64 / kernel_time.max(1e-12);
+            let _ = writeln!(
+                out,
+                "total: {} bytes/step moved at {:.2} GB/s = {:.0} % of the 1-thread and {:.0} % of \
+                 the all-thread bandwidth",
+                bytes / args.steps.max(1),
+                achieved / 1e9,
+                100.0 * achieved / bw1,
+                100.0 * achieved / bw_all
+            );
+        }
+    }
+    Ok(())
 }

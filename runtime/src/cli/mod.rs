@@ -7,6 +7,7 @@ pub mod bench;
 pub mod mesh;
 pub mod optimize;
 pub mod run;
+pub mod tradeoff;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use softc_compiler::diag::{Diagnostic, SourceFile};

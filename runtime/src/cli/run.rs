@@ -8,7 +8,7 @@ use softc_compiler::back::Precision;
 use std::io::Write;
 use std::path::PathBuf;
 
-#[derive(Args, Debug)]
+#[derive(Args, Debug, Clone)]
 pub struct RunArgs {
     /// The script to run.
     pub file: PathBuf,
@@ -42,6 +42,10 @@ pub struct RunArgs {
     /// script's `output vtk every N steps` says (default 100).
     #[arg(long)]
     pub vtk: Option<PathBuf>,
+    /// Write the script's `output csv(SET) every …` logs into this folder as `SET.csv` (time,
+    /// mean, min and max displacement of the set, SI units).
+    #[arg(long, value_name = "DIR")]
+    pub csv: Option<PathBuf>,
     /// Also run the backward pass: d loss / d param for every param (`gradients` in the JSON).
     #[arg(long)]
     pub grad: bool,
@@ -92,7 +96,9 @@ pub enum BackendChoice {
 }
 
 /// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
-fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::sema::units::Dim), String> {
+pub(crate) fn parse_quantity(
+    text: &str,
+) -> Result<(f64, softc_compiler::sema::units::Dim), String> {
     let src = format!("let __value = {text}");
     let ast = softc_compiler::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
     let Some(softc_compiler::front::ast::Item {
@@ -155,10 +161,14 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     for (name, _) in &overrides {
         let known = scene.uniforms.keys().any(|k| {
             k.strip_prefix("param.")
+                .or_else(|| k.strip_prefix("input."))
                 .is_some_and(|rest| rest == name || rest.starts_with(&format!("{name}.")))
         });
         if !known {
-            let _ = writeln!(err, "softc: --set {name}: the script has no param `{name}`");
+            let _ = writeln!(
+                err,
+                "softc: --set {name}: the script has no param or input `{name}`"
+            );
             return 2;
         }
     }
@@ -179,63 +189,26 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         );
         return 2;
     }
-    let result = match args.backend {
-        BackendChoice::Reference => {
-            crate::reference::run(&scene, dt, args.steps).and_then(|mut s| {
-                // The oracle's own job is the state; an at-end loss is evaluated on its final state.
-                if let Some(l) = crate::engine::loss::Loss::build(&scene, s.dt, s.steps)?
-                    && l.window == crate::engine::loss::LossWindow::End
-                {
-                    let x: Vec<f64> = s.x.iter().flatten().copied().collect();
-                    let v: Vec<f64> = s.v.iter().flatten().copied().collect();
-                    s.loss = Some(l.eval(&scene, &x, &v, s.steps as f64 * s.dt, &scene.uniforms));
-                }
-                Ok(((s, None), "reference"))
-            })
-        }
-        BackendChoice::Interp => {
-            let module = if args.grad {
-                &scene.lowered.adjoint.module
-            } else {
-                &scene.lowered.module
-            };
-            simulate(&scene, Interpreter::new(module), &args, dt, err).map(|o| (o, "interp"))
-        }
-        BackendChoice::Gpu => {
-            let precision = match (args.precision, scene.precision_setting()) {
-                (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
-                _ => Precision::F32,
-            };
-            let module = if args.grad {
-                &scene.lowered.adjoint.module
-            } else {
-                &scene.lowered.module
-            };
-            match crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()) {
-                Ok(gpu) => {
-                    let _ = writeln!(err, "adapter: {}; kernels in {precision}", gpu.adapter());
-                    simulate(&scene, gpu, &args, dt, err).map(|o| (o, "gpu"))
-                }
-                Err(e) => Err(e),
-            }
-        }
-        BackendChoice::Cpu => {
-            let precision = match (args.precision, scene.precision_setting()) {
-                (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
-                _ => Precision::F64,
-            };
-            // The adjoint kernels are compiled only when the backward pass runs.
-            let module = if args.grad {
-                &scene.lowered.adjoint.module
-            } else {
-                &scene.lowered.module
-            };
-            match Cpu::new(module, precision, args.threads) {
-                Ok(cpu) => simulate(&scene, cpu, &args, dt, err).map(|o| (o, "cpu")),
-                Err(e) => Err(format!("the kernels do not compile: {e}")),
-            }
+    // A script whose inputs list several scenes (`input p: pressure from [2 kPa, 3 kPa]`) runs
+    // each of them; `--set` on an input runs just that one.
+    let input_given = overrides.iter().any(|(n, _)| {
+        scene
+            .uniforms
+            .keys()
+            .any(|k| k.starts_with(&format!("input.{n}")))
+    });
+    let scenes = match crate::optim::plain_run_scenes(&scene) {
+        Ok(_) if input_given => Vec::new(),
+        Ok(s) => s,
+        Err(e) => {
+            let _ = writeln!(err, "{}: {e}", args.file.display());
+            return 1;
         }
     };
+    if scenes.len() > 1 {
+        return run_scenes(scene, &args, dt, &scenes, out, err);
+    }
+    let result = run_scene(&scene, &args, dt, err);
     let ((summary, grad), backend_name) = match result {
         Ok(s) => s,
         Err(e) if e.is_empty() => return 2,
@@ -293,6 +266,144 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     0
 }
 
+type SceneResult = Result<((RunSummary, Option<GradientReport>), &'static str), String>;
+
+/// One scene on the chosen backend: the forward run, or forward and backward with `--grad`.
+fn run_scene(scene: &Scene, args: &RunArgs, dt: Option<f64>, err: &mut dyn Write) -> SceneResult {
+    match args.backend {
+        BackendChoice::Reference => {
+            crate::reference::run(scene, dt, args.steps).and_then(|mut s| {
+                // The oracle's own job is the state; an at-end loss is evaluated on its final state.
+                if let Some(l) = crate::engine::loss::Loss::build(scene, s.dt, s.steps)?
+                    && l.window == crate::engine::loss::LossWindow::End
+                {
+                    let x: Vec<f64> = s.x.iter().flatten().copied().collect();
+                    let v: Vec<f64> = s.v.iter().flatten().copied().collect();
+                    s.loss = Some(l.eval(scene, &x, &v, s.steps as f64 * s.dt, &scene.uniforms));
+                }
+                Ok(((s, None), "reference"))
+            })
+        }
+        BackendChoice::Interp => {
+            let module = if args.grad {
+                &scene.lowered.adjoint.module
+            } else {
+                &scene.lowered.module
+            };
+            simulate(scene, Interpreter::new(module), args, dt, err).map(|o| (o, "interp"))
+        }
+        BackendChoice::Gpu => {
+            let precision = match (args.precision, scene.precision_setting()) {
+                (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
+                _ => Precision::F32,
+            };
+            let module = if args.grad {
+                &scene.lowered.adjoint.module
+            } else {
+                &scene.lowered.module
+            };
+            match crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()) {
+                Ok(gpu) => {
+                    let _ = writeln!(err, "adapter: {}; kernels in {precision}", gpu.adapter());
+                    simulate(scene, gpu, args, dt, err).map(|o| (o, "gpu"))
+                }
+                Err(e) => Err(e),
+            }
+        }
+        BackendChoice::Cpu => {
+            let precision = match (args.precision, scene.precision_setting()) {
+                (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
+                _ => Precision::F64,
+            };
+            // The adjoint kernels are compiled only when the backward pass runs.
+            let module = if args.grad {
+                &scene.lowered.adjoint.module
+            } else {
+                &scene.lowered.module
+            };
+            match Cpu::new(module, precision, args.threads) {
+                Ok(cpu) => simulate(scene, cpu, args, dt, err).map(|o| (o, "cpu")),
+                Err(e) => Err(format!("the kernels do not compile: {e}")),
+            }
+        }
+    }
+}
+
+/// Every scene of the script's inputs in turn; the JSON is the first scene's summary with the
+/// mean loss over the scenes, and `scenes`: each scene's inputs and summary.
+fn run_scenes(
+    mut scene: Scene,
+    args: &RunArgs,
+    dt: Option<f64>,
+    scenes: &[Vec<(String, f64)>],
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
+    let mut results = Vec::new();
+    for (k, assignment) in scenes.iter().enumerate() {
+        for (name, value) in assignment {
+            scene.uniforms.insert(name.clone(), *value);
+        }
+        let mut a = args.clone();
+        a.vtk = args.vtk.as_ref().map(|d| d.join(format!("scene{k}")));
+        a.csv = args.csv.as_ref().map(|d| d.join(format!("scene{k}")));
+        let inputs: serde_json::Map<String, serde_json::Value> = assignment
+            .iter()
+            .map(|(n, v)| (n.trim_start_matches("input.").to_string(), (*v).into()))
+            .collect();
+        let _ = writeln!(
+            err,
+            "scene {k}: {}",
+            serde_json::Value::Object(inputs.clone())
+        );
+        match run_scene(&scene, &a, dt, err) {
+            Ok(((summary, grad), backend)) => {
+                let _ = writeln!(
+                    err,
+                    "{}: scene {k}: {} steps of {:e} s in {:.3} s (backend {backend})",
+                    args.file.display(),
+                    summary.steps,
+                    summary.dt,
+                    summary.wall_seconds
+                );
+                let mut json = summary_json(&scene, &summary, backend);
+                if let Some(g) = &grad {
+                    json["gradients"] = gradients_json(&g.gradients);
+                }
+                json["inputs"] = serde_json::Value::Object(inputs);
+                results.push(json);
+            }
+            Err(e) if e.is_empty() => return 2,
+            Err(e) => {
+                let _ = writeln!(err, "{}: scene {k}: {e}", args.file.display());
+                return 1;
+            }
+        }
+    }
+    let mut json = results[0].clone();
+    if let Some(obj) = json.as_object_mut() {
+        obj.remove("inputs");
+    }
+    let losses: Vec<f64> = results.iter().filter_map(|r| r["loss"].as_f64()).collect();
+    if losses.len() == results.len() {
+        json["loss"] = (losses.iter().sum::<f64>() / losses.len() as f64).into();
+    }
+    json["scenes"] = serde_json::Value::Array(results);
+    let text = serde_json::to_string_pretty(&json).unwrap_or_default();
+    match &args.json {
+        Some(path) => {
+            if let Err(e) = super::write_atomically(path, text.as_bytes()) {
+                let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
+                return 2;
+            }
+        }
+        None => {
+            let _ = writeln!(out, "{text}");
+        }
+    }
+    0
+}
+
 /// Print the stable-step estimate before a run, and warn when the step exceeds it.
 fn announce_dt<B: crate::engine::Backend>(
     sim: &mut Simulation<B>,
@@ -321,6 +432,68 @@ fn announce_dt<B: crate::engine::Backend>(
         );
     }
     Ok(())
+}
+
+/// The node-set logs of the script's `output csv(SET) every …` statements, written into
+/// `--csv DIR`; without it, a note says how to get them.
+fn csv_outputs(
+    args: &RunArgs,
+    scene: &Scene,
+    dt: f64,
+    err: &mut dyn Write,
+) -> Result<Vec<crate::engine::CsvOutput>, String> {
+    use softc_compiler::front::ast::{ExprKind, ItemKind, StmtKind};
+    let mut outputs = Vec::new();
+    let program = scene.program();
+    for item in &scene.ast.items {
+        let ItemKind::Sim(stmts) = &item.kind else {
+            continue;
+        };
+        for stmt in stmts {
+            let StmtKind::Output { what, every, steps } = &stmt.kind else {
+                continue;
+            };
+            let ExprKind::Call { callee, args: call } = &what.kind else {
+                continue;
+            };
+            let (ExprKind::Name(f), Some(ExprKind::Name(set))) =
+                (&callee.kind, call.first().map(|a| &a.value.kind))
+            else {
+                continue;
+            };
+            if f.name != "csv" {
+                continue;
+            }
+            let Some(dir) = &args.csv else {
+                let _ = writeln!(
+                    err,
+                    "note: the script logs `{}` (`output csv`); add --csv DIR to write it",
+                    set.name
+                );
+                continue;
+            };
+            let interval = crate::optim::constant(&program, every)?;
+            let every_steps = if *steps {
+                interval.round().max(1.0) as u64
+            } else {
+                (interval / dt).round().max(1.0) as u64
+            };
+            let nodes = scene
+                .node_sets
+                .iter()
+                .find(|(n, _)| *n == set.name)
+                .map(|(_, nodes)| nodes.clone())
+                .ok_or_else(|| format!("`output csv({})`: no node set of that name", set.name))?;
+            std::fs::create_dir_all(dir)
+                .map_err(|e| format!("cannot create `{}`: {e}", dir.display()))?;
+            outputs.push(crate::engine::CsvOutput::new(
+                dir.join(format!("{}.csv", set.name)),
+                nodes,
+                every_steps,
+            ));
+        }
+    }
+    Ok(outputs)
 }
 
 /// The VTK series asked for with `--vtk DIR`.
@@ -428,6 +601,8 @@ fn simulate<B: crate::engine::Backend>(
         Err(_) => return Err(String::new()),
     };
     announce_dt(&mut sim, dt, err)?;
+    let (step, _) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
+    sim.csv = csv_outputs(args, scene, step, err)?;
     if args.grad {
         let options = grad_options(scene, args)?;
         let g = sim.gradient(dt, args.steps, &options).map_err(|e| e.0)?;

@@ -9,6 +9,7 @@
 pub mod adjoint;
 pub mod checkpoint;
 pub mod loss;
+pub mod profile;
 pub mod scene;
 
 use scene::{Csr, DtChoice, Scene};
@@ -327,6 +328,20 @@ pub struct RunSummary {
     pub v: Vec<[f64; 3]>,
 }
 
+/// `x` rounded down to two significant digits (a safety factor that stays on the safe side).
+fn two_digits_down(x: f64) -> f64 {
+    let inverse_scale = 10f64.powf(1.0 - x.log10().floor());
+    (x * inverse_scale).floor() / inverse_scale
+}
+
+/// A run to a steady state ([`Simulation::run_to_steady_state`]).
+#[derive(Debug, Clone)]
+pub struct SteadyRun {
+    pub summary: RunSummary,
+    /// Whether the settling criterion was met before the step limit.
+    pub settled: bool,
+}
+
 /// A scene bound to a backend: buffers allocated and initialised.
 pub struct Simulation<'s, B: Backend> {
     pub scene: &'s Scene,
@@ -334,9 +349,68 @@ pub struct Simulation<'s, B: Backend> {
     pub uniforms: Uniforms,
     /// Write a ParaView series while running.
     pub vtk: Option<VtkOutput>,
+    /// Node-set logs (`output csv(SET)`) written by `run`.
+    pub csv: Vec<CsvOutput>,
     /// The stable-step estimate, once computed (reused by `run`).
     estimate: Option<f64>,
+    /// Positions at the last state check that passed, and its step: where the stable step is
+    /// re-estimated when a run blows up.
+    last_good: Option<(u64, Vec<f64>)>,
     ids: Ids,
+}
+
+/// `output csv(SET) every …`: the mean, min and max displacement of a node set over time,
+/// collected while running and written atomically when the run ends (also when it fails, so a
+/// blow-up leaves its history).
+pub struct CsvOutput {
+    pub path: std::path::PathBuf,
+    /// Nodes of the set.
+    pub nodes: Vec<u32>,
+    /// Write every this many steps (and the first and last state).
+    pub every: u64,
+    rows: String,
+}
+
+impl CsvOutput {
+    pub fn new(path: std::path::PathBuf, nodes: Vec<u32>, every: u64) -> Self {
+        CsvOutput {
+            path,
+            nodes,
+            every: every.max(1),
+            rows: "step,t_s,mean_ux_m,mean_uy_m,mean_uz_m,min_ux_m,min_uy_m,min_uz_m,max_ux_m,max_uy_m,max_uz_m\n"
+                .into(),
+        }
+    }
+
+    fn record(&mut self, step: u64, t: f64, rest: &[[f64; 3]], x: &[f64]) {
+        use std::fmt::Write;
+        let mut mean = [0.0; 3];
+        let mut min = [f64::INFINITY; 3];
+        let mut max = [f64::NEG_INFINITY; 3];
+        for &n in &self.nodes {
+            let n = n as usize;
+            for d in 0..3 {
+                let u = x[3 * n + d] - rest[n][d];
+                mean[d] += u / self.nodes.len() as f64;
+                min[d] = min[d].min(u);
+                max[d] = max[d].max(u);
+            }
+        }
+        let _ = write!(self.rows, "{step},{t:e}");
+        for v in mean.iter().chain(&min).chain(&max) {
+            let _ = write!(self.rows, ",{v:e}");
+        }
+        self.rows.push('\n');
+    }
+
+    fn finish(&self) -> Result<(), RunError> {
+        crate::cli::write_atomically(&self.path, self.rows.as_bytes()).map_err(|e| {
+            RunError(format!(
+                "cannot write the CSV output `{}`: {e}",
+                self.path.display()
+            ))
+        })
+    }
 }
 
 /// A `.pvd` series of `.vtu` files: the deformed mesh with displacement and velocity per
@@ -413,7 +487,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
             backend,
             uniforms,
             vtk: None,
+            csv: Vec::new(),
             estimate: None,
+            last_good: None,
             ids,
         };
         sim.upload_fields();
@@ -447,6 +523,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         self.backend.set(self.ids.x, &x);
         self.backend.set(self.ids.v, &zeros);
         self.uniforms.0.insert("t".into(), 0.0);
+        self.last_good = None;
     }
 
     fn run_element_kernels(&mut self) -> Result<(), RunError> {
@@ -637,24 +714,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
         self.uniforms.0.insert("dt".into(), dt);
         let loss_fn = loss::Loss::build(self.scene, dt, steps).map_err(RunError)?;
-        let mut loss_sum = 0.0;
-        for step in 0..steps {
-            if self
-                .vtk
-                .as_ref()
-                .is_some_and(|o| step % o.every.max(1) == 0)
-            {
-                self.uniforms.0.insert("t".into(), step as f64 * dt);
-                self.write_vtk(step as f64 * dt)?;
-            }
-            self.step(step, dt)?;
-            if let Some(l) = &loss_fn {
-                loss_sum += self.loss_term(l, step + 1, dt);
-            }
-            if step % CHECK_EVERY == 0 || step + 1 == steps {
-                self.check_state(step, dt)?;
-            }
-        }
+        let stepped = self.run_steps(dt, steps, loss_fn.as_ref());
+        // The logs are written whether or not the run finished: a blow-up keeps its history.
+        let written: Result<Vec<()>, RunError> = self.csv.iter().map(CsvOutput::finish).collect();
+        let loss_sum = stepped?;
+        written?;
         if self.vtk.is_some() {
             // Element fields of the final state, then the final frame.
             self.run_element_kernels()?;
@@ -676,6 +740,136 @@ impl<'s, B: Backend> Simulation<'s, B> {
             wall_seconds: start.elapsed().as_secs_f64(),
             x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
             v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+        })
+    }
+
+    /// The time loop of `run`: steps, outputs, the windowed loss's sum and state checks.
+    fn run_steps(
+        &mut self,
+        dt: f64,
+        steps: u64,
+        loss_fn: Option<&loss::Loss>,
+    ) -> Result<f64, RunError> {
+        let scene = self.scene;
+        let rest = &scene.mesh.nodes;
+        let mut loss_sum = 0.0;
+        for step in 0..steps {
+            if self.csv.iter().any(|c| step % c.every == 0) {
+                let x = self.backend.get(self.ids.x);
+                for c in self.csv.iter_mut().filter(|c| step % c.every == 0) {
+                    c.record(step, step as f64 * dt, rest, &x);
+                }
+            }
+            if self
+                .vtk
+                .as_ref()
+                .is_some_and(|o| step % o.every.max(1) == 0)
+            {
+                self.uniforms.0.insert("t".into(), step as f64 * dt);
+                self.write_vtk(step as f64 * dt)?;
+            }
+            self.step(step, dt)?;
+            if let Some(l) = loss_fn {
+                loss_sum += self.loss_term(l, step + 1, dt);
+            }
+            if step % CHECK_EVERY == 0 || step + 1 == steps {
+                self.check_state(step, dt)?;
+            }
+        }
+        if !self.csv.is_empty() {
+            let x = self.backend.get(self.ids.x);
+            for c in &mut self.csv {
+                c.record(steps, steps as f64 * dt, rest, &x);
+            }
+        }
+        Ok(loss_sum)
+    }
+
+    /// Run until the state settles or `max_steps` steps, whichever comes first: the steps to a
+    /// steady state of a quasi-static scene. Settled means s × elapsed time ≤ `tol` × max node
+    /// displacement, with s the largest mean node speed over the last tenth of the elapsed time
+    /// (a dimensionless ratio, ~1 while a load ramps and → 0 as the motion dies out; the mean
+    /// over a window ignores turning points of oscillations and round-off chatter), checked
+    /// every [`CHECK_EVERY`] steps. A mean speed below the round-off floor of the precision (32
+    /// ulps of the positions over the window) also counts as settled.
+    /// Writes no VTK and evaluates no loss (`loss` is `None`).
+    pub fn run_to_steady_state(
+        &mut self,
+        dt_override: Option<f64>,
+        max_steps: u64,
+        tol: f64,
+    ) -> Result<SteadyRun, RunError> {
+        let start = std::time::Instant::now();
+        self.upload_fields();
+        let (dt, estimate) = self.resolve_dt(dt_override)?;
+        self.uniforms.0.insert("dt".into(), dt);
+        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        let max_norm = |a: &[f64], b: Option<&[f64]>| {
+            a.chunks(3)
+                .enumerate()
+                .map(|(i, c)| {
+                    let o = b.map_or([0.0; 3], |b| [b[3 * i], b[3 * i + 1], b[3 * i + 2]]);
+                    ((c[0] - o[0]).powi(2) + (c[1] - o[1]).powi(2) + (c[2] - o[2]).powi(2)).sqrt()
+                })
+                .fold(0.0, f64::max)
+        };
+        let eps = match self.backend.precision() {
+            Precision::F32 => f32::EPSILON as f64,
+            _ => f64::EPSILON,
+        };
+        // Positions at earlier checks: the motion is measured as the mean speed over the last
+        // tenth of the elapsed time, which averages out oscillations and round-off.
+        let mut history: std::collections::VecDeque<(f64, Vec<f64>)> =
+            std::collections::VecDeque::new();
+        let mut steps = max_steps;
+        let mut settled = false;
+        for step in 0..max_steps {
+            self.step(step, dt)?;
+            if (step + 1) % CHECK_EVERY != 0 && step + 1 != max_steps {
+                continue;
+            }
+            self.check_state(step, dt)?;
+            let t = (step + 1) as f64 * dt;
+            let x = self.backend.get(self.ids.x);
+            let window = (0.1 * t).max(2.0 * CHECK_EVERY as f64 * dt);
+            while history.len() > 1 && history[1].0 <= t - window {
+                history.pop_front();
+            }
+            if let Some((t0, x0)) = history.front()
+                && *t0 <= t - window
+            {
+                let speed = max_norm(&x, Some(x0)) / (t - t0);
+                // Positions at rest chatter by round-off (f32: 10-15 ulps measured on the free
+                // end of a beam): 32 ulps over the window is not motion.
+                let floor = 32.0 * eps * max_norm(&x, None) / (t - t0);
+                if speed * t <= tol * max_norm(&x, Some(&rest)) || speed <= floor {
+                    settled = true;
+                    steps = step + 1;
+                    break;
+                }
+            }
+            history.push_back((t, x));
+            if history.len() > 64 {
+                // Thin the history (keeping the newest): its span is all that matters.
+                let newest = history.pop_back();
+                let kept: Vec<_> = history.drain(..).step_by(2).collect();
+                history.extend(kept);
+                history.extend(newest);
+            }
+        }
+        let xs = self.backend.get(self.ids.x);
+        let vs = self.backend.get(self.ids.v);
+        Ok(SteadyRun {
+            summary: RunSummary {
+                loss: None,
+                steps,
+                dt,
+                dt_stable_estimate: estimate,
+                wall_seconds: start.elapsed().as_secs_f64(),
+                x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+                v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            },
+            settled,
         })
     }
 
@@ -736,7 +930,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .map_err(|e| RunError(format!("cannot write the VTK output: {e}")))
     }
 
-    fn check_state(&self, step: u64, dt: f64) -> Result<(), RunError> {
+    fn check_state(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
         let t = (step + 1) as f64 * dt;
         // An inversion is reported first: it is usually why positions went non-finite
         // (J^(-2/3) of a negative J). Inversion-safe materials may pass through J <= 0.
@@ -761,11 +955,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if let Some(i) = xs.iter().position(|v| !v.is_finite()) {
             return Err(RunError(format!(
                 "the simulation became unstable at step {} (t = {t:.6} s): node {} has a non-finite position. \
-                 The time step dt = {dt:e} s is too large for this mesh and material; try `dt = auto` \
-                 (it estimates the stable step) or a smaller dt, e.g. {:e} s",
+                 The time step dt = {dt:e} s is too large for this mesh and material{}",
                 step + 1,
                 i / 3,
-                self.estimate.map_or(dt / 4.0, |e| 0.9 * e)
+                self.unstable_hint(dt)
             )));
         }
         if let Some((e, j)) = js.iter().enumerate().find(|(_, j)| !j.is_finite()) {
@@ -775,6 +968,37 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 step + 1
             )));
         }
+        self.last_good = Some((step + 1, xs));
         Ok(())
+    }
+
+    /// What to do about a blow-up: the stable step re-estimated at the last finite state checked
+    /// (a stiffening material under load has a smaller one than at rest, where `dt = auto`
+    /// estimates it), as a dt and as the `auto` safety factor that gives it.
+    fn unstable_hint(&mut self, dt: f64) -> String {
+        let at_rest = self.estimate;
+        let Some((step, x)) = self.last_good.take() else {
+            return format!(
+                "; try `dt = auto` (it estimates the stable step) or a smaller dt, e.g. {:e} s",
+                at_rest.map_or(dt / 4.0, |e| 0.9 * e)
+            );
+        };
+        self.backend.set(self.ids.x, &x);
+        let here = match self.compute_stable_dt() {
+            Ok(e) if e.is_finite() && e > 0.0 => e,
+            _ => return format!("; try a smaller dt, e.g. {:e} s", dt / 4.0),
+        };
+        let suggested = 0.8 * here;
+        match at_rest {
+            Some(rest) if here < rest => format!(
+                ". The material stiffens as it deforms: the stable step is {here:e} s at step {step} \
+                 (the last finite state), against {rest:e} s at rest where `dt = auto` estimates it. \
+                 Use dt <= {suggested:e} s, e.g. `dt = auto(safety: {})`",
+                two_digits_down((suggested / rest).min(0.9))
+            ),
+            _ => format!(
+                "; the stable step at step {step} (the last finite state) is {here:e} s: use dt <= {suggested:e} s"
+            ),
+        }
     }
 }

@@ -776,7 +776,7 @@ fn fields(
 }
 
 /// `param.NAME[.i…]` and `input.NAME[.i…]` values: initial values (or `--set` overrides) and
-/// the first scene of each input batch. A per-element param has one entry per element of its
+/// the first scene of each input batch (or its `--set` override). A per-element param has one entry per element of its
 /// set, `param.NAME.i`, all starting at its (scalar) initial value.
 fn uniform_values(
     program: &Program,
@@ -857,10 +857,15 @@ fn uniform_values(
             _ => vec![0.0; shape_of(&input.ty).iter().product::<usize>().max(1)],
         };
         let shape = shape_of(&input.ty);
+        // `--set NAME=VALUE` on an input runs that one scene (every entry of an array input).
+        let given = overrides
+            .iter()
+            .find(|(name, _)| *name == input.name.name)
+            .map(|(_, v)| *v);
         for (i, v) in first.iter().enumerate() {
             out.insert(
                 uniform_name(&format!("input.{}", input.name.name), &shape, i),
-                *v,
+                given.unwrap_or(*v),
             );
         }
     }

@@ -287,6 +287,31 @@ impl Plan {
     }
 }
 
+/// The scenes a plain run (no optimization) covers: one uniform assignment per scene when the
+/// script's inputs are constant lists of two or more scenes, else none (the one scene of
+/// [`Scene::uniforms`]). A generator input (`circle_quadrants`) has no fixed scenes.
+pub fn plain_run_scenes(scene: &Scene) -> Result<Vec<Vec<(String, f64)>>, String> {
+    let program = Program::new(&scene.ast, softc_compiler::sema::prelude_ast());
+    let inputs = inputs(scene, &program, 0)?;
+    let Some(n) = inputs.iter().filter_map(Input::count).max() else {
+        return Ok(Vec::new());
+    };
+    if n < 2 || inputs.iter().any(|i| i.count().is_some_and(|m| m != n)) {
+        return Ok(Vec::new());
+    }
+    Ok((0..n)
+        .map(|k| {
+            inputs
+                .iter()
+                .flat_map(|i| {
+                    let value = i.value(0, k);
+                    i.uniforms.iter().cloned().zip(value).collect::<Vec<_>>()
+                })
+                .collect()
+        })
+        .collect())
+}
+
 /// The script's inputs with their per-scene values.
 fn inputs(scene: &Scene, program: &Program, seed: u64) -> Result<Vec<Input>, String> {
     let mut out = Vec::new();

@@ -85,6 +85,17 @@ pub fn write_figure(stem: &Path, title: &str, panels: &[Panel]) -> Result<Vec<Pa
             panels.len()
         ));
     }
+    write_chart(stem, &Figure::prepare(title, panels))
+}
+
+/// What a figure file holds: its pixel size and how to draw it on any backend.
+trait Chart {
+    fn size(&self) -> (u32, u32);
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String>;
+}
+
+/// Writes `<stem>.png` and `<stem>.svg` of a chart, each atomically (temporary file, rename).
+fn write_chart(stem: &Path, fig: &impl Chart) -> Result<Vec<PathBuf>, String> {
     let file_name = stem
         .file_name()
         .ok_or_else(|| format!("plot: figure stem {} has no file name", stem.display()))?;
@@ -99,7 +110,6 @@ pub fn write_figure(stem: &Path, title: &str, panels: &[Panel]) -> Result<Vec<Pa
     std::fs::create_dir_all(&dir)
         .map_err(|e| format!("plot: cannot create folder {}: {e}", dir.display()))?;
 
-    let fig = Figure::prepare(title, panels);
     let size = fig.size();
 
     // SVG: render into a string, then write it atomically.
@@ -273,7 +283,9 @@ impl Figure {
             panels: panels.iter().map(PreparedPanel::prepare).collect(),
         }
     }
+}
 
+impl Chart for Figure {
     fn size(&self) -> (u32, u32) {
         let title = if self.title.is_empty() {
             0
@@ -308,7 +320,9 @@ impl Figure {
         }
         Ok(())
     }
+}
 
+impl Figure {
     fn draw_panel<DB: DrawingBackend>(
         &self,
         panel: &PreparedPanel,
@@ -1093,5 +1107,177 @@ mod tests {
         let (major, _, step) = log_ticks(-8.2, 0.3);
         assert_eq!(step, 0.0);
         assert!(major.iter().all(|t| t.fract() == 0.0) && major.len() >= 4);
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Scatter figures (speed against accuracy)
+
+/// One point of a log-log scatter.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScatterPoint {
+    pub x: f64,
+    pub y: f64,
+    /// Points of one group share a colour and a legend entry.
+    pub group: String,
+    /// Written beside the point.
+    pub label: String,
+    /// Ringed and joined by a line (e.g. the Pareto front).
+    pub highlight: bool,
+}
+
+struct Scatter {
+    title: String,
+    x_label: String,
+    y_label: String,
+    points: Vec<ScatterPoint>,
+}
+
+/// Writes `<stem>.png` and `<stem>.svg`: a log-log scatter of `points`, coloured by group, with
+/// the highlighted points ringed and joined in order of x. Non-positive values are left out.
+pub fn write_scatter(
+    stem: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    points: &[ScatterPoint],
+) -> Result<Vec<PathBuf>, String> {
+    let points: Vec<ScatterPoint> = points
+        .iter()
+        .filter(|p| p.x.is_finite() && p.y.is_finite() && p.x > 0.0 && p.y > 0.0)
+        .cloned()
+        .collect();
+    if points.is_empty() {
+        return Err("plot: no point with positive, finite coordinates to draw".into());
+    }
+    write_chart(
+        stem,
+        &Scatter {
+            title: title.into(),
+            x_label: x_label.into(),
+            y_label: y_label.into(),
+            points,
+        },
+    )
+}
+
+impl Chart for Scatter {
+    fn size(&self) -> (u32, u32) {
+        (WIDTH, 600)
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String> {
+        root.fill(&WHITE).map_err(|e| format!("background: {e}"))?;
+        let range = |f: fn(&ScatterPoint) -> f64| {
+            let lo = self.points.iter().map(f).fold(f64::INFINITY, f64::min);
+            let hi = self.points.iter().map(f).fold(f64::NEG_INFINITY, f64::max);
+            // Half a decade of margin, so labels and rings stay inside.
+            (lo / 10f64.powf(0.25), hi * 10f64.powf(0.25))
+        };
+        let (x0, x1) = range(|p| p.x);
+        let (y0, y1) = range(|p| p.y);
+        let (plot, legend) = root.split_horizontally(WIDTH - LEGEND_WIDTH);
+        let mut chart = ChartBuilder::on(&plot)
+            .caption(&self.title, (FONT_FAMILY, 18))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+            .map_err(|e| format!("axes: {e}"))?;
+        chart
+            .configure_mesh()
+            .x_desc(&self.x_label)
+            .y_desc(&self.y_label)
+            .x_label_formatter(&|v| format!("{v:.2e}"))
+            .y_label_formatter(&|v| format!("{v:.0e}"))
+            .label_style((FONT_FAMILY, 12))
+            .draw()
+            .map_err(|e| format!("grid: {e}"))?;
+        let mut groups: Vec<&str> = Vec::new();
+        for p in &self.points {
+            if !groups.contains(&p.group.as_str()) {
+                groups.push(&p.group);
+            }
+        }
+        let colour = |g: &str| PALETTE[groups.iter().position(|x| *x == g).unwrap_or(0) % 10];
+        let mut front: Vec<&ScatterPoint> = self.points.iter().filter(|p| p.highlight).collect();
+        front.sort_by(|a, b| a.x.total_cmp(&b.x));
+        chart
+            .draw_series(LineSeries::new(
+                front.iter().map(|p| (p.x, p.y)),
+                BLACK.stroke_width(1),
+            ))
+            .map_err(|e| format!("front: {e}"))?;
+        for p in &self.points {
+            let c = colour(&p.group);
+            chart
+                .draw_series(std::iter::once(Circle::new((p.x, p.y), 4, c.filled())))
+                .map_err(|e| format!("point: {e}"))?;
+            if p.highlight {
+                chart
+                    .draw_series(std::iter::once(Circle::new(
+                        (p.x, p.y),
+                        8,
+                        BLACK.stroke_width(2),
+                    )))
+                    .map_err(|e| format!("ring: {e}"))?;
+            }
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    p.label.clone(),
+                    (p.x, p.y),
+                    (FONT_FAMILY, 10).into_font().color(&c),
+                )))
+                .map_err(|e| format!("label: {e}"))?;
+        }
+        // Legend: one line per group, then the front.
+        let style = TextStyle::from((FONT_FAMILY, 13).into_font()).color(&BLACK);
+        let mut y = LEGEND_TOP;
+        for g in &groups {
+            legend
+                .draw(&Circle::new((12, y), 5, colour(g).filled()))
+                .map_err(|e| format!("legend: {e}"))?;
+            legend
+                .draw(&Text::new(
+                    truncate(g, LEGEND_MAX_CHARS),
+                    (24, y - 7),
+                    style.clone(),
+                ))
+                .map_err(|e| format!("legend: {e}"))?;
+            y += LEGEND_LINE;
+        }
+        legend
+            .draw(&Circle::new((12, y), 7, BLACK.stroke_width(2)))
+            .map_err(|e| format!("legend: {e}"))?;
+        legend
+            .draw(&Text::new("Pareto front", (24, y - 7), style))
+            .map_err(|e| format!("legend: {e}"))?;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod scatter_tests {
+    use super::*;
+
+    #[test]
+    fn a_scatter_is_written_as_png_and_svg() {
+        let dir = std::env::temp_dir().join(format!("softc-scatter-{}", std::process::id()));
+        let points: Vec<ScatterPoint> = (1..6)
+            .map(|i| ScatterPoint {
+                x: i as f64,
+                y: 1.0 / (i * i) as f64,
+                group: if i % 2 == 0 { "even" } else { "odd" }.into(),
+                label: format!("p{i}"),
+                highlight: i > 2,
+            })
+            .collect();
+        let files = write_scatter(&dir.join("s"), "t", "x", "y", &points).unwrap();
+        let svg = std::fs::read_to_string(&files[1]).unwrap();
+        assert!(svg.contains("Pareto front") && svg.contains("p3"));
+        assert!(std::fs::metadata(&files[0]).unwrap().len() > 1000);
+        let none = write_scatter(&dir.join("n"), "t", "x", "y", &[]);
+        assert!(none.is_err());
+        let _ = std::fs::remove_dir_all(dir);
     }
 }

@@ -1,0 +1,619 @@
+//! `softc bench --tradeoff SCRIPT`: how much accuracy each choice buys and what it costs.
+//!
+//! For a quasi-static scene (loads that settle to a steady state), one output — the mean
+//! displacement of a node set along one axis — is computed by variants of the script that differ
+//! in one knob at a time: mesh resolution (the script's mesh regenerated from the `.toml` spec
+//! beside it at scaled cell counts), precision, time step (safety factor on the stable-step
+//! estimate), FEM or spring mesh, and the settling tolerance that decides how many steps reach
+//! the steady state. Each variant's error is taken against a converged reference and set
+//! against its wall time; the points that no other point beats on both are the Pareto front.
+//!
+//! The reference is a Richardson extrapolation of the f64 FEM output over the resolutions (with
+//! the order observed from the three finest), or, when that is not possible or not credible,
+//! the finest f64 FEM solution; the report says which. Every variant is written as a script
+//! under `OUT/variants/` (absolute mesh path, its settings in the `sim` block) so any point can
+//! be rerun with `softc run`.
+
+use crate::engine::scene::Scene;
+use crate::engine::{Cpu, Simulation};
+use crate::mesh::mesher::{MeshSpec, generate};
+use softc_compiler::back::Precision;
+use softc_compiler::front::ast::{DeclKind, ExprKind, ItemKind, Script, StmtKind};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// What the tradeoff sweeps; parsed from `softc bench --tradeoff` options.
+#[derive(Debug, Clone)]
+pub struct Sweep {
+    pub script: PathBuf,
+    /// Node set and axis of the output (`tip.z`).
+    pub set: String,
+    pub axis: usize,
+    /// Mesh refinement factors (1 = the script's own mesh).
+    pub resolutions: Vec<f64>,
+    pub precisions: Vec<Precision>,
+    /// dt = safety × stable-step estimate.
+    pub safeties: Vec<f64>,
+    /// Relative settling tolerances (see `Simulation::run_to_steady_state`).
+    pub settle: Vec<f64>,
+    /// Volume stiffness α of the spring-mesh variants (N/m³); none: FEM only.
+    pub springs: Option<String>,
+    pub overrides: Vec<(String, f64)>,
+    pub threads: Option<usize>,
+    pub out: PathBuf,
+}
+
+/// One variant and what it measured.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Point {
+    pub label: String,
+    pub resolution: f64,
+    pub tets: usize,
+    pub precision: String,
+    pub model: String,
+    pub safety: f64,
+    pub settle: f64,
+    pub dt: f64,
+    pub steps: u64,
+    pub settled: bool,
+    /// The output (m).
+    pub value: f64,
+    /// |value − reference| / |reference|.
+    pub error: f64,
+    /// Wall time of the run: stable-step estimate and time steps, not the one-off compile.
+    pub seconds: f64,
+    pub compile_seconds: f64,
+    pub pareto: bool,
+    pub script: PathBuf,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Config {
+    resolution: f64,
+    precision: Precision,
+    springs: bool,
+    safety: f64,
+    settle: f64,
+}
+
+/// Run the sweep; prints progress to `err`, the table to `out`; writes JSON and the plot.
+pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<(), String> {
+    let base = Scene::load(&sweep.script, &sweep.overrides).map_err(|e| e.0)?;
+    let source = base.source.clone();
+    let (mesh_span, mesh_path) = mesh_argument(&base.ast)?;
+    let spec_path = mesh_path.with_extension("toml");
+    let spec_path = base_dir(&sweep.script).join(&spec_path);
+    let spec = MeshSpec::from_file(&spec_path).map_err(|e| {
+        format!(
+            "{e}\n  --tradeoff regenerates the script's mesh at other resolutions from the \
+             spec beside it ({}); give the mesh a spec or use --resolutions 1",
+            spec_path.display()
+        )
+    })?;
+    std::fs::create_dir_all(sweep.out.join("meshes"))
+        .and_then(|_| std::fs::create_dir_all(sweep.out.join("variants")))
+        .map_err(|e| format!("cannot create {}: {e}", sweep.out.display()))?;
+    let set_index = base
+        .node_sets
+        .iter()
+        .position(|(n, _)| *n == sweep.set)
+        .ok_or_else(|| format!("the script has no node set `{}`", sweep.set))?;
+    let configs = configs(sweep);
+    let mut meshes: Vec<(f64, PathBuf)> = Vec::new();
+    let mut points = Vec::new();
+    for (i, c) in configs.iter().enumerate() {
+        let mesh = match meshes.iter().find(|(r, _)| *r == c.resolution) {
+            Some((_, p)) => p.clone(),
+            None => {
+                let p = refined_mesh(&spec, &spec_path, c.resolution, &sweep.out)?;
+                meshes.push((c.resolution, p.clone()));
+                p
+            }
+        };
+        let label = label(c);
+        let text = variant_source(&source, &base.ast, mesh_span, &mesh, c, sweep)?;
+        let script = sweep.out.join("variants").join(format!("{label}.soft"));
+        super::write_atomically(&script, text.as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", script.display()))?;
+        let _ = writeln!(err, "[{}/{}] {label}", i + 1, configs.len());
+        let p = measure(&script, &label, c, sweep, set_index)?;
+        let _ = writeln!(
+            err,
+            "        {} tets, dt {:.3e} s, {} steps{}, {:.1} s: {} = {:.6e} m",
+            p.tets,
+            p.dt,
+            p.steps,
+            if p.settled { "" } else { " (not settled)" },
+            p.seconds,
+            sweep.set,
+            p.value
+        );
+        points.push(p);
+    }
+    let reference = reference(&points);
+    for p in &mut points {
+        p.error = ((p.value - reference.value) / reference.value).abs();
+    }
+    mark_pareto(&mut points);
+    print_table(&points, &reference, sweep, out);
+    write_outputs(&points, &reference, sweep)
+}
+
+/// The converged value every error is measured against, and how it was obtained.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Reference {
+    pub value: f64,
+    pub method: String,
+    /// Observed convergence order in the cell size (Richardson only).
+    pub order: Option<f64>,
+}
+
+fn base_dir(script: &Path) -> PathBuf {
+    script
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."))
+        .to_path_buf()
+}
+
+/// The span of the mesh path string literal and the path it names.
+fn mesh_argument(ast: &Script) -> Result<((usize, usize), PathBuf), String> {
+    for item in &ast.items {
+        let ItemKind::Decl {
+            kind: DeclKind::Mesh,
+            value,
+            ..
+        } = &item.kind
+        else {
+            continue;
+        };
+        if let ExprKind::Call { args, .. } = &value.kind
+            && let Some(first) = args.first()
+            && let ExprKind::Str(s) = &first.value.kind
+        {
+            return Ok((
+                (first.value.span.start, first.value.span.end),
+                PathBuf::from(s),
+            ));
+        }
+    }
+    Err("the script's mesh is not `load(\"FILE\")`".into())
+}
+
+/// Every configuration: the baseline (resolution 1, first precision, FEM, first safety,
+/// tightest settling), then one knob varied at a time; resolution × precision in full.
+fn configs(s: &Sweep) -> Vec<Config> {
+    let tight = s.settle.iter().copied().fold(f64::INFINITY, f64::min);
+    let base = Config {
+        resolution: 1.0,
+        precision: s.precisions[0],
+        springs: false,
+        safety: s.safeties[0],
+        settle: tight,
+    };
+    let mut all = Vec::new();
+    let mut push = |c: Config| {
+        if !all.contains(&c) {
+            all.push(c);
+        }
+    };
+    for &precision in &s.precisions {
+        for &resolution in &s.resolutions {
+            push(Config {
+                resolution,
+                precision,
+                ..base
+            });
+        }
+    }
+    for &safety in &s.safeties {
+        push(Config { safety, ..base });
+    }
+    for &settle in &s.settle {
+        push(Config { settle, ..base });
+    }
+    if s.springs.is_some() {
+        for &resolution in &s.resolutions {
+            push(Config {
+                resolution,
+                springs: true,
+                ..base
+            });
+        }
+    }
+    all
+}
+
+fn label(c: &Config) -> String {
+    format!(
+        "res{}-{}-{}-dt{}-settle{:e}",
+        c.resolution,
+        match c.precision {
+            Precision::F32 => "f32",
+            _ => "f64",
+        },
+        if c.springs { "springs" } else { "fem" },
+        c.safety,
+        c.settle
+    )
+}
+
+/// Generate the spec's mesh with cell counts (or lattice spacing) scaled by `factor`.
+fn refined_mesh(
+    spec: &MeshSpec,
+    spec_path: &Path,
+    factor: f64,
+    out: &Path,
+) -> Result<PathBuf, String> {
+    let mut spec = spec.clone();
+    let resolution = match &mut spec.kuhn {
+        Some(k) => {
+            k.n = k.n.map(|n| ((n as f64 * factor).round() as usize).max(1));
+            None
+        }
+        None => Some(
+            spec.resolution
+                .ok_or("the mesh spec has neither [kuhn] nor `resolution`")?
+                / factor,
+        ),
+    };
+    let unit = spec.unit().map_err(|e| e.to_string())?;
+    let g = generate(&spec, resolution, &base_dir(spec_path)).map_err(|e| e.to_string())?;
+    let path = out.join("meshes").join(format!("res{factor}.msh"));
+    crate::mesh::save(&g.mesh, &path, unit).map_err(|e| e.to_string())?;
+    Ok(std::fs::canonicalize(&path).unwrap_or(path))
+}
+
+/// The script with the mesh path replaced and the variant's `sim` settings.
+fn variant_source(
+    source: &str,
+    ast: &Script,
+    mesh_span: (usize, usize),
+    mesh: &Path,
+    c: &Config,
+    sweep: &Sweep,
+) -> Result<String, String> {
+    // Edits as (start, end, replacement), applied back to front.
+    let mut edits: Vec<(usize, usize, String)> = vec![(
+        mesh_span.0,
+        mesh_span.1,
+        format!("{:?}", mesh.display().to_string()),
+    )];
+    let sim = ast
+        .items
+        .iter()
+        .find_map(|i| match &i.kind {
+            ItemKind::Sim(stmts) => Some((i.span, stmts)),
+            _ => None,
+        })
+        .ok_or("the script has no sim block")?;
+    let mut settings = vec![
+        ("dt".to_string(), format!("auto(safety: {})", c.safety)),
+        (
+            "precision".to_string(),
+            match c.precision {
+                Precision::F32 => "f32".into(),
+                _ => "f64".into(),
+            },
+        ),
+    ];
+    if c.springs {
+        let alpha = sweep.springs.clone().unwrap_or_default();
+        settings.push((
+            "model".into(),
+            format!("springs(volume_stiffness: {alpha})"),
+        ));
+    } else {
+        settings.push(("model".into(), "fem".into()));
+    }
+    for (name, value) in settings {
+        let existing = sim.1.iter().find_map(|s| match &s.kind {
+            StmtKind::Assign { name: n, .. } if n.name == name => Some(s.span),
+            _ => None,
+        });
+        let line = format!("{name} = {value}");
+        match existing {
+            Some(span) => edits.push((span.start, span.end, line)),
+            None => {
+                let open = source[sim.0.start..]
+                    .find('{')
+                    .map(|i| sim.0.start + i + 1)
+                    .ok_or("the sim block has no `{`")?;
+                edits.push((open, open, format!("\n  {line}")));
+            }
+        }
+    }
+    edits.sort_by_key(|e| std::cmp::Reverse(e.0));
+    let mut text = source.to_string();
+    for (start, end, with) in edits {
+        text.replace_range(start..end, &with);
+    }
+    Ok(format!(
+        "# softc bench --tradeoff variant of {}\n{text}",
+        sweep.script.display()
+    ))
+}
+
+/// Load, compile and run one variant to its steady state.
+fn measure(
+    script: &Path,
+    label: &str,
+    c: &Config,
+    sweep: &Sweep,
+    set_index: usize,
+) -> Result<Point, String> {
+    let scene = Scene::load(script, &sweep.overrides).map_err(|e| format!("{label}: {e}"))?;
+    let t0 = Instant::now();
+    let cpu = Cpu::new(&scene.lowered.module, c.precision, sweep.threads)?;
+    let compile_seconds = t0.elapsed().as_secs_f64();
+    let mut sim = Simulation::new(&scene, cpu);
+    let t1 = Instant::now();
+    let (dt, steps) = sim.time_steps(None, None).map_err(|e| e.0)?;
+    let run = sim
+        .run_to_steady_state(Some(dt), 4 * steps, c.settle)
+        .map_err(|e| format!("{label}: {e}"))?;
+    let seconds = t1.elapsed().as_secs_f64();
+    let (_, nodes) = &scene.node_sets[set_index];
+    let value = nodes
+        .iter()
+        .map(|&n| run.summary.x[n as usize][sweep.axis] - scene.mesh.nodes[n as usize][sweep.axis])
+        .sum::<f64>()
+        / nodes.len().max(1) as f64;
+    Ok(Point {
+        label: label.to_string(),
+        resolution: c.resolution,
+        tets: scene.mesh.tets.len(),
+        precision: match c.precision {
+            Precision::F32 => "f32".into(),
+            _ => "f64".into(),
+        },
+        model: if c.springs { "springs" } else { "fem" }.into(),
+        safety: c.safety,
+        settle: c.settle,
+        dt,
+        steps: run.summary.steps,
+        settled: run.settled,
+        value,
+        error: f64::NAN,
+        seconds,
+        compile_seconds,
+        pareto: false,
+        script: script.to_path_buf(),
+    })
+}
+
+/// Richardson extrapolation over the f64 FEM resolution series of the baseline settings, with
+/// the order observed from the three finest; else the finest of them.
+fn reference(points: &[Point]) -> Reference {
+    let base = &points[0];
+    let mut series: Vec<&Point> = points
+        .iter()
+        .filter(|p| {
+            p.precision == "f64"
+                && p.model == "fem"
+                && p.safety == base.safety
+                && p.settle == base.settle
+        })
+        .collect();
+    series.sort_by(|a, b| a.resolution.total_cmp(&b.resolution));
+    series.dedup_by(|a, b| a.resolution == b.resolution);
+    let finest = series.last().copied().unwrap_or(base);
+    let fallback = |why: &str| Reference {
+        value: finest.value,
+        method: format!(
+            "the finest f64 FEM solution (resolution {}, {} tets): {why}",
+            finest.resolution, finest.tets
+        ),
+        order: None,
+    };
+    let n = series.len();
+    if n < 3 {
+        return fallback("fewer than three resolutions to extrapolate from");
+    }
+    let (a, b, c) = (series[n - 3], series[n - 2], series[n - 1]);
+    // Cell size h ∝ 1/resolution; u(h) = u* + C·h^p.
+    let (h1, h2, h3) = (1.0 / a.resolution, 1.0 / b.resolution, 1.0 / c.resolution);
+    let (u1, u2, u3) = (a.value, b.value, c.value);
+    let ratio = (u1 - u2) / (u2 - u3);
+    if !ratio.is_finite() || ratio <= 1.0 {
+        return fallback("the three finest resolutions do not converge monotonically");
+    }
+    let f = |p: f64| (h1.powf(p) - h2.powf(p)) / (h2.powf(p) - h3.powf(p)) - ratio;
+    let (mut lo, mut hi) = (0.05, 8.0);
+    if f(lo) * f(hi) > 0.0 {
+        return fallback("no convergence order in (0.05, 8) fits the three finest resolutions");
+    }
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if f(lo) * f(mid) <= 0.0 {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    let p = 0.5 * (lo + hi);
+    let cst = (u2 - u3) / (h2.powf(p) - h3.powf(p));
+    let value = u3 - cst * h3.powf(p);
+    if !(0.3..=4.0).contains(&p) {
+        return fallback(&format!("the observed order {p:.2} is not credible"));
+    }
+    Reference {
+        value,
+        method: format!(
+            "Richardson extrapolation of the f64 FEM solutions at resolutions {}, {}, {} \
+             (observed order {p:.2} in the cell size)",
+            a.resolution, b.resolution, c.resolution
+        ),
+        order: Some(p),
+    }
+}
+
+/// A point is on the Pareto front when no other point is at least as fast and as accurate and
+/// strictly better in one.
+fn mark_pareto(points: &mut [Point]) {
+    let flags: Vec<bool> = points
+        .iter()
+        .map(|p| {
+            !points.iter().any(|q| {
+                q.seconds <= p.seconds
+                    && q.error <= p.error
+                    && (q.seconds < p.seconds || q.error < p.error)
+            })
+        })
+        .collect();
+    for (p, f) in points.iter_mut().zip(flags) {
+        p.pareto = f;
+    }
+}
+
+fn print_table(points: &[Point], reference: &Reference, sweep: &Sweep, out: &mut dyn Write) {
+    let _ = writeln!(
+        out,
+        "{:<6} {:>7} {:<4} {:<8} {:>6} {:>8} {:>10} {:>8} {:>8} {:>14} {:>10} {:>9}  pareto",
+        "res",
+        "tets",
+        "prec",
+        "model",
+        "safety",
+        "settle",
+        "dt_s",
+        "steps",
+        "wall_s",
+        "value_m",
+        "rel_err",
+        "settled"
+    );
+    let mut sorted: Vec<&Point> = points.iter().collect();
+    sorted.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
+    for p in sorted {
+        let _ = writeln!(
+            out,
+            "{:<6} {:>7} {:<4} {:<8} {:>6} {:>8.0e} {:>10.3e} {:>8} {:>8.2} {:>14.6e} {:>10.2e} {:>9}  {}",
+            p.resolution,
+            p.tets,
+            p.precision,
+            p.model,
+            p.safety,
+            p.settle,
+            p.dt,
+            p.steps,
+            p.seconds,
+            p.value,
+            p.error,
+            if p.settled { "yes" } else { "no" },
+            if p.pareto { "*" } else { "" }
+        );
+    }
+    let _ = writeln!(
+        out,
+        "output: mean displacement of `{}` along {}; reference {:.6e} m = {}",
+        sweep.set,
+        ["x", "y", "z"][sweep.axis],
+        reference.value,
+        reference.method
+    );
+    let _ = writeln!(
+        out,
+        "wall_s: stable-step estimate + time steps on the cpu backend (compile excluded); \
+         * = Pareto front (no other run is both faster and more accurate)"
+    );
+}
+
+fn write_outputs(points: &[Point], reference: &Reference, sweep: &Sweep) -> Result<(), String> {
+    let json = serde_json::json!({
+        "script": sweep.script,
+        "output": format!("{}.{}", sweep.set, ["x", "y", "z"][sweep.axis]),
+        "reference": reference,
+        "points": points,
+    });
+    let path = sweep.out.join("tradeoff.json");
+    super::write_atomically(
+        &path,
+        serde_json::to_string_pretty(&json)
+            .unwrap_or_default()
+            .as_bytes(),
+    )
+    .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+    let scatter: Vec<crate::optim::plot::ScatterPoint> = points
+        .iter()
+        .map(|p| crate::optim::plot::ScatterPoint {
+            x: p.seconds,
+            y: p.error,
+            group: format!("{} {}", p.model, p.precision),
+            label: short_label(p),
+            highlight: p.pareto,
+        })
+        .collect();
+    crate::optim::plot::write_scatter(
+        &sweep.out.join("tradeoff"),
+        &format!(
+            "{}: error of {}.{} vs wall time",
+            sweep.script.display(),
+            sweep.set,
+            ["x", "y", "z"][sweep.axis]
+        ),
+        "wall time (s)",
+        "relative error",
+        &scatter,
+    )?;
+    Ok(())
+}
+
+fn short_label(p: &Point) -> String {
+    format!("r{} s{} e{:.0e}", p.resolution, p.safety, p.settle)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(resolution: f64, value: f64) -> Point {
+        Point {
+            label: String::new(),
+            resolution,
+            tets: 0,
+            precision: "f64".into(),
+            model: "fem".into(),
+            safety: 0.9,
+            settle: 1e-4,
+            dt: 1e-4,
+            steps: 1,
+            settled: true,
+            value,
+            error: f64::NAN,
+            seconds: resolution,
+            compile_seconds: 0.0,
+            pareto: false,
+            script: PathBuf::new(),
+        }
+    }
+
+    #[test]
+    fn richardson_recovers_the_limit_and_the_order() {
+        // u(h) = 2 + 3 h^2 with h = 1/resolution, at non-uniform refinements.
+        let points: Vec<Point> = [0.5, 1.0, 1.5]
+            .iter()
+            .map(|&r| point(r, 2.0 + 3.0 / (r * r)))
+            .collect();
+        let r = reference(&points);
+        assert!((r.value - 2.0).abs() < 1e-9, "{r:?}");
+        assert!((r.order.unwrap() - 2.0).abs() < 1e-6, "{r:?}");
+        // Oscillating values are not extrapolated.
+        let points = vec![point(0.5, 1.0), point(1.0, 3.0), point(1.5, 2.0)];
+        let r = reference(&points);
+        assert_eq!(r.value, 2.0);
+        assert!(r.method.contains("finest"), "{r:?}");
+    }
+
+    #[test]
+    fn the_pareto_front_holds_the_points_nothing_beats() {
+        let mut points = vec![point(1.0, 0.0), point(2.0, 0.0), point(3.0, 0.0)];
+        for (p, e) in points.iter_mut().zip([0.1, 0.2, 0.01]) {
+            p.error = e;
+        }
+        mark_pareto(&mut points);
+        let flags: Vec<bool> = points.iter().map(|p| p.pareto).collect();
+        assert_eq!(flags, [true, false, true]);
+    }
+}
