@@ -461,10 +461,12 @@ impl CpuModule {
         if threads == 1 {
             call(range.start, range.end);
         } else {
-            std::thread::scope(|s| {
+            // The chunks are fixed by the thread count alone, so which worker runs which
+            // chunk changes nothing in the result.
+            worker_pool().scope(|s| {
                 for t in 1..threads {
                     let (lo, hi) = (bounds[t], bounds[t + 1]);
-                    s.spawn(move || call(lo, hi));
+                    s.spawn(move |_| call(lo, hi));
                 }
                 call(bounds[0], bounds[1]);
             });
@@ -809,4 +811,18 @@ fn check_csr(
         }
     }
     Ok(())
+}
+
+/// The persistent workers of multi-threaded launches (as many as the machine has cores, at most
+/// 64), started on first use.
+fn worker_pool() -> &'static rayon::ThreadPool {
+    static POOL: std::sync::OnceLock<rayon::ThreadPool> = std::sync::OnceLock::new();
+    POOL.get_or_init(|| {
+        let n = std::thread::available_parallelism().map_or(1, |n| n.get().min(64));
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .thread_name(|i| format!("softc-cpu-{i}"))
+            .build()
+            .expect("the CPU backend's worker threads start")
+    })
 }
