@@ -529,3 +529,97 @@ fn bench_tradeoff_measures_error_against_wall_time_and_marks_the_pareto_front() 
     assert_eq!(code, 0, "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Issue 4: the verification cuboid's steady state at the thesis' two pressures (2 and 3
+/// deka-kPa) converges under refinement — f64 FEM on the exact cuboid geometry at 1,200, 9,600
+/// and 32,400 tets (Kuhn grids whose planes hold the cavity), extrapolated by Richardson.
+#[test]
+fn the_verification_cuboid_converges_under_refinement_at_both_pressures() {
+    let dir = std::env::temp_dir().join(format!("softc-refine-{}", std::process::id()));
+    let script = root().join("examples/verification.soft");
+    let mut tips = Vec::new();
+    for p in ["20kPa", "30kPa"] {
+        let out = dir.join(p);
+        let set = format!("p_peak={p}");
+        let (code, table, err) = softc(&[
+            "bench",
+            "--tradeoff",
+            script.to_str().unwrap(),
+            "--set",
+            &set,
+            "--resolutions",
+            "0.5,1,1.5",
+            "--precisions",
+            "f64",
+            "--safeties",
+            "0.9",
+            "--settle",
+            "1e-2",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 0, "{err}");
+        println!("{p}:\n{table}");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("tradeoff.json")).unwrap())
+                .unwrap();
+        let order = v["reference"]["order"].as_f64().unwrap_or(f64::NAN);
+        // Linear tets converge at second order in displacement.
+        assert!((1.5..3.0).contains(&order), "order {order}\n{table}");
+        let mut points = v["points"].as_array().unwrap().clone();
+        points.sort_by(|a, b| a["tets"].as_u64().cmp(&b["tets"].as_u64()));
+        let errors: Vec<f64> = points.iter().map(|p| p["error"].as_f64().unwrap()).collect();
+        assert!(errors[0] > errors[1] && errors[1] > errors[2], "{errors:?}");
+        assert!(errors[2] < 0.02, "{errors:?}");
+        assert!(points.iter().all(|p| p["settled"] == true));
+        tips.push(v["reference"]["value"].as_f64().unwrap());
+    }
+    // The free end bends down, more at the higher pressure (almost linearly at these strains).
+    let ratio = tips[1] / tips[0];
+    assert!(tips[0] < 0.0 && (1.45..1.6).contains(&ratio), "{tips:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `dt = auto` estimates the stable step at rest; a Yeoh material stiffens as the beam bends, so
+/// under a large load that step blows up. The message re-estimates the step at the last finite
+/// state and suggests a safety factor, and the suggestion runs.
+#[test]
+fn a_blow_up_under_stiffening_suggests_a_step_that_runs() {
+    let dir = std::env::temp_dir().join(format!("softc-stiffen-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let script = |dt: &str| {
+        format!(
+            r#"mesh body = load("{}")
+material silicone = yeoh(c10: 0.24162 MPa, c20: 0.19977 MPa, c30: -0.00541 MPa, d1: 1.0 /MPa, density: 1070 kg/m^3)
+chamber cavity = surface(body, "cavity")
+nodes base = named(body, "base")
+sim {{
+  dt = {dt}
+  duration = 0.6 s
+  damping = 20 /s
+  mass_scaling = 100
+  fix base
+  pressure cavity = 400 kPa * ramp(t, 0.5 s)
+}}
+"#,
+            root().join("meshes/bench_1k.msh").display()
+        )
+    };
+    let path = dir.join("stiffen.soft");
+    std::fs::write(&path, script("auto")).unwrap();
+    let (code, _, err) = softc(&["run", path.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("became unstable at step"), "{err}");
+    assert!(err.contains("stiffens as it deforms") && err.contains("at rest"), "{err}");
+    let safety = err
+        .split("auto(safety: ")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .unwrap_or_else(|| panic!("no suggested safety in: {err}"));
+    let s: f64 = safety.parse().unwrap();
+    assert!(s > 0.3 && s < 0.9, "{s}");
+    std::fs::write(&path, script(&format!("auto(safety: {safety})"))).unwrap();
+    let (code, _, err) = softc(&["run", path.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
