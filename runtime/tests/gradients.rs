@@ -138,9 +138,14 @@ fn example_gradients_match_central_differences() {
         std::env::temp_dir().join(format!("softc-grad-{}/meta-1ms.soft", std::process::id()));
     std::fs::write(&path, meta).unwrap();
     let path = path.display().to_string();
-    // Damping changes the loss weakly (dlnL/dlnβ ~ 0.1): a 1e-2 relative step keeps the
-    // difference well above the round-off (measured: 1e-3 gives 8e-5 error, 1e-2 gives 4e-6).
-    check_params(&path, 300, 1e-2, 1e-5, |n| {
+    // Damping changes the loss weakly (dlnL/dlnβ ~ 0.1), and β₀ acts only in the first
+    // millisecond, when the beam has barely moved: its central difference is round-off
+    // limited. Measured (dt = auto, 300 steps): relative steps 1e-3, 3e-3, 1e-2, 3e-2, 5e-2,
+    // 1e-1, 2e-1 scatter by 2.2e-4, 1.8e-4, 5.6e-5, 1.8e-5, 3.3e-7, 1.0e-5, 3.5e-6 around the
+    // adjoint — noise, not a trend (with the earlier power-iteration stable-step estimate,
+    // a slightly larger dt = auto, the 1e-2 figure was 4e-6). The adjoint itself is
+    // bit-identical across schedules and backends (other tests here).
+    check_params(&path, 300, 1e-2, 1e-4, |n| {
         ["param.beta.0", "param.beta.2", "param.beta.4"].contains(&n)
     });
     // Controller synthesis (the endoscope, 37,828 tets) with one fixed target instead of the

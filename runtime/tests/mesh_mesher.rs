@@ -212,6 +212,57 @@ radius = 1.2
     assert_eq!(a.mesh.tag_name(2, 2), Some("chamber2"));
 }
 
+fn hollow_sphere_spec(h: f64) -> String {
+    format!(
+        r#"
+resolution = {h}
+[body]
+shape = "sphere"
+center = [1, 2, 3]
+radius = 10
+[[cavity]]
+name = "inner"
+tag = 2
+shape = "sphere"
+center = [1, 2, 3]
+radius = 5
+"#
+    )
+}
+
+#[test]
+fn hollow_sphere_volumes_converge_and_the_cavity_is_a_chamber_on_the_sphere() {
+    let mut errs = Vec::new();
+    for h in [2.5, 1.25] {
+        let g = gen_(&hollow_sphere_spec(h), None);
+        let q = check_sound(&g.mesh, &format!("hollow sphere h={h}"));
+        let exact = 4.0 / 3.0 * std::f64::consts::PI * (1e-3f64.powi(3)) * (1000.0 - 125.0);
+        assert!((g.reference_volume - exact).abs() < 1e-12 * exact);
+        let cv = g.cavity_volumes[0].1;
+        assert!((cv - 4.0 / 3.0 * std::f64::consts::PI * 125e-9).abs() < 1e-12 * cv);
+        let e = ((q.volume - exact) / exact).abs();
+        let ce = ((g.mesh.enclosed_volume(2) - cv) / cv).abs();
+        println!(
+            "h={h}: {} tets, dihedral [{:.2}, {:.2}], volume error {e:.3e}, cavity error {ce:.3e}",
+            q.tets, q.min_dihedral_deg, q.max_dihedral_deg
+        );
+        errs.push((e, ce));
+        assert_eq!(g.mesh.chamber_tags(), vec![2]);
+        assert_eq!(g.mesh.tag_name(2, 2), Some("inner"));
+        let c = Shape::Sphere {
+            c: [1e-3, 2e-3, 3e-3],
+            r: 5e-3,
+        };
+        for n in g.mesh.surface_nodes(2) {
+            assert!(
+                c.sdf(g.mesh.nodes[n as usize]).abs() < 1e-9,
+                "h={h}: chamber node {n} off the sphere"
+            );
+        }
+    }
+    assert!(errs[1].0 < errs[0].0 && errs[1].1 < errs[0].1, "{errs:?}");
+}
+
 /// An icosphere of radius r centred at c, subdivided `k` times, outward wound.
 fn icosphere(c: [f64; 3], r: f64, k: usize) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
     let t = (1.0 + 5f64.sqrt()) / 2.0;
@@ -390,8 +441,16 @@ path = "ball.stl"
 fn spec_errors_are_reported() {
     let bad = [
         (
-            "resolution = 1\n[body]\nshape = \"sphere\"\n",
+            "resolution = 1\n[body]\nshape = \"torus\"\n",
             "unknown shape",
+        ),
+        (
+            "resolution = 1\n[body]\nshape = \"sphere\"\nradius = 1\n",
+            "center",
+        ),
+        (
+            "resolution = 1\n[body]\nshape = \"sphere\"\ncenter = [0, 0, 0]\nradius = -1\n",
+            "radius",
         ),
         (
             "resolution = 1\n[body]\nshape = \"cylinder\"\nstart=[0,0,0]\nend=[1,0,0]\n",

@@ -7,7 +7,7 @@
 //! evaluated by lowering them to kernel IR and folding or interpreting it, so the scene uses
 //! the same expression semantics as the kernels.
 
-use crate::mesh::{LengthUnit, Mesh, Precomputed};
+use crate::mesh::{Mesh, Precomputed};
 use softc_compiler::diag::SourceFile;
 use softc_compiler::front::ast::*;
 use softc_compiler::ir::{ArgSource, Domain, KernelBuilder, interp};
@@ -387,14 +387,7 @@ fn load_mesh(program: &Program, ast: &Script, dir: &Path) -> Result<Mesh, SceneE
         None => 1e-3,
     };
     let full = dir.join(path);
-    let mut mesh =
-        crate::mesh::load(&full, LengthUnit::Metre).map_err(|e| SceneError(e.to_string()))?;
-    for p in &mut mesh.nodes {
-        for c in p.iter_mut() {
-            *c *= unit;
-        }
-    }
-    Ok(mesh)
+    crate::mesh::load_scaled(&full, unit).map_err(|e| SceneError(e.to_string()))
 }
 
 /// Whether a point lies in a region.

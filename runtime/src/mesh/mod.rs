@@ -110,7 +110,19 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
 /// chamber faces off the boundary, disconnected pieces, ...) refuse the mesh, with every
 /// issue listed in the error. Warnings are returned by [`Mesh::validate`] for the caller.
 pub fn load(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
-    let mesh = read(path, unit)?;
+    refuse_invalid(read(path, unit)?, path)
+}
+
+/// [`load`] for a file whose coordinates are in units of `metres_per_unit` metres (a script's
+/// `load(path, unit: …)`, 1e-3 for millimetres): the mesh is scaled to metres before it is
+/// validated, so the volumes quoted in its messages are SI.
+pub fn load_scaled(path: &Path, metres_per_unit: f64) -> Result<Mesh, MeshError> {
+    let mut mesh = read(path, LengthUnit::Metre)?;
+    mesh.scale(metres_per_unit);
+    refuse_invalid(mesh, path)
+}
+
+fn refuse_invalid(mesh: Mesh, path: &Path) -> Result<Mesh, MeshError> {
     let issues = mesh.validate();
     if has_errors(&issues) {
         let n = issues

@@ -1,7 +1,7 @@
 //! The mesh reader behind `softc check`: lets the compiler check surfaces, tags and selections
 //! against the mesh a script loads.
 
-use super::{LengthUnit, load};
+use super::load_scaled;
 use softc_compiler::sema::mesh_probe::{MeshProbe, MeshSummary};
 use std::path::Path;
 
@@ -11,13 +11,9 @@ pub struct FileProbe;
 
 impl MeshProbe for FileProbe {
     fn probe(&self, path: &Path, unit: f64) -> Result<MeshSummary, String> {
-        // Read the file's numbers as they are, then apply the script's unit.
-        let mesh = load(path, LengthUnit::Metre).map_err(|e| e.to_string())?;
-        let nodes: Vec<[f64; 3]> = mesh
-            .nodes
-            .iter()
-            .map(|p| [p[0] * unit, p[1] * unit, p[2] * unit])
-            .collect();
+        // The file's numbers in the script's unit, validated in metres.
+        let mesh = load_scaled(path, unit).map_err(|e| e.to_string())?;
+        let nodes = &mesh.nodes;
         let centroids = mesh
             .tets
             .iter()
@@ -41,7 +37,7 @@ impl MeshProbe for FileProbe {
             regions: named(3, mesh.region_tags()),
             node_sets: mesh.node_sets.keys().cloned().collect(),
             element_sets: mesh.element_sets.keys().cloned().collect(),
-            nodes,
+            nodes: mesh.nodes.clone(),
             centroids,
         })
     }

@@ -1,4 +1,4 @@
-//! The built-in tetrahedral mesher: a closed body (box, cylinder or closed STL surface) minus
+//! The built-in tetrahedral mesher: a closed body (box, cylinder, sphere or closed STL surface) minus
 //! closed cavities (each a chamber with its own surface tag), meshed by isosurface stuffing;
 //! or the structured Kuhn grid of the benchmark. Driven by a TOML spec:
 //!
@@ -9,7 +9,8 @@
 //! tag = 1
 //! name = "solid"
 //! [body]
-//! shape = "box"          # or "cylinder" (start, end, radius) or "stl" (path)
+//! shape = "box"          # or "cylinder" (start, end, radius), "sphere" (center, radius)
+//!                        # or "stl" (path)
 //! min = [0, 0, 0]
 //! max = [60, 10, 10]
 //! [[cavity]]
@@ -57,6 +58,8 @@ pub struct ShapeSpec {
     pub max: Option<[f64; 3]>,
     pub start: Option<[f64; 3]>,
     pub end: Option<[f64; 3]>,
+    /// Sphere only: its centre (with `radius`).
+    pub center: Option<[f64; 3]>,
     pub radius: Option<f64>,
     pub path: Option<PathBuf>,
     /// Cavities only: surface tag and name.
@@ -191,6 +194,14 @@ fn shape_of(
             }
             Ok(Shape::Cylinder { a, b, r })
         }
+        "sphere" => {
+            let c = finite(need(s.center, "center")?, "center")?;
+            let r = s
+                .radius
+                .filter(|r| *r > 0.0 && r.is_finite())
+                .ok_or_else(|| MeshError::spec(format!("{what}: sphere needs `radius` > 0")))?;
+            Ok(Shape::Sphere { c, r })
+        }
         "stl" => {
             let p = s
                 .path
@@ -214,7 +225,7 @@ fn shape_of(
             Ok(Shape::Surface(surf))
         }
         other => Err(MeshError::spec(format!(
-            "{what}: unknown shape `{other}` (use box, cylinder or stl)"
+            "{what}: unknown shape `{other}` (use box, cylinder, sphere or stl)"
         ))),
     }
 }

@@ -15,6 +15,11 @@ pub enum Shape {
         b: [f64; 3],
         r: f64,
     },
+    /// Sphere of centre `c` and radius `r`.
+    Sphere {
+        c: [f64; 3],
+        r: f64,
+    },
     /// A closed triangle surface (e.g. from STL).
     Surface(TriSurface),
 }
@@ -171,6 +176,7 @@ impl Shape {
                 let outside = norm([dr.max(0.0), da.max(0.0), 0.0]);
                 outside + dr.max(da).min(0.0)
             }
+            Shape::Sphere { c, r } => norm(sub(p, *c)) - r,
             Shape::Surface(s) => s.dist(p),
         }
     }
@@ -193,6 +199,7 @@ impl Shape {
                 }
                 (lo, hi)
             }
+            Shape::Sphere { c, r } => (c.map(|x| x - r), c.map(|x| x + r)),
             Shape::Surface(s) => (s.lo, s.hi),
         }
     }
@@ -202,6 +209,7 @@ impl Shape {
         match self {
             Shape::Box { min, max } => (0..3).map(|k| max[k] - min[k]).product(),
             Shape::Cylinder { a, b, r } => std::f64::consts::PI * r * r * norm(sub(*b, *a)),
+            Shape::Sphere { r, .. } => 4.0 / 3.0 * std::f64::consts::PI * r * r * r,
             Shape::Surface(s) => s.volume(),
         }
     }
