@@ -252,7 +252,17 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         summary.steps as f64 / summary.wall_seconds.max(1e-12),
         backend_name
     );
-    match &args.json {
+    emit_json(args.json.as_deref(), &text, out, err)
+}
+
+/// The JSON summary into `--json PATH` (atomically) or onto stdout.
+fn emit_json(
+    path: Option<&std::path::Path>,
+    text: &str,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
+    match path {
         Some(path) => {
             if let Err(e) = super::write_atomically(path, text.as_bytes()) {
                 let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
@@ -390,18 +400,7 @@ fn run_scenes(
     }
     json["scenes"] = serde_json::Value::Array(results);
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
-    match &args.json {
-        Some(path) => {
-            if let Err(e) = super::write_atomically(path, text.as_bytes()) {
-                let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
-                return 2;
-            }
-        }
-        None => {
-            let _ = writeln!(out, "{text}");
-        }
-    }
-    0
+    emit_json(args.json.as_deref(), &text, out, err)
 }
 
 /// Print the stable-step estimate before a run, and warn when the step exceeds it.

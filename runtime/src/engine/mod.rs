@@ -810,23 +810,36 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.run_element_kernels()?;
             self.write_vtk(steps as f64 * dt)?;
         }
-        let xs = self.backend.get(self.ids.x);
-        let vs = self.backend.get(self.ids.v);
-        let loss = loss_fn.map(|l| match l.window {
+        let mut summary = self.summary(steps, dt, estimate, start);
+        summary.loss = loss_fn.map(|l| match l.window {
             loss::LossWindow::End => {
-                l.eval(self.scene, &xs, &vs, steps as f64 * dt, &self.uniforms.0)
+                let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
+                l.eval(self.scene, &x, &v, steps as f64 * dt, &self.uniforms.0)
             }
             loss::LossWindow::Over { .. } => loss_sum,
         });
-        Ok(RunSummary {
-            loss,
+        Ok(summary)
+    }
+
+    /// The current state as a run's summary (no loss).
+    fn summary(
+        &self,
+        steps: u64,
+        dt: f64,
+        estimate: Option<f64>,
+        start: std::time::Instant,
+    ) -> RunSummary {
+        let xs = self.backend.get(self.ids.x);
+        let vs = self.backend.get(self.ids.v);
+        RunSummary {
+            loss: None,
             steps,
             dt,
             dt_stable_estimate: estimate,
             wall_seconds: start.elapsed().as_secs_f64(),
             x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
             v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
-        })
+        }
     }
 
     /// The time loop of `run`: steps, outputs, the windowed loss's sum and state checks.
@@ -943,18 +956,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 history.extend(newest);
             }
         }
-        let xs = self.backend.get(self.ids.x);
-        let vs = self.backend.get(self.ids.v);
         Ok(SteadyRun {
-            summary: RunSummary {
-                loss: None,
-                steps,
-                dt,
-                dt_stable_estimate: estimate,
-                wall_seconds: start.elapsed().as_secs_f64(),
-                x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
-                v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
-            },
+            summary: self.summary(steps, dt, estimate, start),
             settled,
         })
     }
