@@ -568,7 +568,10 @@ fn the_verification_cuboid_converges_under_refinement_at_both_pressures() {
         assert!((1.5..3.0).contains(&order), "order {order}\n{table}");
         let mut points = v["points"].as_array().unwrap().clone();
         points.sort_by(|a, b| a["tets"].as_u64().cmp(&b["tets"].as_u64()));
-        let errors: Vec<f64> = points.iter().map(|p| p["error"].as_f64().unwrap()).collect();
+        let errors: Vec<f64> = points
+            .iter()
+            .map(|p| p["error"].as_f64().unwrap())
+            .collect();
         assert!(errors[0] > errors[1] && errors[1] > errors[2], "{errors:?}");
         // The finest mesh is within 1 % (20 kPa) and 2.3 % (30 kPa) of the extrapolated value.
         assert!(errors[2] < 0.03, "{errors:?}");
@@ -612,7 +615,10 @@ sim {{
     let (code, _, err) = softc(&["run", path.to_str().unwrap()]);
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("became unstable at step"), "{err}");
-    assert!(err.contains("stiffens as it deforms") && err.contains("at rest"), "{err}");
+    assert!(
+        err.contains("stiffens as it deforms") && err.contains("at rest"),
+        "{err}"
+    );
     let safety = err
         .split("auto(safety: ")
         .nth(1)
