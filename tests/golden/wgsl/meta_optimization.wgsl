@@ -452,7 +452,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let arg7 = x[3u * n2 + 0u];
     let arg8 = x[3u * n2 + 1u];
     let arg9 = x[3u * n2 + 2u];
-    let v0: real = 3610.0f;
+    let v0: real = 275000.0f;
     let v2: real = 0.5f;
     let v3: real = arg0 / v2;
     let v4: real = 1.0f;
@@ -1133,7 +1133,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let arg16 = adjg_tri_force_x_next[3u * n2 + 0u];
     let arg17 = adjg_tri_force_x_next[3u * n2 + 1u];
     let arg18 = adjg_tri_force_x_next[3u * n2 + 2u];
-    let v10: real = 3610.0f;
+    let v10: real = 275000.0f;
     let v11: real = 0.5f;
     let v12: real = arg0 / v11;
     let v13: real = 1.0f;
