@@ -201,6 +201,24 @@ fn a_killed_run_resumes_to_the_uninterrupted_result() {
     let saved = read_json(&state)["iteration"].as_u64().unwrap();
     assert!(saved < 10, "the run finished before it could be killed");
 
+    // `--iterations` at the saved count ends the run there: no further iteration, only the
+    // final run and its outputs.
+    let at = saved.to_string();
+    let (code, _, err) = softc(&[
+        "run",
+        script,
+        "--resume",
+        part.to_str().unwrap(),
+        "--iterations",
+        &at,
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(
+        read_json(&state)["iteration"].as_u64(),
+        Some(saved),
+        "{err}"
+    );
+    assert!(part.join("result.json").exists());
     let (code, _, err) = softc(&["run", script, "--resume", part.to_str().unwrap()]);
     assert_eq!(code, 0, "{err}");
     assert!(

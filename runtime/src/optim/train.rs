@@ -141,9 +141,12 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                     ));
                 }
                 let mut s = s;
-                // `--iterations` may extend a finished run.
+                // `--iterations` may extend a finished run, or end an unfinished one early.
                 if s.stopped == Some(Stopped::Iterations) && s.iteration < plan.iterations {
                     s.stopped = None;
+                }
+                if s.stopped.is_none() && s.iteration >= plan.iterations {
+                    s.stopped = Some(Stopped::Iterations);
                 }
                 s
             }
