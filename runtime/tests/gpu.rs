@@ -529,3 +529,23 @@ fn per_element_params_on_the_gpu_match_the_cpu() {
         eprintln!("{precision}: loss {dl:.1e}, worst entry {worst:.1e} of the largest");
     }
 }
+
+#[test]
+fn a_failed_readback_is_reported_by_the_run_not_a_panic() {
+    let scene = Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
+    let module = &scene.lowered.module;
+    let Some(g) = gpu(module, Precision::F32) else {
+        return;
+    };
+    let mut sim = Simulation::new(&scene, g);
+    assert!(sim.backend.device_error().is_none());
+    // A readback that fails (here: a buffer the module does not have) returns no values and
+    // is recorded instead of panicking ...
+    let got = sim.backend.get(softc_compiler::ir::BufferId(9999));
+    assert!(got.is_empty());
+    let e = sim.backend.device_error().expect("the failure is recorded");
+    assert!(e.contains("GPU (") && e.contains("9999"), "{e}");
+    // ... and the next run stops with it.
+    let err = sim.run(None, Some(10)).unwrap_err().0;
+    assert!(err.contains("GPU ("), "{err}");
+}

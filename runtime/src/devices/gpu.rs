@@ -631,7 +631,22 @@ impl Backend for Gpu {
     }
 
     fn get(&self, b: BufferId) -> Vec<f64> {
-        self.read(b).unwrap_or_else(|e| panic!("{e}"))
+        // A failed readback (a lost device, a mapping error) cannot be returned from here: it
+        // is recorded, reported by the next launch or state check, and the values are NaN.
+        self.read(b).unwrap_or_else(|e| {
+            if let Ok(mut errors) = self.errors.lock() {
+                errors.push(e);
+            }
+            let len = self.state.borrow().lens.get(b.0 as usize).copied();
+            vec![f64::NAN; len.unwrap_or(0)]
+        })
+    }
+
+    fn device_error(&self) -> Option<String> {
+        let errors = self.errors.lock().ok()?;
+        errors
+            .first()
+            .map(|e| format!("GPU ({}): {e}", self.adapter))
     }
 
     fn swap(&mut self, a: BufferId, b: BufferId) {

@@ -33,6 +33,11 @@ pub trait Backend {
     fn precision(&self) -> Precision {
         Precision::F64
     }
+    /// A failure of the device that `get` or `set` could not return (a lost GPU, a failed
+    /// readback): the time loop reports it at its next state check instead of reading garbage.
+    fn device_error(&self) -> Option<String> {
+        None
+    }
 }
 
 /// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`) by name.
@@ -1021,6 +1026,12 @@ impl<'s, B: Backend> Simulation<'s, B> {
 
     fn check_state(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
         let t = (step + 1) as f64 * dt;
+        if let Some(e) = self.backend.device_error() {
+            return Err(RunError(format!(
+                "the device failed by step {} (t = {t:.6} s): {e}",
+                step + 1
+            )));
+        }
         // An inversion is reported first: it is usually why positions went non-finite
         // (J^(-2/3) of a negative J). Inversion-safe materials may pass through J <= 0.
         let js = self.backend.get(self.ids.elem_j);

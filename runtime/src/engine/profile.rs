@@ -117,6 +117,9 @@ impl<B: Backend> Backend for Profiled<B> {
     fn precision(&self) -> Precision {
         self.inner.precision()
     }
+    fn device_error(&self) -> Option<String> {
+        self.inner.device_error()
+    }
 }
 
 /// This machine's sustainable memory bandwidth in bytes/s: the best of several passes of a
