@@ -547,18 +547,8 @@ pub(super) fn vtk_every(scene: &Scene) -> Option<u64> {
 pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json::Value {
     let mut sets = serde_json::Map::new();
     for (name, nodes) in &scene.node_sets {
-        let mut mean = [0.0; 3];
-        let mut min = [f64::INFINITY; 3];
-        let mut max = [f64::NEG_INFINITY; 3];
-        for &n in nodes {
-            let (x, x0) = (s.x[n as usize], scene.mesh.nodes[n as usize]);
-            for d in 0..3 {
-                let u = x[d] - x0[d];
-                mean[d] += u / nodes.len().max(1) as f64;
-                min[d] = min[d].min(u);
-                max[d] = max[d].max(u);
-            }
-        }
+        let [mean, min, max] =
+            crate::engine::set_displacement(nodes, &scene.mesh.nodes, |n| s.x[n]);
         sets.insert(
             name.clone(),
             serde_json::json!({

@@ -355,11 +355,9 @@ fn measure(
         .map_err(|e| format!("{label}: {e}"))?;
     let seconds = t1.elapsed().as_secs_f64();
     let (_, nodes) = &scene.node_sets[set_index];
-    let value = nodes
-        .iter()
-        .map(|&n| run.summary.x[n as usize][sweep.axis] - scene.mesh.nodes[n as usize][sweep.axis])
-        .sum::<f64>()
-        / nodes.len().max(1) as f64;
+    let [mean, _, _] =
+        crate::engine::set_displacement(nodes, &scene.mesh.nodes, |n| run.summary.x[n]);
+    let value = mean[sweep.axis];
     Ok(Point {
         label: label.to_string(),
         resolution: c.resolution,

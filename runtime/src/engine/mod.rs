@@ -364,6 +364,28 @@ pub struct Simulation<'s, B: Backend> {
     ids: Ids,
 }
 
+/// Mean, min and max displacement of a node set per axis (m): what `softc run` reports per set
+/// and `output csv(SET)` logs. `position(n)` is node n's current position.
+pub fn set_displacement(
+    nodes: &[u32],
+    rest: &[[f64; 3]],
+    position: impl Fn(usize) -> [f64; 3],
+) -> [[f64; 3]; 3] {
+    let mut mean = [0.0; 3];
+    let mut min = [f64::INFINITY; 3];
+    let mut max = [f64::NEG_INFINITY; 3];
+    for &n in nodes {
+        let (x, x0) = (position(n as usize), rest[n as usize]);
+        for d in 0..3 {
+            let u = x[d] - x0[d];
+            mean[d] += u / nodes.len().max(1) as f64;
+            min[d] = min[d].min(u);
+            max[d] = max[d].max(u);
+        }
+    }
+    [mean, min, max]
+}
+
 /// `output csv(SET) every …`: the mean, min and max displacement of a node set over time,
 /// collected while running and written atomically when the run ends (also when it fails, so a
 /// blow-up leaves its history).
@@ -389,18 +411,9 @@ impl CsvOutput {
 
     fn record(&mut self, step: u64, t: f64, rest: &[[f64; 3]], x: &[f64]) {
         use std::fmt::Write;
-        let mut mean = [0.0; 3];
-        let mut min = [f64::INFINITY; 3];
-        let mut max = [f64::NEG_INFINITY; 3];
-        for &n in &self.nodes {
-            let n = n as usize;
-            for d in 0..3 {
-                let u = x[3 * n + d] - rest[n][d];
-                mean[d] += u / self.nodes.len() as f64;
-                min[d] = min[d].min(u);
-                max[d] = max[d].max(u);
-            }
-        }
+        let [mean, min, max] = set_displacement(&self.nodes, rest, |n| {
+            [x[3 * n], x[3 * n + 1], x[3 * n + 2]]
+        });
         let _ = write!(self.rows, "{step},{t:e}");
         for v in mean.iter().chain(&min).chain(&max) {
             let _ = write!(self.rows, ",{v:e}");
