@@ -100,7 +100,27 @@ fn specialization_cases_match_their_golden_wgsl() {
         check_golden(&golden, &out, name, &mut failures);
         texts.insert(*name, out);
     }
+    // The controller study's four targets per iteration, as the GPU runs them: one batch.
+    let script = ex("controller_synthesis.soft");
+    let (code, batched, err) = softc(&[
+        "compile",
+        "--emit",
+        "wgsl",
+        "--batch",
+        "4",
+        script.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    check_golden(
+        &dir.join("controller_synthesis-batch4.wgsl"),
+        &batched,
+        "controller_synthesis --batch 4",
+        &mut failures,
+    );
     assert!(failures.is_empty(), "{}", failures.join("\n"));
+    // A batch reads each scene's launch block by workgroup row and offsets the scene's data.
+    assert!(batched.contains("var<uniform> launch_fem_silicone: array<Launch_fem_silicone, 4>;"));
+    assert!(batched.contains("let base_node = (*l).scene * (*l).nodes;"));
     // What the specializations must show.
     let bench = wgsl_of(&ex("benchmark-1k.soft"), "f32");
     let meta = wgsl_of(&ex("meta_optimization.soft"), "f32");
@@ -225,7 +245,10 @@ fn compile_reports_script_errors_and_unsupported_emits() {
         good.to_str().unwrap(),
     ]);
     assert_eq!(code, 2);
-    assert!(err.contains("--precision applies to --emit wgsl"), "{err}");
+    assert!(
+        err.contains("--precision and --batch apply to --emit wgsl"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -271,10 +294,17 @@ fn bench_prints_a_table_and_well_formed_json() {
     if std::env::var("CI").is_ok_and(|v| v == "true") {
         assert!(gpu.contains(&"gpu-f32"), "{backends:?}");
     }
-    for r in rows
-        .iter()
-        .filter(|r| r["backend"].as_str().unwrap().starts_with("gpu"))
-    {
+    if gpu.contains(&"gpu-f32") {
+        // The batch row (4 copies in one batch, the default) follows the single-scene row and
+        // simulates the same first scene.
+        let at = backends.iter().position(|b| *b == "gpu-f32").unwrap();
+        assert_eq!(backends[at + 1], "gpu-f32 x4");
+        assert_eq!(rows[at]["tip_mean_z"], rows[at + 1]["tip_mean_z"]);
+    }
+    for r in rows.iter().filter(|r| {
+        let b = r["backend"].as_str().unwrap();
+        b.starts_with("gpu") && !b.contains(" x")
+    }) {
         assert!(
             r["forward_backward_steps_per_second"].as_f64().unwrap() > 0.0,
             "{r}"

@@ -138,6 +138,39 @@ fn everything() -> Module {
 }
 
 #[test]
+fn a_batched_module_offsets_every_buffer_by_its_scene_and_validates() {
+    let m = everything();
+    for p in [Precision::F32, Precision::F64] {
+        let w = wgsl::emit_batched(&m, p, 4).unwrap();
+        if let Err(e) = wgsl::validate(&w.source, p) {
+            panic!("{p}: {e}\n{}", w.source);
+        }
+        assert_eq!(w.batch, Some(4));
+        // Four launch blocks per binding, one per workgroup row z.
+        assert!(
+            w.source
+                .contains("var<uniform> launch_elem: array<Launch_elem, 4>;")
+        );
+        assert!(w.source.contains("let l = &launch_elem[gid.z];"));
+        // Scene, then the three entity counts, then the uniforms (aligned to a real).
+        let k = &w.kernels[0];
+        assert_eq!(k.uniform_offset, 24);
+        assert_eq!(k.launch_size, 24 + 2 * p.size() as u64);
+        // Node data through a corner, element data of the scene's own element.
+        assert!(
+            w.source
+                .contains("let base_node = (*l).scene * (*l).nodes;")
+        );
+        assert!(w.source.contains("x[3u * (base_node + n3) + 2u]"));
+        assert!(w.source.contains("weights[(base_element + e)]"));
+        // Connectivity is shared: indexed by the scene-local entity.
+        assert!(w.source.contains("elem_conn[4u * e + 3u]"));
+        assert!(w.source.contains("for (var j = node_elem_offsets[e]"));
+        assert!(wgsl::emit_batched(&m, p, 0).is_err());
+    }
+}
+
+#[test]
 fn every_argument_source_domain_and_operation_validates_in_f32_and_f64() {
     let m = everything();
     for p in [Precision::F32, Precision::F64] {

@@ -549,3 +549,150 @@ fn a_failed_readback_is_reported_by_the_run_not_a_panic() {
     let err = sim.run(None, Some(10)).unwrap_err().0;
     assert!(err.contains("GPU ("), "{err}");
 }
+
+#[test]
+fn a_batch_of_4_scenes_gives_the_results_of_4_single_runs_in_one_dispatch_per_launch() {
+    // Four scenes of one mesh that differ in an input (the controller's goal) and a param
+    // (the chamber's base pressure): forward and backward on a batch, each scene on its own
+    // thread in lockstep, against each scene run alone. The batched kernels differ from the
+    // single-scene ones only in the index arithmetic (scene s's entity e is s × count + e),
+    // so the arithmetic, and on lavapipe the results, are the same to the bit.
+    use softc::devices::gpu::GpuBatch;
+    use softc::engine::adjoint::GradOptions;
+    let scene = Scene::load(
+        &root().join("runtime/tests/fixtures/grad/all_kinds.soft"),
+        &[],
+    )
+    .unwrap();
+    let module = &scene.lowered.adjoint.module;
+    let settings = |i: usize| {
+        let f = i as f64;
+        [
+            ("input.goal.0", 0.0),
+            ("input.goal.1", (1.0 - f) * 1e-3),
+            ("input.goal.2", (-2.0 + 1.5 * f) * 1e-3),
+            ("param.p0", (1.0 + f) * 1e3),
+        ]
+    };
+    let steps = 80;
+    for precision in [Precision::F64, Precision::F32] {
+        let Some(_) = gpu(module, precision) else {
+            continue;
+        };
+        let single: Vec<_> = (0..4)
+            .map(|i| {
+                let mut sim = Simulation::new(&scene, Gpu::new(module, precision, None).unwrap());
+                for (k, v) in settings(i) {
+                    sim.uniforms.0.insert(k.into(), v);
+                }
+                sim.gradient(None, Some(steps), &GradOptions::default())
+                    .unwrap()
+            })
+            .collect();
+        let batch = GpuBatch::new(module, precision, None, 4).unwrap();
+        let mut sims: Vec<_> = (0..4)
+            .map(|i| {
+                let mut sim = Simulation::new(&scene, batch.scene(i).unwrap());
+                for (k, v) in settings(i) {
+                    sim.uniforms.0.insert(k.into(), v);
+                }
+                sim
+            })
+            .collect();
+        let before = batch.stats();
+        let tokens: Vec<_> = sims.iter().map(|s| s.backend.lockstep()).collect();
+        let batched: Vec<_> = std::thread::scope(|s| {
+            let handles: Vec<_> = sims
+                .iter_mut()
+                .zip(tokens)
+                .map(|(sim, token)| {
+                    s.spawn(move || {
+                        let _member = token;
+                        sim.gradient(None, Some(steps), &GradOptions::default())
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        let stats = batch.stats();
+        let (launches, dispatches) = (
+            stats.launches - before.launches,
+            stats.dispatches - before.dispatches,
+        );
+        eprintln!("{precision}: batch of 4: {launches} launches in {dispatches} dispatches");
+        assert!(
+            dispatches * 4 <= launches + launches / 50,
+            "{precision}: the scenes' launches were not merged: {launches} launches, {dispatches} dispatches"
+        );
+        let mut worst: f64 = 0.0;
+        for (i, (b, s)) in batched.into_iter().zip(&single).enumerate() {
+            let b = b.unwrap_or_else(|e| panic!("{precision}: scene {i}: {e}"));
+            let (lb, ls) = (b.summary.loss.unwrap(), s.summary.loss.unwrap());
+            worst = worst.max((lb - ls).abs() / ls.abs());
+            for (name, want) in &s.gradients {
+                let have = b.gradients[name];
+                let scale = want.abs().max(1e-300);
+                worst = worst.max((have - want).abs() / scale);
+            }
+            for (p, q) in b
+                .summary
+                .x
+                .iter()
+                .flatten()
+                .zip(s.summary.x.iter().flatten())
+            {
+                worst = worst.max((p - q).abs() / q.abs().max(1e-3));
+            }
+            // The scenes differ: a batch that ran one scene four times would pass the above
+            // only if the settings did not matter.
+            if i > 0 {
+                assert_ne!(s.summary.loss, single[0].summary.loss, "{precision}");
+            }
+        }
+        eprintln!("{precision}: batch vs single runs: largest relative difference {worst:e}");
+        assert!(worst <= 1e-12, "{precision}: batch vs single: {worst:e}");
+    }
+}
+
+#[test]
+fn a_controller_batch_trains_on_the_gpu_as_on_the_cpu() {
+    // The quadrant study of tests/optim.rs (batch = 4 targets per iteration) through
+    // `softc run`: on the GPU its four scenes run as one batch. In f64 the history matches
+    // the CPU's to the software exp/pow's last bits.
+    let script = root().join("runtime/tests/fixtures/optim/quadrants.soft");
+    let Some((code, out, err)) = softc_run_gpu(&script, &["--precision", "f64"]) else {
+        return;
+    };
+    if err.contains("SHADER_F64") {
+        assert!(std::env::var("CI").as_deref() != Ok("true"), "{err}");
+        return;
+    }
+    assert_eq!(code, 0, "{err}");
+    let gpu: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    let args = ["softc", "run", script.to_str().unwrap(), "--backend", "cpu"];
+    let args: Vec<String> = args.iter().map(|s| s.to_string()).collect();
+    assert_eq!(
+        softc::cli::run(&args, &mut out, &mut err),
+        0,
+        "{}",
+        String::from_utf8_lossy(&err)
+    );
+    let cpu: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let losses = |v: &serde_json::Value| -> Vec<f64> {
+        v["history"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["loss"].as_f64().unwrap())
+            .collect()
+    };
+    let (g, c) = (losses(&gpu), losses(&cpu));
+    assert_eq!(g.len(), 3);
+    for (a, b) in g.iter().zip(&c) {
+        assert!((a - b).abs() <= 1e-9 * b.abs(), "gpu {g:?}, cpu {c:?}");
+    }
+    // Each iteration's four scenes are recorded per scene (quadrant).
+    let scenes = gpu["history"][0]["scenes"].as_array().unwrap();
+    assert_eq!(scenes.len(), 4);
+}

@@ -34,6 +34,10 @@ pub struct BenchArgs {
     /// Threads of the cpu backend (default: its own choice).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Scenes of the batched GPU rows (`gpu-f32 xN`: N copies of the scene in one batch,
+    /// each launch one dispatch for all); 0 or 1 leaves them out.
+    #[arg(long, default_value_t = 4)]
+    pub batch: usize,
     /// The folder holding benchmark-SIZE.soft.
     #[arg(long, default_value = "examples")]
     pub examples: PathBuf,
@@ -222,6 +226,16 @@ fn time_engine<B: Backend>(
         let s = sim.run(None, Some(args.steps)).map_err(|e| e.0)?;
         Ok((args.steps as f64 / start.elapsed().as_secs_f64(), s.x))
     };
+    warm_median(scene, args, run)
+}
+
+/// One untimed warm-up run, then the median speed of `--repeats` timed runs and the tip's
+/// mean z after the last.
+fn warm_median(
+    scene: &Scene,
+    args: &BenchArgs,
+    mut run: impl FnMut() -> Result<(f64, Vec<[f64; 3]>), String>,
+) -> Result<(f64, f64), String> {
     run()?;
     let mut speeds = Vec::new();
     let mut last = Vec::new();
@@ -231,6 +245,57 @@ fn time_engine<B: Backend>(
         last = x;
     }
     Ok((median(speeds), tip_mean_z(scene, &last)?))
+}
+
+/// Forward scene-steps per second of `scenes` copies of the scene as one GPU batch, each on
+/// its own thread in lockstep (as an optimization runs its batch), and the first scene's tip.
+fn time_batch(
+    scene: &Scene,
+    module: &softc_compiler::ir::Module,
+    precision: Precision,
+    scenes: usize,
+    args: &BenchArgs,
+) -> Result<(f64, f64), String> {
+    let batch = crate::devices::gpu::GpuBatch::new(module, precision, None, scenes)?;
+    let mut sims = Vec::new();
+    for i in 0..scenes {
+        sims.push(Simulation::new(scene, batch.scene(i)?));
+    }
+    let run = || -> Result<(f64, Vec<[f64; 3]>), String> {
+        let tokens: Vec<_> = sims.iter().map(|s| s.backend.lockstep()).collect();
+        let start = Instant::now();
+        let results: Vec<Result<_, String>> = std::thread::scope(|s| {
+            let handles: Vec<_> = sims
+                .iter_mut()
+                .zip(tokens)
+                .map(|(sim, token)| {
+                    s.spawn(move || {
+                        let _member = token;
+                        sim.reset();
+                        sim.run(None, Some(args.steps)).map_err(|e| e.0)
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| {
+                    h.join()
+                        .unwrap_or_else(|_| Err("a scene's thread panicked".into()))
+                })
+                .collect()
+        });
+        let wall = start.elapsed().as_secs_f64();
+        let mut first = None;
+        for r in results {
+            let summary = r?;
+            first.get_or_insert(summary.x);
+        }
+        Ok((
+            (scenes as u64 * args.steps) as f64 / wall,
+            first.unwrap_or_default(),
+        ))
+    };
+    warm_median(scene, args, run)
 }
 
 fn time_reference(scene: &Scene, args: &BenchArgs) -> Result<(f64, f64, f64), String> {
@@ -293,6 +358,10 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         let adjoint = &scene.lowered.adjoint.module;
         let g = time_gradient(&scene, &|| Gpu::new(adjoint, precision, None), args)?;
         rows.push(with_gradient(row(name, compile, timed), g));
+        if args.batch > 1 && precision == Precision::F32 {
+            let timed = time_batch(&scene, module, precision, args.batch, args)?;
+            rows.push(row(&format!("{name} x{}", args.batch), compile, timed));
+        }
     }
     // The IR interpreter is the semantics, not a fast path: only on the smallest scene.
     if size == "1k" {
@@ -383,7 +452,8 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         out,
         "median of {} timed runs of {} steps (forward+backward: {} steps) after a warm-up; \
          tip_mean_z after those steps; x_reference = speed over the reference in this run; \
-         peak_rss_MB = growth of the process's peak resident memory during one forward+backward pass",
+         peak_rss_MB = growth of the process's peak resident memory during one forward+backward pass; \
+         xN rows: N copies of the scene in one GPU batch, fwd_steps/s counting each scene's steps",
         args.repeats.max(1),
         args.steps,
         args.grad_steps

@@ -60,6 +60,10 @@ pub enum Command {
         /// Precision of `--emit wgsl` (default: the script's `precision` setting, else f32).
         #[arg(long, value_enum)]
         precision: Option<run::PrecisionChoice>,
+        /// `--emit wgsl` for a batch of this many scenes run in one dispatch (what `softc run
+        /// --backend gpu` uses when an optimization evaluates several scenes per iteration).
+        #[arg(long, value_name = "SCENES")]
+        batch: Option<u32>,
     },
     /// Simulate a script and print a JSON summary (optimization comes with the adjoint).
     Run(run::RunArgs),
@@ -118,7 +122,8 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             file,
             emit,
             precision,
-        } => compile_file(&file, emit, precision, out, err),
+            batch,
+        } => compile_file(&file, emit, precision, batch, out, err),
         Command::Run(args) => run::run(args, out, err),
         Command::Bench(args) => bench::run(args, out, err),
         Command::Mesh { command } => mesh::run(command),
@@ -229,11 +234,15 @@ fn compile_file(
     path: &Path,
     emit: Emit,
     precision: Option<run::PrecisionChoice>,
+    batch: Option<u32>,
     out: &mut dyn Write,
     err: &mut dyn Write,
 ) -> i32 {
-    if precision.is_some() && emit != Emit::Wgsl {
-        let _ = writeln!(err, "softc compile: --precision applies to --emit wgsl");
+    if (precision.is_some() || batch.is_some()) && emit != Emit::Wgsl {
+        let _ = writeln!(
+            err,
+            "softc compile: --precision and --batch apply to --emit wgsl"
+        );
         return 2;
     }
     let Some(bytes) = read_input(path, err) else {
@@ -282,8 +291,11 @@ fn compile_file(
                 }
                 _ => Precision::F32,
             };
-            let checked = wgsl::emit(&scene.adjoint.module, p)
-                .and_then(|m| wgsl::validate(&m.source, p).map(|()| m));
+            let emitted = match batch {
+                Some(n) => wgsl::emit_batched(&scene.adjoint.module, p, n),
+                None => wgsl::emit(&scene.adjoint.module, p),
+            };
+            let checked = emitted.and_then(|m| wgsl::validate(&m.source, p).map(|()| m));
             match checked {
                 Ok(m) => {
                     let _ = write!(out, "{}", m.source);

@@ -98,13 +98,34 @@ pub fn optimize(
                 (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
                 _ => Precision::F32,
             };
-            train(
-                &ctx,
-                plan,
-                members,
-                || crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()),
-                err,
-            )
+            let adapter = args.adapter.as_deref();
+            if members > 1 {
+                // The batch's scenes in one set of buffers: each launch one dispatch for all.
+                match crate::devices::gpu::GpuBatch::new(module, precision, adapter, members) {
+                    Ok(batch) => {
+                        let next = std::cell::Cell::new(0);
+                        train(
+                            &ctx,
+                            plan,
+                            members,
+                            || {
+                                next.set(next.get() + 1);
+                                batch.scene(next.get() - 1)
+                            },
+                            err,
+                        )
+                    }
+                    Err(e) => Err(e),
+                }
+            } else {
+                train(
+                    &ctx,
+                    plan,
+                    members,
+                    || crate::devices::gpu::Gpu::new(module, precision, adapter),
+                    err,
+                )
+            }
         }
     };
     let json = match result {

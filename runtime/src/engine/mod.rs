@@ -38,6 +38,32 @@ pub trait Backend {
     fn device_error(&self) -> Option<String> {
         None
     }
+    /// Join the lockstep group of a batch backend whose scenes run on threads of their own
+    /// ([`crate::devices::gpu::GpuScene`]): until the token is dropped, the scene's readbacks
+    /// wait for the group's, so the batch shares submissions and readbacks. Enter every
+    /// scene's group before any of them runs, and drop each token when its scene's work ends
+    /// (a scene that never asks again would hold the others). Other backends: no effect.
+    fn lockstep(&self) -> Lockstep {
+        Lockstep::default()
+    }
+}
+
+/// Membership of a lockstep group ([`Backend::lockstep`]); dropping it leaves the group.
+#[derive(Default)]
+pub struct Lockstep(Option<Box<dyn FnOnce() + Send>>);
+
+impl Lockstep {
+    pub fn new(leave: impl FnOnce() + Send + 'static) -> Self {
+        Lockstep(Some(Box::new(leave)))
+    }
+}
+
+impl Drop for Lockstep {
+    fn drop(&mut self) {
+        if let Some(leave) = self.0.take() {
+            leave();
+        }
+    }
 }
 
 /// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`) by name.

@@ -240,13 +240,22 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let (dt, steps) = (self.state.dt, self.state.steps);
         let grad = &self.grad;
         // Each scene on its own thread and simulation; results are combined in scene order.
+        // A batch backend runs the scenes in lockstep: every member joins before any runs.
+        let tokens: Vec<_> = self
+            .sims
+            .iter()
+            .zip(&assignments)
+            .map(|(sim, _)| sim.backend.lockstep())
+            .collect();
         let results: Vec<Result<_, RunError>> = std::thread::scope(|s| {
             let handles: Vec<_> = self
                 .sims
                 .iter_mut()
                 .zip(&assignments)
-                .map(|(sim, inputs)| {
+                .zip(tokens)
+                .map(|((sim, inputs), token)| {
                     s.spawn(move || {
+                        let _member = token;
                         for (k, v) in inputs {
                             sim.uniforms.0.insert(k.clone(), *v);
                         }

@@ -124,8 +124,11 @@ pub struct WgslKernel {
     pub uniforms: Vec<String>,
     /// `(binding number, what it holds)` for every binding the entry point uses.
     pub bindings: Vec<(u32, Binding)>,
-    /// Bytes of the launch block (`begin`, `count`, then one `real` per uniform).
+    /// Bytes of the launch block (`begin`, `count`, in a batch `scene` and the three entity
+    /// counts, then one `real` per uniform).
     pub launch_size: u64,
+    /// Byte offset of the first uniform in the launch block.
+    pub uniform_offset: u64,
     /// Storage buffers the entry point binds (buffers and connectivity).
     pub storage_buffers: u32,
 }
@@ -134,6 +137,8 @@ pub struct WgslKernel {
 #[derive(Clone, Debug, PartialEq)]
 pub struct WgslModule {
     pub precision: Precision,
+    /// Scenes per launch of a batched module ([`emit_batched`]), `None` for one scene.
+    pub batch: Option<u32>,
     pub source: String,
     pub kernels: Vec<WgslKernel>,
 }
@@ -434,7 +439,33 @@ fn literal(c: f64, p: Precision) -> String {
 
 /// Emit the WGSL module of `module`. Errors describe a kernel that does not fit its module
 /// (an access outside a buffer's declared layout), as the Cranelift backend checks them.
+/// The module's kernels for one scene.
 pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String> {
+    emit_with(module, precision, None)
+}
+
+/// The module's kernels for a batch of up to `scenes` scenes that share a mesh and differ in
+/// their uniforms (a controller's targets, a sweep's pressures): one dispatch runs a kernel for
+/// every scene of the batch. Each buffer holds the scenes one after another (scene `s`'s entity
+/// `e` is entity `s × count + e`); the launch binding is an array of `scenes` launch blocks,
+/// one per workgroup row `z`, each naming its scene and the entity counts; connectivity is
+/// shared.
+pub fn emit_batched(
+    module: &Module,
+    precision: Precision,
+    scenes: u32,
+) -> Result<WgslModule, String> {
+    if scenes == 0 {
+        return Err("a batch needs at least one scene".into());
+    }
+    emit_with(module, precision, Some(scenes))
+}
+
+fn emit_with(
+    module: &Module,
+    precision: Precision,
+    batch: Option<u32>,
+) -> Result<WgslModule, String> {
     for k in &module.kernels {
         crate::back::cranelift::validate_kernel(module, k)?;
     }
@@ -476,6 +507,13 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
         module.kernels.len(),
         module.buffers.len()
     );
+    if let Some(n) = batch {
+        let _ = writeln!(
+            w,
+            "// A batch of up to {n} scenes: buffers hold the scenes one after another, workgroup \
+             row z runs the scene its launch block names."
+        );
+    }
     let _ = writeln!(w, "\nalias real = {real};\n");
     let _ = writeln!(
         w,
@@ -538,8 +576,18 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
             k.origin
         );
         let _ = writeln!(w, "struct {struct_name} {{");
-        let _ = writeln!(w, "    begin: u32,");
-        let _ = writeln!(w, "    count: u32,");
+        if batch.is_some() {
+            // 16-byte alignment: uniform arrays need a stride that is a multiple of 16.
+            let _ = writeln!(w, "    @align(16) begin: u32,");
+            let _ = writeln!(w, "    count: u32,");
+            let _ = writeln!(w, "    scene: u32,");
+            let _ = writeln!(w, "    elements: u32,");
+            let _ = writeln!(w, "    triangles: u32,");
+            let _ = writeln!(w, "    nodes: u32,");
+        } else {
+            let _ = writeln!(w, "    begin: u32,");
+            let _ = writeln!(w, "    count: u32,");
+        }
         for (f, u) in field_names.iter().zip(&uniforms) {
             if f == u {
                 let _ = writeln!(w, "    {f}: real,");
@@ -549,10 +597,11 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
         }
         let _ = writeln!(w, "}}");
         let lb = launch_binding(ki);
-        let _ = writeln!(
-            w,
-            "@group(0) @binding({lb}) var<uniform> {launch}: {struct_name};"
-        );
+        let ty = match batch {
+            Some(n) => format!("array<{struct_name}, {n}>"),
+            None => struct_name.clone(),
+        };
+        let _ = writeln!(w, "@group(0) @binding({lb}) var<uniform> {launch}: {ty};");
 
         // Bindings this entry uses.
         let mut used_bufs: BTreeSet<u32> = BTreeSet::new();
@@ -611,16 +660,23 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
             entries[ki]
         );
         let _ = writeln!(w, "    let i = gid.x + gid.y * nwg.x * {WORKGROUP_SIZE}u;");
-        let _ = writeln!(w, "    if (i >= {launch}.count) {{");
+        let block = if batch.is_some() {
+            let _ = writeln!(w, "    let l = &{launch}[gid.z];");
+            "(*l)".to_string()
+        } else {
+            launch.clone()
+        };
+        let _ = writeln!(w, "    if (i >= {block}.count) {{");
         let _ = writeln!(w, "        return;");
         let _ = writeln!(w, "    }}");
-        let _ = writeln!(w, "    let e = {launch}.begin + i;");
+        let _ = writeln!(w, "    let e = {block}.begin + i;");
         emit_body(
             w,
             module,
             k,
             &buf_names,
-            &launch,
+            &block,
+            batch.is_some(),
             &uniforms,
             &field_names,
             precision,
@@ -628,7 +684,10 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
         );
         let _ = writeln!(w, "}}");
 
-        let size = 8 + uniforms.len() as u64 * precision.size() as u64;
+        let header: u64 = if batch.is_some() { 24 } else { 8 };
+        let real = precision.size() as u64;
+        let uniform_offset = header.div_ceil(real) * real;
+        let size = uniform_offset + uniforms.len() as u64 * real;
         kernels.push(WgslKernel {
             name: k.name.clone(),
             entry: entries[ki].clone(),
@@ -636,6 +695,7 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
             uniforms,
             bindings,
             launch_size: size,
+            uniform_offset,
             storage_buffers,
         });
     }
@@ -647,6 +707,7 @@ pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String>
     out.push_str(&bodies);
     Ok(WgslModule {
         precision,
+        batch,
         source: out,
         kernels,
     })
@@ -681,15 +742,67 @@ fn emit_body(
     k: &Kernel,
     buf_names: &[String],
     launch: &str,
+    batched: bool,
     uniforms: &[String],
     fields: &[String],
     p: Precision,
     helpers: &mut math::Helpers,
 ) {
     let width = |b: BufferId| module.buffers[b.0 as usize].width;
+    // In a batch, a buffer's entity `e` of this launch's scene is entity `base + e`.
+    let base_name = |d: Domain| match d {
+        Domain::Element => "base_element",
+        Domain::Triangle => "base_triangle",
+        Domain::Node => "base_node",
+        Domain::Single => "base_single",
+    };
+    if batched {
+        let mut domains: BTreeSet<u8> = BTreeSet::new();
+        let mut note = |b: &BufferId| {
+            domains.insert(module.buffers[b.0 as usize].domain as u8);
+        };
+        for a in &k.args {
+            match a {
+                ArgSource::Own { buffer, .. }
+                | ArgSource::Corner { buffer, .. }
+                | ArgSource::Gather { buffer, .. } => note(buffer),
+                ArgSource::Uniform(_) => {}
+            }
+        }
+        for s in &k.stores {
+            note(&s.buffer);
+        }
+        for d in [
+            Domain::Element,
+            Domain::Triangle,
+            Domain::Node,
+            Domain::Single,
+        ] {
+            if !domains.contains(&(d as u8)) {
+                continue;
+            }
+            let count = match d {
+                Domain::Element => format!("{launch}.elements"),
+                Domain::Triangle => format!("{launch}.triangles"),
+                Domain::Node => format!("{launch}.nodes"),
+                Domain::Single => "1u".to_string(),
+            };
+            let _ = writeln!(w, "    let {} = {launch}.scene * {count};", base_name(d));
+        }
+    }
     let row = |b: BufferId, entity: &str, comp: String| {
         let wd = width(b);
         let name = &buf_names[b.0 as usize];
+        let based;
+        let entity = if batched {
+            based = format!(
+                "({} + {entity})",
+                base_name(module.buffers[b.0 as usize].domain)
+            );
+            based.as_str()
+        } else {
+            entity
+        };
         if wd == 1 {
             if comp == "0u" {
                 format!("{name}[{entity}]")
