@@ -251,6 +251,32 @@ fn compile_reports_script_errors_and_unsupported_emits() {
     );
 }
 
+/// `--emit clif` prints every kernel's Cranelift IR and the time loop that calls them, by
+/// name (no addresses: the same text every run).
+#[test]
+fn compile_emits_the_cranelift_ir_of_the_kernels_and_the_time_loop() {
+    let script = root().join("examples/benchmark-1k.soft");
+    let (code, out, err) = softc(&["compile", "--emit", "clif", script.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let (kernels, time_loop) = out.split_once("; time loop").expect("the time loop");
+    assert!(kernels.matches("function u0:").count() >= 3, "{kernels}");
+    // One call per launch of a step: the element, pressure and node kernels.
+    assert!(
+        time_loop.contains("n steps of kernels [0, 1, 2]"),
+        "{time_loop}"
+    );
+    for k in 0..3 {
+        assert!(
+            time_loop.contains(&format!("fn{k} = u0:{k}")),
+            "{time_loop}"
+        );
+        assert!(time_loop.contains(&format!("call fn{k}(")), "{time_loop}");
+    }
+    assert!(!time_loop.contains("0x7f"), "addresses in the printed loop");
+    let (_, again, _) = softc(&["compile", "--emit", "clif", script.to_str().unwrap()]);
+    assert_eq!(out, again);
+}
+
 #[test]
 fn bench_prints_a_table_and_well_formed_json() {
     let json = std::env::temp_dir().join(format!("softc-bench-{}.json", std::process::id()));

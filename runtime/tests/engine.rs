@@ -494,3 +494,112 @@ fn a_run_to_steady_state_stops_once_settled_and_matches_a_long_run() {
     let loose = sim.run_to_steady_state(Some(dt), 4 * steps, 1e-1).unwrap();
     assert!(loose.settled && loose.summary.steps < steady.summary.steps);
 }
+
+#[test]
+fn the_compiled_time_loop_gives_the_bits_of_launch_by_launch_stepping() {
+    // Stretches of steps between host work run as one call of a Cranelift-compiled time loop
+    // (t and the double-buffered state handled inside). Forward runs (with a VTK-free,
+    // windowed-loss scene) and checkpointed gradients, whose backward pass recomputes
+    // segments through the loop, must equal stepping launch by launch to the bit.
+    use softc::engine::Cpu;
+    use softc::engine::adjoint::{Checkpointing, GradOptions};
+    use softc_compiler::back::Precision;
+    let scene = Scene::load(
+        &root().join("runtime/tests/fixtures/grad/all_kinds.soft"),
+        &[],
+    )
+    .unwrap();
+    let module = &scene.lowered.adjoint.module;
+    let options = GradOptions {
+        checkpoint: Checkpointing::Periodic(37),
+        ..GradOptions::default()
+    };
+    for precision in [Precision::F64, Precision::F32] {
+        let cpu = |looped: bool| {
+            let mut c = Cpu::new(module, precision, Some(1)).unwrap();
+            c.set_step_loop(looped);
+            c
+        };
+        let fwd = |looped| {
+            Simulation::new(&scene, cpu(looped))
+                .run(None, Some(230))
+                .unwrap()
+        };
+        let (a, b) = (fwd(true), fwd(false));
+        assert_eq!(a.x, b.x, "{precision}: positions");
+        assert_eq!(a.v, b.v, "{precision}: velocities");
+        assert_eq!(a.loss.unwrap().to_bits(), b.loss.unwrap().to_bits());
+        assert!(a.x != scene.mesh.nodes, "the scene moved");
+        let grad = |looped| {
+            Simulation::new(&scene, cpu(looped))
+                .gradient(None, Some(230), &options)
+                .unwrap()
+        };
+        let (ga, gb) = (grad(true), grad(false));
+        assert!(ga.recompute_ratio > 1.0, "segments were recomputed");
+        for (name, g) in &gb.gradients {
+            assert_eq!(
+                ga.gradients[name].to_bits(),
+                g.to_bits(),
+                "{precision}: {name}"
+            );
+        }
+    }
+    // Steady-state runs step between their checks through the loop too.
+    let scene = Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
+    let module = &scene.lowered.module;
+    let steady = |looped: bool| {
+        let mut c = Cpu::new(module, Precision::F64, Some(1)).unwrap();
+        c.set_step_loop(looped);
+        Simulation::new(&scene, c)
+            .run_to_steady_state(None, 3000, 1e-3)
+            .unwrap()
+    };
+    let (a, b) = (steady(true), steady(false));
+    assert_eq!(a.summary.steps, b.summary.steps);
+    assert_eq!(a.summary.x, b.summary.x);
+}
+
+/// Forward speed with and without the compiled time loop (a measurement, not a check):
+/// `cargo test -p softc --test engine -- --ignored --nocapture time_loop_speed`.
+#[test]
+#[ignore]
+fn time_loop_speed() {
+    use softc::engine::Cpu;
+    use softc_compiler::back::Precision;
+    // The uniaxial cube (384 tets), where a step's host work weighs most.
+    let fixtures = root().join("runtime/tests/fixtures/uniaxial");
+    let cube = std::env::temp_dir().join(format!("softc-cube-{}.soft", std::process::id()));
+    let text = std::fs::read_to_string(fixtures.join("uniaxial.soft")).unwrap();
+    let text = text
+        .replace(
+            "MATERIAL",
+            "neo_hookean(mu: 100 kPa, kappa: 1 MPa, density: 1000 kg/m^3)",
+        )
+        .replace("\"cube.msh\"", &format!("{:?}", fixtures.join("cube.msh")));
+    std::fs::write(&cube, text).unwrap();
+    for (script, steps) in [
+        (cube.to_str().unwrap(), 20000),
+        ("runtime/tests/fixtures/grad/all_kinds.soft", 4000),
+        ("examples/benchmark-1k.soft", 4000),
+    ] {
+        let scene = Scene::load(&root().join(script), &[]).unwrap();
+        for precision in [Precision::F64, Precision::F32] {
+            let mut rates = Vec::new();
+            for looped in [false, true, false, true] {
+                let mut c = Cpu::new(&scene.lowered.module, precision, Some(1)).unwrap();
+                c.set_step_loop(looped);
+                let mut sim = Simulation::new(&scene, c);
+                sim.run(None, Some(200)).unwrap();
+                sim.reset();
+                let t = std::time::Instant::now();
+                sim.run(None, Some(steps)).unwrap();
+                rates.push(steps as f64 / t.elapsed().as_secs_f64());
+            }
+            eprintln!(
+                "{script} {precision}: launch by launch {:.0} / {:.0} steps/s, time loop {:.0} / {:.0} steps/s",
+                rates[0], rates[2], rates[1], rates[3]
+            );
+        }
+    }
+}

@@ -273,7 +273,24 @@ fn compile_file(
             ) {
                 Ok(m) => {
                     let _ = write!(out, "{}", m.clif_all());
-                    0
+                    // The time loop over one forward step's kernels (element, pressure, node).
+                    let step: Vec<usize> =
+                        (0..scene.materials.len() + scene.chambers.len() + 1).collect();
+                    match m.compile_loop(&step) {
+                        Ok(lp) => {
+                            let _ = write!(
+                                out,
+                                "\n; time loop: n steps of kernels {step:?}, t and the state \
+                                 buffers' parity set per step\n{}",
+                                lp.clif
+                            );
+                            0
+                        }
+                        Err(e) => {
+                            let _ = writeln!(err, "{name}: the time loop does not compile: {e}");
+                            1
+                        }
+                    }
                 }
                 Err(e) => {
                     let _ = writeln!(err, "{name}: the kernels do not compile: {e}");

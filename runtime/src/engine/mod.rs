@@ -46,6 +46,35 @@ pub trait Backend {
     fn lockstep(&self) -> Lockstep {
         Lockstep::default()
     }
+    /// Run `n` whole steps at once, the first being step `first`, if the backend can: each
+    /// step sets `t = step · dt`, runs `launches` (kernel, entity range) in order, then swaps
+    /// the buffer pairs `swaps`. Returns `false`, having done nothing, when it cannot; the
+    /// engine then steps one launch at a time. The result must be bit-identical either way.
+    fn run_steps(
+        &mut self,
+        launches: &[Launch],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        n: u64,
+        dt: f64,
+        uniforms: &Uniforms,
+    ) -> Result<bool, String> {
+        let _ = (launches, swaps, first, n, dt, uniforms);
+        Ok(false)
+    }
+}
+
+/// A kernel over a range of its entities.
+type Launch = (usize, Range<usize>);
+
+/// The end (exclusive) of the stretch of steps from `from` before `limit` that ends at the
+/// first step `j` after which the host has work (`due(j)`), or at `limit`.
+fn stretch_end(from: u64, limit: u64, due: impl Fn(u64) -> bool) -> u64 {
+    let mut j = from;
+    while j + 1 < limit && !due(j) {
+        j += 1;
+    }
+    j + 1
 }
 
 /// Membership of a lockstep group ([`Backend::lockstep`]); dropping it leaves the group.
@@ -235,6 +264,9 @@ pub struct Cpu {
     topology: Option<Topology>,
     threads: Option<usize>,
     scratch: Vec<f64>,
+    /// The time loop compiled for the launches of a step (single-threaded steps only).
+    step_loop: Option<softc_compiler::back::cranelift::StepLoop>,
+    use_step_loop: bool,
 }
 
 impl Cpu {
@@ -250,7 +282,15 @@ impl Cpu {
             topology: None,
             threads,
             scratch: Vec::new(),
+            step_loop: None,
+            use_step_loop: true,
         })
+    }
+
+    /// Whether whole stretches of steps run through the compiled time loop (default on; off,
+    /// every launch goes through the host, with bit-identical results).
+    pub fn set_step_loop(&mut self, on: bool) {
+        self.use_step_loop = on;
     }
 
     /// The Cranelift IR of every kernel (`softc compile --emit clif`).
@@ -315,6 +355,48 @@ impl Backend for Cpu {
         };
         self.module
             .run_parallel(k, bufs, topo, &self.scratch, range, threads)
+    }
+
+    /// Steps whose launches all run on one thread go through the compiled time loop: one call
+    /// for the whole stretch instead of one host round per launch.
+    fn run_steps(
+        &mut self,
+        launches: &[Launch],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        n: u64,
+        dt: f64,
+        u: &Uniforms,
+    ) -> Result<bool, String> {
+        if !self.use_step_loop || launches.iter().any(|(_, r)| self.threads_for(r.len()) > 1) {
+            return Ok(false);
+        }
+        let kernels: Vec<usize> = launches.iter().map(|(k, _)| *k).collect();
+        if self
+            .step_loop
+            .as_ref()
+            .is_none_or(|lp| lp.kernels != kernels)
+        {
+            self.step_loop = Some(self.module.compile_loop(&kernels)?);
+        }
+        let uniforms: Vec<Vec<f64>> = kernels
+            .iter()
+            .map(|&k| {
+                let names = &self.module.kernel(k).uniforms;
+                names.iter().map(|name| u.get(name)).collect()
+            })
+            .collect();
+        let ranges: Vec<Range<usize>> = launches.iter().map(|(_, r)| r.clone()).collect();
+        let (Some(bufs), Some(topo), Some(lp)) = (
+            self.buffers.as_mut(),
+            self.topology.as_ref(),
+            self.step_loop.as_ref(),
+        ) else {
+            return Err("the backend is not prepared".into());
+        };
+        self.module
+            .run_loop(lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n)?;
+        Ok(true)
     }
 }
 
@@ -819,6 +901,37 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(())
     }
 
+    /// The launches of one step in order (element, pressure, node kernels over their
+    /// entities) and the state swaps that end it.
+    fn step_plan(&self) -> (Vec<Launch>, [(BufferId, BufferId); 2]) {
+        let n = self.scene.material_ranges.len() + self.scene.chamber_ranges.len() + 1;
+        (
+            (0..n).map(|k| (k, self.kernel_range(k))).collect(),
+            [(self.ids.x, self.ids.x_next), (self.ids.v, self.ids.v_next)],
+        )
+    }
+
+    /// Steps `from..to` with no host work between them: in one call of the backend's compiled
+    /// time loop where it has one, else one by one (the same bits either way).
+    fn advance(&mut self, from: u64, to: u64, dt: f64) -> Result<(), RunError> {
+        if to > from + 1 {
+            let (launches, swaps) = self.step_plan();
+            let ran = self
+                .backend
+                .run_steps(&launches, &swaps, from, to - from, dt, &self.uniforms)
+                .map_err(RunError)?;
+            if ran {
+                // As `step` leaves it after the last step.
+                self.uniforms.0.insert("t".into(), (to - 1) as f64 * dt);
+                return Ok(());
+            }
+        }
+        for s in from..to {
+            self.step(s, dt)?;
+        }
+        Ok(())
+    }
+
     /// One step from state `step` to `step + 1`.
     fn step(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
         self.uniforms.0.insert("t".into(), step as f64 * dt);
@@ -896,28 +1009,41 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let scene = self.scene;
         let rest = &scene.mesh.nodes;
         let mut loss_sum = 0.0;
-        for step in 0..steps {
-            if self.csv.iter().any(|c| step % c.every == 0) {
+        let csv_due = |csv: &[CsvOutput], k: u64| csv.iter().any(|c| k.is_multiple_of(c.every));
+        let vtk_due = |vtk: &Option<VtkOutput>, k: u64| {
+            vtk.as_ref()
+                .is_some_and(|o| k.is_multiple_of(o.every.max(1)))
+        };
+        let mut step = 0;
+        while step < steps {
+            if csv_due(&self.csv, step) {
                 let x = self.backend.get(self.ids.x);
                 for c in self.csv.iter_mut().filter(|c| step % c.every == 0) {
                     c.record(step, step as f64 * dt, rest, &x);
                 }
             }
-            if self
-                .vtk
-                .as_ref()
-                .is_some_and(|o| step % o.every.max(1) == 0)
-            {
+            if vtk_due(&self.vtk, step) {
                 self.uniforms.0.insert("t".into(), step as f64 * dt);
                 self.write_vtk(step as f64 * dt)?;
             }
-            self.step(step, dt)?;
+            // The steps up to the next one after which the host has work (a state check, an
+            // output, a loss term) go at once; that last one alone.
+            let end = stretch_end(step, steps, |j| {
+                j % CHECK_EVERY == 0
+                    || csv_due(&self.csv, j + 1)
+                    || vtk_due(&self.vtk, j + 1)
+                    || loss_fn.is_some_and(|l| l.in_window((j + 1) as f64 * dt, dt))
+            });
+            self.advance(step, end - 1, dt)?;
+            let last = end - 1;
+            self.step(last, dt)?;
             if let Some(l) = loss_fn {
-                loss_sum += self.loss_term(l, step + 1, dt);
+                loss_sum += self.loss_term(l, last + 1, dt);
             }
-            if step % CHECK_EVERY == 0 || step + 1 == steps {
-                self.check_state(step, dt)?;
+            if last % CHECK_EVERY == 0 || last + 1 == steps {
+                self.check_state(last, dt)?;
             }
+            step = end;
         }
         if !self.csv.is_empty() {
             let x = self.backend.get(self.ids.x);
@@ -966,11 +1092,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
             std::collections::VecDeque::new();
         let mut steps = max_steps;
         let mut settled = false;
-        for step in 0..max_steps {
+        let mut next = 0;
+        while next < max_steps {
+            let end = stretch_end(next, max_steps, |j| (j + 1) % CHECK_EVERY == 0);
+            self.advance(next, end - 1, dt)?;
+            let step = end - 1;
             self.step(step, dt)?;
-            if (step + 1) % CHECK_EVERY != 0 && step + 1 != max_steps {
-                continue;
-            }
+            next = end;
             self.check_state(step, dt)?;
             let t = (step + 1) as f64 * dt;
             let x = self.backend.get(self.ids.x);

@@ -53,6 +53,9 @@
 
 mod codegen;
 mod libm;
+mod step_loop;
+
+pub use step_loop::StepLoop;
 
 pub use crate::back::Precision;
 use crate::ir::{ArgSource, BufferId, Domain, Module};
@@ -85,6 +88,22 @@ pub struct KernelCtx {
     pub node_elem_entries: *const u32,
     pub node_tri_offsets: *const u32,
     pub node_tri_entries: *const u32,
+}
+
+impl KernelCtx {
+    /// A context for these buffer pointers and uniforms over `topology`'s connectivity.
+    pub fn new(buffers: *const *mut u8, uniforms: *const u8, topology: &Topology) -> Self {
+        KernelCtx {
+            buffers,
+            uniforms,
+            elem_conn: topology.elem_conn.as_ptr(),
+            tri_conn: topology.tri_conn.as_ptr(),
+            node_elem_offsets: topology.node_elem_offsets.as_ptr(),
+            node_elem_entries: topology.node_elem_entries.as_ptr(),
+            node_tri_offsets: topology.node_tri_offsets.as_ptr(),
+            node_tri_entries: topology.node_tri_entries.as_ptr(),
+        }
+    }
 }
 
 /// The signature of a generated kernel.
@@ -162,6 +181,11 @@ impl std::fmt::Debug for CpuModule {
 }
 
 fn jit_module() -> Result<JITModule, String> {
+    jit_module_with(&[])
+}
+
+/// A JIT module that links the libm helpers and `extra` (symbol, address) pairs.
+fn jit_module_with(extra: &[(String, *const u8)]) -> Result<JITModule, String> {
     let mut flags = settings::builder();
     let set = |f: &mut settings::Builder, k: &str, v: &str| {
         f.set(k, v)
@@ -177,6 +201,9 @@ fn jit_module() -> Result<JITModule, String> {
         .map_err(|e| format!("Cranelift target: {e}"))?;
     let mut jb = JITBuilder::with_isa(isa, cranelift_module::default_libcall_names());
     jb.symbols(libm::symbols());
+    for (name, ptr) in extra {
+        jb.symbol(name.clone(), *ptr);
+    }
     Ok(JITModule::new(jb))
 }
 
@@ -363,6 +390,67 @@ impl CpuModule {
         range: Range<usize>,
         threads: usize,
     ) -> Result<(), String> {
+        let k = self.check_launch(kernel, buffers, topology, uniforms, &range)?;
+        let uni64: Vec<f64>;
+        let uni32: Vec<f32>;
+        let uniforms_ptr = match self.precision {
+            Precision::F64 => {
+                uni64 = uniforms.to_vec();
+                uni64.as_ptr() as *const u8
+            }
+            Precision::F32 => {
+                uni32 = uniforms.iter().map(|&u| u as f32).collect();
+                uni32.as_ptr() as *const u8
+            }
+        };
+        let ptrs: Vec<*mut u8> = buffers.data.iter_mut().map(Storage::as_mut_ptr).collect();
+        let ctx = KernelCtx::new(ptrs.as_ptr(), uniforms_ptr, topology);
+        let len = range.end - range.start;
+        let threads = threads.clamp(1, len.max(1));
+        let bounds: Vec<usize> = (0..=threads)
+            .map(|t| range.start + len * t / threads)
+            .collect();
+        let shared = SharedCtx(&ctx);
+        let f = k.func;
+        let call = |lo: usize, hi: usize| {
+            let c = &shared;
+            // SAFETY: the buffers the kernel touches have the lengths its layout needs for the
+            // topology's entity counts, the topology's indices were validated against those
+            // counts, `lo..hi` lies inside the kernel's domain, and the kernel was validated
+            // to access only inside that layout. Chunks are disjoint; an entity stores only to
+            // its own row of buffers of the kernel's domain, while other entities' rows are
+            // read only from buffers of other domains (corners read node buffers in element
+            // and triangle kernels, gathers read element or triangle buffers in node kernels),
+            // so concurrent calls never touch a location another one writes.
+            unsafe { f(c.0, lo as u64, hi as u64) }
+        };
+        if threads == 1 {
+            call(range.start, range.end);
+        } else {
+            // The chunks are fixed by the thread count alone, so which worker runs which
+            // chunk changes nothing in the result.
+            worker_pool().scope(|s| {
+                for t in 1..threads {
+                    let (lo, hi) = (bounds[t], bounds[t + 1]);
+                    s.spawn(move |_| call(lo, hi));
+                }
+                call(bounds[0], bounds[1]);
+            });
+        }
+        Ok(())
+    }
+
+    /// Everything a launch of `kernel` needs to be safe: buffers of the module's precision and
+    /// of the lengths the topology implies, the right number of uniforms, a range inside the
+    /// kernel's domain.
+    fn check_launch(
+        &self,
+        kernel: usize,
+        buffers: &Buffers,
+        topology: &Topology,
+        uniforms: &[f64],
+        range: &Range<usize>,
+    ) -> Result<&CompiledKernel, String> {
         let k = self
             .kernels
             .get(kernel)
@@ -416,60 +504,122 @@ impl CpuModule {
                 k.name
             ));
         }
-        let uni64: Vec<f64>;
-        let uni32: Vec<f32>;
-        let uniforms_ptr = match self.precision {
+        Ok(k)
+    }
+
+    /// Compile a time loop whose every step launches `kernels` in this order (see
+    /// [`StepLoop`] and [`CpuModule::run_loop`]). The loop calls this module's code: keep the
+    /// module alive as long as the loop.
+    pub fn compile_loop(&self, kernels: &[usize]) -> Result<StepLoop, String> {
+        let launches = kernels
+            .iter()
+            .map(|&k| {
+                let ck = self
+                    .kernels
+                    .get(k)
+                    .ok_or_else(|| format!("no kernel {k}"))?;
+                Ok(step_loop::LoopLaunch {
+                    func: ck.func as *const u8,
+                    t_index: ck.uniforms.iter().position(|u| u == "t"),
+                })
+            })
+            .collect::<Result<Vec<_>, String>>()?;
+        step_loop::compile(&launches, kernels.to_vec(), self.precision)
+    }
+
+    /// Run `n` steps of a compiled time loop on the calling thread, the first being step
+    /// `first`: each step sets `t = step · dt` in every launch that reads it, runs launch `l`
+    /// of `lp.kernels` over `ranges[l]` with `uniforms[l]` (the other uniforms, as
+    /// [`CpuModule::run`] takes them), then swaps the buffer pairs `swaps`. Bit-identical to
+    /// the same launches and swaps made one by one.
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_loop(
+        &self,
+        lp: &StepLoop,
+        buffers: &mut Buffers,
+        topology: &Topology,
+        uniforms: &[Vec<f64>],
+        ranges: &[Range<usize>],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        dt: f64,
+        n: u64,
+    ) -> Result<(), String> {
+        let l = lp.kernels.len();
+        if uniforms.len() != l || ranges.len() != l {
+            return Err(format!(
+                "a step of {l} launches: {} uniform lists and {} ranges given",
+                uniforms.len(),
+                ranges.len()
+            ));
+        }
+        for ((&k, u), r) in lp.kernels.iter().zip(uniforms).zip(ranges) {
+            self.check_launch(k, buffers, topology, u, r)?;
+        }
+        for &(a, b) in swaps {
+            let (a, b) = (a.0 as usize, b.0 as usize);
+            if a == b || a >= self.layout.len() || b >= self.layout.len() {
+                return Err(format!("cannot swap buffers {a} and {b}"));
+            }
+            if self.layout[a] != self.layout[b] || buffers.data[a].len() != buffers.data[b].len() {
+                return Err(format!(
+                    "cannot swap `{}` and `{}`: different layouts",
+                    self.names[a], self.names[b]
+                ));
+            }
+        }
+        if n == 0 {
+            return Ok(());
+        }
+        // Each launch's uniforms in the module's precision; the loop writes `t` into them.
+        let mut uni64: Vec<Vec<f64>> = Vec::new();
+        let mut uni32: Vec<Vec<f32>> = Vec::new();
+        let uniform_ptrs: Vec<*const u8> = match self.precision {
             Precision::F64 => {
                 uni64 = uniforms.to_vec();
-                uni64.as_ptr() as *const u8
+                uni64
+                    .iter_mut()
+                    .map(|u| u.as_mut_ptr() as *const u8)
+                    .collect()
             }
             Precision::F32 => {
-                uni32 = uniforms.iter().map(|&u| u as f32).collect();
-                uni32.as_ptr() as *const u8
+                uni32 = uniforms
+                    .iter()
+                    .map(|u| u.iter().map(|&v| v as f32).collect())
+                    .collect();
+                uni32
+                    .iter_mut()
+                    .map(|u| u.as_mut_ptr() as *const u8)
+                    .collect()
             }
         };
-        let ptrs: Vec<*mut u8> = buffers.data.iter_mut().map(Storage::as_mut_ptr).collect();
-        let ctx = KernelCtx {
-            buffers: ptrs.as_ptr(),
-            uniforms: uniforms_ptr,
-            elem_conn: topology.elem_conn.as_ptr(),
-            tri_conn: topology.tri_conn.as_ptr(),
-            node_elem_offsets: topology.node_elem_offsets.as_ptr(),
-            node_elem_entries: topology.node_elem_entries.as_ptr(),
-            node_tri_offsets: topology.node_tri_offsets.as_ptr(),
-            node_tri_entries: topology.node_tri_entries.as_ptr(),
-        };
-        let len = range.end - range.start;
-        let threads = threads.clamp(1, len.max(1));
-        let bounds: Vec<usize> = (0..=threads)
-            .map(|t| range.start + len * t / threads)
+        // Buffer pointers before an even and an odd number of swaps.
+        let even: Vec<*mut u8> = buffers.data.iter_mut().map(Storage::as_mut_ptr).collect();
+        let mut odd = even.clone();
+        for &(a, b) in swaps {
+            odd.swap(a.0 as usize, b.0 as usize);
+        }
+        let ctx = |ptrs: &Vec<*mut u8>, u: *const u8| KernelCtx::new(ptrs.as_ptr(), u, topology);
+        let ctxs: Vec<KernelCtx> = [&even, &odd]
+            .iter()
+            .flat_map(|ptrs| uniform_ptrs.iter().map(|&u| ctx(ptrs, u)))
             .collect();
-        let shared = SharedCtx(&ctx);
-        let f = k.func;
-        let call = |lo: usize, hi: usize| {
-            let c = &shared;
-            // SAFETY: the buffers the kernel touches have the lengths its layout needs for the
-            // topology's entity counts, the topology's indices were validated against those
-            // counts, `lo..hi` lies inside the kernel's domain, and the kernel was validated
-            // to access only inside that layout. Chunks are disjoint; an entity stores only to
-            // its own row of buffers of the kernel's domain, while other entities' rows are
-            // read only from buffers of other domains (corners read node buffers in element
-            // and triangle kernels, gathers read element or triangle buffers in node kernels),
-            // so concurrent calls never touch a location another one writes.
-            unsafe { f(c.0, lo as u64, hi as u64) }
-        };
-        if threads == 1 {
-            call(range.start, range.end);
-        } else {
-            // The chunks are fixed by the thread count alone, so which worker runs which
-            // chunk changes nothing in the result.
-            worker_pool().scope(|s| {
-                for t in 1..threads {
-                    let (lo, hi) = (bounds[t], bounds[t + 1]);
-                    s.spawn(move |_| call(lo, hi));
-                }
-                call(bounds[0], bounds[1]);
-            });
+        let bounds: Vec<u64> = ranges
+            .iter()
+            .flat_map(|r| [r.start as u64, r.end as u64])
+            .collect();
+        // SAFETY: every launch passed the checks of `run_parallel` (buffer lengths for the
+        // topology, uniforms, ranges inside the domains) for the buffers as they are; the
+        // swapped pairs have equal layouts, so the same holds after any number of swaps. The
+        // launches run one after another on this thread, and the uniform arrays, pointer
+        // arrays and contexts outlive the call. `t` is written between launches, never while
+        // a kernel reads it.
+        unsafe { (lp.func)(ctxs.as_ptr(), bounds.as_ptr(), first, dt, n) };
+        drop((uni64, uni32));
+        if n % 2 == 1 {
+            for &(a, b) in swaps {
+                buffers.swap(a, b);
+            }
         }
         Ok(())
     }
