@@ -98,6 +98,7 @@ const ROLLOUTS: &[(&str, u64, Option<f64>)] = &[
     ("pressure_optimization.soft", 400, Some(1e-4)),
     ("meta_optimization.soft", 400, Some(1e-4)),
     ("controller_synthesis.soft", 400, Some(2.5e-5)),
+    ("verification_endoscope.soft", 400, Some(5e-5)),
     ("benchmark-10k.soft", 100, None),
 ];
 
@@ -174,7 +175,7 @@ fn wgsl_cranelift_and_interpreter_agree_on_short_rollouts_of_every_example() {
 
 #[test]
 fn f64_on_the_gpu_matches_f64_on_the_cpu() {
-    for &(example, steps, dt) in &ROLLOUTS[..5] {
+    for &(example, steps, dt) in &ROLLOUTS[..6] {
         let scene = Scene::load(&root().join("examples").join(example), &[]).unwrap();
         let module = &scene.lowered.module;
         let Some(g) = gpu(module, Precision::F64) else {
