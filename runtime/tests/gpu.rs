@@ -697,3 +697,51 @@ fn a_controller_batch_trains_on_the_gpu_as_on_the_cpu() {
     let scenes = gpu["history"][0]["scenes"].as_array().unwrap();
     assert_eq!(scenes.len(), 4);
 }
+
+#[test]
+fn a_plain_run_of_several_scenes_runs_them_as_one_gpu_batch() {
+    // verification.soft lists two pressures: on the GPU `softc run` runs both scenes as one
+    // batch, and each scene's summary equals the CPU's (f64: to the software exp/pow's bits).
+    let script = root().join("examples/verification.soft");
+    let short = ["--steps", "300", "--dt", "1e-4", "--precision", "f64"];
+    let Some((code, out, err)) = softc_run_gpu(&script, &short) else {
+        return;
+    };
+    if err.contains("SHADER_F64") {
+        assert!(std::env::var("CI").as_deref() != Ok("true"), "{err}");
+        return;
+    }
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("2 scenes in one batch"), "{err}");
+    let gpu: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    let args: Vec<String> = ["softc", "run", script.to_str().unwrap(), "--backend", "cpu"]
+        .iter()
+        .chain(&short)
+        .map(|s| s.to_string())
+        .collect();
+    assert_eq!(
+        softc::cli::run(&args, &mut out, &mut err),
+        0,
+        "{}",
+        String::from_utf8_lossy(&err)
+    );
+    let cpu: serde_json::Value = serde_json::from_slice(&out).unwrap();
+    let tips = |v: &serde_json::Value| -> Vec<f64> {
+        v["scenes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["sets"]["tip"]["mean_displacement"][2].as_f64().unwrap())
+            .collect()
+    };
+    let (g, c) = (tips(&gpu), tips(&cpu));
+    assert_eq!(g.len(), 2);
+    assert!(
+        c[1] < c[0] && c[0] < 0.0,
+        "the two pressures bend differently: {c:?}"
+    );
+    for (a, b) in g.iter().zip(&c) {
+        assert!((a - b).abs() <= 1e-9 * b.abs(), "gpu {g:?}, cpu {c:?}");
+    }
+}

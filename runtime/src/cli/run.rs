@@ -276,7 +276,9 @@ fn emit_json(
     0
 }
 
-type SceneResult = Result<((RunSummary, Option<GradientReport>), &'static str), String>;
+/// A scene's summary, with its gradients after `--grad`.
+type SceneRun = (RunSummary, Option<GradientReport>);
+type SceneResult = Result<(SceneRun, &'static str), String>;
 
 /// One scene on the chosen backend: the forward run, or forward and backward with `--grad`.
 fn run_scene(scene: &Scene, args: &RunArgs, dt: Option<f64>, err: &mut dyn Write) -> SceneResult {
@@ -350,6 +352,18 @@ fn run_scenes(
     err: &mut dyn Write,
 ) -> i32 {
     let mut results = Vec::new();
+    // On the GPU the scenes run as one batch; elsewhere one after another.
+    let mut batched: Option<Vec<Option<SceneRun>>> = None;
+    if args.backend == BackendChoice::Gpu {
+        match run_gpu_batch(&scene, args, dt, scenes, err) {
+            Ok(v) => batched = Some(v.into_iter().map(Some).collect()),
+            Err(e) if e.is_empty() => return 2,
+            Err(e) => {
+                let _ = writeln!(err, "{}: {e}", args.file.display());
+                return 1;
+            }
+        }
+    }
     for (k, assignment) in scenes.iter().enumerate() {
         for (name, value) in assignment {
             scene.uniforms.insert(name.clone(), *value);
@@ -366,7 +380,14 @@ fn run_scenes(
             "scene {k}: {}",
             serde_json::Value::Object(inputs.clone())
         );
-        match run_scene(&scene, &a, dt, err) {
+        let result = match batched.as_mut() {
+            Some(runs) => runs[k]
+                .take()
+                .map(|r| (r, "gpu"))
+                .ok_or_else(|| "no result".to_string()),
+            None => run_scene(&scene, &a, dt, err),
+        };
+        match result {
             Ok(((summary, grad), backend)) => {
                 let _ = writeln!(
                     err,
@@ -583,8 +604,26 @@ fn simulate<B: crate::engine::Backend>(
     args: &RunArgs,
     dt: Option<f64>,
     err: &mut dyn Write,
-) -> Result<(RunSummary, Option<GradientReport>), String> {
+) -> Result<SceneRun, String> {
+    let mut sim = prepare(scene, backend, &[], args, dt, err)?;
+    let options = args.grad.then(|| grad_options(scene, args)).transpose()?;
+    execute(&mut sim, args, dt, options.as_ref())
+}
+
+/// A simulation as `softc run` sets it up: the inputs' values, the VTK and CSV outputs, the
+/// stable step announced.
+fn prepare<'s, B: crate::engine::Backend>(
+    scene: &'s Scene,
+    backend: B,
+    inputs: &[(String, f64)],
+    args: &RunArgs,
+    dt: Option<f64>,
+    err: &mut dyn Write,
+) -> Result<Simulation<'s, B>, String> {
     let mut sim = Simulation::new(scene, backend);
+    for (name, value) in inputs {
+        sim.uniforms.0.insert(name.clone(), *value);
+    }
     sim.vtk = match vtk_output(args, scene, err) {
         Ok(v) => v,
         Err(_) => return Err(String::new()),
@@ -592,13 +631,90 @@ fn simulate<B: crate::engine::Backend>(
     announce_dt(&mut sim, dt, err)?;
     let (step, _) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
     sim.csv = csv_outputs(args, scene, step, err)?;
-    if args.grad {
-        let options = grad_options(scene, args)?;
-        let g = sim.gradient(dt, args.steps, &options).map_err(|e| e.0)?;
-        Ok((g.summary.clone(), Some(g)))
-    } else {
-        sim.run(dt, args.steps).map(|s| (s, None)).map_err(|e| e.0)
+    Ok(sim)
+}
+
+/// The forward run, or forward and backward with `grad` options.
+fn execute<B: crate::engine::Backend>(
+    sim: &mut Simulation<B>,
+    args: &RunArgs,
+    dt: Option<f64>,
+    grad: Option<&GradOptions>,
+) -> Result<SceneRun, String> {
+    match grad {
+        Some(options) => {
+            let g = sim.gradient(dt, args.steps, options).map_err(|e| e.0)?;
+            Ok((g.summary.clone(), Some(g)))
+        }
+        None => sim.run(dt, args.steps).map(|s| (s, None)).map_err(|e| e.0),
     }
+}
+
+/// The scenes of a plain run as one GPU batch: each set up in turn, then all run on threads
+/// in lockstep, every kernel launch one dispatch for all of them.
+fn run_gpu_batch(
+    scene: &Scene,
+    args: &RunArgs,
+    dt: Option<f64>,
+    scenes: &[Vec<(String, f64)>],
+    err: &mut dyn Write,
+) -> Result<Vec<SceneRun>, String> {
+    let precision = match (args.precision, scene.precision_setting()) {
+        (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
+        _ => Precision::F32,
+    };
+    let module = if args.grad {
+        &scene.lowered.adjoint.module
+    } else {
+        &scene.lowered.module
+    };
+    let batch = crate::devices::gpu::GpuBatch::new(
+        module,
+        precision,
+        args.adapter.as_deref(),
+        scenes.len(),
+    )?;
+    let _ = writeln!(
+        err,
+        "adapter: {}; kernels in {precision}; {} scenes in one batch",
+        batch.adapter(),
+        scenes.len()
+    );
+    let options = args.grad.then(|| grad_options(scene, args)).transpose()?;
+    let mut sims = Vec::new();
+    for (k, assignment) in scenes.iter().enumerate() {
+        let mut a = args.clone();
+        a.vtk = args.vtk.as_ref().map(|d| d.join(format!("scene{k}")));
+        a.csv = args.csv.as_ref().map(|d| d.join(format!("scene{k}")));
+        let _ = writeln!(err, "scene {k}:");
+        sims.push((prepare(scene, batch.scene(k)?, assignment, &a, dt, err)?, a));
+    }
+    let tokens: Vec<_> = sims
+        .iter()
+        .map(|(s, _)| crate::engine::Backend::lockstep(&s.backend))
+        .collect();
+    let options = options.as_ref();
+    std::thread::scope(|s| {
+        let handles: Vec<_> = sims
+            .iter_mut()
+            .zip(tokens)
+            .map(|((sim, a), token)| {
+                s.spawn(move || {
+                    let _member = token;
+                    execute(sim, a, dt, options)
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .enumerate()
+            .map(|(k, h)| {
+                h.join()
+                    .unwrap_or_else(|_| Err("a scene's thread panicked".into()))
+                    .map_err(|e| format!("scene {k}: {e}"))
+            })
+            .collect()
+    })
 }
 
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
