@@ -745,3 +745,28 @@ fn a_plain_run_of_several_scenes_runs_them_as_one_gpu_batch() {
         assert!((a - b).abs() <= 1e-9 * b.abs(), "gpu {g:?}, cpu {c:?}");
     }
 }
+
+#[test]
+fn a_scene_that_blows_up_in_a_gpu_batch_is_reported_and_does_not_hold_the_others() {
+    // The second scene's pressure is far beyond what the step can carry: it stops with the
+    // instability report while the first finishes (a scene that leaves its lockstep group
+    // releases the others' readbacks; a hang here would time the test out).
+    let text = std::fs::read_to_string(root().join("examples/verification.soft"))
+        .unwrap()
+        .replace("[20 kPa, 30 kPa]", "[20 kPa, 200 MPa]")
+        .replace("\"../meshes/", &format!("\"{}/meshes/", root().display()));
+    let dir = std::env::temp_dir().join(format!("softc-gpu-blowup-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let script = dir.join("blowup.soft");
+    std::fs::write(&script, text).unwrap();
+    let short = ["--steps", "600", "--dt", "1e-4"];
+    let Some((code, _, err)) = softc_run_gpu(&script, &short) else {
+        return;
+    };
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("2 scenes in one batch"), "{err}");
+    assert!(
+        err.contains("scene 1:") && err.contains("unstable"),
+        "{err}"
+    );
+}
