@@ -601,19 +601,8 @@ fn a_batch_of_4_scenes_gives_the_results_of_4_single_runs_in_one_dispatch_per_la
             })
             .collect();
         let before = batch.stats();
-        let tokens: Vec<_> = sims.iter().map(|s| s.backend.lockstep()).collect();
-        let batched: Vec<_> = std::thread::scope(|s| {
-            let handles: Vec<_> = sims
-                .iter_mut()
-                .zip(tokens)
-                .map(|(sim, token)| {
-                    s.spawn(move || {
-                        let _member = token;
-                        sim.gradient(None, Some(steps), &GradOptions::default())
-                    })
-                })
-                .collect();
-            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        let batched = softc::engine::in_lockstep(&mut sims, |_, sim| {
+            sim.gradient(None, Some(steps), &GradOptions::default())
         });
         let stats = batch.stats();
         let (launches, dispatches) = (

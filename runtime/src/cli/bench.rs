@@ -262,32 +262,15 @@ fn time_batch(
         sims.push(Simulation::new(scene, batch.scene(i)?));
     }
     let run = || -> Result<(f64, Vec<[f64; 3]>), String> {
-        let tokens: Vec<_> = sims.iter().map(|s| s.backend.lockstep()).collect();
         let start = Instant::now();
-        let results: Vec<Result<_, String>> = std::thread::scope(|s| {
-            let handles: Vec<_> = sims
-                .iter_mut()
-                .zip(tokens)
-                .map(|(sim, token)| {
-                    s.spawn(move || {
-                        let _member = token;
-                        sim.reset();
-                        sim.run(None, Some(args.steps)).map_err(|e| e.0)
-                    })
-                })
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| {
-                    h.join()
-                        .unwrap_or_else(|_| Err("a scene's thread panicked".into()))
-                })
-                .collect()
+        let results = crate::engine::in_lockstep(&mut sims, |_, sim| {
+            sim.reset();
+            sim.run(None, Some(args.steps))
         });
         let wall = start.elapsed().as_secs_f64();
         let mut first = None;
         for r in results {
-            let summary = r?;
+            let summary = r.map_err(|e| e.0)?;
             first.get_or_insert(summary.x);
         }
         Ok((

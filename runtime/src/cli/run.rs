@@ -682,39 +682,23 @@ fn run_gpu_batch(
     );
     let options = args.grad.then(|| grad_options(scene, args)).transpose()?;
     let mut sims = Vec::new();
+    let mut scene_args = Vec::new();
     for (k, assignment) in scenes.iter().enumerate() {
         let mut a = args.clone();
         a.vtk = args.vtk.as_ref().map(|d| d.join(format!("scene{k}")));
         a.csv = args.csv.as_ref().map(|d| d.join(format!("scene{k}")));
         let _ = writeln!(err, "scene {k}:");
-        sims.push((prepare(scene, batch.scene(k)?, assignment, &a, dt, err)?, a));
+        sims.push(prepare(scene, batch.scene(k)?, assignment, &a, dt, err)?);
+        scene_args.push(a);
     }
-    let tokens: Vec<_> = sims
-        .iter()
-        .map(|(s, _)| crate::engine::Backend::lockstep(&s.backend))
-        .collect();
     let options = options.as_ref();
-    std::thread::scope(|s| {
-        let handles: Vec<_> = sims
-            .iter_mut()
-            .zip(tokens)
-            .map(|((sim, a), token)| {
-                s.spawn(move || {
-                    let _member = token;
-                    execute(sim, a, dt, options)
-                })
-            })
-            .collect();
-        handles
-            .into_iter()
-            .enumerate()
-            .map(|(k, h)| {
-                h.join()
-                    .unwrap_or_else(|_| Err("a scene's thread panicked".into()))
-                    .map_err(|e| format!("scene {k}: {e}"))
-            })
-            .collect()
+    crate::engine::in_lockstep(&mut sims, |k, sim| {
+        execute(sim, &scene_args[k], dt, options).map_err(crate::engine::RunError)
     })
+    .into_iter()
+    .enumerate()
+    .map(|(k, r)| r.map_err(|e| format!("scene {k}: {}", e.0)))
+    .collect()
 }
 
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and

@@ -77,6 +77,39 @@ fn stretch_end(from: u64, limit: u64, due: impl Fn(u64) -> bool) -> u64 {
     j + 1
 }
 
+/// Run `work(i, sim)` for each simulation on a thread of its own, the backends in lockstep
+/// ([`Backend::lockstep`]): every member joins before any starts and leaves when its work
+/// ends. Results in simulation order; a thread that panicked gives an error.
+pub fn in_lockstep<'s, B, T, W>(sims: &mut [Simulation<'s, B>], work: W) -> Vec<Result<T, RunError>>
+where
+    B: Backend + Send,
+    T: Send,
+    W: Fn(usize, &mut Simulation<'s, B>) -> Result<T, RunError> + Sync,
+{
+    let tokens: Vec<Lockstep> = sims.iter().map(|s| s.backend.lockstep()).collect();
+    let work = &work;
+    std::thread::scope(|s| {
+        let handles: Vec<_> = sims
+            .iter_mut()
+            .zip(tokens)
+            .enumerate()
+            .map(|(i, (sim, token))| {
+                s.spawn(move || {
+                    let _member = token;
+                    work(i, sim)
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err(RunError("a simulation thread panicked".into())))
+            })
+            .collect()
+    })
+}
+
 /// Membership of a lockstep group ([`Backend::lockstep`]); dropping it leaves the group.
 #[derive(Default)]
 pub struct Lockstep(Option<Box<dyn FnOnce() + Send>>);

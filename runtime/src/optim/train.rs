@@ -239,38 +239,15 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
             members.iter().map(|&m| self.scene_inputs(it, m)).collect();
         let (dt, steps) = (self.state.dt, self.state.steps);
         let grad = &self.grad;
-        // Each scene on its own thread and simulation; results are combined in scene order.
-        // A batch backend runs the scenes in lockstep: every member joins before any runs.
-        let tokens: Vec<_> = self
-            .sims
-            .iter()
-            .zip(&assignments)
-            .map(|(sim, _)| sim.backend.lockstep())
-            .collect();
-        let results: Vec<Result<_, RunError>> = std::thread::scope(|s| {
-            let handles: Vec<_> = self
-                .sims
-                .iter_mut()
-                .zip(&assignments)
-                .zip(tokens)
-                .map(|((sim, inputs), token)| {
-                    s.spawn(move || {
-                        let _member = token;
-                        for (k, v) in inputs {
-                            sim.uniforms.0.insert(k.clone(), *v);
-                        }
-                        sim.reset();
-                        sim.gradient(Some(dt), Some(steps), grad)
-                    })
-                })
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| {
-                    h.join()
-                        .unwrap_or_else(|_| Err(RunError("a simulation thread panicked".into())))
-                })
-                .collect()
+        // Each scene on its own thread and simulation (a batch backend's scenes in lockstep);
+        // results are combined in scene order.
+        let n_scenes = assignments.len().min(self.sims.len());
+        let results = crate::engine::in_lockstep(&mut self.sims[..n_scenes], |i, sim| {
+            for (k, v) in &assignments[i] {
+                sim.uniforms.0.insert(k.clone(), *v);
+            }
+            sim.reset();
+            sim.gradient(Some(dt), Some(steps), grad)
         });
         let n = results.len() as f64;
         let mut loss = 0.0;
