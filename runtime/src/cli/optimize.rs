@@ -3,7 +3,7 @@
 //! (`--resume DIR` continues it), plots, the final optimized run's VTK series and the JSON
 //! summary with `history` and `params`.
 
-use super::run::{BackendChoice, PrecisionChoice, RunArgs, gradients_json, summary_json};
+use super::run::{BackendChoice, RunArgs, gradients_json, summary_json};
 use crate::engine::scene::Scene;
 use crate::engine::{Backend, Cpu, Interpreter, Simulation};
 use crate::optim::Plan;
@@ -76,10 +76,7 @@ pub fn optimize(
         ),
         BackendChoice::Interp => train(&ctx, plan, members, || Ok(Interpreter::new(module)), err),
         BackendChoice::Cpu => {
-            let precision = match (args.precision, scene.precision_setting()) {
-                (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
-                _ => Precision::F64,
-            };
+            let precision = super::run::precision_for(args, scene, Precision::F64);
             // Scenes of a batch run on their own threads: one kernel thread each.
             let threads = args.threads.or((members > 1).then_some(1));
             train(
@@ -94,10 +91,7 @@ pub fn optimize(
             )
         }
         BackendChoice::Gpu => {
-            let precision = match (args.precision, scene.precision_setting()) {
-                (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
-                _ => Precision::F32,
-            };
+            let precision = super::run::precision_for(args, scene, Precision::F32);
             let adapter = args.adapter.as_deref();
             if members > 1 {
                 // The batch's scenes in one set of buffers: each launch one dispatch for all.

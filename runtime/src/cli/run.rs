@@ -276,6 +276,25 @@ fn emit_json(
     0
 }
 
+/// The kernels a run needs: with `--grad` the adjoint module (a superset of the forward one).
+fn kernel_module<'a>(scene: &'a Scene, args: &RunArgs) -> &'a softc_compiler::ir::Module {
+    if args.grad {
+        &scene.lowered.adjoint.module
+    } else {
+        &scene.lowered.module
+    }
+}
+
+/// The kernels' precision: `--precision`, else the script's `precision` setting, else the
+/// backend's default.
+pub(super) fn precision_for(args: &RunArgs, scene: &Scene, default: Precision) -> Precision {
+    match (args.precision, scene.precision_setting()) {
+        (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
+        (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
+        _ => default,
+    }
+}
+
 /// A scene's summary, with its gradients after `--grad`.
 type SceneRun = (RunSummary, Option<GradientReport>);
 type SceneResult = Result<(SceneRun, &'static str), String>;
@@ -297,23 +316,12 @@ fn run_scene(scene: &Scene, args: &RunArgs, dt: Option<f64>, err: &mut dyn Write
             })
         }
         BackendChoice::Interp => {
-            let module = if args.grad {
-                &scene.lowered.adjoint.module
-            } else {
-                &scene.lowered.module
-            };
+            let module = kernel_module(scene, args);
             simulate(scene, Interpreter::new(module), args, dt, err).map(|o| (o, "interp"))
         }
         BackendChoice::Gpu => {
-            let precision = match (args.precision, scene.precision_setting()) {
-                (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
-                _ => Precision::F32,
-            };
-            let module = if args.grad {
-                &scene.lowered.adjoint.module
-            } else {
-                &scene.lowered.module
-            };
+            let precision = precision_for(args, scene, Precision::F32);
+            let module = kernel_module(scene, args);
             match crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()) {
                 Ok(gpu) => {
                     let _ = writeln!(err, "adapter: {}; kernels in {precision}", gpu.adapter());
@@ -323,16 +331,9 @@ fn run_scene(scene: &Scene, args: &RunArgs, dt: Option<f64>, err: &mut dyn Write
             }
         }
         BackendChoice::Cpu => {
-            let precision = match (args.precision, scene.precision_setting()) {
-                (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
-                _ => Precision::F64,
-            };
+            let precision = precision_for(args, scene, Precision::F64);
             // The adjoint kernels are compiled only when the backward pass runs.
-            let module = if args.grad {
-                &scene.lowered.adjoint.module
-            } else {
-                &scene.lowered.module
-            };
+            let module = kernel_module(scene, args);
             match Cpu::new(module, precision, args.threads) {
                 Ok(cpu) => simulate(scene, cpu, args, dt, err).map(|o| (o, "cpu")),
                 Err(e) => Err(format!("the kernels do not compile: {e}")),
@@ -659,15 +660,8 @@ fn run_gpu_batch(
     scenes: &[Vec<(String, f64)>],
     err: &mut dyn Write,
 ) -> Result<Vec<SceneRun>, String> {
-    let precision = match (args.precision, scene.precision_setting()) {
-        (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
-        _ => Precision::F32,
-    };
-    let module = if args.grad {
-        &scene.lowered.adjoint.module
-    } else {
-        &scene.lowered.module
-    };
+    let precision = precision_for(args, scene, Precision::F32);
+    let module = kernel_module(scene, args);
     let batch = crate::devices::gpu::GpuBatch::new(
         module,
         precision,

@@ -947,11 +947,6 @@ impl Gpu {
         self.core.borrow().module.source.clone()
     }
 
-    /// Launches recorded and dispatches submitted so far.
-    pub fn stats(&self) -> DispatchStats {
-        self.core.borrow().stats
-    }
-
     /// Submit the recorded work (without waiting for it).
     pub fn flush(&self) -> Result<(), String> {
         let mut core = self.core.borrow_mut();
@@ -1093,11 +1088,6 @@ impl GpuBatch {
 
     pub fn adapter(&self) -> AdapterDesc {
         self.shared.lock().adapter.clone()
-    }
-
-    /// The batched WGSL source the kernels run.
-    pub fn wgsl(&self) -> String {
-        self.shared.lock().module.source.clone()
     }
 
     /// Launches recorded and dispatches submitted so far.
