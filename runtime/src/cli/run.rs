@@ -185,7 +185,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     if args.grad && args.backend == BackendChoice::Reference {
         let _ = writeln!(
             err,
-            "softc: --grad runs on the cpu and interp backends (the reference oracle is forward only)"
+            "softc: --grad runs on the cpu, interp and gpu backends (the reference oracle is forward only)"
         );
         return 2;
     }
