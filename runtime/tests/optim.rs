@@ -111,6 +111,21 @@ fn a_short_pressure_optimization_reaches_its_target() {
         assert!(out.join(f).is_file(), "{f} missing in --out");
     }
     assert_eq!(read_json(&out.join("result.json")), j);
+    // The script's `output csv(tip)` log of the optimized run: a row every 50 steps, ending at
+    // the optimized tip displacement the summary reports.
+    let csv = std::fs::read_to_string(out.join("csv/tip.csv")).expect("csv/tip.csv in --out");
+    let rows: Vec<&str> = csv.lines().collect();
+    assert_eq!(rows.len(), 1 + 750 / 50 + 1, "{csv}");
+    let last_mean_z: f64 = rows
+        .last()
+        .unwrap()
+        .split(',')
+        .nth(4)
+        .unwrap()
+        .parse()
+        .unwrap();
+    let reported = j["sets"]["tip"]["mean_displacement"][2].as_f64().unwrap();
+    assert_eq!(last_mean_z, reported);
     // A second --out into the same folder refuses to overwrite the run.
     let (code, _, err) = softc(&[
         "run",

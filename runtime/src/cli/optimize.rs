@@ -337,7 +337,14 @@ fn train<B: Backend + Send>(
         .and_then(|r| r.scenes.first())
         .map(|s| s.inputs.clone())
         .unwrap_or_default();
-    let summary = trainer.forward(&first_inputs, vtk).map_err(|e| e.0)?;
+    // The script's `output csv(SET)` logs of the optimized run: into --csv DIR if given, else
+    // into the --out folder's `csv/`.
+    let mut csv_args = ctx.args.clone();
+    if csv_args.csv.is_none() {
+        csv_args.csv = ctx.dir.as_ref().map(|d| d.join("csv"));
+    }
+    let csv = super::run::csv_outputs(&csv_args, scene, trainer.state.dt, err)?;
+    let summary = trainer.forward(&first_inputs, vtk, csv).map_err(|e| e.0)?;
     let validation = trainer.validate().map_err(|e| e.0)?;
     for v in &validation {
         let _ = writeln!(

@@ -457,7 +457,7 @@ fn announce_dt<B: crate::engine::Backend>(
 
 /// The node-set logs of the script's `output csv(SET) every …` statements, written into
 /// `--csv DIR`; without it, a note says how to get them.
-fn csv_outputs(
+pub(super) fn csv_outputs(
     args: &RunArgs,
     scene: &Scene,
     dt: f64,

@@ -363,6 +363,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         &mut self,
         inputs: &BTreeMap<String, f64>,
         vtk: Option<crate::engine::VtkOutput>,
+        csv: Vec<crate::engine::CsvOutput>,
     ) -> Result<RunSummary, RunError> {
         let params = self.result();
         let (dt, steps) = (self.state.dt, self.state.steps);
@@ -372,8 +373,10 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         }
         sim.reset();
         sim.vtk = vtk;
+        sim.csv = csv;
         let r = sim.run(Some(dt), Some(steps));
         sim.vtk = None;
+        sim.csv = Vec::new();
         r
     }
 
@@ -386,7 +389,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let mut out = Vec::new();
         for v in values {
             let inputs: BTreeMap<String, f64> = names.iter().cloned().zip(v).collect();
-            let s = self.forward(&inputs, None)?;
+            let s = self.forward(&inputs, None, Vec::new())?;
             out.push(SceneRecord {
                 inputs,
                 loss: s.loss.unwrap_or(f64::NAN),
