@@ -144,12 +144,12 @@ fn example_gradients_match_central_differences() {
     // displacements of 1e-7 m) bounds the central difference's accuracy to about 1e-6.
     let pressure = variant("pressure_optimization.soft", "+ 10 mm)^2", ")^2");
     check_all_params(&pressure, 60, 1e-3, 1e-5);
-    // Meta-optimization with 1 ms windows so that 5 of its 30 damping windows are in the run.
+    // Meta-optimization with 1 ms windows so that 5 of its 12 damping windows are in the run.
     let meta = variant("meta_optimization.soft", "+ 10 mm)^2", ")^2");
     let meta = std::fs::read_to_string(&meta)
         .unwrap()
         .replace("window(t, 50 ms)", "window(t, 1 ms)")
-        .replace("duration = 1.5 s", "duration = 30 ms")
+        .replace("duration = 0.6 s", "duration = 12 ms")
         // The study's smaller safety factor is for its full pressure; these 300 steps at
         // dt = auto reach the windows checked below (at 0.4 they end before window 2).
         .replace("dt = auto(safety: 0.4)", "dt = auto");
@@ -167,22 +167,22 @@ fn example_gradients_match_central_differences() {
     check_params(&path, 300, 1e-2, 1e-4, |n| {
         ["param.beta.0", "param.beta.2", "param.beta.4"].contains(&n)
     });
-    // Controller synthesis (the endoscope, 37,828 tets) with one fixed target instead of the
-    // sampled batch: the weights of the two nonzero features of that target.
+    // Controller synthesis (the coarse endoscope, 13,998 tets) with one fixed target instead of
+    // the sampled batch: the weights of the two nonzero features of that target.
     let controller = variant(
         "controller_synthesis.soft",
-        "from circle_quadrants(radius: 5 mm, plane: \"yz\", seed: 7)",
-        "from [[0, 2.5, 4.33]] mm",
+        "from circle_quadrants(radius: 40 um, plane: \"yz\", seed: 7)",
+        "from [[0, 20, 34.64]] um",
     );
-    // The weights start at 0. A step of 1 /m moves the sigmoid's argument by 0.0025: the
-    // central difference's truncation error is then 5e-7 (10 /m gave 5.2e-5, which is
-    // h^2 sigma'''/(6 sigma')), and 200 steps lift the response above the round-off.
-    check_params(&controller, 200, 1.0, 1e-5, |n| {
+    // The weights start at 0. A step of 125 /m moves the sigmoid's argument by 0.0025 (the
+    // features are 20 and 34.64 µm): the central difference's truncation error is then about
+    // 5e-7 (h^2 sigma'''/(6 sigma')), and 200 steps lift the response above the round-off.
+    check_params(&controller, 200, 125.0, 1e-5, |n| {
         ["param.w.0.0", "param.w.2.2"].contains(&n)
     });
     // Windows after the run cannot matter: their derivative is exactly 0.
     let g = gradient(&load(&path), 300, &GradOptions::default());
-    assert_eq!(g.gradients["param.beta.29"], 0.0);
+    assert_eq!(g.gradients["param.beta.11"], 0.0);
     assert!(g.gradients["param.beta.1"] != 0.0);
 }
 

@@ -60,7 +60,13 @@ fn generate_then_info_json_reports_si_quantities() {
 #[test]
 fn shipped_meshes_are_reproducible_and_valid() {
     let d = tmp("repro");
-    for name in ["cuboid", "bench_1k", "bench_10k", "bench_50k"] {
+    for name in [
+        "cuboid",
+        "endoscope_coarse",
+        "bench_1k",
+        "bench_10k",
+        "bench_50k",
+    ] {
         let out = d.join(format!("{name}.msh"));
         let (c, _, e) =
             run(|o, e| generate(&meshes().join(format!("{name}.toml")), &out, None, o, e));

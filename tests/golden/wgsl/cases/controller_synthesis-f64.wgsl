@@ -513,7 +513,7 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let arg22 = x[3u * n2 + 0u];
     let arg23 = x[3u * n2 + 1u];
     let arg24 = x[3u * n2 + 2u];
-    let v2: real = 2000.0lf;
+    let v2: real = 20000.0lf;
     let v7: real = 0.0lf;
     let v8: real = max(arg1, v7);
     let v9: real = 1.0lf;
@@ -532,7 +532,7 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v22: real = v9 + v21;
     let v23: real = v9 / v22;
     let v24: real = v2 * v23;
-    let v26: real = 0.5lf;
+    let v26: real = 0.1lf;
     let v27: real = arg15 / v26;
     let v28: real = min(v9, v27);
     let v29: real = max(v7, v28);
@@ -626,7 +626,7 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let arg22 = x[3u * n2 + 0u];
     let arg23 = x[3u * n2 + 1u];
     let arg24 = x[3u * n2 + 2u];
-    let v2: real = 2000.0lf;
+    let v2: real = 20000.0lf;
     let v7: real = 0.0lf;
     let v8: real = max(arg1, v7);
     let v9: real = 1.0lf;
@@ -645,7 +645,7 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v22: real = v9 + v21;
     let v23: real = v9 / v22;
     let v24: real = v2 * v23;
-    let v26: real = 0.5lf;
+    let v26: real = 0.1lf;
     let v27: real = arg15 / v26;
     let v28: real = min(v9, v27);
     let v29: real = max(v7, v28);
@@ -739,7 +739,7 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let arg22 = x[3u * n2 + 0u];
     let arg23 = x[3u * n2 + 1u];
     let arg24 = x[3u * n2 + 2u];
-    let v2: real = 2000.0lf;
+    let v2: real = 20000.0lf;
     let v7: real = 0.0lf;
     let v8: real = max(arg1, v7);
     let v9: real = 1.0lf;
@@ -758,7 +758,7 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v22: real = v9 + v21;
     let v23: real = v9 / v22;
     let v24: real = v2 * v23;
-    let v26: real = 0.5lf;
+    let v26: real = 0.1lf;
     let v27: real = arg15 / v26;
     let v28: real = min(v9, v27);
     let v29: real = max(v7, v28);
@@ -840,7 +840,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         arg8 += tri_force[9u * ent + 3u * corner + 1u];
         arg12 += tri_force[9u * ent + 3u * corner + 2u];
     }
-    let v0: real = 20.0lf;
+    let v0: real = 60.0lf;
     let v4: real = 0.0lf;
     let v5: real = select(0.0lf, 1.0lf, arg2 == v4);
     let v8: real = arg3 + arg4;
@@ -902,7 +902,7 @@ fn adj_integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     let arg6 = adj_v_next[3u * e + 1u];
     let arg7 = adj_x_next[3u * e + 2u];
     let arg8 = adj_v_next[3u * e + 2u];
-    let v3: real = 20.0lf;
+    let v3: real = 60.0lf;
     let v4: real = 0.0lf;
     let v5: real = select(0.0lf, 1.0lf, arg2 == v4);
     let v12: real = arg0 * arg7;
@@ -996,7 +996,7 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let arg26 = grad_tri_force[12u * e + 9u];
     let arg27 = grad_tri_force[12u * e + 10u];
     let arg28 = grad_tri_force[12u * e + 11u];
-    let v16: real = 2000.0lf;
+    let v16: real = 20000.0lf;
     let v17: real = 0.0lf;
     let v18: real = max(arg0, v17);
     let v19: real = 1.0lf;
@@ -1015,7 +1015,7 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v32: real = v19 + v31;
     let v33: real = v19 / v32;
     let v34: real = v16 * v33;
-    let v35: real = 0.5lf;
+    let v35: real = 0.1lf;
     let v36: real = arg6 / v35;
     let v37: real = min(v19, v36);
     let v38: real = max(v17, v37);
@@ -1165,7 +1165,7 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let arg26 = grad_tri_force[12u * e + 5u];
     let arg27 = grad_tri_force[12u * e + 6u];
     let arg28 = grad_tri_force[12u * e + 7u];
-    let v16: real = 2000.0lf;
+    let v16: real = 20000.0lf;
     let v17: real = 0.0lf;
     let v18: real = max(arg0, v17);
     let v19: real = 1.0lf;
@@ -1184,7 +1184,7 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v32: real = v19 + v31;
     let v33: real = v19 / v32;
     let v34: real = v16 * v33;
-    let v35: real = 0.5lf;
+    let v35: real = 0.1lf;
     let v36: real = arg6 / v35;
     let v37: real = min(v19, v36);
     let v38: real = max(v17, v37);
@@ -1334,7 +1334,7 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let arg26 = grad_tri_force[12u * e + 1u];
     let arg27 = grad_tri_force[12u * e + 2u];
     let arg28 = grad_tri_force[12u * e + 3u];
-    let v16: real = 2000.0lf;
+    let v16: real = 20000.0lf;
     let v17: real = 0.0lf;
     let v18: real = max(arg0, v17);
     let v19: real = 1.0lf;
@@ -1353,7 +1353,7 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v32: real = v19 + v31;
     let v33: real = v19 / v32;
     let v34: real = v16 * v33;
-    let v35: real = 0.5lf;
+    let v35: real = 0.1lf;
     let v36: real = arg6 / v35;
     let v37: real = min(v19, v36);
     let v38: real = max(v17, v37);
