@@ -544,6 +544,33 @@ fn set_broadcasts_to_every_entry_of_a_field() {
 }
 
 #[test]
+fn set_reaches_single_entries_of_arrays_and_fields() {
+    // `--set beta.2=…` / `--set mu.3=…` (and `--params`, which expands to such names) override
+    // one entry; an entry override wins over a whole-param one, whatever their order.
+    let path = root().join("runtime/tests/fixtures/grad/all_kinds.soft");
+    let scene = Scene::load(
+        &path,
+        &[("beta.2".to_string(), 5.0), ("w.1".to_string(), 0.5)],
+    )
+    .unwrap();
+    let u = &scene.uniforms;
+    assert_eq!(u["param.beta.2"], 5.0);
+    assert_eq!(
+        [u["param.beta.0"], u["param.beta.1"], u["param.beta.3"]],
+        [20.0; 3]
+    );
+    assert_eq!([u["param.w.0"], u["param.w.1"]], [200.0, 0.5]);
+    let path = root().join("runtime/tests/fixtures/grad/field.soft");
+    let scene = Scene::load(
+        &path,
+        &[("mu".to_string(), 35e3), ("mu.3".to_string(), 40e3)],
+    )
+    .unwrap();
+    assert_eq!(scene.uniforms["param.mu.3"], 40e3);
+    assert_eq!(scene.uniforms["param.mu.2"], 35e3);
+}
+
+#[test]
 fn initial_state_gradients_match_central_differences() {
     // d loss / d x(0) and d loss / d v(0) of single nodes: the adjoint of state 0 that the
     // backward pass ends with. The loss's `x0` is the mesh's rest position (a constant), so

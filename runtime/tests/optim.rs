@@ -126,6 +126,19 @@ fn a_short_pressure_optimization_reaches_its_target() {
         .unwrap();
     let reported = j["sets"]["tip"]["mean_displacement"][2].as_f64().unwrap();
     assert_eq!(last_mean_z, reported);
+    // The trained design runs again from result.json (`--params`), to the same loss bit for bit.
+    let again = dir.join("again.json");
+    let (code, _, err) = softc(&[
+        "run",
+        fixture("pressure.soft").to_str().unwrap(),
+        "--no-optimize",
+        "--params",
+        out.join("result.json").to_str().unwrap(),
+        "--json",
+        again.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(read_json(&again)["loss"], j["loss"]);
     // A second --out into the same folder refuses to overwrite the run.
     let (code, _, err) = softc(&[
         "run",

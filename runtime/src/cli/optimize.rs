@@ -183,6 +183,9 @@ fn fingerprint(args: &RunArgs, scene: &Scene) -> String {
     for s in &args.set {
         feed(s.as_bytes());
     }
+    if let Some(p) = &args.params {
+        feed(&std::fs::read(p).unwrap_or_default());
+    }
     feed(format!("{:?}", args.dt).as_bytes());
     feed(format!("{:?}", args.steps).as_bytes());
     feed(format!("{:?} {:?}", args.backend, args.precision).as_bytes());

@@ -29,6 +29,11 @@ pub struct RunArgs {
     /// Override a param's value, with its unit: `--set p_max=2.5kPa`.
     #[arg(long = "set", value_name = "NAME=VALUE")]
     pub set: Vec<String>,
+    /// Set params to the values of a JSON file's `params` object (SI units; arrays nested as
+    /// `softc run --json` writes them), e.g. an optimization's `result.json`: run the trained
+    /// design again, longer or with other outputs. `--set` wins over it
+    #[arg(long, value_name = "JSON")]
+    pub params: Option<PathBuf>,
     /// Override the number of steps.
     #[arg(long)]
     pub steps: Option<u64>,
@@ -125,6 +130,42 @@ pub(crate) fn parse_quantity(
     Ok((num, dim))
 }
 
+/// The entries of a JSON file's `params` object (or of the file's top-level object), flattened
+/// to `NAME`, `NAME.i`, `NAME.i.j` as `--set` names them.
+fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| e.to_string())?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("not JSON: {e}"))?;
+    let params = json.get("params").unwrap_or(&json);
+    let Some(params) = params.as_object() else {
+        return Err("expected an object of params (or a `params` object)".into());
+    };
+    fn flatten(
+        name: String,
+        v: &serde_json::Value,
+        out: &mut Vec<(String, f64)>,
+    ) -> Result<(), String> {
+        match v {
+            serde_json::Value::Number(n) => {
+                out.push((name, n.as_f64().unwrap_or(f64::NAN)));
+                Ok(())
+            }
+            serde_json::Value::Array(items) => items
+                .iter()
+                .enumerate()
+                .try_for_each(|(i, x)| flatten(format!("{name}.{i}"), x, out)),
+            _ => Err(format!(
+                "`{name}`: expected a number or an array of numbers"
+            )),
+        }
+    }
+    let mut out = Vec::new();
+    for (name, v) in params {
+        flatten(name.clone(), v, &mut out)?;
+    }
+    Ok(out)
+}
+
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     if let Err(e) = std::fs::metadata(&args.file) {
         let _ = writeln!(err, "softc: cannot read `{}`: {e}", args.file.display());
@@ -140,6 +181,15 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             Ok((v, _)) => overrides.push((name.trim().to_string(), v)),
             Err(e) => {
                 let _ = writeln!(err, "softc: --set {name}: {e}");
+                return 2;
+            }
+        }
+    }
+    if let Some(path) = &args.params {
+        match params_file(path) {
+            Ok(values) => overrides.extend(values),
+            Err(e) => {
+                let _ = writeln!(err, "softc: --params {}: {e}", path.display());
                 return 2;
             }
         }
@@ -167,7 +217,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         if !known {
             let _ = writeln!(
                 err,
-                "softc: --set {name}: the script has no param or input `{name}`"
+                "softc: --set/--params {name}: the script has no param or input `{name}`"
             );
             return 2;
         }

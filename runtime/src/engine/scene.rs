@@ -803,7 +803,13 @@ fn uniform_values(
                 .find(|(name, _)| *name == p.name)
                 .map_or(init, |(_, v)| *v);
             for i in 0..n {
-                out.insert(format!("param.{}.{i}", p.name), v);
+                // `--set mu.7=…` (or `--params`) overrides one entry.
+                let entry = format!("{}.{i}", p.name);
+                let v = overrides
+                    .iter()
+                    .find(|(name, _)| *name == entry)
+                    .map_or(v, |(_, v)| *v);
+                out.insert(format!("param.{entry}"), v);
             }
             continue;
         }
@@ -817,6 +823,11 @@ fn uniform_values(
                 .collect();
         let n: usize = shape.iter().product();
         let value = |i: usize| -> f64 {
+            // One entry (`--set beta.3=…`, `--set w.0.2=…`, `--params`) before the whole param.
+            let entry = uniform_name(&p.name, &shape, i);
+            if let Some((_, v)) = overrides.iter().find(|(name, _)| *name == entry) {
+                return *v;
+            }
             if let Some((_, v)) = overrides.iter().find(|(name, _)| *name == p.name) {
                 return *v;
             }
