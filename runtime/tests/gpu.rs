@@ -759,3 +759,89 @@ fn a_scene_that_blows_up_in_a_gpu_batch_is_reported_and_does_not_hold_the_others
         "{err}"
     );
 }
+
+#[test]
+fn the_optimization_studies_run_end_to_end_on_the_gpu() {
+    // Short versions of the three optimization studies (as in tests/optim.rs), each one
+    // `softc run --backend gpu --out DIR` in f32: the loss falls and every output is written.
+    let fast = [("ramp(t, 0.5 s)", "ramp(t, 5 ms)")];
+    let controller_ramp = [("ramp(t, 0.1 s)", "ramp(t, 2 ms)")];
+    for (example, edits, steps, iterations, factor) in [
+        ("pressure_optimization.soft", &fast[..], "300", "2", 1.0001),
+        ("meta_optimization.soft", &fast[..], "300", "2", 1.00001),
+        (
+            "controller_synthesis.soft",
+            &controller_ramp[..],
+            "120",
+            "2",
+            1.5,
+        ),
+    ] {
+        let dir =
+            std::env::temp_dir().join(format!("softc-gpu-study-{}-{example}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut text = std::fs::read_to_string(root().join("examples").join(example)).unwrap();
+        for (from, to) in edits {
+            assert!(text.contains(from), "{example}: `{from}`");
+            text = text.replace(from, to);
+        }
+        let text = text.replace("\"../meshes/", &format!("\"{}/meshes/", root().display()));
+        let script = dir.join(example);
+        std::fs::write(&script, text).unwrap();
+        let out = dir.join("out");
+        let started = std::time::Instant::now();
+        let Some((code, json, err)) = softc_run_gpu(
+            &script,
+            &[
+                "--steps",
+                steps,
+                "--iterations",
+                iterations,
+                "--out",
+                out.to_str().unwrap(),
+            ],
+        ) else {
+            return;
+        };
+        assert_eq!(code, 0, "{example}: {err}");
+        let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
+        assert_eq!(v["backend"], "gpu");
+        let losses: Vec<f64> = v["history"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["loss"].as_f64().unwrap())
+            .collect();
+        eprintln!(
+            "{example} on the gpu: losses {losses:?} in {:.1} s",
+            started.elapsed().as_secs_f64()
+        );
+        let best = losses.iter().copied().fold(f64::INFINITY, f64::min);
+        assert!(
+            losses.iter().all(|l| l.is_finite()) && losses[0] / best > factor,
+            "{example}: {losses:?}"
+        );
+        for f in [
+            "state.json",
+            "result.json",
+            "optimization.png",
+            "optimization.svg",
+            "vtk/optimized.pvd",
+        ] {
+            assert!(out.join(f).is_file(), "{example}: {f} missing");
+        }
+        if example == "meta_optimization.soft" {
+            assert!(
+                out.join("csv/tip.csv").is_file(),
+                "meta: csv/tip.csv missing"
+            );
+        }
+        if example == "controller_synthesis.soft" {
+            let held_out = v["validation"].as_array().unwrap();
+            assert_eq!(held_out.len(), 4);
+            assert!(held_out.iter().all(|s| s["loss"].as_f64().unwrap() > 0.0));
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
