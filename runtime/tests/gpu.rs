@@ -428,6 +428,19 @@ fn gpu_gradients_match_the_cpu() {
     }
 }
 
+/// The JSON of an optimization run on the GPU backend and its loss per iteration.
+fn gpu_training(stdout: &[u8]) -> (serde_json::Value, Vec<f64>) {
+    let v: serde_json::Value = serde_json::from_slice(stdout).unwrap();
+    assert_eq!(v["backend"], "gpu");
+    let losses = v["history"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["loss"].as_f64().unwrap())
+        .collect();
+    (v, losses)
+}
+
 #[test]
 fn an_optimization_runs_on_the_gpu() {
     // The short pressure study of tests/optim.rs, trained with the WGSL kernels in f32: the
@@ -437,14 +450,7 @@ fn an_optimization_runs_on_the_gpu() {
         return;
     };
     assert_eq!(code, 0, "{err}");
-    let v: serde_json::Value = serde_json::from_slice(&out).unwrap();
-    assert_eq!(v["backend"], "gpu");
-    let losses: Vec<f64> = v["history"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|r| r["loss"].as_f64().unwrap())
-        .collect();
+    let (_, losses) = gpu_training(&out);
     assert_eq!(losses.len(), 8);
     assert!(
         losses[0] / losses.iter().copied().fold(f64::INFINITY, f64::min) > 20.0,
@@ -805,14 +811,7 @@ fn the_optimization_studies_run_end_to_end_on_the_gpu() {
             return;
         };
         assert_eq!(code, 0, "{example}: {err}");
-        let v: serde_json::Value = serde_json::from_slice(&json).unwrap();
-        assert_eq!(v["backend"], "gpu");
-        let losses: Vec<f64> = v["history"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|r| r["loss"].as_f64().unwrap())
-            .collect();
+        let (v, losses) = gpu_training(&json);
         eprintln!(
             "{example} on the gpu: losses {losses:?} in {:.1} s",
             started.elapsed().as_secs_f64()
