@@ -837,6 +837,13 @@ fn the_optimization_studies_run_end_to_end_on_the_gpu() {
             );
         }
         if example == "controller_synthesis.soft" {
+            // The log line shows each quadrant's loss after the batch mean.
+            let line = err
+                .lines()
+                .find(|l| l.starts_with("iteration 1/2: loss "))
+                .unwrap_or_else(|| panic!("no log line: {err}"));
+            assert!(line.matches("e-").count() >= 5, "{line}");
+            assert!(line.contains(" (scenes "), "{line}");
             let held_out = v["validation"].as_array().unwrap();
             assert_eq!(held_out.len(), 4);
             assert!(held_out.iter().all(|s| s["loss"].as_f64().unwrap() > 0.0));

@@ -214,8 +214,16 @@ fn describe(params: &BTreeMap<String, f64>) -> String {
 }
 
 fn log_line(r: &Record, total: u64) -> String {
+    // A batch's loss is the mean of its scenes' (one per quadrant for `circle_quadrants`): each
+    // scene's loss follows it, so a lagging one shows while the run goes.
+    let per_scene = if r.scenes.len() > 1 {
+        let l: Vec<String> = r.scenes.iter().map(|s| format!("{:.2e}", s.loss)).collect();
+        format!(" (scenes {})", l.join(", "))
+    } else {
+        String::new()
+    };
     format!(
-        "iteration {}/{}: loss {:.6e}, {}, grad_norm {:.3e}, lr {:.3e}, {:.2} s",
+        "iteration {}/{}: loss {:.6e}{per_scene}, {}, grad_norm {:.3e}, lr {:.3e}, {:.2} s",
         r.iteration + 1,
         total,
         r.loss,
