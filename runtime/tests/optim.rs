@@ -139,6 +139,30 @@ fn a_short_pressure_optimization_reaches_its_target() {
     ]);
     assert_eq!(code, 0, "{err}");
     assert_eq!(read_json(&again)["loss"], j["loss"]);
+    // A params file that does not fit the script is refused with the entry it names.
+    for (text, expected) in [
+        (
+            r#"{"params": {"p_peak": [1000, 2000]}}"#,
+            "no param or input `p_peak.0`",
+        ),
+        (
+            r#"{"params": {"p_peak": "3 kPa"}}"#,
+            "`p_peak`: expected a number",
+        ),
+        ("not json", "not JSON"),
+    ] {
+        let bad = dir.join("bad-params.json");
+        std::fs::write(&bad, text).unwrap();
+        let (code, _, err) = softc(&[
+            "run",
+            fixture("pressure.soft").to_str().unwrap(),
+            "--no-optimize",
+            "--params",
+            bad.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 2, "{text}: {err}");
+        assert!(err.contains(expected), "{text}: {err}");
+    }
     // A second --out into the same folder refuses to overwrite the run.
     let (code, _, err) = softc(&[
         "run",
