@@ -135,7 +135,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                 if s.fingerprint != fingerprint || s.entries != entries {
                     return Err(RunError(
                         "the saved state belongs to a different script or different settings \
-                         (script text, --set, --dt, --steps or the optimize block changed); \
+                         (script text, --set, --params, --dt, --steps or the optimize block changed); \
                          run without --resume to start afresh, or restore the script"
                             .into(),
                     ));
