@@ -780,6 +780,8 @@ fn uniform_values(
 ) -> Result<BTreeMap<String, f64>, SceneError> {
     use softc_compiler::sema::types::Len;
     let mut out = BTreeMap::new();
+    // `--set NAME=…` / `--set NAME.i=…` (and `--params`, which expands to such names).
+    let given = |name: &str| overrides.iter().find(|(n, _)| n == name).map(|(_, v)| *v);
     for p in &checked.params {
         if let [Len::PerElement(set)] = p.ty.shape() {
             let n = element_sets
@@ -798,18 +800,11 @@ fn uniform_values(
                     p.name
                 ));
             };
-            let v = overrides
-                .iter()
-                .find(|(name, _)| *name == p.name)
-                .map_or(init, |(_, v)| *v);
+            let whole = given(&p.name).unwrap_or(init);
             for i in 0..n {
-                // `--set mu.7=…` (or `--params`) overrides one entry.
+                // One entry (`--set mu.7=…`) before the whole field.
                 let entry = format!("{}.{i}", p.name);
-                let v = overrides
-                    .iter()
-                    .find(|(name, _)| *name == entry)
-                    .map_or(v, |(_, v)| *v);
-                out.insert(format!("param.{entry}"), v);
+                out.insert(format!("param.{entry}"), given(&entry).unwrap_or(whole));
             }
             continue;
         }
@@ -822,26 +817,16 @@ fn uniform_values(
                 })
                 .collect();
         let n: usize = shape.iter().product();
-        let value = |i: usize| -> f64 {
-            // One entry (`--set beta.3=…`, `--set w.0.2=…`, `--params`) before the whole param.
+        for i in 0..n.max(1) {
+            // One entry (`--set beta.3=…`, `--set w.0.2=…`) before the whole param.
             let entry = uniform_name(&p.name, &shape, i);
-            if let Some((_, v)) = overrides.iter().find(|(name, _)| *name == entry) {
-                return *v;
-            }
-            if let Some((_, v)) = overrides.iter().find(|(name, _)| *name == p.name) {
-                return *v;
-            }
-            if p.init.len() == 1 {
+            let init = if p.init.len() == 1 {
                 p.init[0]
             } else {
                 p.init.get(i).copied().unwrap_or(0.0)
-            }
-        };
-        for i in 0..n.max(1) {
-            out.insert(
-                uniform_name(&format!("param.{}", p.name), &shape, i),
-                value(i),
-            );
+            };
+            let v = given(&entry).or_else(|| given(&p.name)).unwrap_or(init);
+            out.insert(format!("param.{entry}"), v);
         }
     }
     for item in &ast.items {
@@ -862,14 +847,11 @@ fn uniform_values(
         };
         let shape = shape_of(&input.ty);
         // `--set NAME=VALUE` on an input runs that one scene (every entry of an array input).
-        let given = overrides
-            .iter()
-            .find(|(name, _)| *name == input.name.name)
-            .map(|(_, v)| *v);
+        let whole = given(&input.name.name);
         for (i, v) in first.iter().enumerate() {
             out.insert(
                 uniform_name(&format!("input.{}", input.name.name), &shape, i),
-                given.unwrap_or(*v),
+                whole.unwrap_or(*v),
             );
         }
     }
