@@ -4,6 +4,7 @@
 
 pub mod back;
 pub mod diag;
+pub mod driver;
 pub mod fmt;
 pub mod front;
 pub mod ide;
@@ -12,8 +13,12 @@ pub mod lower;
 pub mod passes;
 pub mod sema;
 
+pub use driver::{CompileFailure, CompileOptions, Compiled, compile};
+pub use front::decode;
+pub use sema::CheckOptions;
+
 use diag::Diagnostic;
-use sema::{CheckOptions, CheckedScript};
+use sema::CheckedScript;
 use std::borrow::Cow;
 
 /// The outcome of checking one script.

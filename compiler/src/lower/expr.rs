@@ -83,6 +83,9 @@ pub struct ExprLowerer<'p, 'a> {
     pub program: &'p Program<'a>,
     /// Constants the scene fixes (e.g. `t_end`, `dt`), by name.
     pub constants: HashMap<String, f64>,
+    /// Names whose values are known only when the code runs (`t_end` and `dt` in a loss,
+    /// `loss` in a stop condition): each becomes the uniform of its own name.
+    pub runtime_names: Vec<&'static str>,
     /// Node sets by name (for reductions over nodes in losses): node indices.
     pub node_sets: HashMap<String, Vec<u32>>,
     /// Element sets by name (for reductions over elements, `mu[e]`): element indices of the
@@ -103,6 +106,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         ExprLowerer {
             program,
             constants: HashMap::new(),
+            runtime_names: Vec::new(),
             node_sets: HashMap::new(),
             element_sets: HashMap::new(),
             element_fields: HashMap::new(),
@@ -265,6 +269,9 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         }
         if let Some(c) = self.constants.get(name) {
             return Ok(LVal::S(k.b.constant(*c)));
+        }
+        if self.runtime_names.contains(&name) {
+            return Ok(LVal::S(k.uniform(name)));
         }
         match name {
             "t" | "dt" => return Ok(LVal::S(k.uniform(name))),

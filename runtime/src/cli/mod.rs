@@ -10,8 +10,8 @@ pub mod run;
 pub mod tradeoff;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use softc_compiler::CheckOptions;
 use softc_compiler::diag::{Diagnostic, SourceFile};
-use softc_compiler::sema::CheckOptions;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -248,25 +248,24 @@ fn compile_file(
     let Some(bytes) = read_input(path, err) else {
         return 2;
     };
-    let (text, checked) = softc_compiler::check_bytes(&bytes, &check_options(path));
     let name = display_name(path);
-    let file = SourceFile::new(&name, &text);
-    if checked.has_errors() {
-        report(&file, &checked.diagnostics, MessageFormat::Human, out, err);
+    let check = check_options(path);
+    let options = softc_compiler::CompileOptions {
+        base_dir: check.base_dir,
+        mesh_probe: check.mesh_probe,
+        ..Default::default()
+    };
+    let compiled = softc_compiler::compile(&name, &bytes, &options);
+    if let Err(f) = &compiled
+        && f.lowering.is_none()
+    {
+        let file = SourceFile::new(&name, &f.text);
+        report(&file, &f.diagnostics, MessageFormat::Human, out, err);
         let _ = writeln!(err, "{name}: not compiled (fix the errors first)");
         return 1;
     }
-    let ast = match softc_compiler::front::parse(&text) {
-        Ok(a) => a,
-        Err(d) => {
-            report(&file, &[d], MessageFormat::Human, out, err);
-            return 1;
-        }
-    };
-    let program =
-        softc_compiler::lower::expr::Program::new(&ast, softc_compiler::sema::prelude_ast());
-    match softc_compiler::lower::scene::lower_scene(&program, &ast) {
-        Ok(scene) if emit == Emit::Clif => {
+    match compiled.map(|c| (c.kernels, c.program)) {
+        Ok((scene, _)) if emit == Emit::Clif => {
             match softc_compiler::back::cranelift::CpuModule::compile(
                 &scene.adjoint.module,
                 softc_compiler::back::Precision::F64,
@@ -298,14 +297,12 @@ fn compile_file(
                 }
             }
         }
-        Ok(scene) if emit == Emit::Wgsl => {
+        Ok((scene, program)) if emit == Emit::Wgsl => {
             use softc_compiler::back::{Precision, wgsl};
-            let p = match (precision, ast.sim_setting("precision").map(|e| &e.kind)) {
+            let p = match (precision, program.sim.precision) {
                 (Some(run::PrecisionChoice::F64), _) => Precision::F64,
                 (Some(run::PrecisionChoice::F32), _) => Precision::F32,
-                (None, Some(softc_compiler::front::ast::ExprKind::Name(n))) if n.name == "f64" => {
-                    Precision::F64
-                }
+                (None, Some(Precision::F64)) => Precision::F64,
                 _ => Precision::F32,
             };
             let emitted = match batch {
@@ -324,13 +321,17 @@ fn compile_file(
                 }
             }
         }
-        Ok(scene) => {
+        Ok((scene, _)) => {
             // The forward kernels, then the adjoint of a step.
             let _ = write!(out, "{}", scene.adjoint.module);
             0
         }
-        Err(e) => {
-            let _ = writeln!(err, "{name}: cannot compile: {e}");
+        Err(f) => {
+            let _ = writeln!(
+                err,
+                "{name}: cannot compile: {}",
+                f.lowering.unwrap_or_default()
+            );
             1
         }
     }
@@ -367,7 +368,7 @@ fn fmt_files(files: &[PathBuf], check: bool, out: &mut dyn Write, err: &mut dyn 
             continue;
         };
         let name = display_name(path);
-        let text = match softc_compiler::front::decode(&bytes) {
+        let text = match softc_compiler::decode(&bytes) {
             Ok(t) => t,
             Err(d) => {
                 let lossy = String::from_utf8_lossy(&bytes);

@@ -101,33 +101,8 @@ pub enum BackendChoice {
 }
 
 /// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
-pub(crate) fn parse_quantity(
-    text: &str,
-) -> Result<(f64, softc_compiler::sema::units::Dim), String> {
-    let src = format!("let __value = {text}");
-    let ast = softc_compiler::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
-    let Some(softc_compiler::front::ast::Item {
-        kind: softc_compiler::front::ast::ItemKind::Let(l),
-        ..
-    }) = ast.items.first()
-    else {
-        return Err(format!("`{text}` is not a value"));
-    };
-    let (num, dim) = match &l.value.kind {
-        softc_compiler::front::ast::ExprKind::Number { value, unit, .. } => {
-            let mut factor = 1.0;
-            let mut dim = softc_compiler::sema::units::Dim::NONE;
-            for f in unit.iter().flat_map(|u| &u.factors) {
-                let (k, d) = softc_compiler::sema::units::unit(&f.name)
-                    .ok_or_else(|| format!("unknown unit `{}` in `{text}`", f.name))?;
-                factor *= k.powi(f.power);
-                dim = dim.times(d.powi(f.power).unwrap_or(d));
-            }
-            (value * factor, dim)
-        }
-        _ => return Err(format!("`{text}` is not a number with a unit")),
-    };
-    Ok((num, dim))
+pub(crate) fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::driver::Dim), String> {
+    softc_compiler::driver::parse_quantity(text)
 }
 
 /// The entries of a JSON file's `params` object (or of the file's top-level object), flattened
@@ -513,56 +488,34 @@ pub(super) fn csv_outputs(
     dt: f64,
     err: &mut dyn Write,
 ) -> Result<Vec<crate::engine::CsvOutput>, String> {
-    use softc_compiler::front::ast::{ExprKind, ItemKind, StmtKind};
     let mut outputs = Vec::new();
-    let program = scene.program();
-    for item in &scene.ast.items {
-        let ItemKind::Sim(stmts) = &item.kind else {
+    for log in &scene.resolved.sim.csv {
+        let Some(dir) = &args.csv else {
+            let _ = writeln!(
+                err,
+                "note: the script logs `{}` (`output csv`); add --csv DIR to write it",
+                log.set
+            );
             continue;
         };
-        for stmt in stmts {
-            let StmtKind::Output { what, every, steps } = &stmt.kind else {
-                continue;
-            };
-            let ExprKind::Call { callee, args: call } = &what.kind else {
-                continue;
-            };
-            let (ExprKind::Name(f), Some(ExprKind::Name(set))) =
-                (&callee.kind, call.first().map(|a| &a.value.kind))
-            else {
-                continue;
-            };
-            if f.name != "csv" {
-                continue;
-            }
-            let Some(dir) = &args.csv else {
-                let _ = writeln!(
-                    err,
-                    "note: the script logs `{}` (`output csv`); add --csv DIR to write it",
-                    set.name
-                );
-                continue;
-            };
-            let interval = crate::optim::constant(&program, every)?;
-            let every_steps = if *steps {
-                interval.round().max(1.0) as u64
-            } else {
-                (interval / dt).round().max(1.0) as u64
-            };
-            let nodes = scene
-                .node_sets
-                .iter()
-                .find(|(n, _)| *n == set.name)
-                .map(|(_, nodes)| nodes.clone())
-                .ok_or_else(|| format!("`output csv({})`: no node set of that name", set.name))?;
-            std::fs::create_dir_all(dir)
-                .map_err(|e| format!("cannot create `{}`: {e}", dir.display()))?;
-            outputs.push(crate::engine::CsvOutput::new(
-                dir.join(format!("{}.csv", set.name)),
-                nodes,
-                every_steps,
-            ));
-        }
+        let every_steps = if log.in_steps {
+            log.every.round().max(1.0) as u64
+        } else {
+            (log.every / dt).round().max(1.0) as u64
+        };
+        let nodes = scene
+            .node_sets
+            .iter()
+            .find(|(n, _)| *n == log.set)
+            .map(|(_, nodes)| nodes.clone())
+            .ok_or_else(|| format!("`output csv({})`: no node set of that name", log.set))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| format!("cannot create `{}`: {e}", dir.display()))?;
+        outputs.push(crate::engine::CsvOutput::new(
+            dir.join(format!("{}.csv", log.set)),
+            nodes,
+            every_steps,
+        ));
     }
     Ok(outputs)
 }
@@ -598,21 +551,7 @@ fn vtk_output(
 
 /// `output vtk every N steps` in the sim block.
 pub(super) fn vtk_every(scene: &Scene) -> Option<u64> {
-    use softc_compiler::front::ast::{ExprKind, ItemKind, StmtKind};
-    scene.ast.items.iter().find_map(|i| match &i.kind {
-        ItemKind::Sim(stmts) => stmts.iter().find_map(|s| match &s.kind {
-            StmtKind::Output {
-                what,
-                every,
-                steps: true,
-            } if matches!(&what.kind, ExprKind::Name(n) if n.name == "vtk") => match &every.kind {
-                ExprKind::Number { value, .. } => Some(*value as u64),
-                _ => None,
-            },
-            _ => None,
-        }),
-        _ => None,
-    })
+    scene.resolved.sim.vtk_every
 }
 
 /// The JSON summary: SI units throughout.
@@ -748,33 +687,22 @@ fn run_gpu_batch(
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
 /// `truncate`, overridden by `--checkpoint` and `--memory-budget`.
 pub(super) fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions, String> {
-    use softc_compiler::front::ast::ExprKind;
+    use softc_compiler::driver::CheckpointSpec;
     let mut o = GradOptions::default();
-    let program = scene.program();
-    let constant = |e: &softc_compiler::front::ast::Expr| crate::optim::constant(&program, e);
-    if let Some(e) = scene.ast.optimize_setting("checkpoint") {
-        o.checkpoint = match &e.kind {
-            ExprKind::Name(n) if n.name == "store_all" => Checkpointing::StoreAll,
-            ExprKind::Call { callee, args } => {
-                let k = args
-                    .first()
-                    .map(|a| constant(&a.value))
-                    .transpose()?
-                    .unwrap_or(1.0)
-                    .max(1.0) as u64;
-                match &callee.kind {
-                    ExprKind::Name(n) if n.name == "periodic" => Checkpointing::Periodic(k),
-                    _ => Checkpointing::Revolve(k as usize),
-                }
-            }
-            _ => Checkpointing::Auto,
+    let script = &scene.resolved.grad;
+    if let Some(c) = script.checkpoint {
+        o.checkpoint = match c {
+            CheckpointSpec::Auto => Checkpointing::Auto,
+            CheckpointSpec::StoreAll => Checkpointing::StoreAll,
+            CheckpointSpec::Periodic(k) => Checkpointing::Periodic(k),
+            CheckpointSpec::Revolve(n) => Checkpointing::Revolve(n),
         };
     }
-    if let Some(e) = scene.ast.optimize_setting("memory_budget") {
-        o.memory_budget = Some(constant(e)? as u64);
+    if script.memory_budget.is_some() {
+        o.memory_budget = script.memory_budget;
     }
-    if let Some(e) = scene.ast.optimize_setting("truncate") {
-        o.truncate = Some(constant(e)?.max(1.0) as u64);
+    if script.truncate.is_some() {
+        o.truncate = script.truncate;
     }
     if let Some(c) = &args.checkpoint {
         let number = |s: &str| {
@@ -798,7 +726,7 @@ pub(super) fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions,
     }
     if let Some(m) = &args.memory_budget {
         let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
-        if dim != softc_compiler::sema::units::Dim::MEMORY || bytes <= 0.0 {
+        if dim != softc_compiler::driver::Dim::MEMORY || bytes <= 0.0 {
             return Err(format!(
                 "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
             ));

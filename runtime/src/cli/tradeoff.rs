@@ -18,7 +18,7 @@ use crate::engine::scene::Scene;
 use crate::engine::{Cpu, Simulation};
 use crate::mesh::mesher::{MeshSpec, generate};
 use softc_compiler::back::Precision;
-use softc_compiler::front::ast::{DeclKind, ExprKind, ItemKind, Script, StmtKind};
+use softc_compiler::driver::Variant;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -80,9 +80,10 @@ struct Config {
 /// Run the sweep; prints progress to `err`, the table to `out`; writes JSON and the plot.
 pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<(), String> {
     let base = Scene::load(&sweep.script, &sweep.overrides).map_err(|e| e.0)?;
-    let source = base.source.clone();
-    let (mesh_span, mesh_path) = mesh_argument(&base.ast)?;
-    let spec_path = mesh_path.with_extension("toml");
+    if base.resolved.mesh.span.is_none() {
+        return Err("the script's mesh is not `load(\"FILE\")`".into());
+    }
+    let spec_path = base.resolved.mesh.written.with_extension("toml");
     let spec_path = base_dir(&sweep.script).join(&spec_path);
     let spec = MeshSpec::from_file(&spec_path).map_err(|e| {
         format!(
@@ -112,12 +113,23 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
             }
         };
         let label = label(c);
-        let text = variant_source(&source, &base.ast, mesh_span, &mesh, c, sweep)?;
+        let variant = Variant {
+            mesh: Some(mesh),
+            sim_settings: sim_settings(c, sweep),
+        };
+        let scene = Scene::load_with(&sweep.script, &sweep.overrides, Some(&variant))
+            .map_err(|e| format!("{label}: {e}"))?;
+        // The variant as a script of its own, so any point can be rerun with `softc run`.
         let script = sweep.out.join("variants").join(format!("{label}.soft"));
+        let text = format!(
+            "# softc bench --tradeoff variant of {}\n{}",
+            sweep.script.display(),
+            scene.source
+        );
         super::write_atomically(&script, text.as_bytes())
             .map_err(|e| format!("cannot write {}: {e}", script.display()))?;
         let _ = writeln!(err, "[{}/{}] {label}", i + 1, configs.len());
-        let p = measure(&script, &label, c, sweep, set_index)?;
+        let p = measure(&scene, &script, &label, c, sweep, set_index)?;
         let _ = writeln!(
             err,
             "        {} tets, dt {:.3e} s, {} steps{}, {:.1} s: {} = {:.6e} m",
@@ -155,30 +167,6 @@ fn base_dir(script: &Path) -> PathBuf {
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."))
         .to_path_buf()
-}
-
-/// The span of the mesh path string literal and the path it names.
-fn mesh_argument(ast: &Script) -> Result<((usize, usize), PathBuf), String> {
-    for item in &ast.items {
-        let ItemKind::Decl {
-            kind: DeclKind::Mesh,
-            value,
-            ..
-        } = &item.kind
-        else {
-            continue;
-        };
-        if let ExprKind::Call { args, .. } = &value.kind
-            && let Some(first) = args.first()
-            && let ExprKind::Str(s) = &first.value.kind
-        {
-            return Ok((
-                (first.value.span.start, first.value.span.end),
-                PathBuf::from(s),
-            ));
-        }
-    }
-    Err("the script's mesh is not `load(\"FILE\")`".into())
 }
 
 /// Every configuration: the baseline (resolution 1, first precision, FEM, first safety,
@@ -265,29 +253,8 @@ fn refined_mesh(
     Ok(std::fs::canonicalize(&path).unwrap_or(path))
 }
 
-/// The script with the mesh path replaced and the variant's `sim` settings.
-fn variant_source(
-    source: &str,
-    ast: &Script,
-    mesh_span: (usize, usize),
-    mesh: &Path,
-    c: &Config,
-    sweep: &Sweep,
-) -> Result<String, String> {
-    // Edits as (start, end, replacement), applied back to front.
-    let mut edits: Vec<(usize, usize, String)> = vec![(
-        mesh_span.0,
-        mesh_span.1,
-        format!("{:?}", mesh.display().to_string()),
-    )];
-    let sim = ast
-        .items
-        .iter()
-        .find_map(|i| match &i.kind {
-            ItemKind::Sim(stmts) => Some((i.span, stmts)),
-            _ => None,
-        })
-        .ok_or("the script has no sim block")?;
+/// The variant's `sim` settings: its time-step safety, precision and model.
+fn sim_settings(c: &Config, sweep: &Sweep) -> Vec<(String, String)> {
     let mut settings = vec![
         ("dt".to_string(), format!("auto(safety: {})", c.safety)),
         (
@@ -307,47 +274,22 @@ fn variant_source(
     } else {
         settings.push(("model".into(), "fem".into()));
     }
-    for (name, value) in settings {
-        let existing = sim.1.iter().find_map(|s| match &s.kind {
-            StmtKind::Assign { name: n, .. } if n.name == name => Some(s.span),
-            _ => None,
-        });
-        let line = format!("{name} = {value}");
-        match existing {
-            Some(span) => edits.push((span.start, span.end, line)),
-            None => {
-                let open = source[sim.0.start..]
-                    .find('{')
-                    .map(|i| sim.0.start + i + 1)
-                    .ok_or("the sim block has no `{`")?;
-                edits.push((open, open, format!("\n  {line}")));
-            }
-        }
-    }
-    edits.sort_by_key(|e| std::cmp::Reverse(e.0));
-    let mut text = source.to_string();
-    for (start, end, with) in edits {
-        text.replace_range(start..end, &with);
-    }
-    Ok(format!(
-        "# softc bench --tradeoff variant of {}\n{text}",
-        sweep.script.display()
-    ))
+    settings
 }
 
-/// Load, compile and run one variant to its steady state.
+/// Run one compiled variant to its steady state.
 fn measure(
+    scene: &Scene,
     script: &Path,
     label: &str,
     c: &Config,
     sweep: &Sweep,
     set_index: usize,
 ) -> Result<Point, String> {
-    let scene = Scene::load(script, &sweep.overrides).map_err(|e| format!("{label}: {e}"))?;
     let t0 = Instant::now();
     let cpu = Cpu::new(&scene.lowered.module, c.precision, sweep.threads)?;
     let compile_seconds = t0.elapsed().as_secs_f64();
-    let mut sim = Simulation::new(&scene, cpu);
+    let mut sim = Simulation::new(scene, cpu);
     let t1 = Instant::now();
     let (dt, steps) = sim.time_steps(None, None).map_err(|e| e.0)?;
     let run = sim

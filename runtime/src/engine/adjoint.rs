@@ -13,6 +13,7 @@
 use super::checkpoint::{Action, Schedule};
 use super::loss::{Loss, LossWindow};
 use super::{Backend, CHECK_EVERY, RunError, RunSummary, Simulation};
+use softc_compiler::driver::LossArg;
 use std::collections::BTreeMap;
 
 /// Which states the backward pass keeps.
@@ -110,19 +111,14 @@ impl<B: Backend> Simulation<'_, B> {
         let (ax, av) = (adj.state[0].adj_next, adj.state[1].adj_next);
         let mut gx = self.backend.get(ax);
         let mut gv = self.backend.get(av);
-        for (name, d) in l.args().iter().zip(ds) {
-            if let Some(rest) = name.strip_prefix("state.") {
-                let mut parts = rest.split('.');
-                let field = parts.next().unwrap_or("");
-                let node: usize = parts.next().and_then(|p| p.parse().ok()).unwrap_or(0);
-                let c: usize = parts.next().and_then(|p| p.parse().ok()).unwrap_or(0);
-                match field {
-                    "x" => gx[3 * node + c] += d,
-                    "v" => gv[3 * node + c] += d,
-                    _ => {}
+        for (arg, d) in l.args().iter().zip(ds) {
+            match arg {
+                LossArg::X { node, d: c } => gx[3 * node + c] += d,
+                LossArg::V { node, d: c } => gv[3 * node + c] += d,
+                LossArg::Uniform(name) if name.starts_with("param.") => {
+                    *direct.entry(name.clone()).or_insert(0.0) += d;
                 }
-            } else if name.starts_with("param.") {
-                *direct.entry(name.clone()).or_insert(0.0) += d;
+                _ => {}
             }
         }
         self.backend.set(ax, &gx);

@@ -434,7 +434,7 @@ impl Backend for Cpu {
 }
 
 /// Rest length of the six edges of every tet (spring mesh, `edge_l0`), in
-/// `softc_compiler::lower::springs::TET_EDGES` order.
+/// `softc_compiler::driver::TET_EDGES` order.
 fn edge_rest_lengths(scene: &Scene) -> Vec<f64> {
     let nodes = &scene.mesh.nodes;
     scene
@@ -442,7 +442,7 @@ fn edge_rest_lengths(scene: &Scene) -> Vec<f64> {
         .tets
         .iter()
         .flat_map(|t| {
-            softc_compiler::lower::springs::TET_EDGES.map(|(a, b)| {
+            softc_compiler::driver::TET_EDGES.map(|(a, b)| {
                 let (p, q) = (nodes[t[a as usize] as usize], nodes[t[b as usize] as usize]);
                 ((q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2) + (q[2] - p[2]).powi(2)).sqrt()
             })

@@ -2,20 +2,7 @@
 //! or from the `circle_quadrants` generator. Sampling is a pure function of (seed, iteration,
 //! member), so a resumed run draws exactly the scenes an uninterrupted one would.
 
-/// Where an input's per-scene values come from.
-#[derive(Clone, Debug, PartialEq)]
-pub enum InputSource {
-    /// One flattened value per scene.
-    Values(Vec<Vec<f64>>),
-    /// One point per quadrant of a disc, uniform over each quarter's area.
-    CircleQuadrants {
-        radius: f64,
-        /// The two axes of the plane (0 = x, 1 = y, 2 = z).
-        axes: [usize; 2],
-        center: [f64; 3],
-        seed: u64,
-    },
-}
+pub use softc_compiler::driver::InputSource;
 
 #[derive(Clone, Debug, PartialEq)]
 pub struct Input {
@@ -23,6 +10,8 @@ pub struct Input {
     /// The uniforms of its entries (`input.target.0` …), in flat order.
     pub uniforms: Vec<String>,
     pub source: InputSource,
+    /// The seed of a generator that names none (the optimize block's).
+    pub seed: u64,
 }
 
 /// SplitMix64: a tiny, well-mixed, stateless-seedable generator.
@@ -59,6 +48,7 @@ impl Input {
                 center,
                 seed,
             } => {
+                let seed = &seed.unwrap_or(self.seed);
                 let stream = iteration.wrapping_mul(1 << 20) ^ index as u64;
                 let r = radius * uniform(*seed, stream, 0).sqrt();
                 let quadrant = (index % 4) as f64;
@@ -115,8 +105,9 @@ mod tests {
                 radius: 5e-3,
                 axes: [1, 2],
                 center: [0.0, 0.0, 0.0],
-                seed: 7,
+                seed: Some(7),
             },
+            seed: 0,
         };
         for it in 0..50 {
             for q in 0..4 {

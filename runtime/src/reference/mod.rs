@@ -101,8 +101,9 @@ struct SpringEdge {
 
 impl<'a> Reference<'a> {
     pub fn new(scene: &'a Scene) -> Result<Self, String> {
-        let prelude = softc_compiler::sema::prelude_ast();
-        let mut ev = Evaluator::new(&scene.ast, prelude, &scene.uniforms);
+        let syntax = scene.resolved.syntax();
+        let prelude = softc_compiler::driver::Resolved::prelude_syntax();
+        let mut ev = Evaluator::new(syntax, prelude, &scene.uniforms);
         let n_tets = scene.mesh.tets.len();
         for f in &scene.fields {
             let mut entries = vec![None; n_tets];
@@ -115,7 +116,7 @@ impl<'a> Reference<'a> {
         // constants read a per-element param.
         let mut materials = Vec::new();
         let mut elem_material = vec![usize::MAX; n_tets];
-        for (name, range) in scene.lowered.materials.iter().zip(&scene.material_ranges) {
+        for (name, range) in scene.resolved.materials.iter().zip(&scene.material_ranges) {
             ev.element = Some(range.start);
             ev.field_reads = 0;
             if range.is_empty() {
@@ -137,7 +138,7 @@ impl<'a> Reference<'a> {
         if let Some(e) = elem_material.iter().position(|&m| m == usize::MAX) {
             return Err(format!("element {e} has no material"));
         }
-        let sim = scene.ast.sim_block();
+        let sim = syntax.sim_block();
         let pressure_stmts: Vec<(&str, &Expr)> = sim
             .iter()
             .filter_map(|s| match &s.kind {
@@ -145,15 +146,15 @@ impl<'a> Reference<'a> {
                 _ => None,
             })
             .collect();
-        if pressure_stmts.len() != scene.lowered.chambers.len()
+        if pressure_stmts.len() != scene.resolved.chambers.len()
             || pressure_stmts
                 .iter()
-                .zip(&scene.lowered.chambers)
+                .zip(&scene.resolved.chambers)
                 .any(|((a, _), b)| a != b)
         {
             return Err("the scene's chambers do not match the sim block's pressures".into());
         }
-        let gravity = match &scene.ast.sim_setting("gravity") {
+        let gravity = match &syntax.sim_setting("gravity") {
             Some(e) => {
                 let g = ev.eval(&Scope::root(), e)?.flat();
                 if g.len() != 3 {
@@ -168,7 +169,7 @@ impl<'a> Reference<'a> {
         let mut dm_inv = Vec::with_capacity(scene.mesh.tets.len());
         let mut rest_volume = Vec::with_capacity(scene.mesh.tets.len());
         let mut mass = vec![0.0; n_nodes];
-        let scaling = match &scene.ast.sim_setting("mass_scaling") {
+        let scaling = match &syntax.sim_setting("mass_scaling") {
             Some(e) => ev.eval(&Scope::root(), e)?.scalar()?.v,
             None => 1.0,
         };
@@ -189,7 +190,7 @@ impl<'a> Reference<'a> {
             dm_inv.push(inv);
             rest_volume.push(v0);
         }
-        let springs = match scene.ast.sim_setting("model").map(|e| &e.kind) {
+        let springs = match syntax.sim_setting("model").map(|e| &e.kind) {
             Some(ExprKind::Call { args, .. }) => {
                 let a = args
                     .iter()
@@ -214,7 +215,7 @@ impl<'a> Reference<'a> {
             mass,
             springs,
             pressures: pressure_stmts.into_iter().map(|(_, e)| e).collect(),
-            damping: scene.ast.sim_setting("damping"),
+            damping: syntax.sim_setting("damping"),
             gravity,
             ev,
         })

@@ -1,0 +1,635 @@
+//! Binding a resolved program to a mesh: the script's selections and regions evaluated at the
+//! mesh's nodes and element centroids, materials assigned to elements (and the elements put in
+//! kernel order, grouped by material), chamber triangles, fixed nodes, the per-element params'
+//! elements, the param and input slots, and the loss lowered over the node sets it reduces.
+//! The compiler does not read meshes: the caller provides one through [`MeshView`].
+
+use super::loss::{LossKernels, lower_loss};
+use super::plan::uniform_name;
+use super::settings::{arg, call_parts};
+use super::{Resolved, const_scalar, const_values};
+use crate::front::ast::*;
+use crate::ir::{ArgSource, Domain, KernelBuilder, interp};
+use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
+use crate::lower::scene::SceneModule;
+use crate::sema::types::Len;
+use std::collections::BTreeMap;
+use std::ops::Range;
+
+/// What binding needs of a mesh (in metres, 0-based indices).
+pub trait MeshView {
+    fn nodes(&self) -> &[[f64; 3]];
+    fn tets(&self) -> &[[u32; 4]];
+    /// Region tag per tet.
+    fn tet_tags(&self) -> &[i32];
+    /// The tag of a physical name of dimension `dim` (2 surfaces, 3 regions).
+    fn tag_by_name(&self, dim: u8, name: &str) -> Option<i32>;
+    /// The triangles of a tagged surface, wound so their normals point into the solid.
+    fn surface(&self, tag: i32) -> Vec<[u32; 3]>;
+    /// The nodes of a tagged surface, sorted, unique.
+    fn surface_nodes(&self, tag: i32) -> Vec<u32>;
+    fn node_set(&self, name: &str) -> Option<&[u32]>;
+    fn element_set(&self, name: &str) -> Option<&[u32]>;
+}
+
+/// What a param or input slot range belongs to.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SlotKind {
+    /// A scalar or array param.
+    Param,
+    /// A per-element param: one entry per element of the set.
+    Field {
+        set: String,
+    },
+    Input,
+}
+
+/// One declared param or input and its entries' uniforms, in row-major (slot) order.
+#[derive(Debug, Clone)]
+pub struct ParamSlots {
+    pub name: String,
+    pub kind: SlotKind,
+    /// Fixed lengths of the declared shape (a field: its number of elements).
+    pub shape: Vec<usize>,
+    /// The uniform of each entry (`param.w.1.2`), in row-major order.
+    pub uniforms: Vec<String>,
+    pub lower: Option<f64>,
+    pub upper: Option<f64>,
+}
+
+/// A per-element param (`param mu: pressure[soft_part]`): entry `i` is the uniform
+/// `param.NAME.i`, the value at the set's `i`-th element; the kernels read it from the element
+/// buffer `param.NAME`.
+#[derive(Debug, Clone)]
+pub struct FieldSlots {
+    pub name: String,
+    /// The element set.
+    pub set: String,
+    /// The position in the kernels' element order of each entry's element.
+    pub elements: Vec<u32>,
+}
+
+/// A resolved program bound to a mesh.
+#[derive(Debug, Clone)]
+pub struct Bound {
+    /// Kernel element order: entry `k` is the mesh element (file order) the kernels see at
+    /// position `k`. Elements are grouped by material, stably.
+    pub order: Vec<usize>,
+    /// Element range of each material (kernel order).
+    pub material_ranges: Vec<Range<usize>>,
+    /// The material of each element, in kernel order.
+    pub material_of: Vec<usize>,
+    /// Chamber triangles per chamber, in kernel order.
+    pub chamber_tris: Vec<Vec<[u32; 3]>>,
+    pub fixed: Vec<bool>,
+    /// Every declared node set with its nodes.
+    pub node_sets: Vec<(String, Vec<u32>)>,
+    /// Every declared element set with its elements, as indices of the mesh file's element
+    /// order, in the set's order.
+    pub element_sets: Vec<(String, Vec<u32>)>,
+    pub fields: Vec<FieldSlots>,
+    /// The params (source order), then the inputs.
+    pub slots: Vec<ParamSlots>,
+    pub loss: Option<LossKernels>,
+}
+
+impl Bound {
+    /// The slots of a param or input by name.
+    pub fn slots_of(&self, name: &str) -> Option<&ParamSlots> {
+        self.slots.iter().find(|s| s.name == name)
+    }
+}
+
+type Fail<T> = Result<T, String>;
+
+impl Resolved {
+    /// Bind the program to a mesh (elements in file order).
+    pub fn bind(&self, kernels: &SceneModule, mesh: &dyn MeshView) -> Fail<Bound> {
+        let program = self.lowering_program();
+        let ast = &self.syntax;
+        let material_of = assign_materials(&program, ast, mesh, kernels)?;
+        let chamber_tris = chambers(&program, ast, mesh, kernels)?;
+        let fixed = fixed_nodes(&program, ast, mesh)?;
+        let node_sets = all_node_sets(&program, ast, mesh)?;
+        let element_sets = all_element_sets(&program, ast, mesh)?;
+        let slots = self.slots(&element_sets)?;
+        let fields = fields(ast, kernels, mesh, &material_of, &element_sets)?;
+        // Group elements by material (stable), so each element kernel runs over a range.
+        let mut order: Vec<usize> = (0..mesh.tets().len()).collect();
+        order.sort_by_key(|&e| material_of[e]);
+        let sorted: Vec<usize> = order.iter().map(|&e| material_of[e]).collect();
+        let mut position = vec![0u32; order.len()];
+        for (new, &old) in order.iter().enumerate() {
+            position[old] = new as u32;
+        }
+        let fields = fields
+            .into_iter()
+            .map(|f| FieldSlots {
+                elements: f.elements.iter().map(|&e| position[e as usize]).collect(),
+                ..f
+            })
+            .collect();
+        let material_ranges = (0..kernels.materials.len())
+            .map(|m| {
+                let start = sorted.partition_point(|&x| x < m);
+                let end = sorted.partition_point(|&x| x <= m);
+                start..end
+            })
+            .collect();
+        let loss = lower_loss(&program, ast, &node_sets, &element_sets)?;
+        Ok(Bound {
+            order,
+            material_ranges,
+            material_of: sorted,
+            chamber_tris,
+            fixed,
+            node_sets,
+            element_sets,
+            fields,
+            slots,
+            loss,
+        })
+    }
+
+    /// The param and input slots; a field has one entry per element of its set.
+    fn slots(&self, element_sets: &[(String, Vec<u32>)]) -> Fail<Vec<ParamSlots>> {
+        let mut out = Vec::new();
+        for p in &self.params {
+            if let [Len::PerElement(set)] = p.ty.shape() {
+                let n = element_sets
+                    .iter()
+                    .find(|(name, _)| name == set)
+                    .map_or(0, |(_, e)| e.len());
+                if n == 0 {
+                    return Err(format!(
+                        "the per-element param `{}` has no entries: the element set `{set}` is empty",
+                        p.name
+                    ));
+                }
+                if p.init.len() != 1 {
+                    return Err(format!(
+                        "the per-element param `{}` needs one initial value for every element",
+                        p.name
+                    ));
+                }
+                out.push(ParamSlots {
+                    name: p.name.clone(),
+                    kind: SlotKind::Field { set: set.clone() },
+                    shape: vec![n],
+                    uniforms: (0..n).map(|i| format!("param.{}.{i}", p.name)).collect(),
+                    lower: p.lower,
+                    upper: p.upper,
+                });
+                continue;
+            }
+            let shape: Vec<usize> =
+                p.ty.shape()
+                    .iter()
+                    .map(|l| match l {
+                        Len::Fixed(n) => *n,
+                        _ => 0,
+                    })
+                    .collect();
+            let n: usize = shape.iter().product();
+            out.push(ParamSlots {
+                name: p.name.clone(),
+                kind: SlotKind::Param,
+                uniforms: (0..n.max(1))
+                    .map(|i| format!("param.{}", uniform_name(&p.name, &shape, i)))
+                    .collect(),
+                shape,
+                lower: p.lower,
+                upper: p.upper,
+            });
+        }
+        for input in &self.inputs {
+            out.push(ParamSlots {
+                name: input.name.clone(),
+                kind: SlotKind::Input,
+                shape: input.shape.clone(),
+                uniforms: (0..input.first.len())
+                    .map(|i| uniform_name(&format!("input.{}", input.name), &input.shape, i))
+                    .collect(),
+                lower: None,
+                upper: None,
+            });
+        }
+        Ok(out)
+    }
+
+    /// The values of every param and input uniform: initial values, or `--set NAME=…` /
+    /// `--set NAME.i=…` overrides (SI; `--params` expands to such names; one entry's override
+    /// wins over the whole param's), and the first scene of each input.
+    pub fn initial_uniforms(
+        &self,
+        bound: &Bound,
+        overrides: &[(String, f64)],
+    ) -> BTreeMap<String, f64> {
+        let given = |name: &str| overrides.iter().find(|(n, _)| n == name).map(|(_, v)| *v);
+        let mut out = BTreeMap::new();
+        for (slots, p) in bound.slots.iter().zip(&self.params) {
+            let whole = given(&p.name);
+            for (i, uniform) in slots.uniforms.iter().enumerate() {
+                let entry = &uniform["param.".len()..];
+                let init = if p.init.len() == 1 {
+                    p.init[0]
+                } else {
+                    p.init.get(i).copied().unwrap_or(0.0)
+                };
+                let v = given(entry).or(whole).unwrap_or(init);
+                out.insert(uniform.clone(), v);
+            }
+        }
+        for (slots, input) in bound.slots[self.params.len()..].iter().zip(&self.inputs) {
+            // `--set NAME=VALUE` on an input runs that one scene (every entry of an array input).
+            let whole = given(&input.name);
+            for (uniform, v) in slots.uniforms.iter().zip(&input.first) {
+                out.insert(uniform.clone(), whole.unwrap_or(*v));
+            }
+        }
+        out
+    }
+}
+
+fn decl<'a>(ast: &'a Script, name: &str) -> Option<(&'a DeclKind, &'a Expr)> {
+    ast.items.iter().find_map(|i| match &i.kind {
+        ItemKind::Decl {
+            kind,
+            name: n,
+            value,
+        } if n.name == name => Some((kind, value)),
+        _ => None,
+    })
+}
+
+fn string_arg(e: &Expr) -> Option<&str> {
+    match &e.kind {
+        ExprKind::Str(s) => Some(s),
+        _ => None,
+    }
+}
+
+/// Whether a point lies in a region.
+type PointTest = Box<dyn Fn([f64; 3]) -> bool>;
+
+/// Region geometry from `box(…)`, `sphere(…)`, `cylinder(…)`.
+fn region_contains(program: &Program, e: &Expr) -> Fail<PointTest> {
+    let (f, args) = call_parts(e).ok_or("a region is a box, sphere or cylinder")?;
+    let v = |name: &str, pos: usize| -> Fail<Vec<f64>> {
+        const_values(
+            program,
+            arg(args, name, pos).ok_or_else(|| format!("missing `{name}`"))?,
+        )
+    };
+    const EPS: f64 = 1e-9;
+    Ok(match f {
+        "box" => {
+            let (lo, hi) = (v("min", 0)?, v("max", 1)?);
+            Box::new(move |p| (0..3).all(|k| p[k] >= lo[k] - EPS && p[k] <= hi[k] + EPS))
+        }
+        "sphere" => {
+            let (c, r) = (v("center", 0)?, v("radius", 1)?[0]);
+            Box::new(move |p| {
+                (0..3).map(|k| (p[k] - c[k]).powi(2)).sum::<f64>() <= (r + EPS).powi(2)
+            })
+        }
+        "cylinder" => {
+            let (a, b, r) = (v("start", 0)?, v("end", 1)?, v("radius", 2)?[0]);
+            Box::new(move |p| {
+                let ab: Vec<f64> = (0..3).map(|k| b[k] - a[k]).collect();
+                let ap: Vec<f64> = (0..3).map(|k| p[k] - a[k]).collect();
+                let l2: f64 = ab.iter().map(|x| x * x).sum();
+                let s = ab.iter().zip(&ap).map(|(x, y)| x * y).sum::<f64>() / l2;
+                let d2: f64 = (0..3).map(|k| (ap[k] - s * ab[k]).powi(2)).sum();
+                (-EPS..=1.0 + EPS).contains(&s) && d2 <= (r + EPS).powi(2)
+            })
+        }
+        other => return Err(format!("`{other}` is not a region")),
+    })
+}
+
+/// Indices selected by a `nodes` (points = nodes) or `elements` (points = centroids) value.
+fn selection(
+    program: &Program,
+    ast: &Script,
+    mesh: &dyn MeshView,
+    e: &Expr,
+    elements: bool,
+) -> Fail<Vec<u32>> {
+    let (f, args) = call_parts(e).ok_or("a selection is a call")?;
+    let nodes = mesh.nodes();
+    let tets = mesh.tets();
+    let tags = mesh.tet_tags();
+    let points: Vec<[f64; 3]> = if elements {
+        tets.iter()
+            .map(|t| {
+                let p = t.map(|n| nodes[n as usize]);
+                [0, 1, 2].map(|k| (p[0][k] + p[1][k] + p[2][k] + p[3][k]) / 4.0)
+            })
+            .collect()
+    } else {
+        nodes.to_vec()
+    };
+    let tagged = |tag: i32| -> Vec<u32> {
+        let elems: Vec<u32> = (0..tets.len() as u32)
+            .filter(|&e| tags[e as usize] == tag)
+            .collect();
+        if elements {
+            elems
+        } else {
+            nodes_of(tets, &elems)
+        }
+    };
+    let second = args.get(1).map(|a| &a.value);
+    Ok(match f {
+        "select" => {
+            let cond = second.ok_or("`select` needs a condition")?;
+            let mut k = KernelBuilder::new("select", Domain::Node, "selection");
+            let mut env = Env::new();
+            for c in ["x", "y", "z"] {
+                env.insert(c.to_string(), LVal::S(k.uniform(c)));
+            }
+            let mut lw = ExprLowerer::new(program);
+            let v = lw
+                .lower(&mut k, &env, cond)
+                .and_then(|v| v.scalar())
+                .map_err(|e| e.to_string())?;
+            k.b.func.outputs.push(v);
+            let (srcs, mut func) = k.into_parts();
+            func.n_args = srcs.len() as u32;
+            let idx: Vec<usize> = srcs
+                .iter()
+                .map(|s| match s {
+                    ArgSource::Uniform(n) => {
+                        ["x", "y", "z"].iter().position(|c| c == n).unwrap_or(0)
+                    }
+                    _ => 0,
+                })
+                .collect();
+            points
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| {
+                    let args: Vec<f64> = idx.iter().map(|&i| p[i]).collect();
+                    interp::eval(&func, &args)[0] != 0.0
+                })
+                .map(|(i, _)| i as u32)
+                .collect()
+        }
+        "inside" => {
+            let Some(ExprKind::Name(r)) = second.map(|e| &e.kind) else {
+                return Err("`inside` needs a region name".into());
+            };
+            let (_, region) =
+                decl(ast, &r.name).ok_or_else(|| format!("unknown region `{}`", r.name))?;
+            let contains = region_contains(program, region)?;
+            points
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| contains(**p))
+                .map(|(i, _)| i as u32)
+                .collect()
+        }
+        "tagged" => tagged(const_scalar(program, second.ok_or("`tagged` needs a tag")?)? as i32),
+        "named" => {
+            let name = second.and_then(string_arg).ok_or("`named` needs a name")?;
+            if let Some(t) = mesh.tag_by_name(3, name) {
+                tagged(t)
+            } else if let Some(t) = mesh.tag_by_name(2, name) {
+                if elements {
+                    return Err(format!(
+                        "\"{name}\" is a surface; element sets need a region"
+                    ));
+                }
+                mesh.surface_nodes(t)
+            } else if let Some(set) = mesh.node_set(name).filter(|_| !elements) {
+                set.to_vec()
+            } else if let Some(set) = mesh.element_set(name).filter(|_| elements) {
+                set.to_vec()
+            } else {
+                return Err(format!("the mesh has no part named \"{name}\""));
+            }
+        }
+        other => return Err(format!("`{other}` is not a selection")),
+    })
+}
+
+fn nodes_of(tets: &[[u32; 4]], elems: &[u32]) -> Vec<u32> {
+    let mut n: Vec<u32> = elems.iter().flat_map(|&e| tets[e as usize]).collect();
+    n.sort_unstable();
+    n.dedup();
+    n
+}
+
+fn assign_materials(
+    program: &Program,
+    ast: &Script,
+    mesh: &dyn MeshView,
+    kernels: &SceneModule,
+) -> Fail<Vec<usize>> {
+    let mut of = vec![usize::MAX; mesh.tets().len()];
+    let uses: Vec<(&Ident, Option<&Ident>)> = ast
+        .sim_block()
+        .iter()
+        .filter_map(|s| match &s.kind {
+            StmtKind::Use { material, set } => Some((material, set.as_ref())),
+            _ => None,
+        })
+        .collect();
+    if uses.is_empty() {
+        of.iter_mut().for_each(|m| *m = 0);
+    }
+    for (material, set) in uses {
+        let m = kernels
+            .materials
+            .iter()
+            .position(|x| *x == material.name)
+            .expect("lowered materials include every used one");
+        match set {
+            None => of.iter_mut().for_each(|x| *x = m),
+            Some(s) => {
+                let (_, value) = decl(ast, &s.name)
+                    .ok_or_else(|| format!("unknown element set `{}`", s.name))?;
+                for e in selection(program, ast, mesh, value, true)? {
+                    of[e as usize] = m;
+                }
+            }
+        }
+    }
+    if let Some(e) = of.iter().position(|&m| m == usize::MAX) {
+        return Err(format!(
+            "element {e} has no material: add `use NAME` for the whole mesh before the `use NAME in SET` lines"
+        ));
+    }
+    Ok(of)
+}
+
+fn chambers(
+    program: &Program,
+    ast: &Script,
+    mesh: &dyn MeshView,
+    kernels: &SceneModule,
+) -> Fail<Vec<Vec<[u32; 3]>>> {
+    kernels
+        .chambers
+        .iter()
+        .map(|c| {
+            let (_, value) = decl(ast, c).ok_or_else(|| format!("unknown chamber `{c}`"))?;
+            let (_, args) = call_parts(value).ok_or("a chamber is `surface(…)`")?;
+            let tag = match (
+                arg(args, "name", 1).and_then(string_arg),
+                arg(args, "tag", 99),
+            ) {
+                (Some(name), _) => mesh
+                    .tag_by_name(2, name)
+                    .ok_or_else(|| format!("the mesh has no surface named \"{name}\""))?,
+                (None, Some(t)) => const_scalar(program, t)? as i32,
+                (None, None) => match args.get(1) {
+                    Some(a) => const_scalar(program, &a.value)? as i32,
+                    None => return Err(format!("chamber `{c}` names no surface")),
+                },
+            };
+            Ok(mesh.surface(tag))
+        })
+        .collect()
+}
+
+fn fixed_nodes(program: &Program, ast: &Script, mesh: &dyn MeshView) -> Fail<Vec<bool>> {
+    let mut fixed = vec![false; mesh.nodes().len()];
+    for s in ast.sim_block() {
+        let StmtKind::Fix(names) = &s.kind else {
+            continue;
+        };
+        for n in names {
+            let mut name = n.name.clone();
+            // A let may alias a region or node set.
+            for _ in 0..8 {
+                match ast.items.iter().find_map(|i| match &i.kind {
+                    ItemKind::Let(l) if l.name.name == name => Some(&l.value),
+                    _ => None,
+                }) {
+                    Some(Expr {
+                        kind: ExprKind::Name(id),
+                        ..
+                    }) => name = id.name.clone(),
+                    _ => break,
+                }
+            }
+            let (kind, value) =
+                decl(ast, &name).ok_or_else(|| format!("unknown region `{name}`"))?;
+            match kind {
+                DeclKind::Region => {
+                    let contains = region_contains(program, value)?;
+                    for (i, p) in mesh.nodes().iter().enumerate() {
+                        if contains(*p) {
+                            fixed[i] = true;
+                        }
+                    }
+                }
+                DeclKind::Nodes => {
+                    for i in selection(program, ast, mesh, value, false)? {
+                        fixed[i as usize] = true;
+                    }
+                }
+                _ => return Err(format!("`{name}` cannot be fixed")),
+            }
+        }
+    }
+    Ok(fixed)
+}
+
+/// The `nodes` (or `elements`) declarations of a script: name and selection.
+fn declared_sets(ast: &Script, kind: DeclKind) -> impl Iterator<Item = (&Ident, &Expr)> {
+    ast.items.iter().filter_map(move |i| match &i.kind {
+        ItemKind::Decl {
+            kind: k,
+            name,
+            value,
+        } if *k == kind => Some((name, value)),
+        _ => None,
+    })
+}
+
+fn all_node_sets(
+    program: &Program,
+    ast: &Script,
+    mesh: &dyn MeshView,
+) -> Fail<Vec<(String, Vec<u32>)>> {
+    declared_sets(ast, DeclKind::Nodes)
+        .map(|(name, value)| {
+            Ok((
+                name.name.clone(),
+                selection(program, ast, mesh, value, false)?,
+            ))
+        })
+        .collect()
+}
+
+fn all_element_sets(
+    program: &Program,
+    ast: &Script,
+    mesh: &dyn MeshView,
+) -> Fail<Vec<(String, Vec<u32>)>> {
+    declared_sets(ast, DeclKind::Elements)
+        .map(|(name, value)| {
+            // A named set from the mesh file may list an element twice: keep the first.
+            let mut seen = vec![false; mesh.tets().len()];
+            let elements = selection(program, ast, mesh, value, true)?
+                .into_iter()
+                .filter(|&e| !std::mem::replace(&mut seen[e as usize], true))
+                .collect();
+            Ok((name.name.clone(), elements))
+        })
+        .collect()
+}
+
+/// The per-element params with their elements (mesh-file indices, the set's order), after
+/// checking that every material reading one is applied only to elements of its set.
+fn fields(
+    ast: &Script,
+    kernels: &SceneModule,
+    mesh: &dyn MeshView,
+    material_of: &[usize],
+    element_sets: &[(String, Vec<u32>)],
+) -> Fail<Vec<FieldSlots>> {
+    let n_elements = mesh.tets().len();
+    let mut out = Vec::new();
+    for item in &ast.items {
+        let ItemKind::Param(p) = &item.kind else {
+            continue;
+        };
+        let Some(set) = crate::lower::expr::field_set(item) else {
+            continue;
+        };
+        let elements = element_sets
+            .iter()
+            .find(|(n, _)| *n == set.name)
+            .map(|(_, e)| e.clone())
+            .ok_or_else(|| format!("unknown element set `{}`", set.name))?;
+        let mut member = vec![false; n_elements];
+        for &e in &elements {
+            member[e as usize] = true;
+        }
+        for (m, reads) in kernels.material_fields.iter().enumerate() {
+            if !reads.contains(&p.name.name) {
+                continue;
+            }
+            if let Some(e) = (0..n_elements).find(|&e| material_of[e] == m && !member[e]) {
+                let material = &kernels.materials[m];
+                return Err(format!(
+                    "material `{material}` takes `{}` per element of `{}`, but it is applied to \
+                     element {e}, which is not in `{}`: apply `{material}` only there (`use \
+                     {material} in {}`, after a `use` of another material for the rest of the \
+                     mesh)",
+                    p.name.name, set.name, set.name, set.name
+                ));
+            }
+        }
+        out.push(FieldSlots {
+            name: p.name.name.clone(),
+            set: set.name.clone(),
+            elements,
+        });
+    }
+    Ok(out)
+}

@@ -1,0 +1,195 @@
+//! The script's loss, compiled once per bound scene: one kernel-IR function over the node state
+//! of the sets it reduces over (unrolled in node order, so sums are reproducible), and the same
+//! function followed by its derivative with respect to every argument (reverse-mode AD). The
+//! run's length is not known here (`dt = auto` is estimated on the device): `t_end` and `dt`
+//! are arguments, and so are the loss window's ends.
+
+use crate::front::ast::{ItemKind, LossWhen, Script};
+use crate::ir::{ArgSource, Builder, Domain, Func, Inst, KernelBuilder, V, ad, interp};
+use crate::lower::expr::{Env, ExprLowerer, Program};
+use std::collections::HashMap;
+
+/// What one argument of the loss reads.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LossArg {
+    /// Component `d` of node `node`'s position.
+    X { node: usize, d: usize },
+    /// Component `d` of node `node`'s velocity.
+    V { node: usize, d: usize },
+    /// Component `d` of node `node`'s rest position.
+    X0 { node: usize, d: usize },
+    /// The time of the state.
+    T,
+    /// The run's end time.
+    TEnd,
+    /// The time step.
+    Dt,
+    /// A param or input entry, by its uniform (`param.p`, `input.target.1`).
+    Uniform(String),
+}
+
+impl LossArg {
+    fn of(name: &str) -> LossArg {
+        if let Some(rest) = name.strip_prefix("state.") {
+            let mut parts = rest.split('.');
+            let field = parts.next().unwrap_or("x");
+            let node: usize = parts.next().and_then(|p| p.parse().ok()).unwrap_or(0);
+            let d: usize = parts.next().and_then(|p| p.parse().ok()).unwrap_or(0);
+            return match field {
+                "x" => LossArg::X { node, d },
+                "v" => LossArg::V { node, d },
+                _ => LossArg::X0 { node, d },
+            };
+        }
+        match name {
+            "t" => LossArg::T,
+            "t_end" => LossArg::TEnd,
+            "dt" => LossArg::Dt,
+            _ => LossArg::Uniform(name.to_string()),
+        }
+    }
+}
+
+/// When the loss is taken, for a run of known length.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LossWindow {
+    /// At the final state.
+    End,
+    /// Summed over every step whose end time lies in `[from, to]`.
+    Over { from: f64, to: f64 },
+}
+
+/// A window end: a function of `t_end` and `dt`.
+#[derive(Debug, Clone)]
+struct WindowEnd {
+    func: Func,
+    /// Per argument: true for `dt`, false for `t_end`.
+    reads_dt: Vec<bool>,
+}
+
+impl WindowEnd {
+    fn at(&self, t_end: f64, dt: f64) -> f64 {
+        let args: Vec<f64> = self
+            .reads_dt
+            .iter()
+            .map(|&is_dt| if is_dt { dt } else { t_end })
+            .collect();
+        interp::eval(&self.func, &args)[0]
+    }
+}
+
+/// The compiled loss.
+#[derive(Debug, Clone)]
+pub struct LossKernels {
+    /// The loss term from its arguments.
+    pub func: Func,
+    /// `func` followed by the derivative of the loss with respect to each argument.
+    pub grad: Func,
+    /// What each argument reads.
+    pub args: Vec<LossArg>,
+    window: Option<(WindowEnd, WindowEnd)>,
+}
+
+impl LossKernels {
+    /// The window for a run that ends at `t_end` with steps of `dt`.
+    pub fn window(&self, t_end: f64, dt: f64) -> LossWindow {
+        match &self.window {
+            None => LossWindow::End,
+            Some((from, to)) => LossWindow::Over {
+                from: from.at(t_end, dt),
+                to: to.at(t_end, dt),
+            },
+        }
+    }
+}
+
+/// Lower the script's loss; `None` without one.
+pub(super) fn lower_loss(
+    program: &Program,
+    ast: &Script,
+    node_sets: &[(String, Vec<u32>)],
+    element_sets: &[(String, Vec<u32>)],
+) -> Result<Option<LossKernels>, String> {
+    let Some(decl) = ast.items.iter().find_map(|i| match &i.kind {
+        ItemKind::Loss(l) => Some(l),
+        _ => None,
+    }) else {
+        return Ok(None);
+    };
+    let mut lw = ExprLowerer::new(program);
+    lw.runtime_names = vec!["t_end", "dt"];
+    lw.node_sets = node_sets.iter().cloned().collect::<HashMap<_, _>>();
+    lw.element_sets = element_sets.iter().cloned().collect::<HashMap<_, _>>();
+    let mut k = KernelBuilder::new("loss", Domain::Single, "loss");
+    let v = lw
+        .lower(&mut k, &Env::new(), &decl.value)
+        .and_then(|v| v.scalar())
+        .map_err(|e| format!("the loss cannot be evaluated: {e}"))?;
+    k.b.func.outputs.push(v);
+    let (srcs, mut func) = k.into_parts();
+    func.n_args = srcs.len() as u32;
+    let wrt: Vec<_> = (0..func.n_args)
+        .map(|i| {
+            func.insts
+                .iter()
+                .position(|inst| *inst == Inst::Arg(i))
+                .map(|p| V(p as u32))
+        })
+        .collect();
+    let present: Vec<_> = wrt.iter().flatten().copied().collect();
+    let (mut grad, ds) = ad::gradient(func.clone(), v, &present);
+    let mut ds = ds.into_iter();
+    let zero = {
+        let mut b = Builder::extend(grad);
+        let z = b.constant(0.0);
+        grad = b.finish();
+        z
+    };
+    grad.outputs = std::iter::once(v)
+        .chain(wrt.iter().map(|w| match w {
+            Some(_) => ds.next().expect("one derivative per present argument"),
+            None => zero,
+        }))
+        .collect();
+    let args = srcs
+        .into_iter()
+        .map(|s| match s {
+            ArgSource::Uniform(n) => Ok(LossArg::of(&n)),
+            other => Err(format!("the loss reads {other:?}")),
+        })
+        .collect::<Result<_, _>>()?;
+    let window = match &decl.when {
+        LossWhen::Default | LossWhen::AtEnd(_) => None,
+        LossWhen::Over { from, to, .. } => {
+            let end = |e| -> Result<WindowEnd, String> {
+                let mut c = ExprLowerer::new(program);
+                c.runtime_names = vec!["t_end", "dt"];
+                let mut kb = KernelBuilder::new("window", Domain::Single, "loss window");
+                let v = c
+                    .lower(&mut kb, &Env::new(), e)
+                    .and_then(|v| v.scalar())
+                    .map_err(|e| e.to_string())?;
+                kb.b.func.outputs.push(v);
+                let (srcs, mut func) = kb.into_parts();
+                func.n_args = srcs.len() as u32;
+                let reads_dt = srcs
+                    .iter()
+                    .map(|s| match s {
+                        ArgSource::Uniform(n) if n == "dt" => Some(true),
+                        ArgSource::Uniform(n) if n == "t_end" => Some(false),
+                        _ => None,
+                    })
+                    .collect::<Option<Vec<_>>>()
+                    .ok_or("the loss window must be constant")?;
+                Ok(WindowEnd { func, reads_dt })
+            };
+            Some((end(from)?, end(to)?))
+        }
+    };
+    Ok(Some(LossKernels {
+        func,
+        grad,
+        args,
+        window,
+    }))
+}

@@ -1,0 +1,327 @@
+//! The one driver: source text → checked script → resolved program → scene kernels and their
+//! adjoint, in one call ([`compile`]). Everything after it (the runtime's scene set-up, the time
+//! loop, the optimizer, `bench`, `--tradeoff`, the CLI's `compile`) consumes the [`Compiled`]
+//! result: the kernels, and a [`Resolved`] program whose settings are SI numbers, whose params
+//! and inputs are a typed table, and whose selections are evaluated against a mesh by
+//! [`Resolved::bind`]. Nothing outside the compiler walks the syntax tree to learn what a
+//! script means (the independent reference oracle reads it through [`Resolved::syntax`], on
+//! purpose).
+
+pub mod bind;
+pub mod loss;
+pub mod plan;
+pub mod settings;
+pub mod variant;
+
+pub use bind::{Bound, FieldSlots, MeshView, ParamSlots, SlotKind};
+pub use loss::{LossArg, LossKernels, LossWindow};
+pub use plan::{
+    InputDecl, InputSource, LrScheduleSpec, NormalizeSpec, OptimizeSpec, OptimizerSpec,
+    StopCondition,
+};
+pub use settings::{CheckpointSpec, CsvLog, DtChoice, ForceModelKind, GradSettings, SimSettings};
+pub use variant::Variant;
+
+// What the runtime needs of the compiler's other layers, in one place.
+pub use crate::lower::scene::SceneModule;
+pub use crate::lower::springs::TET_EDGES;
+pub use crate::sema::ParamInfo;
+pub use crate::sema::mesh_probe::{MeshProbe, MeshSummary};
+pub use crate::sema::units::Dim;
+
+use crate::diag::{Diagnostic, SourceFile};
+use crate::front::ast::{Expr, Script};
+use crate::ir::{Domain, KernelBuilder};
+use crate::lower::expr::{Env, ExprLowerer, Program, flatten};
+use crate::lower::scene::lower_scene;
+use crate::sema::CheckOptions;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// How to compile: where the script's relative paths resolve, how its mesh is read for the
+/// checks, and which mesh to use.
+#[derive(Clone, Default)]
+pub struct CompileOptions {
+    /// Directory of the script; `None` skips file-existence checks (editors, fuzzing).
+    pub base_dir: Option<PathBuf>,
+    /// Reads the mesh so surfaces, tags and selections can be checked against it.
+    pub mesh_probe: Option<Arc<dyn MeshProbe>>,
+    /// Compile a variant of the script (another mesh, other sim settings): `bench
+    /// --tradeoff`'s configurations. A choice of the call; the caller edits no text.
+    pub variant: Variant,
+}
+
+impl CompileOptions {
+    /// Options for a script file: paths relative to its folder, the mesh read by `probe`.
+    pub fn for_file(path: &Path, probe: Option<Arc<dyn MeshProbe>>) -> Self {
+        CompileOptions {
+            base_dir: Some(script_dir(path)),
+            mesh_probe: probe,
+            variant: Variant::default(),
+        }
+    }
+
+    fn check_options(&self) -> CheckOptions {
+        CheckOptions {
+            base_dir: self.base_dir.clone(),
+            mesh_probe: self.mesh_probe.clone(),
+        }
+    }
+}
+
+/// The folder a script's relative paths resolve against.
+pub fn script_dir(path: &Path) -> PathBuf {
+    path.parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."))
+        .to_path_buf()
+}
+
+/// Why a script did not compile: its errors (with the text they point into), or a construct
+/// the checker accepts but no kernel implements yet.
+#[derive(Debug)]
+pub struct CompileFailure {
+    /// The display name of the script (`examples/x.soft`).
+    pub name: String,
+    /// The text the diagnostics point into (invalid UTF-8 replaced).
+    pub text: String,
+    /// Every diagnostic, errors and warnings, sorted by position (empty for a lowering error).
+    pub diagnostics: Vec<Diagnostic>,
+    /// The message of a lowering error, when checking passed.
+    pub lowering: Option<String>,
+    /// Whether the lowering error came from generating the kernels (its rendering names the
+    /// script) rather than from resolving a setting.
+    pub in_kernels: bool,
+}
+
+impl CompileFailure {
+    /// The errors rendered for a terminal, one after another.
+    pub fn render(&self) -> String {
+        if let Some(l) = &self.lowering {
+            return if self.in_kernels {
+                format!("{}: {l}", self.name)
+            } else {
+                l.clone()
+            };
+        }
+        let file = SourceFile::new(&self.name, &self.text);
+        self.diagnostics
+            .iter()
+            .filter(|d| d.is_error())
+            .map(|d| file.render(d))
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+}
+
+impl std::fmt::Display for CompileFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.render())
+    }
+}
+
+/// A compiled script: the scene's kernels (forward step and adjoint) and the resolved program.
+#[derive(Debug)]
+pub struct Compiled {
+    pub kernels: SceneModule,
+    pub program: Resolved,
+}
+
+/// What a script means, resolved: settings as SI numbers, the params and inputs, the optimize
+/// block, the mesh it loads. Selections, the loss and the param slots need the mesh:
+/// [`Resolved::bind`].
+#[derive(Debug)]
+pub struct Resolved {
+    /// The display name of the script.
+    pub name: String,
+    /// The script's text.
+    pub source: String,
+    /// Warnings of the check (errors stop the compile).
+    pub warnings: Vec<Diagnostic>,
+    /// The mesh file (resolved against the script's folder) and the length of one of its
+    /// units in metres.
+    pub mesh: MeshDecl,
+    pub sim: SimSettings,
+    pub grad: GradSettings,
+    /// The declared params with their bounds, in source order.
+    pub params: Vec<ParamInfo>,
+    /// The declared inputs, in source order.
+    pub inputs: Vec<InputDecl>,
+    pub optimize: Option<OptimizeSpec>,
+    /// The materials in kernel order (element kernel `i` runs over material `i`'s elements).
+    pub materials: Vec<String>,
+    /// The chambers with a pressure, in kernel order.
+    pub chambers: Vec<String>,
+    /// Per material (kernel order): its density, kg/m³.
+    pub densities: Vec<f64>,
+    syntax: Script,
+}
+
+/// The mesh a script loads.
+#[derive(Debug, Clone)]
+pub struct MeshDecl {
+    /// As written in the script (`"../meshes/cuboid.msh"`).
+    pub written: PathBuf,
+    /// Resolved against the script's folder.
+    pub path: PathBuf,
+    /// Metres per file unit.
+    pub unit: f64,
+    /// The byte span of the path's string literal in the script, when it is one.
+    pub span: Option<(usize, usize)>,
+}
+
+/// Compile a script given as raw bytes: check it (every diagnostic a user can get), resolve it,
+/// and lower its scene to kernels with their adjoint.
+pub fn compile(
+    name: &str,
+    bytes: &[u8],
+    options: &CompileOptions,
+) -> Result<Compiled, CompileFailure> {
+    let edited;
+    let bytes = if options.variant.is_empty() {
+        bytes
+    } else {
+        let original = String::from_utf8_lossy(bytes);
+        edited = options
+            .variant
+            .apply(&original)
+            .map_err(|e| CompileFailure {
+                name: name.to_string(),
+                text: original.to_string(),
+                diagnostics: Vec::new(),
+                lowering: Some(format!("the variant cannot be applied: {e}")),
+                in_kernels: false,
+            })?;
+        edited.as_bytes()
+    };
+    let (text, checked) = crate::check_bytes(bytes, &options.check_options());
+    let fail = |diagnostics: Vec<Diagnostic>, lowering: Option<String>| CompileFailure {
+        name: name.to_string(),
+        text: text.to_string(),
+        diagnostics,
+        lowering,
+        in_kernels: false,
+    };
+    if checked.has_errors() {
+        return Err(fail(checked.diagnostics, None));
+    }
+    let checked_script = checked.script.unwrap_or_default();
+    let source = text.to_string();
+    let syntax = crate::front::parse(&source).map_err(|d| fail(vec![d], None))?;
+    let lower_err = |e: String| fail(Vec::new(), Some(e));
+    let program = Program::new(&syntax, crate::sema::prelude_ast());
+    let kernels = lower_scene(&program, &syntax).map_err(|e| CompileFailure {
+        in_kernels: true,
+        ..lower_err(e.to_string())
+    })?;
+    let base = options
+        .base_dir
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("."));
+    let mesh = settings::mesh_decl(&program, &syntax, &base).map_err(&lower_err)?;
+    let sim =
+        SimSettings::resolve(&program, &syntax, checked_script.duration).map_err(&lower_err)?;
+    let grad = GradSettings::resolve(&program, &syntax).map_err(&lower_err)?;
+    let inputs = plan::inputs(&program, &syntax).map_err(&lower_err)?;
+    let optimize = OptimizeSpec::resolve(&program, &syntax, &checked_script.params, &inputs)
+        .map_err(&lower_err)?;
+    let densities = kernels
+        .materials
+        .iter()
+        .map(|m| crate::lower::fem::material_density(&program, m).map_err(|e| e.to_string()))
+        .collect::<Result<_, _>>()
+        .map_err(&lower_err)?;
+    let warnings = checked.diagnostics;
+    let (materials, chambers) = (kernels.materials.clone(), kernels.chambers.clone());
+    drop(program);
+    Ok(Compiled {
+        kernels,
+        program: Resolved {
+            name: name.to_string(),
+            source,
+            warnings,
+            mesh,
+            sim,
+            grad,
+            params: checked_script.params,
+            inputs,
+            optimize,
+            materials,
+            chambers,
+            densities,
+            syntax,
+        },
+    })
+}
+
+impl Resolved {
+    /// The checked syntax tree. For the independent reference oracle (which must read the
+    /// script itself, not the lowering it checks) and editor tooling; nothing else needs it.
+    pub fn syntax(&self) -> &Script {
+        &self.syntax
+    }
+
+    /// The prelude's syntax tree (the built-in materials), for the reference oracle.
+    pub fn prelude_syntax() -> &'static Script {
+        crate::sema::prelude_ast()
+    }
+
+    fn lowering_program(&self) -> Program<'_> {
+        Program::new(&self.syntax, crate::sema::prelude_ast())
+    }
+}
+
+/// Evaluate a constant expression (SI values, flattened).
+pub(crate) fn const_values(program: &Program, e: &Expr) -> Result<Vec<f64>, String> {
+    let mut k = KernelBuilder::new("const", Domain::Single, "constant");
+    let mut lw = ExprLowerer::new(program);
+    let v = lw
+        .lower(&mut k, &Env::new(), e)
+        .map_err(|e| e.to_string())?;
+    flatten(&v)
+        .into_iter()
+        .map(|x| {
+            k.b.func
+                .constant(x)
+                .ok_or_else(|| "expected a constant".to_string())
+        })
+        .collect()
+}
+
+/// Evaluate a constant scalar expression (SI units).
+pub(crate) fn const_scalar(program: &Program, e: &Expr) -> Result<f64, String> {
+    const_values(program, e)?
+        .first()
+        .copied()
+        .ok_or_else(|| "expected a number".to_string())
+}
+
+/// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end: the
+/// value in SI units and its dimension.
+pub fn parse_quantity(text: &str) -> Result<(f64, Dim), String> {
+    use crate::front::ast::{ExprKind, Item, ItemKind};
+    let src = format!("let __value = {text}");
+    let ast = crate::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
+    let Some(Item {
+        kind: ItemKind::Let(l),
+        ..
+    }) = ast.items.first()
+    else {
+        return Err(format!("`{text}` is not a value"));
+    };
+    let (num, dim) = match &l.value.kind {
+        ExprKind::Number { value, unit, .. } => {
+            let mut factor = 1.0;
+            let mut dim = Dim::NONE;
+            for f in unit.iter().flat_map(|u| &u.factors) {
+                let (k, d) = crate::sema::units::unit(&f.name)
+                    .ok_or_else(|| format!("unknown unit `{}` in `{text}`", f.name))?;
+                factor *= k.powi(f.power);
+                dim = dim.times(d.powi(f.power).unwrap_or(d));
+            }
+            (value * factor, dim)
+        }
+        _ => return Err(format!("`{text}` is not a number with a unit")),
+    };
+    Ok((num, dim))
+}

@@ -1,0 +1,271 @@
+//! The `sim` block's settings and the backward pass's settings, resolved to SI numbers, and the
+//! mesh a script loads.
+
+use super::const_scalar;
+use crate::back::Precision;
+use crate::front::ast::*;
+use crate::lower::expr::Program;
+use std::path::{Path, PathBuf};
+
+/// How the time step is chosen.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DtChoice {
+    Given(f64),
+    /// `dt = auto(safety: s)`: s × the estimated largest stable step.
+    Auto {
+        safety: f64,
+    },
+}
+
+/// The element model of the sim block (`model = fem | springs(…)`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ForceModelKind {
+    Fem,
+    /// A spring mesh with this volume stiffness (SI).
+    Springs {
+        volume_stiffness: f64,
+    },
+}
+
+/// `output csv(SET) every …`: a node set's log.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CsvLog {
+    pub set: String,
+    /// The interval: seconds, or steps when `in_steps`.
+    pub every: f64,
+    pub in_steps: bool,
+}
+
+/// The sim block, resolved.
+#[derive(Debug, Clone)]
+pub struct SimSettings {
+    pub dt: DtChoice,
+    pub steps: Option<u64>,
+    /// The simulated duration in seconds, when the script fixes it.
+    pub duration: Option<f64>,
+    /// Inertia scaling (1 without the setting).
+    pub mass_scaling: f64,
+    /// `precision = f32|f64`.
+    pub precision: Option<Precision>,
+    pub model: ForceModelKind,
+    /// `output vtk every N steps`.
+    pub vtk_every: Option<u64>,
+    pub csv: Vec<CsvLog>,
+}
+
+impl SimSettings {
+    pub(super) fn resolve(
+        program: &Program,
+        ast: &Script,
+        duration: Option<f64>,
+    ) -> Result<SimSettings, String> {
+        let setting = |name: &str| {
+            ast.sim_setting(name)
+                .map(|e| const_scalar(program, e))
+                .transpose()
+        };
+        let dt = match ast.sim_setting("dt") {
+            None => return Err("the sim block has no `dt`".into()),
+            Some(e) => match &e.kind {
+                ExprKind::Name(n) if n.name == "auto" => DtChoice::Auto { safety: 0.9 },
+                ExprKind::Call { callee, args } if matches!(&callee.kind, ExprKind::Name(n) if n.name == "auto") => {
+                    DtChoice::Auto {
+                        safety: const_scalar(program, &args[0].value)?,
+                    }
+                }
+                _ => DtChoice::Given(const_scalar(program, e)?),
+            },
+        };
+        let steps = setting("steps")?.map(|s| s as u64);
+        let mass_scaling = setting("mass_scaling")?.unwrap_or(1.0);
+        let precision = match ast.sim_setting("precision").map(|e| &e.kind) {
+            Some(ExprKind::Name(n)) if n.name == "f64" => Some(Precision::F64),
+            Some(ExprKind::Name(n)) if n.name == "f32" => Some(Precision::F32),
+            _ => None,
+        };
+        let model = match ast.sim_setting("model").map(|e| &e.kind) {
+            Some(ExprKind::Call { args, .. }) => {
+                let alpha = args
+                    .iter()
+                    .find(|a| {
+                        a.name
+                            .as_ref()
+                            .is_some_and(|n| n.name == "volume_stiffness")
+                    })
+                    .or_else(|| args.first().filter(|a| a.name.is_none()))
+                    .map(|a| const_scalar(program, &a.value))
+                    .transpose()?
+                    .unwrap_or(0.0);
+                ForceModelKind::Springs {
+                    volume_stiffness: alpha,
+                }
+            }
+            _ => ForceModelKind::Fem,
+        };
+        let mut vtk_every = None;
+        let mut csv = Vec::new();
+        for stmt in ast.sim_block() {
+            let StmtKind::Output { what, every, steps } = &stmt.kind else {
+                continue;
+            };
+            match &what.kind {
+                ExprKind::Name(n) if n.name == "vtk" && *steps && vtk_every.is_none() => {
+                    if let ExprKind::Number { value, .. } = &every.kind {
+                        vtk_every = Some(*value as u64);
+                    }
+                }
+                ExprKind::Call { callee, args } => {
+                    let (ExprKind::Name(f), Some(ExprKind::Name(set))) =
+                        (&callee.kind, args.first().map(|a| &a.value.kind))
+                    else {
+                        continue;
+                    };
+                    if f.name != "csv" {
+                        continue;
+                    }
+                    csv.push(CsvLog {
+                        set: set.name.clone(),
+                        every: const_scalar(program, every)?,
+                        in_steps: *steps,
+                    });
+                }
+                _ => {}
+            }
+        }
+        Ok(SimSettings {
+            dt,
+            steps,
+            duration,
+            mass_scaling,
+            precision,
+            model,
+            vtk_every,
+            csv,
+        })
+    }
+
+    /// The number of steps for a time step `dt`.
+    pub fn steps_for(&self, dt: f64) -> u64 {
+        match (self.steps, self.duration) {
+            (Some(n), _) => n,
+            (None, Some(d)) => (d / dt - 1e-9).ceil().max(1.0) as u64,
+            _ => 1,
+        }
+    }
+}
+
+/// The optimize block's `checkpoint` setting.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CheckpointSpec {
+    Auto,
+    StoreAll,
+    Periodic(u64),
+    Revolve(usize),
+}
+
+/// The backward pass's settings from the optimize block (the CLI may override them).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct GradSettings {
+    pub checkpoint: Option<CheckpointSpec>,
+    /// Bytes.
+    pub memory_budget: Option<u64>,
+    /// Steps.
+    pub truncate: Option<u64>,
+}
+
+impl GradSettings {
+    pub(super) fn resolve(program: &Program, ast: &Script) -> Result<GradSettings, String> {
+        let constant = |e: &Expr| const_scalar(program, e);
+        let mut o = GradSettings::default();
+        if let Some(e) = ast.optimize_setting("checkpoint") {
+            o.checkpoint = Some(match &e.kind {
+                ExprKind::Name(n) if n.name == "store_all" => CheckpointSpec::StoreAll,
+                ExprKind::Call { callee, args } => {
+                    let k = args
+                        .first()
+                        .map(|a| constant(&a.value))
+                        .transpose()?
+                        .unwrap_or(1.0)
+                        .max(1.0) as u64;
+                    match &callee.kind {
+                        ExprKind::Name(n) if n.name == "periodic" => CheckpointSpec::Periodic(k),
+                        _ => CheckpointSpec::Revolve(k as usize),
+                    }
+                }
+                _ => CheckpointSpec::Auto,
+            });
+        }
+        if let Some(e) = ast.optimize_setting("memory_budget") {
+            o.memory_budget = Some(constant(e)? as u64);
+        }
+        if let Some(e) = ast.optimize_setting("truncate") {
+            o.truncate = Some(constant(e)?.max(1.0) as u64);
+        }
+        Ok(o)
+    }
+}
+
+/// The script's `mesh … = load("FILE", unit: …)`, or `mesh_override` in its place.
+pub(super) fn mesh_decl(
+    program: &Program,
+    ast: &Script,
+    base: &Path,
+) -> Result<super::MeshDecl, String> {
+    let value = ast
+        .items
+        .iter()
+        .find_map(|i| match &i.kind {
+            ItemKind::Decl {
+                kind: DeclKind::Mesh,
+                value,
+                ..
+            } => Some(value),
+            _ => None,
+        })
+        .ok_or("the script declares no mesh")?;
+    let ExprKind::Call { args, .. } = &value.kind else {
+        return Err("the mesh is not loaded".into());
+    };
+    let path_arg = arg(args, "path", 0);
+    let (written, span) = match path_arg.map(|e| (&e.kind, e.span)) {
+        Some((ExprKind::Str(s), span)) => (PathBuf::from(s), Some((span.start, span.end))),
+        _ => return Err("the mesh path is not a string".into()),
+    };
+    let unit = match arg(args, "unit", 1) {
+        Some(u) => const_scalar(program, u)?,
+        None => 1e-3,
+    };
+    Ok(super::MeshDecl {
+        path: base.join(&written),
+        written,
+        unit,
+        span,
+    })
+}
+
+/// The argument named `name`, or the positional one at `pos`.
+pub(super) fn arg<'a>(args: &'a [Arg], name: &str, pos: usize) -> Option<&'a Expr> {
+    args.iter()
+        .find(|a| a.name.as_ref().is_some_and(|n| n.name == name))
+        .or_else(|| args.get(pos).filter(|a| a.name.is_none()))
+        .map(|a| &a.value)
+}
+
+/// A call's callee name and arguments.
+pub(super) fn call_parts(e: &Expr) -> Option<(&str, &[Arg])> {
+    match &e.kind {
+        ExprKind::Call { callee, args } => match &callee.kind {
+            ExprKind::Name(n) => Some((n.name.as_str(), args.as_slice())),
+            _ => None,
+        },
+        _ => None,
+    }
+}
+
+/// As [`call_parts`], with a bare name taken as a call without arguments (`adam`, `cosine`).
+pub(super) fn call_or_name(e: &Expr) -> Option<(&str, &[Arg])> {
+    match &e.kind {
+        ExprKind::Name(n) => Some((n.name.as_str(), &[])),
+        _ => call_parts(e),
+    }
+}
