@@ -41,23 +41,25 @@ impl LVal {
     }
 }
 
-/// The declarations names resolve to: the user's script, then the prelude.
+/// The declarations names resolve to: the user's script, then the prelude (a user's
+/// declaration shadows a prelude one of the same name), indexed by name once.
 pub struct Program<'a> {
-    pub items: Vec<&'a Item>,
+    by_name: HashMap<&'a str, &'a Item>,
 }
 
 impl<'a> Program<'a> {
     pub fn new(user: &'a Script, prelude: &'a Script) -> Self {
-        Program {
-            items: user.items.iter().chain(prelude.items.iter()).collect(),
+        let mut by_name = HashMap::new();
+        for item in user.items.iter().chain(prelude.items.iter()) {
+            if let Some(name) = item_name(item) {
+                by_name.entry(name).or_insert(item);
+            }
         }
+        Program { by_name }
     }
 
     pub fn find(&self, name: &str) -> Option<&'a Item> {
-        self.items
-            .iter()
-            .copied()
-            .find(|i| item_name(i) == Some(name))
+        self.by_name.get(name).copied()
     }
 }
 
