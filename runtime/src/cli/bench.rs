@@ -9,8 +9,11 @@
 //! over the same steps: forward+backward steps/s (median), the bytes of states it stored, its
 //! recompute ratio and d loss / d p_peak.
 
+use crate::devices::Backend;
+use crate::devices::cpu::Cpu;
+use crate::devices::interp::Interpreter;
+use crate::engine::Simulation;
 use crate::engine::scene::Scene;
-use crate::engine::{Backend, Cpu, Interpreter, Simulation};
 use clap::Args;
 use softc_compiler::back::Precision;
 use std::io::Write;

@@ -4,8 +4,11 @@
 //! summary with `history` and `params`.
 
 use super::run::{BackendChoice, RunArgs, gradients_json, summary_json};
+use crate::devices::Backend;
+use crate::devices::cpu::Cpu;
+use crate::devices::interp::Interpreter;
+use crate::engine::Simulation;
 use crate::engine::scene::Scene;
-use crate::engine::{Backend, Cpu, Interpreter, Simulation};
 use crate::optim::Plan;
 use crate::optim::train::{Record, SceneRecord, Stopped, TrainState, Trainer};
 use softc_compiler::back::Precision;

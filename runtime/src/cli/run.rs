@@ -1,8 +1,11 @@
 //! `softc run`: simulate a script and report a JSON summary.
 
+use crate::devices::Backend;
+use crate::devices::cpu::Cpu;
+use crate::devices::interp::Interpreter;
 use crate::engine::adjoint::{Checkpointing, GradOptions, GradientReport};
 use crate::engine::scene::Scene;
-use crate::engine::{Cpu, Interpreter, RunSummary, Simulation};
+use crate::engine::{RunSummary, Simulation};
 use clap::{Args, ValueEnum};
 use softc_compiler::back::Precision;
 use std::io::Write;
@@ -476,7 +479,7 @@ fn run_scenes(
 }
 
 /// Print the stable-step estimate before a run, and warn when the step exceeds it.
-fn announce_dt<B: crate::engine::Backend>(
+fn announce_dt<B: Backend>(
     sim: &mut Simulation<B>,
     dt: Option<f64>,
     err: &mut dyn Write,
@@ -649,7 +652,7 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
 
 /// A forward run, or with `--grad` a forward and backward pass, on one backend. An empty error
 /// means the message was already printed (a usage error).
-fn simulate<B: crate::engine::Backend>(
+fn simulate<B: Backend>(
     scene: &Scene,
     backend: B,
     args: &RunArgs,
@@ -663,7 +666,7 @@ fn simulate<B: crate::engine::Backend>(
 
 /// A simulation as `softc run` sets it up: the inputs' values, the VTK and CSV outputs, the
 /// stable step announced.
-fn prepare<'s, B: crate::engine::Backend>(
+fn prepare<'s, B: Backend>(
     scene: &'s Scene,
     backend: B,
     inputs: &[(String, f64)],
@@ -686,7 +689,7 @@ fn prepare<'s, B: crate::engine::Backend>(
 }
 
 /// The forward run, or forward and backward with `grad` options.
-fn execute<B: crate::engine::Backend>(
+fn execute<B: Backend>(
     sim: &mut Simulation<B>,
     args: &RunArgs,
     dt: Option<f64>,

@@ -14,8 +14,9 @@
 //! under `OUT/variants/` (absolute mesh path, its settings in the `sim` block) so any point can
 //! be rerun with `softc run`.
 
+use crate::devices::cpu::Cpu;
+use crate::engine::Simulation;
 use crate::engine::scene::Scene;
-use crate::engine::{Cpu, Simulation};
 use crate::mesh::mesher::{MeshSpec, generate};
 use softc_compiler::back::Precision;
 use softc_compiler::front::ast::{DeclKind, ExprKind, ItemKind, Script, StmtKind};

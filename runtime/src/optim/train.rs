@@ -10,8 +10,9 @@
 use super::batch;
 use super::method::{self, MethodState};
 use super::{Entry, Plan};
+use crate::devices::Backend;
 use crate::engine::adjoint::GradOptions;
-use crate::engine::{Backend, RunError, RunSummary, Simulation};
+use crate::engine::{RunError, RunSummary, Simulation};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
