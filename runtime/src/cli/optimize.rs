@@ -3,7 +3,7 @@
 //! (`--resume DIR` continues it), plots, the final optimized run's VTK series and the JSON
 //! summary with `history` and `params`.
 
-use super::run::{BackendChoice, RunArgs, gradients_json, summary_json};
+use super::run::{BackendChoice, RunArgs};
 use crate::devices::Backend;
 use crate::devices::cpu::Cpu;
 use crate::devices::interp::Interpreter;
@@ -11,6 +11,7 @@ use crate::engine::Simulation;
 use crate::engine::scene::Scene;
 use crate::optim::Plan;
 use crate::optim::train::{Record, SceneRecord, Stopped, TrainState, Trainer};
+use crate::outputs::json::{gradients_json, summary_json};
 use softc_compiler::back::Precision;
 use std::collections::BTreeMap;
 use std::io::{IsTerminal, Write};
@@ -333,7 +334,7 @@ fn train<B: Backend + Send>(
             let folder = d.join("vtk");
             std::fs::create_dir_all(&folder)
                 .map_err(|e| format!("cannot create `{}`: {e}", folder.display()))?;
-            Some(crate::engine::VtkOutput {
+            Some(crate::outputs::vtk::VtkOutput {
                 series: crate::mesh::writers::PvdSeries::new(
                     &folder,
                     "optimized",

@@ -357,7 +357,7 @@ fn measure(
     let seconds = t1.elapsed().as_secs_f64();
     let (_, nodes) = &scene.node_sets[set_index];
     let [mean, _, _] =
-        crate::engine::set_displacement(nodes, &scene.mesh.nodes, |n| run.summary.x[n]);
+        crate::outputs::set_displacement(nodes, &scene.mesh.nodes, |n| run.summary.x[n]);
     let value = mean[sweep.axis];
     Ok(Point {
         label: label.to_string(),

@@ -19,6 +19,8 @@ pub use crate::devices::Backend;
 pub use crate::devices::cpu::Cpu;
 
 use crate::devices::{Launch, Lockstep, Uniforms};
+use crate::outputs::csv::CsvOutput;
+use crate::outputs::vtk::{Frame, VtkOutput};
 use scene::{DtChoice, Scene};
 use softc_compiler::back::Precision;
 use softc_compiler::ir::BufferId;
@@ -137,81 +139,6 @@ pub struct Simulation<'s, B: Backend> {
     /// re-estimated when a run blows up.
     last_good: Option<(u64, Vec<f64>)>,
     ids: Ids,
-}
-
-/// Mean, min and max displacement of a node set per axis (m): what `softc run` reports per set
-/// and `output csv(SET)` logs. `position(n)` is node n's current position.
-pub fn set_displacement(
-    nodes: &[u32],
-    rest: &[[f64; 3]],
-    position: impl Fn(usize) -> [f64; 3],
-) -> [[f64; 3]; 3] {
-    let mut mean = [0.0; 3];
-    let mut min = [f64::INFINITY; 3];
-    let mut max = [f64::NEG_INFINITY; 3];
-    for &n in nodes {
-        let (x, x0) = (position(n as usize), rest[n as usize]);
-        for d in 0..3 {
-            let u = x[d] - x0[d];
-            mean[d] += u / nodes.len().max(1) as f64;
-            min[d] = min[d].min(u);
-            max[d] = max[d].max(u);
-        }
-    }
-    [mean, min, max]
-}
-
-/// `output csv(SET) every …`: the mean, min and max displacement of a node set over time,
-/// collected while running and written atomically when the run ends (also when it fails, so a
-/// blow-up leaves its history).
-pub struct CsvOutput {
-    pub path: std::path::PathBuf,
-    /// Nodes of the set.
-    pub nodes: Vec<u32>,
-    /// Write every this many steps (and the first and last state).
-    pub every: u64,
-    rows: String,
-}
-
-impl CsvOutput {
-    pub fn new(path: std::path::PathBuf, nodes: Vec<u32>, every: u64) -> Self {
-        CsvOutput {
-            path,
-            nodes,
-            every: every.max(1),
-            rows: "step,t_s,mean_ux_m,mean_uy_m,mean_uz_m,min_ux_m,min_uy_m,min_uz_m,max_ux_m,max_uy_m,max_uz_m\n"
-                .into(),
-        }
-    }
-
-    fn record(&mut self, step: u64, t: f64, rest: &[[f64; 3]], x: &[f64]) {
-        use std::fmt::Write;
-        let [mean, min, max] = set_displacement(&self.nodes, rest, |n| {
-            [x[3 * n], x[3 * n + 1], x[3 * n + 2]]
-        });
-        let _ = write!(self.rows, "{step},{t:e}");
-        for v in mean.iter().chain(&min).chain(&max) {
-            let _ = write!(self.rows, ",{v:e}");
-        }
-        self.rows.push('\n');
-    }
-
-    fn finish(&self) -> Result<(), RunError> {
-        crate::cli::write_atomically(&self.path, self.rows.as_bytes()).map_err(|e| {
-            RunError(format!(
-                "cannot write the CSV output `{}`: {e}",
-                self.path.display()
-            ))
-        })
-    }
-}
-
-/// A `.pvd` series of `.vtu` files: the deformed mesh with displacement and velocity per
-/// node, strain energy and volume ratio J per element.
-pub struct VtkOutput {
-    pub series: crate::mesh::writers::PvdSeries,
-    /// Write every this many steps (and the first and last state).
-    pub every: u64,
 }
 
 struct Ids {
@@ -444,7 +371,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let loss_fn = loss::Loss::build(self.scene, dt, steps).map_err(RunError)?;
         let stepped = self.run_steps(dt, steps, loss_fn.as_ref());
         // The logs are written whether or not the run finished: a blow-up keeps its history.
-        let written: Result<Vec<()>, RunError> = self.csv.iter().map(CsvOutput::finish).collect();
+        let written: Result<Vec<()>, RunError> = self
+            .csv
+            .iter()
+            .map(|c| c.finish().map_err(RunError))
+            .collect();
         let loss_sum = stepped?;
         written?;
         if self.vtk.is_some() {
@@ -642,38 +573,16 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .map(|b| self.backend.get(b))
             .unwrap_or_default();
         let j = self.backend.get(self.ids.elem_j);
-        let pos: Vec<[f64; 3]> = x.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
-        let disp: Vec<[f64; 3]> = pos
-            .iter()
-            .zip(&scene.mesh.nodes)
-            .map(|(p, p0)| [p[0] - p0[0], p[1] - p0[1], p[2] - p0[2]])
-            .collect();
-        let vel: Vec<[f64; 3]> = v.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
-        let density: Vec<f64> = energy
-            .iter()
-            .zip(&scene.pre.rest_volume)
-            .map(|(e, v0)| e / v0)
-            .collect();
-        use crate::mesh::writers::Field;
-        // The spring mesh has no strain energy: its elements carry J only.
-        let mut cell_fields = vec![("J", Field::Scalar(&j))];
-        if !density.is_empty() {
-            cell_fields.insert(0, ("strain_energy_density", Field::Scalar(&density)));
-        }
+        let frame = Frame {
+            t,
+            x: &x,
+            v: &v,
+            energy: &energy,
+            j: &j,
+        };
         let out = self.vtk.as_mut().expect("vtk output");
-        out.series
-            .write_step(
-                &scene.mesh,
-                t,
-                &pos,
-                &[
-                    ("displacement", Field::Vector(&disp)),
-                    ("velocity", Field::Vector(&vel)),
-                ],
-                &cell_fields,
-            )
-            .map(|_| ())
-            .map_err(|e| RunError(format!("cannot write the VTK output: {e}")))
+        out.write_frame(&scene.mesh, &scene.pre.rest_volume, &frame)
+            .map_err(RunError)
     }
 
     fn check_state(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
