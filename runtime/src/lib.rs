@@ -9,3 +9,4 @@ pub mod mesh;
 pub mod optim;
 pub mod outputs;
 pub mod reference;
+pub mod session;

@@ -9,9 +9,13 @@ pub mod optimize;
 pub mod run;
 pub mod tradeoff;
 
-// Every command writes its files atomically.
+// Through here, not from each other: `softc run` hands a script with an `optimize` block to
+// the optimization, which reads the same flags; every command writes files atomically.
 pub use crate::outputs::atomic::write_atomically;
+pub use optimize::optimize;
+pub use run::RunArgs;
 
+use crate::devices::{BackendChoice, PrecisionChoice};
 use clap::{Parser, Subcommand, ValueEnum};
 use softc_compiler::diag::{Diagnostic, SourceFile};
 use softc_compiler::sema::CheckOptions;
@@ -62,14 +66,14 @@ pub enum Command {
         emit: Emit,
         /// Precision of `--emit wgsl` (default: the script's `precision` setting, else f32).
         #[arg(long, value_enum)]
-        precision: Option<run::PrecisionChoice>,
+        precision: Option<PrecisionChoice>,
         /// `--emit wgsl` for a batch of this many scenes run in one dispatch (what `softc run
         /// --backend gpu` uses when an optimization evaluates several scenes per iteration).
         #[arg(long, value_name = "SCENES")]
         batch: Option<u32>,
     },
     /// Simulate a script and print a JSON summary (optimization comes with the adjoint).
-    Run(run::RunArgs),
+    Run(RunArgs),
     /// Forward speed of every backend on the canonical benchmark scene (table, `--json`).
     Bench(bench::BenchArgs),
     /// Generate, inspect and convert tetrahedral meshes.
@@ -236,7 +240,7 @@ fn check_options(path: &Path) -> CheckOptions {
 fn compile_file(
     path: &Path,
     emit: Emit,
-    precision: Option<run::PrecisionChoice>,
+    precision: Option<PrecisionChoice>,
     batch: Option<u32>,
     out: &mut dyn Write,
     err: &mut dyn Write,
@@ -302,15 +306,13 @@ fn compile_file(
             }
         }
         Ok(scene) if emit == Emit::Wgsl => {
-            use softc_compiler::back::{Precision, wgsl};
-            let p = match (precision, ast.sim_setting("precision").map(|e| &e.kind)) {
-                (Some(run::PrecisionChoice::F64), _) => Precision::F64,
-                (Some(run::PrecisionChoice::F32), _) => Precision::F32,
-                (None, Some(softc_compiler::front::ast::ExprKind::Name(n))) if n.name == "f64" => {
-                    Precision::F64
-                }
-                _ => Precision::F32,
+            use softc_compiler::back::wgsl;
+            let setting = match ast.sim_setting("precision").map(|e| &e.kind) {
+                Some(softc_compiler::front::ast::ExprKind::Name(n)) => Some(n.name.as_str()),
+                _ => None,
             };
+            let p =
+                crate::devices::precision(BackendChoice::Gpu, precision.map(Into::into), setting);
             let emitted = match batch {
                 Some(n) => wgsl::emit_batched(&scene.adjoint.module, p, n),
                 None => wgsl::emit(&scene.adjoint.module, p),

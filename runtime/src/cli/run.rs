@@ -1,14 +1,12 @@
 //! `softc run`: simulate a script and report a JSON summary.
 
-use crate::devices::Backend;
-use crate::devices::cpu::Cpu;
-use crate::devices::interp::Interpreter;
-use crate::engine::adjoint::{Checkpointing, GradOptions, GradientReport};
+use crate::devices::{Backend, BackendChoice, DeviceChoice, PrecisionChoice};
+use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
 use crate::engine::{RunSummary, Simulation};
 use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
-use clap::{Args, ValueEnum};
-use softc_compiler::back::Precision;
+use crate::session::{csv_outputs, grad_options, parse_quantity, vtk_every};
+use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
 
@@ -86,52 +84,26 @@ pub struct RunArgs {
     pub no_optimize: bool,
 }
 
-#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
-pub enum PrecisionChoice {
-    F32,
-    F64,
-}
-
-#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
-pub enum BackendChoice {
-    /// Native code through Cranelift, multi-threaded, deterministic.
-    Cpu,
-    /// The kernel-IR interpreter: the reference semantics of the kernels, slow.
-    Interp,
-    /// The plain-Rust f64 reference simulator (the test oracle).
-    Reference,
-    /// WGSL kernels on a GPU through wgpu (Vulkan, Metal, DX12; lavapipe without a GPU).
-    Gpu,
-}
-
-/// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
-pub(crate) fn parse_quantity(
-    text: &str,
-) -> Result<(f64, softc_compiler::sema::units::Dim), String> {
-    let src = format!("let __value = {text}");
-    let ast = softc_compiler::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
-    let Some(softc_compiler::front::ast::Item {
-        kind: softc_compiler::front::ast::ItemKind::Let(l),
-        ..
-    }) = ast.items.first()
-    else {
-        return Err(format!("`{text}` is not a value"));
-    };
-    let (num, dim) = match &l.value.kind {
-        softc_compiler::front::ast::ExprKind::Number { value, unit, .. } => {
-            let mut factor = 1.0;
-            let mut dim = softc_compiler::sema::units::Dim::NONE;
-            for f in unit.iter().flat_map(|u| &u.factors) {
-                let (k, d) = softc_compiler::sema::units::unit(&f.name)
-                    .ok_or_else(|| format!("unknown unit `{}` in `{text}`", f.name))?;
-                factor *= k.powi(f.power);
-                dim = dim.times(d.powi(f.power).unwrap_or(d));
-            }
-            (value * factor, dim)
+impl RunArgs {
+    /// The device `--backend`, `--precision`, `--adapter` and `--threads` ask for.
+    pub fn device(&self) -> DeviceChoice<'_> {
+        DeviceChoice {
+            backend: self.backend,
+            precision: self.precision.map(Into::into),
+            adapter: self.adapter.as_deref(),
+            threads: self.threads,
         }
-        _ => return Err(format!("`{text}` is not a number with a unit")),
-    };
-    Ok((num, dim))
+    }
+
+    /// The backward pass's settings: the script's, overridden by `--checkpoint` and
+    /// `--memory-budget`.
+    pub fn grad_options(&self, scene: &Scene) -> Result<GradOptions, String> {
+        grad_options(
+            scene,
+            self.checkpoint.as_deref(),
+            self.memory_budget.as_deref(),
+        )
+    }
 }
 
 /// The entries of a JSON file's `params` object (or of the file's top-level object), flattened
@@ -228,7 +200,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     }
     if !args.grad && !args.no_optimize {
         match crate::optim::Plan::from_scene(&scene) {
-            Ok(Some(plan)) => return super::optimize::optimize(&args, &scene, plan, dt, out, err),
+            Ok(Some(plan)) => return super::optimize(&args, &scene, plan, dt, out, err),
             Ok(None) => {}
             Err(e) => {
                 let _ = writeln!(err, "{}: optimize: {e}", args.file.display());
@@ -339,16 +311,6 @@ fn kernel_module<'a>(scene: &'a Scene, args: &RunArgs) -> &'a softc_compiler::ir
     }
 }
 
-/// The kernels' precision: `--precision`, else the script's `precision` setting, else the
-/// backend's default.
-pub(super) fn precision_for(args: &RunArgs, scene: &Scene, default: Precision) -> Precision {
-    match (args.precision, scene.precision_setting()) {
-        (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
-        (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
-        _ => default,
-    }
-}
-
 /// A scene's summary, with its gradients after `--grad`.
 type SceneRun = (RunSummary, Option<GradientReport>);
 type SceneResult = Result<(SceneRun, &'static str), String>;
@@ -369,29 +331,16 @@ fn run_scene(scene: &Scene, args: &RunArgs, dt: Option<f64>, err: &mut dyn Write
                 Ok(((s, None), "reference"))
             })
         }
-        BackendChoice::Interp => {
-            let module = kernel_module(scene, args);
-            simulate(scene, Interpreter::new(module), args, dt, err).map(|o| (o, "interp"))
-        }
-        BackendChoice::Gpu => {
-            let precision = precision_for(args, scene, Precision::F32);
-            let module = kernel_module(scene, args);
-            match crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()) {
-                Ok(gpu) => {
-                    let _ = writeln!(err, "adapter: {}; kernels in {precision}", gpu.adapter());
-                    simulate(scene, gpu, args, dt, err).map(|o| (o, "gpu"))
-                }
-                Err(e) => Err(e),
-            }
-        }
-        BackendChoice::Cpu => {
-            let precision = precision_for(args, scene, Precision::F64);
+        _ => {
             // The adjoint kernels are compiled only when the backward pass runs.
             let module = kernel_module(scene, args);
-            match Cpu::new(module, precision, args.threads) {
-                Ok(cpu) => simulate(scene, cpu, args, dt, err).map(|o| (o, "cpu")),
-                Err(e) => Err(format!("the kernels do not compile: {e}")),
+            let devices = crate::devices::open(&args.device(), scene, module, 1)?;
+            let device = devices.make()?;
+            if let Some(adapter) = device.adapter() {
+                let _ = writeln!(err, "adapter: {adapter}; kernels in {}", devices.precision);
             }
+            let name = device.name();
+            simulate(scene, device, args, dt, err).map(|o| (o, name))
         }
     }
 }
@@ -509,68 +458,6 @@ fn announce_dt<B: Backend>(
     Ok(())
 }
 
-/// The node-set logs of the script's `output csv(SET) every …` statements, written into
-/// `--csv DIR`; without it, a note says how to get them.
-pub(super) fn csv_outputs(
-    args: &RunArgs,
-    scene: &Scene,
-    dt: f64,
-    err: &mut dyn Write,
-) -> Result<Vec<crate::outputs::csv::CsvOutput>, String> {
-    use softc_compiler::front::ast::{ExprKind, ItemKind, StmtKind};
-    let mut outputs = Vec::new();
-    let program = scene.program();
-    for item in &scene.ast.items {
-        let ItemKind::Sim(stmts) = &item.kind else {
-            continue;
-        };
-        for stmt in stmts {
-            let StmtKind::Output { what, every, steps } = &stmt.kind else {
-                continue;
-            };
-            let ExprKind::Call { callee, args: call } = &what.kind else {
-                continue;
-            };
-            let (ExprKind::Name(f), Some(ExprKind::Name(set))) =
-                (&callee.kind, call.first().map(|a| &a.value.kind))
-            else {
-                continue;
-            };
-            if f.name != "csv" {
-                continue;
-            }
-            let Some(dir) = &args.csv else {
-                let _ = writeln!(
-                    err,
-                    "note: the script logs `{}` (`output csv`); add --csv DIR to write it",
-                    set.name
-                );
-                continue;
-            };
-            let interval = crate::optim::constant(&program, every)?;
-            let every_steps = if *steps {
-                interval.round().max(1.0) as u64
-            } else {
-                (interval / dt).round().max(1.0) as u64
-            };
-            let nodes = scene
-                .node_sets
-                .iter()
-                .find(|(n, _)| *n == set.name)
-                .map(|(_, nodes)| nodes.clone())
-                .ok_or_else(|| format!("`output csv({})`: no node set of that name", set.name))?;
-            std::fs::create_dir_all(dir)
-                .map_err(|e| format!("cannot create `{}`: {e}", dir.display()))?;
-            outputs.push(crate::outputs::csv::CsvOutput::new(
-                dir.join(format!("{}.csv", set.name)),
-                nodes,
-                every_steps,
-            ));
-        }
-    }
-    Ok(outputs)
-}
-
 /// The VTK series asked for with `--vtk DIR`.
 fn vtk_output(
     args: &RunArgs,
@@ -600,25 +487,6 @@ fn vtk_output(
     }))
 }
 
-/// `output vtk every N steps` in the sim block.
-pub(super) fn vtk_every(scene: &Scene) -> Option<u64> {
-    use softc_compiler::front::ast::{ExprKind, ItemKind, StmtKind};
-    scene.ast.items.iter().find_map(|i| match &i.kind {
-        ItemKind::Sim(stmts) => stmts.iter().find_map(|s| match &s.kind {
-            StmtKind::Output {
-                what,
-                every,
-                steps: true,
-            } if matches!(&what.kind, ExprKind::Name(n) if n.name == "vtk") => match &every.kind {
-                ExprKind::Number { value, .. } => Some(*value as u64),
-                _ => None,
-            },
-            _ => None,
-        }),
-        _ => None,
-    })
-}
-
 /// A forward run, or with `--grad` a forward and backward pass, on one backend. An empty error
 /// means the message was already printed (a usage error).
 fn simulate<B: Backend>(
@@ -629,7 +497,7 @@ fn simulate<B: Backend>(
     err: &mut dyn Write,
 ) -> Result<SceneRun, String> {
     let mut sim = prepare(scene, backend, &[], args, dt, err)?;
-    let options = args.grad.then(|| grad_options(scene, args)).transpose()?;
+    let options = args.grad.then(|| args.grad_options(scene)).transpose()?;
     execute(&mut sim, args, dt, options.as_ref())
 }
 
@@ -653,7 +521,7 @@ fn prepare<'s, B: Backend>(
     };
     announce_dt(&mut sim, dt, err)?;
     let (step, _) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
-    sim.csv = csv_outputs(args, scene, step, err)?;
+    sim.csv = csv_outputs(args.csv.as_deref(), scene, step, err)?;
     Ok(sim)
 }
 
@@ -682,21 +550,17 @@ fn run_gpu_batch(
     scenes: &[Vec<(String, f64)>],
     err: &mut dyn Write,
 ) -> Result<Vec<SceneRun>, String> {
-    let precision = precision_for(args, scene, Precision::F32);
     let module = kernel_module(scene, args);
-    let batch = crate::devices::gpu::GpuBatch::new(
-        module,
-        precision,
-        args.adapter.as_deref(),
-        scenes.len(),
-    )?;
-    let _ = writeln!(
-        err,
-        "adapter: {}; kernels in {precision}; {} scenes in one batch",
-        batch.adapter(),
-        scenes.len()
-    );
-    let options = args.grad.then(|| grad_options(scene, args)).transpose()?;
+    let batch = crate::devices::open(&args.device(), scene, module, scenes.len())?;
+    if let Some(adapter) = batch.adapter() {
+        let _ = writeln!(
+            err,
+            "adapter: {adapter}; kernels in {}; {} scenes in one batch",
+            batch.precision,
+            scenes.len()
+        );
+    }
+    let options = args.grad.then(|| args.grad_options(scene)).transpose()?;
     let mut sims = Vec::new();
     let mut scene_args = Vec::new();
     for (k, assignment) in scenes.iter().enumerate() {
@@ -704,7 +568,7 @@ fn run_gpu_batch(
         a.vtk = args.vtk.as_ref().map(|d| d.join(format!("scene{k}")));
         a.csv = args.csv.as_ref().map(|d| d.join(format!("scene{k}")));
         let _ = writeln!(err, "scene {k}:");
-        sims.push(prepare(scene, batch.scene(k)?, assignment, &a, dt, err)?);
+        sims.push(prepare(scene, batch.make()?, assignment, &a, dt, err)?);
         scene_args.push(a);
     }
     let options = options.as_ref();
@@ -715,67 +579,4 @@ fn run_gpu_batch(
     .enumerate()
     .map(|(k, r)| r.map_err(|e| format!("scene {k}: {}", e.0)))
     .collect()
-}
-
-/// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
-/// `truncate`, overridden by `--checkpoint` and `--memory-budget`.
-pub(super) fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions, String> {
-    use softc_compiler::front::ast::ExprKind;
-    let mut o = GradOptions::default();
-    let program = scene.program();
-    let constant = |e: &softc_compiler::front::ast::Expr| crate::optim::constant(&program, e);
-    if let Some(e) = scene.ast.optimize_setting("checkpoint") {
-        o.checkpoint = match &e.kind {
-            ExprKind::Name(n) if n.name == "store_all" => Checkpointing::StoreAll,
-            ExprKind::Call { callee, args } => {
-                let k = args
-                    .first()
-                    .map(|a| constant(&a.value))
-                    .transpose()?
-                    .unwrap_or(1.0)
-                    .max(1.0) as u64;
-                match &callee.kind {
-                    ExprKind::Name(n) if n.name == "periodic" => Checkpointing::Periodic(k),
-                    _ => Checkpointing::Revolve(k as usize),
-                }
-            }
-            _ => Checkpointing::Auto,
-        };
-    }
-    if let Some(e) = scene.ast.optimize_setting("memory_budget") {
-        o.memory_budget = Some(constant(e)? as u64);
-    }
-    if let Some(e) = scene.ast.optimize_setting("truncate") {
-        o.truncate = Some(constant(e)?.max(1.0) as u64);
-    }
-    if let Some(c) = &args.checkpoint {
-        let number = |s: &str| {
-            s.trim()
-                .parse::<u64>()
-                .ok()
-                .filter(|n| *n >= 1)
-                .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
-        };
-        o.checkpoint = match c.split_once(':') {
-            None if c == "auto" => Checkpointing::Auto,
-            None if c == "store_all" => Checkpointing::StoreAll,
-            Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
-            Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
-            _ => {
-                return Err(format!(
-                    "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
-                ));
-            }
-        };
-    }
-    if let Some(m) = &args.memory_budget {
-        let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
-        if dim != softc_compiler::sema::units::Dim::MEMORY || bytes <= 0.0 {
-            return Err(format!(
-                "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
-            ));
-        }
-        o.memory_budget = Some(bytes as u64);
-    }
-    Ok(o)
 }

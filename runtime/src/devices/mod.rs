@@ -1,10 +1,14 @@
 //! Devices that run a scene's kernels, each behind the [`Backend`] trait the time loop
 //! ([`crate::engine`]) drives: [`interp`], the kernel-IR interpreter (the reference semantics);
 //! [`cpu`], native code through Cranelift; [`gpu`], wgpu on any GPU (or Mesa's lavapipe).
+//! [`open`] is the one place that maps `--backend` and `--precision` to a device.
 
+pub mod choice;
 pub mod cpu;
 pub mod gpu;
 pub mod interp;
+
+pub use choice::{BackendChoice, Device, DeviceChoice, Devices, PrecisionChoice, open, precision};
 
 use crate::engine::scene::Scene;
 use softc_compiler::back::Precision;
