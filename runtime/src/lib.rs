@@ -7,4 +7,6 @@ pub mod engine;
 pub mod lsp;
 pub mod mesh;
 pub mod optim;
+pub mod outputs;
 pub mod reference;
+pub mod session;

@@ -3,8 +3,9 @@
 //! matches the measured limit, instability is reported instead of NaNs, a scene without load
 //! stays at rest, and runs are deterministic.
 
+use softc::devices::interp::Interpreter;
+use softc::engine::Simulation;
 use softc::engine::scene::Scene;
-use softc::engine::{Interpreter, Simulation};
 use std::path::{Path, PathBuf};
 
 fn root() -> PathBuf {
@@ -134,7 +135,7 @@ fn every_example_sets_up_a_scene() {
 
 #[test]
 fn cranelift_backend_is_bit_identical_to_the_interpreter_and_thread_independent() {
-    use softc::engine::Cpu;
+    use softc::devices::cpu::Cpu;
     use softc_compiler::back::Precision;
     for example in [
         "benchmark-1k.soft",
@@ -165,7 +166,7 @@ fn cranelift_backend_is_bit_identical_to_the_interpreter_and_thread_independent(
 
 #[test]
 fn f32_kernels_stay_close_to_f64() {
-    use softc::engine::Cpu;
+    use softc::devices::cpu::Cpu;
     use softc_compiler::back::Precision;
     let scene = Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
     let run = |p| {
@@ -338,7 +339,7 @@ fn an_inverted_element_recovers_with_the_inversion_safe_material_only() {
 /// its steady state; the result converges to the closed form as the mesh is refined.
 #[test]
 fn hanging_column_matches_the_closed_form_and_converges() {
-    use softc::engine::Cpu;
+    use softc::devices::cpu::Cpu;
     use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
     use softc_compiler::back::Precision;
     let dir = std::env::temp_dir().join(format!("softc-column-{}", std::process::id()));
@@ -402,7 +403,7 @@ fn hanging_column_matches_the_closed_form_and_converges() {
 /// tolerance stated below.
 #[test]
 fn cantilever_deflection_converges_to_beam_theory() {
-    use softc::engine::Cpu;
+    use softc::devices::cpu::Cpu;
     use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
     use softc_compiler::back::Precision;
     let dir = std::env::temp_dir().join(format!("softc-cantilever-{}", std::process::id()));
@@ -456,7 +457,7 @@ fn cantilever_deflection_converges_to_beam_theory() {
 
 #[test]
 fn a_run_to_steady_state_stops_once_settled_and_matches_a_long_run() {
-    use softc::engine::Cpu;
+    use softc::devices::cpu::Cpu;
     use softc_compiler::back::Precision;
     // The benchmark beam as a quasi-static scene: heavy nodes, the step from the estimate.
     let path = variant(
@@ -501,7 +502,7 @@ fn the_compiled_time_loop_gives_the_bits_of_launch_by_launch_stepping() {
     // (t and the double-buffered state handled inside). Forward runs (with a VTK-free,
     // windowed-loss scene) and checkpointed gradients, whose backward pass recomputes
     // segments through the loop, must equal stepping launch by launch to the bit.
-    use softc::engine::Cpu;
+    use softc::devices::cpu::Cpu;
     use softc::engine::adjoint::{Checkpointing, GradOptions};
     use softc_compiler::back::Precision;
     let scene = Scene::load(
@@ -565,7 +566,7 @@ fn the_compiled_time_loop_gives_the_bits_of_launch_by_launch_stepping() {
 #[test]
 #[ignore]
 fn time_loop_speed() {
-    use softc::engine::Cpu;
+    use softc::devices::cpu::Cpu;
     use softc_compiler::back::Precision;
     // The uniaxial cube (384 tets), where a step's host work weighs most.
     let fixtures = root().join("runtime/tests/fixtures/uniaxial");

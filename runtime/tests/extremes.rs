@@ -11,9 +11,10 @@
 //!
 //! Run with `cargo test -p softc --test extremes -- --nocapture` to see the measured figures.
 
+use softc::devices::cpu::Cpu;
+use softc::engine::Simulation;
 use softc::engine::adjoint::{Checkpointing, GradOptions};
 use softc::engine::scene::Scene;
-use softc::engine::{Cpu, Simulation};
 use softc::mesh::LengthUnit;
 use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
 use softc_compiler::back::Precision;

@@ -6,9 +6,12 @@
 //! Without an adapter these tests print a note and pass, except with `CI=true`, where they
 //! fail: CI installs Mesa's lavapipe (`mesa-vulkan-drivers`) so they always run there.
 
+use softc::devices::cpu::Cpu;
 use softc::devices::gpu::Gpu;
+use softc::devices::interp::Interpreter;
+use softc::devices::{Backend, Uniforms};
 use softc::engine::scene::Scene;
-use softc::engine::{Backend, Cpu, Interpreter, RunSummary, Simulation, Uniforms};
+use softc::engine::{RunSummary, Simulation};
 use softc_compiler::back::Precision;
 use softc_compiler::ir::{ArgSource, BinOp, Domain, KernelBuilder, Module, UnOp};
 use std::path::{Path, PathBuf};

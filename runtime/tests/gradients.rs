@@ -2,9 +2,12 @@
 //! differences in f64, every example, checkpoint schedules bit-identical to storing every
 //! state, the interpreter bit-identical to the Cranelift code, and clear errors.
 
+use softc::devices::Backend;
+use softc::devices::cpu::Cpu;
+use softc::devices::interp::Interpreter;
+use softc::engine::Simulation;
 use softc::engine::adjoint::{Checkpointing, GradOptions, GradientReport};
 use softc::engine::scene::Scene;
-use softc::engine::{Backend, Cpu, Interpreter, Simulation};
 use softc_compiler::back::Precision;
 use std::path::{Path, PathBuf};
 

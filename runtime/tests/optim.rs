@@ -2,9 +2,10 @@
 //! their scenes, circle_quadrants draws one target per quadrant, and a run killed with SIGKILL
 //! resumes to exactly the result of an uninterrupted one.
 
+use softc::devices::cpu::Cpu;
+use softc::engine::Simulation;
 use softc::engine::adjoint::GradOptions;
 use softc::engine::scene::Scene;
-use softc::engine::{Cpu, Simulation};
 use softc::optim::Plan;
 use softc::optim::train::Trainer;
 use softc_compiler::back::Precision;

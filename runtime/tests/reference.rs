@@ -4,8 +4,9 @@
 //! equal the finite-difference derivative of the energy; the benchmark's tip displacement and
 //! stable step match BENCHMARK.md.
 
+use softc::devices::interp::Interpreter;
 use softc::engine::scene::Scene;
-use softc::engine::{Interpreter, RunSummary, Simulation};
+use softc::engine::{RunSummary, Simulation};
 use softc::reference::{self, Reference};
 use std::path::{Path, PathBuf};
 

@@ -9,8 +9,9 @@
 //! gives W_J(J) = s/3 (which fixes J) and (2/J)(m_a − m_c) = s with
 //! m = (W₁ + Ī₁W₂) b̄ − W₂ b̄², solved for λ₁ (λ₂² = J/λ₁) by bisection.
 
+use softc::devices::cpu::Cpu;
+use softc::engine::Simulation;
 use softc::engine::scene::Scene;
-use softc::engine::{Cpu, Simulation};
 use softc_compiler::back::Precision;
 use std::path::{Path, PathBuf};
 

@@ -9,10 +9,12 @@
 //! over the same steps: forward+backward steps/s (median), the bytes of states it stored, its
 //! recompute ratio and d loss / d p_peak.
 
+use crate::devices::{Backend, BackendChoice, DeviceChoice, Devices};
+use crate::engine::Simulation;
 use crate::engine::scene::Scene;
-use crate::engine::{Backend, Cpu, Interpreter, Simulation};
 use clap::Args;
 use softc_compiler::back::Precision;
+use softc_compiler::ir::Module;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -256,10 +258,10 @@ fn time_batch(
     scenes: usize,
     args: &BenchArgs,
 ) -> Result<(f64, f64), String> {
-    let batch = crate::devices::gpu::GpuBatch::new(module, precision, None, scenes)?;
+    let batch = device(scene, module, BackendChoice::Gpu, precision, scenes, args)?;
     let mut sims = Vec::new();
-    for i in 0..scenes {
-        sims.push(Simulation::new(scene, batch.scene(i)?));
+    for _ in 0..scenes {
+        sims.push(Simulation::new(scene, batch.make()?));
     }
     let run = || -> Result<(f64, Vec<[f64; 3]>), String> {
         let start = Instant::now();
@@ -299,6 +301,25 @@ fn time_reference(scene: &Scene, args: &BenchArgs) -> Result<(f64, f64, f64), St
     Ok((setup, median(speeds), tip_mean_z(scene, &last)?))
 }
 
+/// The device of a row for `members` scenes, opened as `softc run --backend BACKEND
+/// --precision PRECISION` opens it.
+fn device<'m>(
+    scene: &Scene,
+    module: &'m Module,
+    backend: BackendChoice,
+    precision: Precision,
+    members: usize,
+    args: &BenchArgs,
+) -> Result<Devices<'m>, String> {
+    let choice = DeviceChoice {
+        backend,
+        precision: Some(precision),
+        adapter: None,
+        threads: args.threads,
+    };
+    crate::devices::open(&choice, scene, module, members)
+}
+
 /// Measure every backend on one size.
 fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
     let path = args.examples.join(format!("benchmark-{size}.soft"));
@@ -319,27 +340,29 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         gradient_p_peak: None,
         forward_backward_peak_rss_bytes: None,
     };
+    let adjoint = &scene.lowered.adjoint.module;
     for (name, precision) in [("cpu-f64", Precision::F64), ("cpu-f32", Precision::F32)] {
+        let forward = device(&scene, module, BackendChoice::Cpu, precision, 1, args)?;
+        let backward = device(&scene, adjoint, BackendChoice::Cpu, precision, 1, args)?;
         let start = Instant::now();
-        Cpu::new(module, precision, args.threads)?;
+        forward.make()?;
         let compile = start.elapsed().as_secs_f64();
-        let timed = time_engine(&scene, &|| Cpu::new(module, precision, args.threads), args)?;
-        let adjoint = &scene.lowered.adjoint.module;
-        let g = time_gradient(&scene, &|| Cpu::new(adjoint, precision, args.threads), args)?;
+        let timed = time_engine(&scene, &|| forward.make(), args)?;
+        let g = time_gradient(&scene, &|| backward.make(), args)?;
         rows.push(with_gradient(row(name, compile, timed), g));
     }
     // The GPU rows, when this machine has an adapter (lavapipe counts: it is one).
     for (name, precision) in [("gpu-f32", Precision::F32), ("gpu-f64", Precision::F64)] {
-        use crate::devices::gpu::Gpu;
+        let forward = device(&scene, module, BackendChoice::Gpu, precision, 1, args)?;
+        let backward = device(&scene, adjoint, BackendChoice::Gpu, precision, 1, args)?;
         let start = Instant::now();
-        if let Err(e) = Gpu::new(module, precision, None) {
+        if let Err(e) = forward.make() {
             eprintln!("note: no {name} row: {e}");
             continue;
         }
         let compile = start.elapsed().as_secs_f64();
-        let timed = time_engine(&scene, &|| Gpu::new(module, precision, None), args)?;
-        let adjoint = &scene.lowered.adjoint.module;
-        let g = time_gradient(&scene, &|| Gpu::new(adjoint, precision, None), args)?;
+        let timed = time_engine(&scene, &|| forward.make(), args)?;
+        let g = time_gradient(&scene, &|| backward.make(), args)?;
         rows.push(with_gradient(row(name, compile, timed), g));
         if args.batch > 1 && precision == Precision::F32 {
             let timed = time_batch(&scene, module, precision, args.batch, args)?;
@@ -348,7 +371,15 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
     }
     // The IR interpreter is the semantics, not a fast path: only on the smallest scene.
     if size == "1k" {
-        let timed = time_engine(&scene, &|| Ok(Interpreter::new(module)), args)?;
+        let interp = device(
+            &scene,
+            module,
+            BackendChoice::Interp,
+            Precision::F64,
+            1,
+            args,
+        )?;
+        let timed = time_engine(&scene, &|| interp.make(), args)?;
         rows.push(row("interp", 0.0, timed));
     }
     let (setup, sps, z) = time_reference(&scene, args)?;
@@ -484,7 +515,8 @@ fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<super::tradeoff::
         let (name, value) = s
             .split_once('=')
             .ok_or_else(|| format!("--set expects NAME=VALUE, found `{s}`"))?;
-        let (v, _) = super::run::parse_quantity(value).map_err(|e| format!("--set {name}: {e}"))?;
+        let (v, _) =
+            crate::session::parse_quantity(value).map_err(|e| format!("--set {name}: {e}"))?;
         overrides.push((name.trim().to_string(), v));
     }
     let safeties = list("safeties", &args.safeties, positive)?;
@@ -527,7 +559,7 @@ fn profile(args: &BenchArgs, out: &mut dyn Write) -> Result<(), String> {
         let scene = Scene::load(&path, &[]).map_err(|e| e.0)?;
         let module = &scene.lowered.module;
         for precision in [Precision::F64, Precision::F32] {
-            let cpu = Cpu::new(module, precision, args.threads)?;
+            let cpu = device(&scene, module, BackendChoice::Cpu, precision, 1, args)?.make()?;
             let mut sim = Simulation::new(&scene, Profiled::new(cpu, module, &scene));
             // One untimed run for the JIT and caches, then the profiled one.
             sim.run(None, Some(args.steps.min(50))).map_err(|e| e.0)?;

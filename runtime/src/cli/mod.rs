@@ -9,6 +9,13 @@ pub mod optimize;
 pub mod run;
 pub mod tradeoff;
 
+// Through here, not from each other: `softc run` hands a script with an `optimize` block to
+// the optimization, which reads the same flags; every command writes files atomically.
+pub use crate::outputs::atomic::write_atomically;
+pub use optimize::optimize;
+pub use run::RunArgs;
+
+use crate::devices::{BackendChoice, PrecisionChoice};
 use clap::{Parser, Subcommand, ValueEnum};
 use softc_compiler::CheckOptions;
 use softc_compiler::diag::{Diagnostic, SourceFile};
@@ -59,14 +66,14 @@ pub enum Command {
         emit: Emit,
         /// Precision of `--emit wgsl` (default: the script's `precision` setting, else f32).
         #[arg(long, value_enum)]
-        precision: Option<run::PrecisionChoice>,
+        precision: Option<PrecisionChoice>,
         /// `--emit wgsl` for a batch of this many scenes run in one dispatch (what `softc run
         /// --backend gpu` uses when an optimization evaluates several scenes per iteration).
         #[arg(long, value_name = "SCENES")]
         batch: Option<u32>,
     },
     /// Simulate a script and print a JSON summary (optimization comes with the adjoint).
-    Run(run::RunArgs),
+    Run(RunArgs),
     /// Forward speed of every backend on the canonical benchmark scene (table, `--json`).
     Bench(bench::BenchArgs),
     /// Generate, inspect and convert tetrahedral meshes.
@@ -233,7 +240,7 @@ fn check_options(path: &Path) -> CheckOptions {
 fn compile_file(
     path: &Path,
     emit: Emit,
-    precision: Option<run::PrecisionChoice>,
+    precision: Option<PrecisionChoice>,
     batch: Option<u32>,
     out: &mut dyn Write,
     err: &mut dyn Write,
@@ -298,13 +305,12 @@ fn compile_file(
             }
         }
         Ok((scene, program)) if emit == Emit::Wgsl => {
-            use softc_compiler::back::{Precision, wgsl};
-            let p = match (precision, program.sim.precision) {
-                (Some(run::PrecisionChoice::F64), _) => Precision::F64,
-                (Some(run::PrecisionChoice::F32), _) => Precision::F32,
-                (None, Some(Precision::F64)) => Precision::F64,
-                _ => Precision::F32,
-            };
+            use softc_compiler::back::wgsl;
+            let p = crate::devices::precision(
+                BackendChoice::Gpu,
+                precision.map(Into::into),
+                program.sim.precision,
+            );
             let emitted = match batch {
                 Some(n) => wgsl::emit_batched(&scene.adjoint.module, p, n),
                 None => wgsl::emit(&scene.adjoint.module, p),
@@ -433,31 +439,4 @@ fn first_difference<'a>(a: &'a str, b: &'a str) -> Option<(usize, &'a str, &'a s
             _ => {}
         }
     }
-}
-
-/// Replace `path` with `bytes` through a temporary file in the same directory and a rename, so
-/// an interrupted write never leaves a truncated file.
-pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let file_name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
-    let tmp = dir.join(format!(".{file_name}.{}.tmp", std::process::id()));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        if let Ok(meta) = std::fs::metadata(path) {
-            let _ = std::fs::set_permissions(&tmp, meta.permissions());
-        }
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
 }

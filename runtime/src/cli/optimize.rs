@@ -3,12 +3,13 @@
 //! (`--resume DIR` continues it), plots, the final optimized run's VTK series and the JSON
 //! summary with `history` and `params`.
 
-use super::run::{BackendChoice, RunArgs, gradients_json, summary_json};
+use super::RunArgs;
+use crate::devices::{Backend, BackendChoice};
+use crate::engine::Simulation;
 use crate::engine::scene::Scene;
-use crate::engine::{Backend, Cpu, Interpreter, Simulation};
 use crate::optim::Plan;
 use crate::optim::train::{Record, SceneRecord, Stopped, TrainState, Trainer};
-use softc_compiler::back::Precision;
+use crate::outputs::json::{gradients_json, summary_json};
 use std::collections::BTreeMap;
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -74,53 +75,8 @@ pub fn optimize(
              oracle runs forward only)"
                 .to_string(),
         ),
-        BackendChoice::Interp => train(&ctx, plan, members, || Ok(Interpreter::new(module)), err),
-        BackendChoice::Cpu => {
-            let precision = super::run::precision_for(args, scene, Precision::F64);
-            // Scenes of a batch run on their own threads: one kernel thread each.
-            let threads = args.threads.or((members > 1).then_some(1));
-            train(
-                &ctx,
-                plan,
-                members,
-                || {
-                    Cpu::new(module, precision, threads)
-                        .map_err(|e| format!("the kernels do not compile: {e}"))
-                },
-                err,
-            )
-        }
-        BackendChoice::Gpu => {
-            let precision = super::run::precision_for(args, scene, Precision::F32);
-            let adapter = args.adapter.as_deref();
-            if members > 1 {
-                // The batch's scenes in one set of buffers: each launch one dispatch for all.
-                match crate::devices::gpu::GpuBatch::new(module, precision, adapter, members) {
-                    Ok(batch) => {
-                        let next = std::cell::Cell::new(0);
-                        train(
-                            &ctx,
-                            plan,
-                            members,
-                            || {
-                                next.set(next.get() + 1);
-                                batch.scene(next.get() - 1)
-                            },
-                            err,
-                        )
-                    }
-                    Err(e) => Err(e),
-                }
-            } else {
-                train(
-                    &ctx,
-                    plan,
-                    members,
-                    || crate::devices::gpu::Gpu::new(module, precision, adapter),
-                    err,
-                )
-            }
-        }
+        _ => crate::devices::open(&args.device(), scene, module, members)
+            .and_then(|devices| train(&ctx, plan, members, || devices.make(), err)),
     };
     let json = match result {
         Ok(j) => j,
@@ -254,7 +210,7 @@ fn train<B: Backend + Send>(
     let mut trainer = Trainer::new(
         plan,
         sims,
-        super::run::grad_options(scene, args)?,
+        args.grad_options(scene)?,
         ctx.dt,
         args.steps,
         fingerprint(args, scene),
@@ -330,13 +286,13 @@ fn train<B: Backend + Send>(
             let folder = d.join("vtk");
             std::fs::create_dir_all(&folder)
                 .map_err(|e| format!("cannot create `{}`: {e}", folder.display()))?;
-            Some(crate::engine::VtkOutput {
+            Some(crate::outputs::vtk::VtkOutput {
                 series: crate::mesh::writers::PvdSeries::new(
                     &folder,
                     "optimized",
                     crate::mesh::LengthUnit::Millimetre,
                 ),
-                every: super::run::vtk_every(scene).unwrap_or(100),
+                every: crate::session::vtk_every(scene).unwrap_or(100),
             })
         }
         None => None,
@@ -354,7 +310,7 @@ fn train<B: Backend + Send>(
     if csv_args.csv.is_none() {
         csv_args.csv = ctx.dir.as_ref().map(|d| d.join("csv"));
     }
-    let csv = super::run::csv_outputs(&csv_args, scene, trainer.state.dt, err)?;
+    let csv = crate::session::csv_outputs(csv_args.csv.as_deref(), scene, trainer.state.dt, err)?;
     let summary = trainer.forward(&first_inputs, vtk, csv).map_err(|e| e.0)?;
     let validation = trainer.validate().map_err(|e| e.0)?;
     for v in &validation {

@@ -1,10 +1,12 @@
 //! `softc run`: simulate a script and report a JSON summary.
 
-use crate::engine::adjoint::{Checkpointing, GradOptions, GradientReport};
+use crate::devices::{Backend, BackendChoice, DeviceChoice, PrecisionChoice};
+use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
-use crate::engine::{Cpu, Interpreter, RunSummary, Simulation};
-use clap::{Args, ValueEnum};
-use softc_compiler::back::Precision;
+use crate::engine::{RunSummary, Simulation};
+use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
+use crate::session::{csv_outputs, grad_options, parse_quantity, vtk_every};
+use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
 
@@ -82,27 +84,26 @@ pub struct RunArgs {
     pub no_optimize: bool,
 }
 
-#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
-pub enum PrecisionChoice {
-    F32,
-    F64,
-}
+impl RunArgs {
+    /// The device `--backend`, `--precision`, `--adapter` and `--threads` ask for.
+    pub fn device(&self) -> DeviceChoice<'_> {
+        DeviceChoice {
+            backend: self.backend,
+            precision: self.precision.map(Into::into),
+            adapter: self.adapter.as_deref(),
+            threads: self.threads,
+        }
+    }
 
-#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
-pub enum BackendChoice {
-    /// Native code through Cranelift, multi-threaded, deterministic.
-    Cpu,
-    /// The kernel-IR interpreter: the reference semantics of the kernels, slow.
-    Interp,
-    /// The plain-Rust f64 reference simulator (the test oracle).
-    Reference,
-    /// WGSL kernels on a GPU through wgpu (Vulkan, Metal, DX12; lavapipe without a GPU).
-    Gpu,
-}
-
-/// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
-pub(crate) fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::driver::Dim), String> {
-    softc_compiler::driver::parse_quantity(text)
+    /// The backward pass's settings: the script's, overridden by `--checkpoint` and
+    /// `--memory-budget`.
+    pub fn grad_options(&self, scene: &Scene) -> Result<GradOptions, String> {
+        grad_options(
+            scene,
+            self.checkpoint.as_deref(),
+            self.memory_budget.as_deref(),
+        )
+    }
 }
 
 /// The entries of a JSON file's `params` object (or of the file's top-level object), flattened
@@ -199,7 +200,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     }
     if !args.grad && !args.no_optimize {
         match crate::optim::Plan::from_scene(&scene) {
-            Ok(Some(plan)) => return super::optimize::optimize(&args, &scene, plan, dt, out, err),
+            Ok(Some(plan)) => return super::optimize(&args, &scene, plan, dt, out, err),
             Ok(None) => {}
             Err(e) => {
                 let _ = writeln!(err, "{}: optimize: {e}", args.file.display());
@@ -310,16 +311,6 @@ fn kernel_module<'a>(scene: &'a Scene, args: &RunArgs) -> &'a softc_compiler::ir
     }
 }
 
-/// The kernels' precision: `--precision`, else the script's `precision` setting, else the
-/// backend's default.
-pub(super) fn precision_for(args: &RunArgs, scene: &Scene, default: Precision) -> Precision {
-    match (args.precision, scene.precision_setting()) {
-        (Some(PrecisionChoice::F64), _) | (None, Some("f64")) => Precision::F64,
-        (Some(PrecisionChoice::F32), _) | (None, Some("f32")) => Precision::F32,
-        _ => default,
-    }
-}
-
 /// A scene's summary, with its gradients after `--grad`.
 type SceneRun = (RunSummary, Option<GradientReport>);
 type SceneResult = Result<(SceneRun, &'static str), String>;
@@ -340,29 +331,16 @@ fn run_scene(scene: &Scene, args: &RunArgs, dt: Option<f64>, err: &mut dyn Write
                 Ok(((s, None), "reference"))
             })
         }
-        BackendChoice::Interp => {
-            let module = kernel_module(scene, args);
-            simulate(scene, Interpreter::new(module), args, dt, err).map(|o| (o, "interp"))
-        }
-        BackendChoice::Gpu => {
-            let precision = precision_for(args, scene, Precision::F32);
-            let module = kernel_module(scene, args);
-            match crate::devices::gpu::Gpu::new(module, precision, args.adapter.as_deref()) {
-                Ok(gpu) => {
-                    let _ = writeln!(err, "adapter: {}; kernels in {precision}", gpu.adapter());
-                    simulate(scene, gpu, args, dt, err).map(|o| (o, "gpu"))
-                }
-                Err(e) => Err(e),
-            }
-        }
-        BackendChoice::Cpu => {
-            let precision = precision_for(args, scene, Precision::F64);
+        _ => {
             // The adjoint kernels are compiled only when the backward pass runs.
             let module = kernel_module(scene, args);
-            match Cpu::new(module, precision, args.threads) {
-                Ok(cpu) => simulate(scene, cpu, args, dt, err).map(|o| (o, "cpu")),
-                Err(e) => Err(format!("the kernels do not compile: {e}")),
+            let devices = crate::devices::open(&args.device(), scene, module, 1)?;
+            let device = devices.make()?;
+            if let Some(adapter) = device.adapter() {
+                let _ = writeln!(err, "adapter: {adapter}; kernels in {}", devices.precision);
             }
+            let name = device.name();
+            simulate(scene, device, args, dt, err).map(|o| (o, name))
         }
     }
 }
@@ -451,7 +429,7 @@ fn run_scenes(
 }
 
 /// Print the stable-step estimate before a run, and warn when the step exceeds it.
-fn announce_dt<B: crate::engine::Backend>(
+fn announce_dt<B: Backend>(
     sim: &mut Simulation<B>,
     dt: Option<f64>,
     err: &mut dyn Write,
@@ -480,52 +458,12 @@ fn announce_dt<B: crate::engine::Backend>(
     Ok(())
 }
 
-/// The node-set logs of the script's `output csv(SET) every …` statements, written into
-/// `--csv DIR`; without it, a note says how to get them.
-pub(super) fn csv_outputs(
-    args: &RunArgs,
-    scene: &Scene,
-    dt: f64,
-    err: &mut dyn Write,
-) -> Result<Vec<crate::engine::CsvOutput>, String> {
-    let mut outputs = Vec::new();
-    for log in &scene.resolved.sim.csv {
-        let Some(dir) = &args.csv else {
-            let _ = writeln!(
-                err,
-                "note: the script logs `{}` (`output csv`); add --csv DIR to write it",
-                log.set
-            );
-            continue;
-        };
-        let every_steps = if log.in_steps {
-            log.every.round().max(1.0) as u64
-        } else {
-            (log.every / dt).round().max(1.0) as u64
-        };
-        let nodes = scene
-            .node_sets
-            .iter()
-            .find(|(n, _)| *n == log.set)
-            .map(|(_, nodes)| nodes.clone())
-            .ok_or_else(|| format!("`output csv({})`: no node set of that name", log.set))?;
-        std::fs::create_dir_all(dir)
-            .map_err(|e| format!("cannot create `{}`: {e}", dir.display()))?;
-        outputs.push(crate::engine::CsvOutput::new(
-            dir.join(format!("{}.csv", log.set)),
-            nodes,
-            every_steps,
-        ));
-    }
-    Ok(outputs)
-}
-
 /// The VTK series asked for with `--vtk DIR`.
 fn vtk_output(
     args: &RunArgs,
     scene: &Scene,
     err: &mut dyn Write,
-) -> Result<Option<crate::engine::VtkOutput>, i32> {
+) -> Result<Option<crate::outputs::vtk::VtkOutput>, i32> {
     let Some(dir) = &args.vtk else {
         return Ok(None);
     };
@@ -539,7 +477,7 @@ fn vtk_output(
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "run".into());
-    Ok(Some(crate::engine::VtkOutput {
+    Ok(Some(crate::outputs::vtk::VtkOutput {
         series: crate::mesh::writers::PvdSeries::new(
             dir,
             &name,
@@ -549,46 +487,9 @@ fn vtk_output(
     }))
 }
 
-/// `output vtk every N steps` in the sim block.
-pub(super) fn vtk_every(scene: &Scene) -> Option<u64> {
-    scene.resolved.sim.vtk_every
-}
-
-/// The JSON summary: SI units throughout.
-pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json::Value {
-    let mut sets = serde_json::Map::new();
-    for (name, nodes) in &scene.node_sets {
-        let [mean, min, max] =
-            crate::engine::set_displacement(nodes, &scene.mesh.nodes, |n| s.x[n]);
-        sets.insert(
-            name.clone(),
-            serde_json::json!({
-                "nodes": nodes.len(),
-                "mean_displacement": mean,
-                "min_displacement": min,
-                "max_displacement": max,
-            }),
-        );
-    }
-    serde_json::json!({
-        "script": scene.script.display().to_string(),
-        "backend": backend,
-        "loss": s.loss,
-        "steps": s.steps,
-        "dt": s.dt,
-        "dt_stable_estimate": s.dt_stable_estimate,
-        "simulated_time": s.steps as f64 * s.dt,
-        "wall_seconds": s.wall_seconds,
-        "steps_per_second": s.steps as f64 / s.wall_seconds.max(1e-12),
-        "nodes": scene.mesh.nodes.len(),
-        "elements": scene.mesh.tets.len(),
-        "sets": sets,
-    })
-}
-
 /// A forward run, or with `--grad` a forward and backward pass, on one backend. An empty error
 /// means the message was already printed (a usage error).
-fn simulate<B: crate::engine::Backend>(
+fn simulate<B: Backend>(
     scene: &Scene,
     backend: B,
     args: &RunArgs,
@@ -596,13 +497,13 @@ fn simulate<B: crate::engine::Backend>(
     err: &mut dyn Write,
 ) -> Result<SceneRun, String> {
     let mut sim = prepare(scene, backend, &[], args, dt, err)?;
-    let options = args.grad.then(|| grad_options(scene, args)).transpose()?;
+    let options = args.grad.then(|| args.grad_options(scene)).transpose()?;
     execute(&mut sim, args, dt, options.as_ref())
 }
 
 /// A simulation as `softc run` sets it up: the inputs' values, the VTK and CSV outputs, the
 /// stable step announced.
-fn prepare<'s, B: crate::engine::Backend>(
+fn prepare<'s, B: Backend>(
     scene: &'s Scene,
     backend: B,
     inputs: &[(String, f64)],
@@ -620,12 +521,12 @@ fn prepare<'s, B: crate::engine::Backend>(
     };
     announce_dt(&mut sim, dt, err)?;
     let (step, _) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
-    sim.csv = csv_outputs(args, scene, step, err)?;
+    sim.csv = csv_outputs(args.csv.as_deref(), scene, step, err)?;
     Ok(sim)
 }
 
 /// The forward run, or forward and backward with `grad` options.
-fn execute<B: crate::engine::Backend>(
+fn execute<B: Backend>(
     sim: &mut Simulation<B>,
     args: &RunArgs,
     dt: Option<f64>,
@@ -649,21 +550,17 @@ fn run_gpu_batch(
     scenes: &[Vec<(String, f64)>],
     err: &mut dyn Write,
 ) -> Result<Vec<SceneRun>, String> {
-    let precision = precision_for(args, scene, Precision::F32);
     let module = kernel_module(scene, args);
-    let batch = crate::devices::gpu::GpuBatch::new(
-        module,
-        precision,
-        args.adapter.as_deref(),
-        scenes.len(),
-    )?;
-    let _ = writeln!(
-        err,
-        "adapter: {}; kernels in {precision}; {} scenes in one batch",
-        batch.adapter(),
-        scenes.len()
-    );
-    let options = args.grad.then(|| grad_options(scene, args)).transpose()?;
+    let batch = crate::devices::open(&args.device(), scene, module, scenes.len())?;
+    if let Some(adapter) = batch.adapter() {
+        let _ = writeln!(
+            err,
+            "adapter: {adapter}; kernels in {}; {} scenes in one batch",
+            batch.precision,
+            scenes.len()
+        );
+    }
+    let options = args.grad.then(|| args.grad_options(scene)).transpose()?;
     let mut sims = Vec::new();
     let mut scene_args = Vec::new();
     for (k, assignment) in scenes.iter().enumerate() {
@@ -671,7 +568,7 @@ fn run_gpu_batch(
         a.vtk = args.vtk.as_ref().map(|d| d.join(format!("scene{k}")));
         a.csv = args.csv.as_ref().map(|d| d.join(format!("scene{k}")));
         let _ = writeln!(err, "scene {k}:");
-        sims.push(prepare(scene, batch.scene(k)?, assignment, &a, dt, err)?);
+        sims.push(prepare(scene, batch.make()?, assignment, &a, dt, err)?);
         scene_args.push(a);
     }
     let options = options.as_ref();
@@ -682,110 +579,4 @@ fn run_gpu_batch(
     .enumerate()
     .map(|(k, r)| r.map_err(|e| format!("scene {k}: {}", e.0)))
     .collect()
-}
-
-/// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
-/// `truncate`, overridden by `--checkpoint` and `--memory-budget`.
-pub(super) fn grad_options(scene: &Scene, args: &RunArgs) -> Result<GradOptions, String> {
-    use softc_compiler::driver::CheckpointSpec;
-    let mut o = GradOptions::default();
-    let script = &scene.resolved.grad;
-    if let Some(c) = script.checkpoint {
-        o.checkpoint = match c {
-            CheckpointSpec::Auto => Checkpointing::Auto,
-            CheckpointSpec::StoreAll => Checkpointing::StoreAll,
-            CheckpointSpec::Periodic(k) => Checkpointing::Periodic(k),
-            CheckpointSpec::Revolve(n) => Checkpointing::Revolve(n),
-        };
-    }
-    if script.memory_budget.is_some() {
-        o.memory_budget = script.memory_budget;
-    }
-    if script.truncate.is_some() {
-        o.truncate = script.truncate;
-    }
-    if let Some(c) = &args.checkpoint {
-        let number = |s: &str| {
-            s.trim()
-                .parse::<u64>()
-                .ok()
-                .filter(|n| *n >= 1)
-                .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
-        };
-        o.checkpoint = match c.split_once(':') {
-            None if c == "auto" => Checkpointing::Auto,
-            None if c == "store_all" => Checkpointing::StoreAll,
-            Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
-            Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
-            _ => {
-                return Err(format!(
-                    "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
-                ));
-            }
-        };
-    }
-    if let Some(m) = &args.memory_budget {
-        let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
-        if dim != softc_compiler::driver::Dim::MEMORY || bytes <= 0.0 {
-            return Err(format!(
-                "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
-            ));
-        }
-        o.memory_budget = Some(bytes as u64);
-    }
-    Ok(o)
-}
-
-/// `param.NAME[.i…]` derivatives as `{NAME: number or nested array}`.
-pub fn gradients_json(g: &std::collections::BTreeMap<String, f64>) -> serde_json::Value {
-    let mut by_param: std::collections::BTreeMap<&str, Vec<(Vec<usize>, f64)>> = Default::default();
-    for (name, d) in g {
-        let Some(rest) = name.strip_prefix("param.") else {
-            continue;
-        };
-        let mut parts = rest.split('.');
-        let p = parts.next().unwrap_or(rest);
-        let idx: Vec<usize> = parts.filter_map(|s| s.parse().ok()).collect();
-        by_param.entry(p).or_default().push((idx, *d));
-    }
-    fn nest(entries: &[(Vec<usize>, f64)], depth: usize) -> serde_json::Value {
-        if entries.len() == 1 && entries[0].0.len() == depth {
-            return serde_json::json!(entries[0].1);
-        }
-        let n = entries.iter().map(|(i, _)| i[depth] + 1).max().unwrap_or(0);
-        (0..n)
-            .map(|k| {
-                let sub: Vec<_> = entries
-                    .iter()
-                    .filter(|(i, _)| i[depth] == k)
-                    .cloned()
-                    .collect();
-                nest(&sub, depth + 1)
-            })
-            .collect()
-    }
-    by_param
-        .into_iter()
-        .map(|(p, e)| (p.to_string(), nest(&e, 0)))
-        .collect::<serde_json::Map<_, _>>()
-        .into()
-}
-
-fn adjoint_json(g: &GradientReport) -> serde_json::Value {
-    serde_json::json!({
-        "schedule": g.schedule,
-        "stored_states": g.stored_states,
-        "state_bytes": g.state_bytes,
-        "stored_bytes": g.stored_states * g.state_bytes,
-        "recompute_ratio": g.recompute_ratio,
-        "reversed_steps": g.reversed_steps,
-        "forward_seconds": g.forward_seconds,
-        "backward_seconds": g.backward_seconds,
-        "growth_per_1000_steps": g.growth_per_1000_steps(),
-        "health": g.health.iter().map(|h| serde_json::json!({
-            "step": h.step,
-            "adj_x_norm": h.adj_x_norm,
-            "adj_v_norm": h.adj_v_norm,
-        })).collect::<Vec<_>>(),
-    })
 }

@@ -14,8 +14,9 @@
 //! under `OUT/variants/` (absolute mesh path, its settings in the `sim` block) so any point can
 //! be rerun with `softc run`.
 
+use crate::devices::cpu::Cpu;
+use crate::engine::Simulation;
 use crate::engine::scene::Scene;
-use crate::engine::{Cpu, Simulation};
 use crate::mesh::mesher::{MeshSpec, generate};
 use softc_compiler::back::Precision;
 use softc_compiler::driver::Variant;
@@ -298,7 +299,7 @@ fn measure(
     let seconds = t1.elapsed().as_secs_f64();
     let (_, nodes) = &scene.node_sets[set_index];
     let [mean, _, _] =
-        crate::engine::set_displacement(nodes, &scene.mesh.nodes, |n| run.summary.x[n]);
+        crate::outputs::set_displacement(nodes, &scene.mesh.nodes, |n| run.summary.x[n]);
     let value = mean[sweep.axis];
     Ok(Point {
         label: label.to_string(),

@@ -24,8 +24,8 @@
 //! `exp`/`log`/`pow` are the driver's), f64 kernels use the software transcendental functions
 //! of the WGSL backend.
 
+use super::{Backend, Lockstep, Uniforms};
 use crate::engine::scene::{Csr, Scene};
-use crate::engine::{Backend, Lockstep, Uniforms};
 use softc_compiler::back::Precision;
 use softc_compiler::back::wgsl::{self, Binding, TopoArray, WgslModule};
 use softc_compiler::ir::{BufferId, Domain, Module};

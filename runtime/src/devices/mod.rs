@@ -1,4 +1,106 @@
-//! Devices that run a scene's kernels besides the host backends of [`crate::engine`]:
-//! [`gpu`], wgpu on any GPU (or Mesa's lavapipe).
+//! Devices that run a scene's kernels, each behind the [`Backend`] trait the time loop
+//! ([`crate::engine`]) drives: [`interp`], the kernel-IR interpreter (the reference semantics);
+//! [`cpu`], native code through Cranelift; [`gpu`], wgpu on any GPU (or Mesa's lavapipe).
+//! [`open`] is the one place that maps `--backend` and `--precision` to a device.
 
+pub mod choice;
+pub mod cpu;
 pub mod gpu;
+pub mod interp;
+
+pub use choice::{BackendChoice, Device, DeviceChoice, Devices, PrecisionChoice, open, precision};
+
+use crate::engine::scene::Scene;
+use softc_compiler::back::Precision;
+use softc_compiler::ir::{BufferId, Domain};
+use std::ops::Range;
+
+/// Executes kernels and owns the buffers they read and write. The IR interpreter is the
+/// reference semantics; compiled backends must reproduce it.
+pub trait Backend {
+    fn name(&self) -> &'static str;
+    /// Allocate zeroed buffers for the scene's entity counts and take its connectivity.
+    fn prepare(&mut self, scene: &Scene) -> Result<(), String>;
+    fn set(&mut self, b: BufferId, data: &[f64]);
+    fn get(&self, b: BufferId) -> Vec<f64>;
+    fn swap(&mut self, a: BufferId, b: BufferId);
+    /// Run kernel `k` of the module over the entities in `range`.
+    fn run(&mut self, k: usize, range: Range<usize>, uniforms: &Uniforms) -> Result<(), String>;
+    /// The kernels' floating-point precision (the stable-step estimate sizes its probe by it).
+    fn precision(&self) -> Precision {
+        Precision::F64
+    }
+    /// A failure of the device that `get` or `set` could not return (a lost GPU, a failed
+    /// readback): the time loop reports it at its next state check instead of reading garbage.
+    fn device_error(&self) -> Option<String> {
+        None
+    }
+    /// Join the lockstep group of a batch backend whose scenes run on threads of their own
+    /// ([`crate::devices::gpu::GpuScene`]): until the token is dropped, the scene's readbacks
+    /// wait for the group's, so the batch shares submissions and readbacks. Enter every
+    /// scene's group before any of them runs, and drop each token when its scene's work ends
+    /// (a scene that never asks again would hold the others). Other backends: no effect.
+    fn lockstep(&self) -> Lockstep {
+        Lockstep::default()
+    }
+    /// Run `n` whole steps at once, the first being step `first`, if the backend can: each
+    /// step sets `t = step · dt`, runs `launches` (kernel, entity range) in order, then swaps
+    /// the buffer pairs `swaps`. Returns `false`, having done nothing, when it cannot; the
+    /// engine then steps one launch at a time. The result must be bit-identical either way.
+    fn run_steps(
+        &mut self,
+        launches: &[Launch],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        n: u64,
+        dt: f64,
+        uniforms: &Uniforms,
+    ) -> Result<bool, String> {
+        let _ = (launches, swaps, first, n, dt, uniforms);
+        Ok(false)
+    }
+}
+
+/// A kernel over a range of its entities.
+pub(crate) type Launch = (usize, Range<usize>);
+
+/// Membership of a lockstep group ([`Backend::lockstep`]); dropping it leaves the group.
+#[derive(Default)]
+pub struct Lockstep(Option<Box<dyn FnOnce() + Send>>);
+
+impl Lockstep {
+    pub fn new(leave: impl FnOnce() + Send + 'static) -> Self {
+        Lockstep(Some(Box::new(leave)))
+    }
+}
+
+impl Drop for Lockstep {
+    fn drop(&mut self) {
+        if let Some(leave) = self.0.take() {
+            leave();
+        }
+    }
+}
+
+/// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`) by name.
+#[derive(Clone, Debug, Default)]
+pub struct Uniforms(pub std::collections::BTreeMap<String, f64>);
+
+impl Uniforms {
+    pub fn get(&self, name: &str) -> f64 {
+        *self
+            .0
+            .get(name)
+            .unwrap_or_else(|| panic!("uniform `{name}` has no value"))
+    }
+}
+
+/// Entity count of a domain in a scene.
+pub fn domain_len(scene: &Scene, d: Domain) -> usize {
+    match d {
+        Domain::Node => scene.mesh.nodes.len(),
+        Domain::Element => scene.mesh.tets.len(),
+        Domain::Triangle => scene.tris.len(),
+        Domain::Single => 1,
+    }
+}

@@ -12,7 +12,8 @@
 
 use super::checkpoint::{Action, Schedule};
 use super::loss::{Loss, LossWindow};
-use super::{Backend, CHECK_EVERY, RunError, RunSummary, Simulation};
+use super::{CHECK_EVERY, RunError, RunSummary, Simulation};
+use crate::devices::{Backend, domain_len};
 use softc_compiler::driver::LossArg;
 use std::collections::BTreeMap;
 
@@ -136,7 +137,7 @@ impl<B: Backend> Simulation<'_, B> {
         for rk in &adj.reverse {
             let range = match rk.range_of {
                 Some(f) => self.kernel_range(f),
-                None => 0..super::domain_len(self.scene, adj.module.kernels[rk.kernel].domain),
+                None => 0..domain_len(self.scene, adj.module.kernels[rk.kernel].domain),
             };
             self.backend
                 .run(rk.kernel, range, &self.uniforms)
@@ -226,7 +227,7 @@ impl<B: Backend> Simulation<'_, B> {
         };
         // Zero the adjoint state and the param accumulators.
         for s in &adj.state {
-            let len = super::domain_len(self.scene, adj.module.buffers[s.adj.0 as usize].domain)
+            let len = domain_len(self.scene, adj.module.buffers[s.adj.0 as usize].domain)
                 * adj.module.buffers[s.adj.0 as usize].width as usize;
             self.backend.set(s.adj, &vec![0.0; len]);
             self.backend.set(s.adj_next, &vec![0.0; len]);
@@ -240,7 +241,7 @@ impl<B: Backend> Simulation<'_, B> {
         };
         for &b in &grad_buffers {
             let buf = &adj.module.buffers[b.0 as usize];
-            let len = super::domain_len(self.scene, buf.domain) * buf.width as usize;
+            let len = domain_len(self.scene, buf.domain) * buf.width as usize;
             self.backend.set(b, &vec![0.0; len]);
         }
 

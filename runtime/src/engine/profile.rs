@@ -2,7 +2,7 @@
 //! the bytes each launch moves, and a streaming test of this machine's memory bandwidth to
 //! compare them with (`softc bench --profile`).
 
-use super::{Backend, Uniforms, domain_len};
+use crate::devices::{Backend, Uniforms, domain_len};
 use crate::engine::scene::Scene;
 use softc_compiler::back::Precision;
 use softc_compiler::ir::{ArgSource, Domain, Module};

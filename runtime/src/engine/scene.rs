@@ -171,14 +171,6 @@ impl Scene {
         })
     }
 
-    /// `precision = f32|f64` from the sim block, if given.
-    pub fn precision_setting(&self) -> Option<&str> {
-        self.resolved.sim.precision.map(|p| match p {
-            softc_compiler::back::Precision::F64 => "f64",
-            softc_compiler::back::Precision::F32 => "f32",
-        })
-    }
-
     /// The number of steps for a time step `dt`.
     pub fn steps_for(&self, dt: f64) -> u64 {
         self.resolved.sim.steps_for(dt)

@@ -10,8 +10,9 @@
 use super::batch;
 use super::method::{self, MethodState};
 use super::{Entry, Plan};
+use crate::devices::Backend;
 use crate::engine::adjoint::GradOptions;
-use crate::engine::{Backend, RunError, RunSummary, Simulation};
+use crate::engine::{RunError, RunSummary, Simulation};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -362,8 +363,8 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
     pub fn forward(
         &mut self,
         inputs: &BTreeMap<String, f64>,
-        vtk: Option<crate::engine::VtkOutput>,
-        csv: Vec<crate::engine::CsvOutput>,
+        vtk: Option<crate::outputs::vtk::VtkOutput>,
+        csv: Vec<crate::outputs::csv::CsvOutput>,
     ) -> Result<RunSummary, RunError> {
         let params = self.result();
         let (dt, steps) = (self.state.dt, self.state.steps);

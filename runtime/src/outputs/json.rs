@@ -1,0 +1,92 @@
+//! The JSON summary of a run (SI units): the run, each node set's displacement, gradients and
+//! the backward pass's report; `softc run --json` and an optimization's `result.json`.
+
+use crate::engine::RunSummary;
+use crate::engine::adjoint::GradientReport;
+use crate::engine::scene::Scene;
+
+/// The JSON summary: SI units throughout.
+pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json::Value {
+    let mut sets = serde_json::Map::new();
+    for (name, nodes) in &scene.node_sets {
+        let [mean, min, max] = super::set_displacement(nodes, &scene.mesh.nodes, |n| s.x[n]);
+        sets.insert(
+            name.clone(),
+            serde_json::json!({
+                "nodes": nodes.len(),
+                "mean_displacement": mean,
+                "min_displacement": min,
+                "max_displacement": max,
+            }),
+        );
+    }
+    serde_json::json!({
+        "script": scene.script.display().to_string(),
+        "backend": backend,
+        "loss": s.loss,
+        "steps": s.steps,
+        "dt": s.dt,
+        "dt_stable_estimate": s.dt_stable_estimate,
+        "simulated_time": s.steps as f64 * s.dt,
+        "wall_seconds": s.wall_seconds,
+        "steps_per_second": s.steps as f64 / s.wall_seconds.max(1e-12),
+        "nodes": scene.mesh.nodes.len(),
+        "elements": scene.mesh.tets.len(),
+        "sets": sets,
+    })
+}
+
+/// `param.NAME[.i…]` derivatives as `{NAME: number or nested array}`.
+pub fn gradients_json(g: &std::collections::BTreeMap<String, f64>) -> serde_json::Value {
+    let mut by_param: std::collections::BTreeMap<&str, Vec<(Vec<usize>, f64)>> = Default::default();
+    for (name, d) in g {
+        let Some(rest) = name.strip_prefix("param.") else {
+            continue;
+        };
+        let mut parts = rest.split('.');
+        let p = parts.next().unwrap_or(rest);
+        let idx: Vec<usize> = parts.filter_map(|s| s.parse().ok()).collect();
+        by_param.entry(p).or_default().push((idx, *d));
+    }
+    fn nest(entries: &[(Vec<usize>, f64)], depth: usize) -> serde_json::Value {
+        if entries.len() == 1 && entries[0].0.len() == depth {
+            return serde_json::json!(entries[0].1);
+        }
+        let n = entries.iter().map(|(i, _)| i[depth] + 1).max().unwrap_or(0);
+        (0..n)
+            .map(|k| {
+                let sub: Vec<_> = entries
+                    .iter()
+                    .filter(|(i, _)| i[depth] == k)
+                    .cloned()
+                    .collect();
+                nest(&sub, depth + 1)
+            })
+            .collect()
+    }
+    by_param
+        .into_iter()
+        .map(|(p, e)| (p.to_string(), nest(&e, 0)))
+        .collect::<serde_json::Map<_, _>>()
+        .into()
+}
+
+/// The backward pass's report: its schedule, the memory it took, its timing and health.
+pub fn adjoint_json(g: &GradientReport) -> serde_json::Value {
+    serde_json::json!({
+        "schedule": g.schedule,
+        "stored_states": g.stored_states,
+        "state_bytes": g.state_bytes,
+        "stored_bytes": g.stored_states * g.state_bytes,
+        "recompute_ratio": g.recompute_ratio,
+        "reversed_steps": g.reversed_steps,
+        "forward_seconds": g.forward_seconds,
+        "backward_seconds": g.backward_seconds,
+        "growth_per_1000_steps": g.growth_per_1000_steps(),
+        "health": g.health.iter().map(|h| serde_json::json!({
+            "step": h.step,
+            "adj_x_norm": h.adj_x_norm,
+            "adj_v_norm": h.adj_v_norm,
+        })).collect::<Vec<_>>(),
+    })
+}

@@ -1,0 +1,67 @@
+//! `--vtk DIR`: the deformed mesh as a ParaView series, one `.vtu` file per written step.
+
+use crate::mesh::Mesh;
+use crate::mesh::writers::Field;
+
+/// A `.pvd` series of `.vtu` files: the deformed mesh with displacement and velocity per
+/// node, strain energy and volume ratio J per element.
+pub struct VtkOutput {
+    pub series: crate::mesh::writers::PvdSeries,
+    /// Write every this many steps (and the first and last state).
+    pub every: u64,
+}
+
+/// One frame of a run: the state at time `t`, as flat buffers of the kernels.
+pub struct Frame<'a> {
+    pub t: f64,
+    /// Positions and velocities, 3 values per node.
+    pub x: &'a [f64],
+    pub v: &'a [f64],
+    /// Strain energy per element (empty for the spring mesh, which has none).
+    pub energy: &'a [f64],
+    /// Volume ratio J per element.
+    pub j: &'a [f64],
+}
+
+impl VtkOutput {
+    /// Write one frame of `mesh` (whose elements' rest volumes are `rest_volume`): positions,
+    /// displacement and velocity per node; strain energy density and J per element.
+    pub fn write_frame(
+        &mut self,
+        mesh: &Mesh,
+        rest_volume: &[f64],
+        frame: &Frame,
+    ) -> Result<(), String> {
+        let Frame { t, x, v, energy, j } = *frame;
+        let pos: Vec<[f64; 3]> = x.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let disp: Vec<[f64; 3]> = pos
+            .iter()
+            .zip(&mesh.nodes)
+            .map(|(p, p0)| [p[0] - p0[0], p[1] - p0[1], p[2] - p0[2]])
+            .collect();
+        let vel: Vec<[f64; 3]> = v.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let density: Vec<f64> = energy
+            .iter()
+            .zip(rest_volume)
+            .map(|(e, v0)| e / v0)
+            .collect();
+        // The spring mesh has no strain energy: its elements carry J only.
+        let mut cell_fields = vec![("J", Field::Scalar(j))];
+        if !density.is_empty() {
+            cell_fields.insert(0, ("strain_energy_density", Field::Scalar(&density)));
+        }
+        self.series
+            .write_step(
+                mesh,
+                t,
+                &pos,
+                &[
+                    ("displacement", Field::Vector(&disp)),
+                    ("velocity", Field::Vector(&vel)),
+                ],
+                &cell_fields,
+            )
+            .map(|_| ())
+            .map_err(|e| format!("cannot write the VTK output: {e}"))
+    }
+}

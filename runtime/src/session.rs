@@ -1,0 +1,116 @@
+//! How a run of a script is set up, below the command line that asks for it: values with
+//! their units (`--set`, `--dt`, `--memory-budget`), the backward pass's settings and the
+//! script's own `output` statements. Shared by `softc run`, its optimization and `softc bench`.
+
+use crate::engine::adjoint::{Checkpointing, GradOptions};
+use crate::engine::scene::Scene;
+use crate::outputs::csv::CsvOutput;
+use std::io::Write;
+use std::path::Path;
+
+/// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end.
+pub fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::driver::Dim), String> {
+    softc_compiler::driver::parse_quantity(text)
+}
+
+/// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
+/// `truncate`, overridden by `checkpoint` (`--checkpoint`) and `memory_budget`
+/// (`--memory-budget`).
+pub fn grad_options(
+    scene: &Scene,
+    checkpoint: Option<&str>,
+    memory_budget: Option<&str>,
+) -> Result<GradOptions, String> {
+    use softc_compiler::driver::CheckpointSpec;
+    let mut o = GradOptions::default();
+    let script = &scene.resolved.grad;
+    if let Some(c) = script.checkpoint {
+        o.checkpoint = match c {
+            CheckpointSpec::Auto => Checkpointing::Auto,
+            CheckpointSpec::StoreAll => Checkpointing::StoreAll,
+            CheckpointSpec::Periodic(k) => Checkpointing::Periodic(k),
+            CheckpointSpec::Revolve(n) => Checkpointing::Revolve(n),
+        };
+    }
+    if script.memory_budget.is_some() {
+        o.memory_budget = script.memory_budget;
+    }
+    if script.truncate.is_some() {
+        o.truncate = script.truncate;
+    }
+    if let Some(c) = checkpoint {
+        let number = |s: &str| {
+            s.trim()
+                .parse::<u64>()
+                .ok()
+                .filter(|n| *n >= 1)
+                .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
+        };
+        o.checkpoint = match c.split_once(':') {
+            None if c == "auto" => Checkpointing::Auto,
+            None if c == "store_all" => Checkpointing::StoreAll,
+            Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
+            Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
+            _ => {
+                return Err(format!(
+                    "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
+                ));
+            }
+        };
+    }
+    if let Some(m) = memory_budget {
+        let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
+        if dim != softc_compiler::driver::Dim::MEMORY || bytes <= 0.0 {
+            return Err(format!(
+                "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
+            ));
+        }
+        o.memory_budget = Some(bytes as u64);
+    }
+    Ok(o)
+}
+
+/// The node-set logs of the script's `output csv(SET) every …` statements, written into
+/// `dir` (`--csv DIR`); without it, a note says how to get them.
+pub fn csv_outputs(
+    dir: Option<&Path>,
+    scene: &Scene,
+    dt: f64,
+    err: &mut dyn Write,
+) -> Result<Vec<CsvOutput>, String> {
+    let mut outputs = Vec::new();
+    for log in &scene.resolved.sim.csv {
+        let Some(dir) = dir else {
+            let _ = writeln!(
+                err,
+                "note: the script logs `{}` (`output csv`); add --csv DIR to write it",
+                log.set
+            );
+            continue;
+        };
+        let every_steps = if log.in_steps {
+            log.every.round().max(1.0) as u64
+        } else {
+            (log.every / dt).round().max(1.0) as u64
+        };
+        let nodes = scene
+            .node_sets
+            .iter()
+            .find(|(n, _)| *n == log.set)
+            .map(|(_, nodes)| nodes.clone())
+            .ok_or_else(|| format!("`output csv({})`: no node set of that name", log.set))?;
+        std::fs::create_dir_all(dir)
+            .map_err(|e| format!("cannot create `{}`: {e}", dir.display()))?;
+        outputs.push(CsvOutput::new(
+            dir.join(format!("{}.csv", log.set)),
+            nodes,
+            every_steps,
+        ));
+    }
+    Ok(outputs)
+}
+
+/// `output vtk every N steps` in the sim block.
+pub fn vtk_every(scene: &Scene) -> Option<u64> {
+    scene.resolved.sim.vtk_every
+}
