@@ -60,7 +60,6 @@ pub use step_loop::StepLoop;
 pub use crate::back::Precision;
 use crate::ir::{ArgSource, BufferId, Domain, Module};
 /// The layout checks of a kernel against its module (shared with the WGSL backend).
-pub(crate) use codegen::validate as validate_kernel;
 use codegen::{Imports, MinMax, Translator};
 use cranelift_codegen::{Context, settings, settings::Configurable};
 use cranelift_frontend::FunctionBuilderContext;

@@ -466,9 +466,7 @@ fn emit_with(
     precision: Precision,
     batch: Option<u32>,
 ) -> Result<WgslModule, String> {
-    for k in &module.kernels {
-        crate::back::cranelift::validate_kernel(module, k)?;
-    }
+    crate::ir::valid::validate_module(module)?;
     let nb = module.buffers.len() as u32;
     let topo_binding = |t: TopoArray| nb + t.index();
     let launch_binding = |k: usize| nb + TopoArray::ALL.len() as u32 + k as u32;
