@@ -15,7 +15,7 @@
 //! - then the connectivity as `array<u32>`: `elem_conn` (4 nodes per element), `tri_conn` (3 per
 //!   triangle), and the node CSR lists `node_elem_offsets`/`node_elem_entries` and
 //!   `node_tri_offsets`/`node_tri_entries` (entries are `(entity, corner)` pairs), as
-//!   [`crate::back::cranelift::Topology`] builds them.
+//!   [`crate::back::Topology`] builds them.
 //! - then one uniform block per kernel, `launch_<kernel>`: the first entity `begin`, the entity
 //!   `count` of the launch, and the kernel's uniforms (`t`, `dt`, params, …) in the order of
 //!   [`WgslKernel::uniforms`], as `real` fields. The runtime binds it with a dynamic offset, so
