@@ -3,9 +3,14 @@
 //! - [`cranelift`]: native CPU code through the Cranelift JIT, f64 or f32, bit-identical to
 //!   the IR interpreter in f64, run on any number of threads with identical results.
 //! - [`wgsl`]: WGSL compute shaders for wgpu (any GPU, or lavapipe), f32 or f64.
+//!
+//! What both share lives here: the [`Precision`] and the mesh connectivity as the generated code
+//! reads it, [`Topology`].
 
 pub mod cranelift;
 pub mod wgsl;
+
+use crate::ir::Domain;
 
 /// The floating-point type of every value and buffer of a compiled module.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -31,4 +36,179 @@ impl std::fmt::Display for Precision {
             Precision::F64 => "f64",
         })
     }
+}
+
+/// Mesh connectivity as the generated code reads it, validated on construction.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Topology {
+    n_nodes: usize,
+    elem_conn: Vec<u32>,
+    tri_conn: Vec<u32>,
+    node_elem_offsets: Vec<u32>,
+    node_elem_entries: Vec<u32>,
+    node_tri_offsets: Vec<u32>,
+    node_tri_entries: Vec<u32>,
+}
+
+/// The node→entity CSR of a connectivity with `nc` nodes per entity: for each node, its
+/// incidences `(entity, corner)` in increasing entity (then corner) order.
+///
+/// # Panics
+/// If an index of `conn` is `n_nodes` or more ([`Topology::new`] checks that first).
+pub fn node_csr(n_nodes: usize, conn: &[u32], nc: usize) -> (Vec<u32>, Vec<u32>) {
+    let mut counts = vec![0u32; n_nodes + 1];
+    for &n in conn {
+        counts[n as usize + 1] += 1;
+    }
+    for i in 0..n_nodes {
+        counts[i + 1] += counts[i];
+    }
+    let offsets = counts.clone();
+    let mut fill = counts;
+    let mut entries = vec![0u32; 2 * conn.len()];
+    for (p, &n) in conn.iter().enumerate() {
+        let slot = fill[n as usize] as usize;
+        fill[n as usize] += 1;
+        entries[2 * slot] = (p / nc) as u32;
+        entries[2 * slot + 1] = (p % nc) as u32;
+    }
+    (offsets, entries)
+}
+
+impl Topology {
+    /// Connectivity of `n_nodes` nodes, tets (`elem_conn`, 4 per element) and chamber
+    /// triangles (`tri_conn`, 3 per triangle); builds both node CSR lists.
+    pub fn new(n_nodes: usize, elem_conn: Vec<u32>, tri_conn: Vec<u32>) -> Result<Self, String> {
+        check_conn(n_nodes, &elem_conn, 4, "element")?;
+        check_conn(n_nodes, &tri_conn, 3, "triangle")?;
+        let (node_elem_offsets, node_elem_entries) = node_csr(n_nodes, &elem_conn, 4);
+        let (node_tri_offsets, node_tri_entries) = node_csr(n_nodes, &tri_conn, 3);
+        Ok(Topology {
+            n_nodes,
+            elem_conn,
+            tri_conn,
+            node_elem_offsets,
+            node_elem_entries,
+            node_tri_offsets,
+            node_tri_entries,
+        })
+    }
+
+    /// Connectivity with CSR lists given by the caller (any order of incidences per node;
+    /// gathers sum in that order). Each entry must name an incidence of its node.
+    pub fn with_csr(
+        n_nodes: usize,
+        elem_conn: Vec<u32>,
+        tri_conn: Vec<u32>,
+        node_elem: (Vec<u32>, Vec<u32>),
+        node_tri: (Vec<u32>, Vec<u32>),
+    ) -> Result<Self, String> {
+        check_conn(n_nodes, &elem_conn, 4, "element")?;
+        check_conn(n_nodes, &tri_conn, 3, "triangle")?;
+        check_csr(
+            n_nodes,
+            &elem_conn,
+            4,
+            &node_elem.0,
+            &node_elem.1,
+            "element",
+        )?;
+        check_csr(n_nodes, &tri_conn, 3, &node_tri.0, &node_tri.1, "triangle")?;
+        Ok(Topology {
+            n_nodes,
+            elem_conn,
+            tri_conn,
+            node_elem_offsets: node_elem.0,
+            node_elem_entries: node_elem.1,
+            node_tri_offsets: node_tri.0,
+            node_tri_entries: node_tri.1,
+        })
+    }
+
+    /// How many entities a domain has.
+    pub fn count(&self, d: Domain) -> usize {
+        match d {
+            Domain::Element => self.elem_conn.len() / 4,
+            Domain::Triangle => self.tri_conn.len() / 3,
+            Domain::Node => self.n_nodes,
+            Domain::Single => 1,
+        }
+    }
+
+    pub fn elem_conn(&self) -> &[u32] {
+        &self.elem_conn
+    }
+
+    pub fn tri_conn(&self) -> &[u32] {
+        &self.tri_conn
+    }
+
+    /// The node→element CSR: `(offsets, entries)`, entries as `(element, corner)` pairs.
+    pub fn node_elem(&self) -> (&[u32], &[u32]) {
+        (&self.node_elem_offsets, &self.node_elem_entries)
+    }
+
+    /// The node→triangle CSR: `(offsets, entries)`, entries as `(triangle, corner)` pairs.
+    pub fn node_tri(&self) -> (&[u32], &[u32]) {
+        (&self.node_tri_offsets, &self.node_tri_entries)
+    }
+}
+
+fn check_conn(n_nodes: usize, conn: &[u32], nc: usize, what: &str) -> Result<(), String> {
+    if n_nodes >= u32::MAX as usize || conn.len() >= u32::MAX as usize {
+        return Err("meshes are limited to 2^32 - 1 nodes and incidences".into());
+    }
+    if !conn.len().is_multiple_of(nc) {
+        return Err(format!(
+            "{what} connectivity has {} indices, not a multiple of {nc}",
+            conn.len()
+        ));
+    }
+    if let Some(p) = conn.iter().position(|&n| n as usize >= n_nodes) {
+        return Err(format!(
+            "{what} {} names node {} of {n_nodes}",
+            p / nc,
+            conn[p]
+        ));
+    }
+    Ok(())
+}
+
+fn check_csr(
+    n_nodes: usize,
+    conn: &[u32],
+    nc: usize,
+    offsets: &[u32],
+    entries: &[u32],
+    what: &str,
+) -> Result<(), String> {
+    if offsets.len() != n_nodes + 1 || offsets[0] != 0 {
+        return Err(format!(
+            "node→{what} offsets: {} values starting at {:?}, expected {} starting at 0",
+            offsets.len(),
+            offsets.first(),
+            n_nodes + 1
+        ));
+    }
+    if offsets.windows(2).any(|w| w[0] > w[1]) {
+        return Err(format!("node→{what} offsets decrease"));
+    }
+    if offsets[n_nodes] as usize * 2 != entries.len() {
+        return Err(format!(
+            "node→{what} offsets end at {} but there are {} entries",
+            offsets[n_nodes],
+            entries.len() / 2
+        ));
+    }
+    for node in 0..n_nodes {
+        for j in offsets[node] as usize..offsets[node + 1] as usize {
+            let (e, c) = (entries[2 * j] as usize, entries[2 * j + 1] as usize);
+            if c >= nc || e >= conn.len() / nc || conn[e * nc + c] as usize != node {
+                return Err(format!(
+                    "node→{what} entry {j} ({e}, {c}) is not an incidence of node {node}"
+                ));
+            }
+        }
+    }
+    Ok(())
 }

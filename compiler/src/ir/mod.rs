@@ -12,10 +12,14 @@
 //! and shares common subexpressions as it goes; [`Func::prune`] removes dead code, and
 //! [`ad`] appends reverse-mode derivatives of a body (used for stresses from a strain energy
 //! now, and for adjoint kernels later).
+//!
+//! [`valid`] checks that a kernel's accesses fit its module's buffers; every backend runs it
+//! before generating code.
 
 pub mod ad;
 pub mod interp;
 mod print;
+pub mod valid;
 
 use std::collections::HashMap;
 

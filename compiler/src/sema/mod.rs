@@ -11,6 +11,8 @@ mod builtins;
 mod expr;
 mod items;
 pub mod mesh_probe;
+mod optimize;
+mod sim;
 pub mod types;
 pub mod units;
 

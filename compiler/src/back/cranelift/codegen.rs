@@ -18,6 +18,7 @@
 use super::KernelCtx;
 use super::libm::Lib;
 use crate::back::Precision;
+use crate::ir::valid::{corners, validate_kernel};
 use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp};
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{
@@ -28,145 +29,6 @@ use cranelift_jit::JITModule;
 use cranelift_module::{FuncId, Linkage, Module as _};
 use std::collections::HashMap;
 use std::mem::offset_of;
-
-/// Nodes per entity of a domain with connectivity.
-pub(super) fn corners(d: Domain) -> Option<u32> {
-    match d {
-        Domain::Element => Some(4),
-        Domain::Triangle => Some(3),
-        Domain::Node | Domain::Single => None,
-    }
-}
-
-/// Check that a kernel is well formed against its module: every access it makes stays inside
-/// buffers laid out as `Module::buffers` says. The run-time checks (buffer lengths, entity
-/// ranges, connectivity) then make the generated code memory safe.
-pub(crate) fn validate(m: &Module, k: &Kernel) -> Result<(), String> {
-    let err = |msg: String| Err(format!("kernel `{}`: {msg}", k.name));
-    if k.body.n_args as usize != k.args.len() {
-        return err(format!(
-            "body has {} arguments but {} argument sources",
-            k.body.n_args,
-            k.args.len()
-        ));
-    }
-    let buf = |id: crate::ir::BufferId| m.buffers.get(id.0 as usize);
-    // Offsets inside a row (up to 4 lanes of rows) are 32-bit immediates.
-    if let Some(b) = m.buffers.iter().find(|b| b.width > 1 << 24) {
-        return err(format!(
-            "buffer `{}` is {} wide; at most 2^24 components",
-            b.name, b.width
-        ));
-    }
-    for (i, a) in k.args.iter().enumerate() {
-        match a {
-            ArgSource::Own { buffer, component } => {
-                let Some(b) = buf(*buffer) else {
-                    return err(format!("argument {i} reads an undeclared buffer"));
-                };
-                if b.domain != k.domain {
-                    return err(format!(
-                        "argument {i} reads `{}` ({:?}) per {:?}",
-                        b.name, b.domain, k.domain
-                    ));
-                }
-                if *component >= b.width {
-                    return err(format!(
-                        "argument {i} reads component {component} of `{}` (width {})",
-                        b.name, b.width
-                    ));
-                }
-            }
-            ArgSource::Corner {
-                buffer,
-                corner,
-                component,
-            } => {
-                let Some(nc) = corners(k.domain) else {
-                    return err(format!(
-                        "argument {i}: corner loads need an element or triangle kernel"
-                    ));
-                };
-                let Some(b) = buf(*buffer) else {
-                    return err(format!("argument {i} reads an undeclared buffer"));
-                };
-                if b.domain != Domain::Node {
-                    return err(format!(
-                        "argument {i}: corner load from non-node buffer `{}`",
-                        b.name
-                    ));
-                }
-                if *corner >= nc || *component >= b.width {
-                    return err(format!(
-                        "argument {i} reads corner {corner}, component {component} of `{}` (width {})",
-                        b.name, b.width
-                    ));
-                }
-            }
-            ArgSource::Uniform(_) => {}
-            ArgSource::Gather {
-                buffer,
-                over,
-                stride,
-                component,
-            } => {
-                if k.domain != Domain::Node {
-                    return err(format!("argument {i}: gathers need a node kernel"));
-                }
-                let Some(nc) = corners(*over) else {
-                    return err(format!(
-                        "argument {i}: gathers run over elements or triangles"
-                    ));
-                };
-                let Some(b) = buf(*buffer) else {
-                    return err(format!("argument {i} reads an undeclared buffer"));
-                };
-                if b.domain != *over {
-                    return err(format!(
-                        "argument {i}: gather over {over:?} from `{}` ({:?})",
-                        b.name, b.domain
-                    ));
-                }
-                let last = (nc as u64 - 1) * *stride as u64 + *component as u64;
-                if last >= b.width as u64 {
-                    return err(format!(
-                        "argument {i}: gather reads component {last} of `{}` (width {})",
-                        b.name, b.width
-                    ));
-                }
-            }
-        }
-    }
-    for (n, inst) in k.body.insts.iter().enumerate() {
-        let ok = match *inst {
-            Inst::Arg(a) => a < k.body.n_args,
-            _ => crate::ir::operands(inst).iter().all(|v| (v.0 as usize) < n),
-        };
-        if !ok {
-            return err(format!("instruction v{n} uses a value it cannot"));
-        }
-    }
-    for o in &k.body.outputs {
-        if o.0 as usize >= k.body.insts.len() {
-            return err(format!("output v{} does not exist", o.0));
-        }
-    }
-    for s in &k.stores {
-        let Some(b) = buf(s.buffer) else {
-            return err("store to an undeclared buffer".into());
-        };
-        if b.domain != k.domain || s.component >= b.width {
-            return err(format!(
-                "store to `{}` ({:?}, width {}) component {} per {:?}",
-                b.name, b.domain, b.width, s.component, k.domain
-            ));
-        }
-        if s.output >= k.body.outputs.len() {
-            return err(format!("store of output {} that does not exist", s.output));
-        }
-    }
-    Ok(())
-}
 
 /// The uniforms a kernel reads, in order of first appearance among its arguments.
 pub(super) fn uniform_names(k: &Kernel) -> Vec<String> {
@@ -214,7 +76,7 @@ fn readonly() -> MemFlagsData {
     MemFlagsData::trusted().with_readonly()
 }
 
-/// A 32-bit immediate offset: at most 4 lanes × 2^24 components × 8 bytes (`validate`).
+/// A 32-bit immediate offset: at most 4 lanes × 2^24 components × 8 bytes (`validate_kernel`).
 fn off(bytes: usize) -> i32 {
     i32::try_from(bytes).expect("offsets inside validated buffers fit in 32 bits")
 }
@@ -257,7 +119,7 @@ impl Translator<'_> {
         if self.jit.target_config().pointer_type() != PTR {
             return Err("the Cranelift backend needs a 64-bit host".into());
         }
-        validate(m, k)?;
+        validate_kernel(m, k)?;
         let fty = self.fty();
         let mut sig = self.jit.make_signature();
         sig.params.push(AbiParam::new(PTR));

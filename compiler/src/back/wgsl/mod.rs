@@ -15,7 +15,7 @@
 //! - then the connectivity as `array<u32>`: `elem_conn` (4 nodes per element), `tri_conn` (3 per
 //!   triangle), and the node CSR lists `node_elem_offsets`/`node_elem_entries` and
 //!   `node_tri_offsets`/`node_tri_entries` (entries are `(entity, corner)` pairs), as
-//!   [`crate::back::cranelift::Topology`] builds them.
+//!   [`crate::back::Topology`] builds them.
 //! - then one uniform block per kernel, `launch_<kernel>`: the first entity `begin`, the entity
 //!   `count` of the launch, and the kernel's uniforms (`t`, `dt`, params, …) in the order of
 //!   [`WgslKernel::uniforms`], as `real` fields. The runtime binds it with a dynamic offset, so
@@ -466,9 +466,7 @@ fn emit_with(
     precision: Precision,
     batch: Option<u32>,
 ) -> Result<WgslModule, String> {
-    for k in &module.kernels {
-        crate::back::cranelift::validate_kernel(module, k)?;
-    }
+    crate::ir::valid::validate_module(module)?;
     let nb = module.buffers.len() as u32;
     let topo_binding = |t: TopoArray| nb + t.index();
     let launch_binding = |k: usize| nb + TopoArray::ALL.len() as u32 + k as u32;

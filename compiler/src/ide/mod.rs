@@ -1,0 +1,131 @@
+//! Editor support: what is under the cursor, where it was declared, what may be typed next.
+//!
+//! The language server (`softc lsp`, in the runtime crate) speaks the protocol; this module
+//! answers its questions from the same front end and checker as `softc check`. Everything works
+//! on byte offsets into the script; the server converts to editor positions.
+//!
+//! Hover and go-to-definition use the AST when the script parses, and a token scan otherwise
+//! (while the user types, most states of the document do not parse). Completion always works
+//! from tokens before the cursor, so it is useful in the middle of an unfinished statement.
+
+mod complete;
+mod docs;
+#[cfg(test)]
+mod grammar_sync;
+mod hover;
+mod lex;
+mod navigate;
+mod outline;
+mod resolve;
+#[cfg(test)]
+mod tests;
+
+pub use complete::{Completion, CompletionKind};
+pub use docs::{
+    BUILTIN_DOCS, BuiltinDoc, CONSTANT_DOCS, CONTEXTUAL_KEYWORDS, KEYWORDS, REDUCTIONS,
+    RESERVED_DOCS,
+};
+pub use hover::{builtin_hover, eval_dim, prelude_signatures};
+pub use lex::{Tok, TokKind, is_keyword, tokenize};
+pub use outline::Symbol;
+pub use resolve::{Def, DefKind, Resolved, resolve};
+
+use crate::front::ast::*;
+use crate::sema::{CheckedScript, GlobalInfo};
+
+/// A script parsed, resolved and checked, ready to answer editor questions.
+pub struct Analysis<'a> {
+    pub text: &'a str,
+    pub script: Option<Script>,
+    pub resolved: Resolved,
+    /// The checker's view of the script's globals (types, values); empty when not checked.
+    pub globals: Vec<GlobalInfo>,
+    pub tokens: Vec<Tok>,
+}
+
+impl<'a> Analysis<'a> {
+    /// Analyze without running the checker (hover then shows declared, not inferred, types).
+    pub fn new(text: &'a str) -> Self {
+        let script = crate::front::parse(text).ok();
+        let resolved = script.as_ref().map(resolve).unwrap_or_default();
+        Analysis {
+            text,
+            script,
+            resolved,
+            globals: Vec::new(),
+            tokens: tokenize(text),
+        }
+    }
+
+    /// Analyze and keep the checker's results (types of globals).
+    pub fn with_check(text: &'a str, checked: Option<CheckedScript>) -> Self {
+        let mut a = Analysis::new(text);
+        a.globals = checked.map(|c| c.globals).unwrap_or_default();
+        a
+    }
+
+    /// Analyze a script parsed before (`script` must be `front::parse(text).ok()`).
+    pub fn from_parsed(text: &'a str, script: Option<Script>, globals: Vec<GlobalInfo>) -> Self {
+        let resolved = script.as_ref().map(resolve).unwrap_or_default();
+        Analysis {
+            text,
+            script,
+            resolved,
+            globals,
+            tokens: tokenize(text),
+        }
+    }
+
+    fn global_info(&self, name: &str, span: Span) -> Option<&GlobalInfo> {
+        self.globals
+            .iter()
+            .find(|g| g.name == name && g.span == span)
+    }
+
+    fn token_at(&self, offset: usize) -> Option<Tok> {
+        self.tokens
+            .iter()
+            .find(|t| {
+                t.span.start <= offset
+                    && offset <= t.span.end
+                    && matches!(t.kind, TokKind::Ident | TokKind::Unit)
+            })
+            .or_else(|| {
+                self.tokens
+                    .iter()
+                    .find(|t| t.span.start <= offset && offset < t.span.end)
+            })
+            .copied()
+    }
+
+    /// Declarations found by scanning tokens (`KEYWORD NAME`), for unparsable documents.
+    fn lexical_decls(&self) -> Vec<(String, &'static str, Span)> {
+        let mut out = Vec::new();
+        let words: Vec<(&str, Tok)> = self
+            .tokens
+            .iter()
+            .filter(|t| t.kind != TokKind::Comment)
+            .map(|t| (&self.text[t.span.start..t.span.end], *t))
+            .collect();
+        for w in words.windows(2) {
+            let kind = match w[0].0 {
+                "mesh" => "mesh",
+                "material" => "material",
+                "region" => "region",
+                "chamber" => "chamber",
+                "nodes" => "nodes",
+                "elements" => "elements",
+                "param" => "param",
+                "input" => "input",
+                "let" => "let",
+                "fn" => "fn",
+                "controller" => "controller",
+                _ => continue,
+            };
+            if w[1].1.kind == TokKind::Ident && !is_keyword(w[1].0) {
+                out.push((w[1].0.to_string(), kind, w[1].1.span));
+            }
+        }
+        out
+    }
+}
