@@ -9,6 +9,8 @@
 //! over the same steps: forward+backward steps/s (median), the bytes of states it stored, its
 //! recompute ratio and d loss / d p_peak.
 
+mod tradeoff;
+
 use crate::devices::{Backend, BackendChoice, DeviceChoice, Devices};
 use crate::engine::Simulation;
 use crate::engine::scene::Scene;
@@ -402,7 +404,7 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         };
     }
     if let Some(script) = &args.tradeoff {
-        return match sweep(&args, script).and_then(|s| super::tradeoff::run(&s, out, err)) {
+        return match sweep(&args, script).and_then(|s| tradeoff::run(&s, out, err)) {
             Ok(()) => 0,
             Err(e) => {
                 let _ = writeln!(err, "error: {}: {e}", script.display());
@@ -480,7 +482,7 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             "rows": rows,
         });
         let text = serde_json::to_string_pretty(&json).unwrap_or_default();
-        if let Err(e) = super::write_atomically(path, text.as_bytes()) {
+        if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
             let _ = writeln!(err, "error: cannot write `{}`: {e}", path.display());
             return 1;
         }
@@ -489,7 +491,7 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
 }
 
 /// The `--tradeoff` options as a sweep.
-fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<super::tradeoff::Sweep, String> {
+fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<tradeoff::Sweep, String> {
     fn list<T>(
         what: &str,
         text: &str,
@@ -523,7 +525,7 @@ fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<super::tradeoff::
     if safeties.iter().any(|s| *s > 1.0) {
         return Err("--safeties: a safety factor is at most 1".into());
     }
-    Ok(super::tradeoff::Sweep {
+    Ok(tradeoff::Sweep {
         script: script.to_path_buf(),
         set: set.to_string(),
         axis,

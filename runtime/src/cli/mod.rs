@@ -7,11 +7,10 @@ pub mod bench;
 pub mod mesh;
 pub mod optimize;
 pub mod run;
-pub mod tradeoff;
 
 // Through here, not from each other: `softc run` hands a script with an `optimize` block to
 // the optimization, which reads the same flags; every command writes files atomically.
-pub use crate::outputs::atomic::write_atomically;
+use crate::outputs::atomic::write_atomically;
 pub use optimize::optimize;
 pub use run::RunArgs;
 

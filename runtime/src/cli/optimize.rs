@@ -92,7 +92,7 @@ pub fn optimize(
         targets.push(d.join("result.json"));
     }
     for path in &targets {
-        if let Err(e) = super::write_atomically(path, text.as_bytes()) {
+        if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
             let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
             return 2;
         }
@@ -259,7 +259,7 @@ fn train<B: Backend + Send>(
         }
         if let Some(d) = &ctx.dir {
             let text = serde_json::to_string(&trainer.state).map_err(|e| e.to_string())?;
-            super::write_atomically(&d.join(STATE_FILE), text.as_bytes())
+            crate::outputs::atomic::write_atomically(&d.join(STATE_FILE), text.as_bytes())
                 .map_err(|e| format!("cannot save the optimization state: {e}"))?;
             write_plots(d, &script_name, &trainer.state.history, &trainer)?;
         }

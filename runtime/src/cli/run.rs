@@ -290,7 +290,7 @@ fn emit_json(
 ) -> i32 {
     match path {
         Some(path) => {
-            if let Err(e) = super::write_atomically(path, text.as_bytes()) {
+            if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
                 let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
                 return 2;
             }

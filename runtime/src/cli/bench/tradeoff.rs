@@ -127,7 +127,7 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
             sweep.script.display(),
             scene.source
         );
-        super::write_atomically(&script, text.as_bytes())
+        crate::outputs::atomic::write_atomically(&script, text.as_bytes())
             .map_err(|e| format!("cannot write {}: {e}", script.display()))?;
         let _ = writeln!(err, "[{}/{}] {label}", i + 1, configs.len());
         let p = measure(&scene, &script, &label, c, sweep, set_index)?;
@@ -469,7 +469,7 @@ fn write_outputs(points: &[Point], reference: &Reference, sweep: &Sweep) -> Resu
         "points": points,
     });
     let path = sweep.out.join("tradeoff.json");
-    super::write_atomically(
+    crate::outputs::atomic::write_atomically(
         &path,
         serde_json::to_string_pretty(&json)
             .unwrap_or_default()
