@@ -50,29 +50,71 @@ pub struct Topology {
     node_tri_entries: Vec<u32>,
 }
 
-/// The node→entity CSR of a connectivity with `nc` nodes per entity: for each node, its
-/// incidences `(entity, corner)` in increasing entity (then corner) order.
+/// Node → entity incidences in CSR form, softc's one connectivity list: the incidences of node
+/// `n` are `entries[offsets[n]..offsets[n + 1]]`, each `(entity, corner)`, in increasing entity
+/// then corner order, the order every gather sums in (deterministic, no atomics). The runtime
+/// keeps one per scene for elements and one for chamber triangles; [`Topology`] lays them out
+/// for the generated code.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct NodeCsr {
+    pub offsets: Vec<u32>,
+    pub entries: Vec<(u32, u8)>,
+}
+
+impl NodeCsr {
+    /// The incidences of `n_nodes` nodes in `entities` (each its nodes in corner order).
+    ///
+    /// # Panics
+    /// If a node index is `n_nodes` or more.
+    pub fn build(n_nodes: usize, entities: impl IntoIterator<Item = impl AsRef<[u32]>>) -> Self {
+        let entities: Vec<_> = entities.into_iter().collect();
+        let mut counts = vec![0u32; n_nodes + 1];
+        for e in &entities {
+            for &n in e.as_ref() {
+                counts[n as usize + 1] += 1;
+            }
+        }
+        for i in 0..n_nodes {
+            counts[i + 1] += counts[i];
+        }
+        let offsets = counts.clone();
+        let mut fill = counts;
+        let mut entries = vec![(0u32, 0u8); offsets[n_nodes] as usize];
+        // Entities in increasing order, corners in increasing order: each node's list ends up
+        // sorted by (entity, corner) without a sort.
+        for (e, nodes) in entities.iter().enumerate() {
+            for (c, &n) in nodes.as_ref().iter().enumerate() {
+                let slot = &mut fill[n as usize];
+                entries[*slot as usize] = (e as u32, c as u8);
+                *slot += 1;
+            }
+        }
+        NodeCsr { offsets, entries }
+    }
+
+    /// The `(entity, corner)` incidences of node `node`.
+    pub fn of(&self, node: usize) -> &[(u32, u8)] {
+        &self.entries[self.offsets[node] as usize..self.offsets[node + 1] as usize]
+    }
+
+    /// The incidences as flat `entity, corner` pairs, the layout generated code reads.
+    pub fn flat_entries(&self) -> Vec<u32> {
+        self.entries
+            .iter()
+            .flat_map(|&(e, c)| [e, u32::from(c)])
+            .collect()
+    }
+}
+
+/// The node→entity CSR of a connectivity with `nc` nodes per entity, flattened
+/// ([`NodeCsr::flat_entries`]).
 ///
 /// # Panics
 /// If an index of `conn` is `n_nodes` or more ([`Topology::new`] checks that first).
 pub fn node_csr(n_nodes: usize, conn: &[u32], nc: usize) -> (Vec<u32>, Vec<u32>) {
-    let mut counts = vec![0u32; n_nodes + 1];
-    for &n in conn {
-        counts[n as usize + 1] += 1;
-    }
-    for i in 0..n_nodes {
-        counts[i + 1] += counts[i];
-    }
-    let offsets = counts.clone();
-    let mut fill = counts;
-    let mut entries = vec![0u32; 2 * conn.len()];
-    for (p, &n) in conn.iter().enumerate() {
-        let slot = fill[n as usize] as usize;
-        fill[n as usize] += 1;
-        entries[2 * slot] = (p / nc) as u32;
-        entries[2 * slot + 1] = (p % nc) as u32;
-    }
-    (offsets, entries)
+    let csr = NodeCsr::build(n_nodes, conn.chunks(nc));
+    let entries = csr.flat_entries();
+    (csr.offsets, entries)
 }
 
 impl Topology {

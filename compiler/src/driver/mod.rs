@@ -232,7 +232,11 @@ pub fn compile(
         .collect::<Result<_, _>>()
         .map_err(&lower_err)?;
     let warnings = checked.diagnostics;
-    let (materials, chambers) = (kernels.materials.clone(), kernels.chambers.clone());
+    // The resolved scene's materials and chambers, read from the script (the reference oracle
+    // takes them from here, not from the kernels it checks).
+    let materials =
+        crate::lower::scene::scene_materials(&syntax).map_err(|e| lower_err(e.to_string()))?;
+    let chambers = crate::lower::scene::scene_chambers(&syntax);
     drop(program);
     Ok(Compiled {
         kernels,

@@ -75,28 +75,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         }
     }
     let mut module = Module::default();
-    let mut materials: Vec<String> = Vec::new();
-    for s in sim {
-        if let StmtKind::Use { material, .. } = &s.kind
-            && !materials.contains(&material.name)
-        {
-            materials.push(material.name.clone());
-        }
-    }
-    if materials.is_empty() {
-        let declared: Vec<&str> = script
-            .items
-            .iter()
-            .filter_map(|i| match &i.kind {
-                ItemKind::Material(m) if m.params.is_none() => Some(m.name.name.as_str()),
-                _ => None,
-            })
-            .collect();
-        match declared.as_slice() {
-            [one] => materials.push(one.to_string()),
-            _ => return Err(LowerError::new("the sim block assigns no material")),
-        }
-    }
+    let materials = scene_materials(script)?;
     let model = force_model(script)?;
     // The spring mesh declares its own buffers (no dm_inv, no elem_energy).
     let x_buf = match model {
@@ -158,6 +137,46 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         inversion_safe,
         material_fields: fields_of,
     })
+}
+
+/// The materials a scene uses, in kernel order: as the sim block's `use` lines first name them,
+/// or the script's one material when it has no `use`.
+pub fn scene_materials(script: &Script) -> Result<Vec<String>, LowerError> {
+    let mut materials: Vec<String> = Vec::new();
+    for s in script.sim_block() {
+        if let StmtKind::Use { material, .. } = &s.kind
+            && !materials.contains(&material.name)
+        {
+            materials.push(material.name.clone());
+        }
+    }
+    if materials.is_empty() {
+        let declared: Vec<&str> = script
+            .items
+            .iter()
+            .filter_map(|i| match &i.kind {
+                ItemKind::Material(m) if m.params.is_none() => Some(m.name.name.as_str()),
+                _ => None,
+            })
+            .collect();
+        match declared.as_slice() {
+            [one] => materials.push(one.to_string()),
+            _ => return Err(LowerError::new("the sim block assigns no material")),
+        }
+    }
+    Ok(materials)
+}
+
+/// The chambers with a pressure, in kernel order (the sim block's order).
+pub fn scene_chambers(script: &Script) -> Vec<String> {
+    script
+        .sim_block()
+        .iter()
+        .filter_map(|s| match &s.kind {
+            StmtKind::Pressure { chamber, .. } => Some(chamber.name.clone()),
+            _ => None,
+        })
+        .collect()
 }
 
 /// The value of a constant setting.

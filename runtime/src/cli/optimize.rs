@@ -334,8 +334,8 @@ fn train<B: Backend + Send>(
             serde_json::json!({
                 "iteration": r.iteration,
                 "loss": r.loss,
-                "params": gradients_json(&r.params),
-                "gradients": gradients_json(&r.gradient),
+                "params": gradients_json(&scene.slots, &r.params),
+                "gradients": gradients_json(&scene.slots, &r.gradient),
                 "scaled_gradient": r.scaled_gradient,
                 "grad_norm": r.grad_norm,
                 "lr": r.lr,
@@ -345,7 +345,7 @@ fn train<B: Backend + Send>(
         })
         .collect();
     json["history"] = history.into();
-    json["params"] = gradients_json(&trainer.result());
+    json["params"] = gradients_json(&scene.slots, &trainer.result());
     json["iterations"] = trainer.state.history.len().into();
     json["stopped"] = match &trainer.state.stopped {
         Some(Stopped::Condition { iteration }) => {

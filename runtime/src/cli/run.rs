@@ -245,7 +245,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     };
     let mut json = summary_json(&scene, &summary, backend_name);
     if let Some(g) = &grad {
-        json["gradients"] = gradients_json(&g.gradients);
+        json["gradients"] = gradients_json(&scene.slots, &g.gradients);
         json["adjoint"] = adjoint_json(g);
         if args.initial_state {
             let nodes = |v: &[f64]| v.chunks(3).map(|c| c.to_vec()).collect::<Vec<_>>();
@@ -403,7 +403,7 @@ fn run_scenes(
                 );
                 let mut json = summary_json(&scene, &summary, backend);
                 if let Some(g) = &grad {
-                    json["gradients"] = gradients_json(&g.gradients);
+                    json["gradients"] = gradients_json(&scene.slots, &g.gradients);
                 }
                 json["inputs"] = serde_json::Value::Object(inputs);
                 results.push(json);

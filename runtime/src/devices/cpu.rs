@@ -80,7 +80,15 @@ impl Backend for Cpu {
     fn prepare(&mut self, scene: &Scene) -> Result<(), String> {
         let elem: Vec<u32> = scene.mesh.tets.iter().flatten().copied().collect();
         let tri: Vec<u32> = scene.tris.iter().flatten().copied().collect();
-        let topology = Topology::new(scene.mesh.nodes.len(), elem, tri)?;
+        // The scene's own incidence lists, laid out for the generated code (not rebuilt).
+        let flat = |c: &crate::engine::scene::Csr| (c.offsets.clone(), c.flat_entries());
+        let topology = Topology::with_csr(
+            scene.mesh.nodes.len(),
+            elem,
+            tri,
+            flat(&scene.node_elements),
+            flat(&scene.node_tris),
+        )?;
         self.buffers = Some(Buffers::new(&self.ir, &topology, self.module.precision()));
         self.topology = Some(topology);
         Ok(())

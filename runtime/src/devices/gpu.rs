@@ -441,21 +441,15 @@ impl Core {
         let flat = |v: &[u32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
         let elem: Vec<u32> = tets.iter().flatten().copied().collect();
         let tri: Vec<u32> = tris.iter().flatten().copied().collect();
-        let pairs = |c: &Csr| -> Vec<u32> {
-            c.entries
-                .iter()
-                .flat_map(|&(e, k)| [e, u32::from(k)])
-                .collect()
-        };
         let mut topo = Vec::new();
         for t in TopoArray::ALL {
             let data = match t {
                 TopoArray::ElemConn => flat(&elem),
                 TopoArray::TriConn => flat(&tri),
                 TopoArray::NodeElemOffsets => flat(&node_elements.offsets),
-                TopoArray::NodeElemEntries => flat(&pairs(node_elements)),
+                TopoArray::NodeElemEntries => flat(&node_elements.flat_entries()),
                 TopoArray::NodeTriOffsets => flat(&node_tris.offsets),
-                TopoArray::NodeTriEntries => flat(&pairs(node_tris)),
+                TopoArray::NodeTriEntries => flat(&node_tris.flat_entries()),
             };
             if data.len() as u64 > max {
                 return Err(format!(

@@ -24,35 +24,8 @@ impl std::fmt::Display for SceneError {
     }
 }
 
-/// Node → incident entity adjacency in CSR form, entries `(entity, corner)` in entity order.
-#[derive(Debug, Clone, Default)]
-pub struct Csr {
-    pub offsets: Vec<u32>,
-    pub entries: Vec<(u32, u8)>,
-}
-
-impl Csr {
-    pub fn build(n_nodes: usize, entities: impl Iterator<Item = impl AsRef<[u32]>>) -> Csr {
-        let mut lists: Vec<Vec<(u32, u8)>> = vec![Vec::new(); n_nodes];
-        for (e, nodes) in entities.enumerate() {
-            for (c, &n) in nodes.as_ref().iter().enumerate() {
-                lists[n as usize].push((e as u32, c as u8));
-            }
-        }
-        let mut offsets = Vec::with_capacity(n_nodes + 1);
-        let mut entries = Vec::new();
-        offsets.push(0);
-        for l in lists {
-            entries.extend(l);
-            offsets.push(entries.len() as u32);
-        }
-        Csr { offsets, entries }
-    }
-
-    pub fn of(&self, node: usize) -> &[(u32, u8)] {
-        &self.entries[self.offsets[node] as usize..self.offsets[node + 1] as usize]
-    }
-}
+/// Node → incident entity adjacency in CSR form (the compiler's one connectivity type).
+pub use softc_compiler::back::NodeCsr as Csr;
 
 #[derive(Debug)]
 pub struct Scene {
@@ -143,7 +116,7 @@ impl Scene {
             tris.extend(t);
             chamber_ranges.push(start..tris.len());
         }
-        let node_elements = Csr::build(mesh.nodes.len(), mesh.tets.iter());
+        let node_elements = pre.node_elements.clone();
         let node_tris = Csr::build(mesh.nodes.len(), tris.iter());
         Ok(Scene {
             script: path.to_path_buf(),

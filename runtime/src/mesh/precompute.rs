@@ -5,44 +5,9 @@ use super::model::{Mesh, TET_EDGES, norm, sub};
 
 /// Node → element adjacency in CSR form: the incidences of node `n` are
 /// `entries[offsets[n]..offsets[n+1]]`, each `(element, corner)`, sorted by element then
-/// corner (deterministic gather order for force accumulation without atomics).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct NodeElementCsr {
-    pub offsets: Vec<u32>,
-    pub entries: Vec<(u32, u8)>,
-}
-
-impl NodeElementCsr {
-    pub fn build(num_nodes: usize, tets: &[[u32; 4]]) -> Self {
-        let mut counts = vec![0u32; num_nodes + 1];
-        for t in tets {
-            for &n in t {
-                counts[n as usize + 1] += 1;
-            }
-        }
-        for i in 0..num_nodes {
-            counts[i + 1] += counts[i];
-        }
-        let offsets = counts.clone();
-        let mut fill = counts;
-        let mut entries = vec![(0u32, 0u8); tets.len() * 4];
-        // Elements in increasing order, corners in increasing order: each node's list ends up
-        // sorted by (element, corner) without a sort.
-        for (e, t) in tets.iter().enumerate() {
-            for (c, &n) in t.iter().enumerate() {
-                let slot = &mut fill[n as usize];
-                entries[*slot as usize] = (e as u32, c as u8);
-                *slot += 1;
-            }
-        }
-        NodeElementCsr { offsets, entries }
-    }
-
-    /// The `(element, corner)` incidences of node `n`.
-    pub fn of(&self, n: usize) -> &[(u32, u8)] {
-        &self.entries[self.offsets[n] as usize..self.offsets[n + 1] as usize]
-    }
-}
+/// corner (deterministic gather order for force accumulation without atomics). The compiler's
+/// one connectivity type.
+pub use softc_compiler::back::NodeCsr as NodeElementCsr;
 
 /// A unique edge of the tet mesh (spring mesh, thesis eq. 2.3).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -166,7 +131,7 @@ impl Precomputed {
                 mass[n as usize] += m;
             }
         }
-        let node_elements = NodeElementCsr::build(nn, &mesh.tets);
+        let node_elements = NodeElementCsr::build(nn, mesh.tets.iter());
         let chambers = mesh.chamber_tags();
         let surfaces = mesh
             .surface_tags()

@@ -4,6 +4,7 @@
 use crate::engine::RunSummary;
 use crate::engine::adjoint::GradientReport;
 use crate::engine::scene::Scene;
+use softc_compiler::driver::{ParamSlots, SlotKind};
 
 /// The JSON summary: SI units throughout.
 pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json::Value {
@@ -37,16 +38,20 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
 }
 
 /// `param.NAME[.i…]` derivatives as `{NAME: number or nested array}`.
-pub fn gradients_json(g: &std::collections::BTreeMap<String, f64>) -> serde_json::Value {
+pub fn gradients_json(
+    slots: &[ParamSlots],
+    g: &std::collections::BTreeMap<String, f64>,
+) -> serde_json::Value {
     let mut by_param: std::collections::BTreeMap<&str, Vec<(Vec<usize>, f64)>> = Default::default();
-    for (name, d) in g {
-        let Some(rest) = name.strip_prefix("param.") else {
-            continue;
-        };
-        let mut parts = rest.split('.');
-        let p = parts.next().unwrap_or(rest);
-        let idx: Vec<usize> = parts.filter_map(|s| s.parse().ok()).collect();
-        by_param.entry(p).or_default().push((idx, *d));
+    for p in slots.iter().filter(|p| p.kind != SlotKind::Input) {
+        for (flat, uniform) in p.uniforms.iter().enumerate() {
+            if let Some(d) = g.get(uniform) {
+                by_param
+                    .entry(&p.name)
+                    .or_default()
+                    .push((row_major_index(&p.shape, flat), *d));
+            }
+        }
     }
     fn nest(entries: &[(Vec<usize>, f64)], depth: usize) -> serde_json::Value {
         if entries.len() == 1 && entries[0].0.len() == depth {
@@ -69,6 +74,17 @@ pub fn gradients_json(g: &std::collections::BTreeMap<String, f64>) -> serde_json
         .map(|(p, e)| (p.to_string(), nest(&e, 0)))
         .collect::<serde_json::Map<_, _>>()
         .into()
+}
+
+/// The index of entry `flat` of a row-major array of `shape` (empty for a scalar).
+fn row_major_index(shape: &[usize], flat: usize) -> Vec<usize> {
+    let mut index = vec![0; shape.len()];
+    let mut rest = flat;
+    for (i, n) in shape.iter().enumerate().rev() {
+        index[i] = rest % n.max(&1);
+        rest /= n.max(&1);
+    }
+    index
 }
 
 /// The backward pass's report: its schedule, the memory it took, its timing and health.
