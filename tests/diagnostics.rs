@@ -1,13 +1,15 @@
 //! Every script in tests/diagnostics/ is wrong on purpose. Its diagnostics (code, line:column,
-//! message) must match the golden `NAME.expected` beside it, and `softc check` must exit with 1.
+//! message) must match the snapshot `NAME.snap` beside it (insta's format: a short header, then
+//! the lines), and `softc check` must exit with 1.
 //!
-//! Update the goldens after an intended change with:
-//!     SOFTC_BLESS=1 cargo test -p softc-tests --test diagnostics
-//! and review the diff.
+//! A mismatch prints a diff and, outside CI, stores the new output as `NAME.snap.new` (review it
+//! with `cargo insta review` if cargo-insta is installed). Accept every change at once with:
+//!     INSTA_UPDATE=always cargo test -p softc-tests --test diagnostics
+//! and review the diff. With `CI=true` nothing is written.
 
 use softc_compiler::diag::SourceFile;
 use softc_compiler::sema::CheckOptions;
-use softc_tests::{bless, files_with_ext, root, softc};
+use softc_tests::{files_with_ext, root, softc};
 
 fn render(path: &std::path::Path) -> (String, bool) {
     let bytes = std::fs::read(path).unwrap();
@@ -30,21 +32,25 @@ fn render(path: &std::path::Path) -> (String, bool) {
 fn wrong_scripts_match_their_golden_diagnostics() {
     let dir = root().join("tests/diagnostics");
     let scripts = files_with_ext(&dir, "soft");
+    let mut settings = insta::Settings::clone_current();
+    settings.set_snapshot_path("diagnostics");
+    settings.set_prepend_module_to_snapshot(false);
+    settings.set_omit_expression(true);
+    let _bound = settings.bind_to_scope();
     let mut failures = Vec::new();
     for script in &scripts {
         let (actual, has_errors) = render(script);
         if !has_errors {
             failures.push(format!("{}: no error reported", script.display()));
         }
-        let golden = script.with_extension("expected");
-        if bless() {
-            std::fs::write(&golden, &actual).unwrap();
-            continue;
-        }
-        let expected = std::fs::read_to_string(&golden).unwrap_or_default();
-        if expected != actual {
+        // Every script is compared (insta prints each diff) before the test fails.
+        let name = script.file_stem().unwrap().to_string_lossy().into_owned();
+        let compared =
+            std::panic::catch_unwind(|| insta::assert_snapshot!(name.as_str(), actual.as_str()));
+        if compared.is_err() {
+            // (insta's "Stopped on the first failure" is about that one script.)
             failures.push(format!(
-                "{}:\n--- expected\n{expected}--- actual\n{actual}",
+                "{}: differs from {name}.snap (diff above)",
                 script.display()
             ));
         }

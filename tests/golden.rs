@@ -4,6 +4,11 @@
 //! generated code shows in review. Update after an intended change:
 //!     SOFTC_BLESS=1 cargo test -p softc-tests --test golden
 //! and read the diff.
+//!
+//! Not insta snapshots (as tests/diagnostics.rs uses): insta stores text as `NAME.snap` with a
+//! YAML header and compares it with trailing whitespace trimmed and CRLF folded, and its binary
+//! snapshots split each golden into `NAME.snap` + `NAME.snap.wgsl`. These goldens stay plain
+//! `.wgsl`/`.ir` files (an editor highlights them) compared byte for byte.
 
 use softc_tests::{bless, files_with_ext, root, softc};
 use std::path::{Path, PathBuf};

@@ -24,7 +24,8 @@ pub fn softc(args: &[&str]) -> (i32, String, String) {
     )
 }
 
-/// Whether golden files should be rewritten instead of compared (`SOFTC_BLESS=1`).
+/// Whether the generated kernels' golden files (tests/golden.rs) should be rewritten instead of
+/// compared (`SOFTC_BLESS=1`). The diagnostics corpus uses insta (`INSTA_UPDATE=always`).
 pub fn bless() -> bool {
     std::env::var_os("SOFTC_BLESS").is_some_and(|v| v != "0")
 }

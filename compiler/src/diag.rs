@@ -1,20 +1,27 @@
 //! Diagnostics: what went wrong, where, and how to fix it.
 //!
-//! Human format (gcc-style, so editors and terminals link the location):
+//! Human format: a gcc-style first line, so editors and terminals link the location, then the
+//! snippet drawn by `codespan-reporting` (secondary locations labelled in the same snippet):
 //!
 //! ```text
-//! examples/bad.soft:3:18: error[E0201]: cannot add pressure (kPa) and length (mm)
-//!    |
-//!  3 | let x = 3 kPa + 2 mm
-//!    |         ^^^^^^^^^^^^
-//!    = hint: …
+//! examples/bad.soft:7:9: error[E0201]: cannot add pressure (kPa) and length (mm)
+//!   |
+//! 6 | let a = 3 kPa
+//!   |     - declared here
+//! 7 | let b = a + 2 mm
+//!   |         ^^^^^^^^
+//!   |
+//!   = hint: both sides of `+` and `-` need the same dimension
 //! ```
 //!
 //! Machine format: one JSON object per line (`--message-format json`).
 
 use crate::front::ast::Span;
+use codespan_reporting::diagnostic as cs;
+use codespan_reporting::files::{Files, SimpleFile};
+use codespan_reporting::term;
 use serde::Serialize;
-use std::fmt::Write as _;
+use std::sync::OnceLock;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -70,7 +77,12 @@ pub struct SourceFile<'a> {
     pub name: &'a str,
     pub text: &'a str,
     line_starts: Vec<usize>,
+    /// The text as snippets show it, built on the first `render`.
+    shown: OnceLock<SimpleFile<&'a str, String>>,
 }
+
+/// The most characters of a source line a snippet shows (minified or binary input).
+const MAX_SHOWN: usize = 200;
 
 impl<'a> SourceFile<'a> {
     pub fn new(name: &'a str, text: &'a str) -> Self {
@@ -80,6 +92,7 @@ impl<'a> SourceFile<'a> {
             name,
             text,
             line_starts,
+            shown: OnceLock::new(),
         }
     }
 
@@ -102,69 +115,95 @@ impl<'a> SourceFile<'a> {
         o
     }
 
-    fn line_text(&self, line: usize) -> &str {
-        let start = self.line_starts[line - 1];
-        let end = self
-            .line_starts
-            .get(line)
-            .map(|e| e - 1)
-            .unwrap_or(self.text.len());
-        self.text[start..end].trim_end_matches('\r')
+    /// The text handed to `codespan-reporting`: the same lines, each without its `\r`, cut at
+    /// `MAX_SHOWN` characters, control characters (but tabs) shown as `�`.
+    fn shown(&self) -> &SimpleFile<&'a str, String> {
+        self.shown.get_or_init(|| {
+            let mut shown = String::with_capacity(self.text.len().min(1 << 20));
+            for (i, line) in self.text.split('\n').enumerate() {
+                if i > 0 {
+                    shown.push('\n');
+                }
+                let line = line.strip_suffix('\r').unwrap_or(line);
+                shown.extend(line.chars().take(MAX_SHOWN).map(printable));
+            }
+            SimpleFile::new(self.name, shown)
+        })
+    }
+
+    /// Where a byte offset of the text falls in the shown text (same line, same character
+    /// column, clamped to what is shown).
+    fn shown_offset(&self, offset: usize) -> usize {
+        let offset = self.clamp(offset);
+        let line = match self.line_starts.binary_search(&offset) {
+            Ok(i) => i,
+            Err(i) => i - 1,
+        };
+        let column = self.text[self.line_starts[line]..offset].chars().count();
+        let shown = self.shown();
+        let Ok(range) = shown.line_range((), line) else {
+            return shown.source().len();
+        };
+        let text = &shown.source()[range.clone()];
+        let text = text.strip_suffix('\n').unwrap_or(text);
+        range.start
+            + text
+                .char_indices()
+                .nth(column)
+                .map_or(text.len(), |(i, _)| i)
     }
 
     /// Render one diagnostic in the human format.
     pub fn render(&self, d: &Diagnostic) -> String {
-        let mut out = String::new();
-        let (line, col) = self.line_col(d.span.start);
-        let sev = match d.severity {
-            Severity::Error => "error",
-            Severity::Warning => "warning",
+        let mut out = self.render_short(d);
+        out.push('\n');
+        let shown = self.shown();
+        let range = |span: Span| {
+            let start = self.shown_offset(span.start);
+            let mut end = self.shown_offset(span.end.max(span.start));
+            if end == start {
+                // An empty span still gets a caret: under the character it points at.
+                end += shown.source()[start..]
+                    .chars()
+                    .next()
+                    .filter(|&c| c != '\n')
+                    .map_or(0, char::len_utf8);
+            }
+            start..end
         };
-        let _ = writeln!(
-            out,
-            "{}:{}:{}: {}[{}]: {}",
-            self.name, line, col, sev, d.code, d.message
-        );
-        self.render_snippet(&mut out, d.span, None);
+        let mut labels = vec![cs::Label::primary((), range(d.span))];
         for (span, note) in &d.notes {
-            let (nl, nc) = self.line_col(span.start);
-            let _ = writeln!(out, "{}:{}:{}: note: {}", self.name, nl, nc, note);
-            self.render_snippet(&mut out, *span, None);
+            labels.push(cs::Label::secondary((), range(*span)).with_message(note));
         }
-        if let Some(h) = &d.hint {
-            let _ = writeln!(out, "  = hint: {h}");
+        // The header is ours (above); codespan draws the snippet, notes and hint.
+        let severity = match d.severity {
+            Severity::Error => cs::Severity::Error,
+            Severity::Warning => cs::Severity::Warning,
+        };
+        let snippet = cs::Diagnostic::new(severity)
+            .with_labels(labels)
+            .with_notes(d.hint.iter().map(|h| format!("hint: {h}")).collect());
+        let config = term::Config {
+            chars: term::Chars::ascii(),
+            ..term::Config::default()
+        };
+        if let Ok(text) = term::emit_into_string(&config, shown, &snippet) {
+            // Drop codespan's header (`error: `) and locus (`--> FILE:LINE:COL`) lines, both
+            // already in ours, and its closing empty line; no trailing blanks (codespan pads the
+            // gutter of multi-line spans).
+            let mut lines: Vec<&str> = text.lines().skip(2).map(str::trim_end).collect();
+            if lines.last() == Some(&"") {
+                lines.pop();
+            }
+            for line in lines {
+                out.push_str(line);
+                out.push('\n');
+            }
+        } else if let Some(h) = &d.hint {
+            // Unreachable (the ranges are valid offsets of the shown text); the hint still counts.
+            out.push_str(&format!("  = hint: {h}\n"));
         }
         out
-    }
-
-    fn render_snippet(&self, out: &mut String, span: Span, label: Option<&str>) {
-        let (line, col) = self.line_col(span.start);
-        let (end_line, end_col) = self.line_col(span.end.max(span.start));
-        let text = self.line_text(line);
-        // Keep snippets readable for minified or binary input.
-        let shown: String = text.chars().take(200).map(printable).collect();
-        let width = line.to_string().len();
-        let caret_len = if end_line == line {
-            end_col.saturating_sub(col).max(1)
-        } else {
-            text.chars().count().saturating_sub(col - 1).max(1)
-        };
-        let pad: String = text
-            .chars()
-            .take(col - 1)
-            .map(|c| if c == '\t' { '\t' } else { ' ' })
-            .collect();
-        let _ = writeln!(out, "{:width$} |", "");
-        let _ = writeln!(out, "{line:>width$} | {shown}");
-        let carets = "^".repeat(caret_len.min(200));
-        match label {
-            Some(l) => {
-                let _ = writeln!(out, "{:width$} | {pad}{carets} {l}", "");
-            }
-            None => {
-                let _ = writeln!(out, "{:width$} | {pad}{carets}", "");
-            }
-        }
     }
 
     /// Render one diagnostic as a single-line JSON object.
@@ -288,4 +327,74 @@ fn edit_distance(a: &str, b: &str) -> usize {
         }
     }
     d[n][m]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn render(text: &str, d: Diagnostic) -> String {
+        SourceFile::new("x.soft", text).render(&d)
+    }
+
+    #[test]
+    fn human_format() {
+        let text = "let a = 3 kPa\nlet b = a + 2 mm\n";
+        let d = Diagnostic::error("E0201", Span { start: 22, end: 30 }, "cannot add")
+            .with_note(Span { start: 4, end: 5 }, "declared here")
+            .with_hint("same dimension");
+        assert_eq!(
+            render(text, d),
+            "x.soft:2:9: error[E0201]: cannot add\n  |\n1 | let a = 3 kPa\n  |     - declared here\n\
+             2 | let b = a + 2 mm\n  |         ^^^^^^^^\n  |\n  = hint: same dimension\n"
+        );
+        // A span over two lines; CRLF line ends.
+        let d = Diagnostic::warning("W0001", Span { start: 8, end: 18 }, "w");
+        assert_eq!(
+            render("let a = (1 +\r\n  2)\r\n", d),
+            "x.soft:1:9: warning[W0001]: w\n  |\n1 |   let a = (1 +\n  | /---------^\n\
+             2 | |   2)\n  | \\----^\n"
+        );
+    }
+
+    #[test]
+    fn snippets_survive_odd_input() {
+        // Control characters as `\u{fffd}`, with a caret under them.
+        let d = Diagnostic::error("E0003", Span { start: 2, end: 3 }, "control");
+        assert_eq!(
+            render("a \u{1b}[31m b", d),
+            "x.soft:1:3: error[E0003]: control\n  |\n1 | a \u{fffd}[31m b\n  |   ^\n"
+        );
+        // An empty span at the end of the file still gets a caret.
+        let d = Diagnostic::error("E0003", Span { start: 5, end: 5 }, "eof");
+        assert_eq!(
+            render("let (", d),
+            "x.soft:1:6: error[E0003]: eof\n  |\n1 | let (\n  |      ^\n"
+        );
+        // Long lines are cut, and the carets with them; spans past the end are clamped.
+        let long = format!("{}é{}", "x".repeat(300), "y".repeat(300));
+        let d = Diagnostic::error(
+            "E0001",
+            Span {
+                start: 190,
+                end: 400,
+            },
+            "long",
+        );
+        let out = render(&long, d);
+        assert!(
+            out.starts_with("x.soft:1:191: error[E0001]: long\n"),
+            "{out}"
+        );
+        let lines: Vec<&str> = out.lines().collect();
+        assert_eq!(lines[2], format!("1 | {}", "x".repeat(200)));
+        assert_eq!(
+            lines[3],
+            format!("  | {}{}", " ".repeat(190), "^".repeat(10))
+        );
+        for (start, end) in [(10_000, 20_000), (301, 301), (301, 302), (5, 2)] {
+            let d = Diagnostic::error("E0001", Span { start, end }, "odd");
+            assert!(render(&long, d).contains('^'), "{start}..{end}");
+        }
+    }
 }
