@@ -113,7 +113,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
                 spring_force_kernel(program, &mut module, m, volume_stiffness)?
             }
         };
-        module.kernels.push(k);
+        module.push_kernel(k);
         // Only FEM evaluates W at the element's own J; the spring mesh inverts like any other.
         inversion_safe
             .push(matches!(model, ForceModel::Fem) && !material_is_isochoric(program, m)?);
@@ -128,7 +128,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     );
     for s in sim {
         if let StmtKind::Pressure { chamber, value } = &s.kind {
-            module.kernels.push(pressure_kernel(
+            module.push_kernel(pressure_kernel(
                 program,
                 x_buf,
                 tri_force,
@@ -142,7 +142,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         module.buffers.retain(|b| b.name != "tri_force");
     }
     let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
-    module.kernels.push(node);
+    module.push_kernel(node);
     let mut scale = Vec::new();
     if let Some(e) = script.optimize_setting("gradient_scale") {
         scale.push(("v", constant(program, e, "gradient_scale")?));
@@ -212,7 +212,7 @@ fn pressure_kernel(
     tri_force: crate::ir::BufferId,
     chamber: &str,
     pressure: &Expr,
-) -> Result<crate::ir::Kernel, LowerError> {
+) -> Result<crate::ir::BuiltKernel, LowerError> {
     let mut k = KernelBuilder::new(
         &format!("pressure_{chamber}"),
         Domain::Triangle,
@@ -262,7 +262,7 @@ fn node_kernel(
     module: &mut Module,
     script: &Script,
     pressure: bool,
-) -> Result<crate::ir::Kernel, LowerError> {
+) -> Result<crate::ir::BuiltKernel, LowerError> {
     let x = module.buffer("x", Domain::Node, 3, "node positions, m");
     let v = module.buffer("v", Domain::Node, 3, "node velocities, m/s");
     let x_next = module.buffer("x_next", Domain::Node, 3, "positions after the step, m");

@@ -202,7 +202,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let params = self.params();
         for sim in &mut self.sims {
             for (k, v) in &params {
-                sim.uniforms.0.insert(k.clone(), *v);
+                sim.uniforms.set_named(k, *v);
             }
         }
     }
@@ -245,7 +245,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let n_scenes = assignments.len().min(self.sims.len());
         let results = crate::engine::in_lockstep(&mut self.sims[..n_scenes], |i, sim| {
             for (k, v) in &assignments[i] {
-                sim.uniforms.0.insert(k.clone(), *v);
+                sim.uniforms.set_named(k, *v);
             }
             sim.reset();
             sim.gradient(Some(dt), Some(steps), grad)
@@ -370,7 +370,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let (dt, steps) = (self.state.dt, self.state.steps);
         let sim = &mut self.sims[0];
         for (k, v) in params.iter().chain(inputs) {
-            sim.uniforms.0.insert(k.clone(), *v);
+            sim.uniforms.set_named(k, *v);
         }
         sim.reset();
         sim.vtk = vtk;
