@@ -7,8 +7,8 @@ use softc_compiler::back::Precision;
 use softc_compiler::back::cranelift::{Buffers, CpuModule, Options, Topology};
 use softc_compiler::front::parse;
 use softc_compiler::ir::{
-    ArgSource, BinOp, Buffer, BufferId, BuiltKernel, CmpOp, Domain, Func, Inst, Kernel, KernelBuilder, Module,
-    Store, UnOp, V, interp,
+    ArgSource, BinOp, Buffer, BufferId, BuiltKernel, CmpOp, Domain, Func, Inst, Kernel,
+    KernelBuilder, Module, Store, UnOp, V, interp,
 };
 use softc_compiler::lower::expr::Program;
 use softc_compiler::lower::fem::element_force_kernel;
@@ -871,7 +871,12 @@ fn uniforms_compares_and_selects_on_triangles() {
     m.push_kernel(k.finish());
     let kernel = &m.kernels[0];
     let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
-    let names: Vec<&str> = cpu.kernel(0).uniforms.iter().map(|&u| m.uniform_name(u)).collect();
+    let names: Vec<&str> = cpu
+        .kernel(0)
+        .uniforms
+        .iter()
+        .map(|&u| m.uniform_name(u))
+        .collect();
     assert_eq!(names, ["p", "threshold", "cap"]);
     let n_tri = mesh.tris.len();
     for uniforms in [

@@ -182,7 +182,11 @@ fn every_argument_source_domain_and_operation_validates_in_f32_and_f64() {
         let integ = &w.kernels[2];
         // Gathers bind both CSR lists, and the three gathered buffers.
         assert_eq!(integ.storage_buffers, 3 + 1 + 1 + 4);
-        let names: Vec<&str> = w.kernels[0].uniforms.iter().map(|&u| m.uniform_name(u)).collect();
+        let names: Vec<&str> = w.kernels[0]
+            .uniforms
+            .iter()
+            .map(|&u| m.uniform_name(u))
+            .collect();
         assert_eq!(names, ["t", "param.w.1.3"]);
         assert_eq!(w.kernels[0].launch_size, 8 + 2 * p.size() as u64);
         // Each gather loop sums in CSR order, once per CSR list.

@@ -518,7 +518,10 @@ impl Module {
     /// Add a kernel built by a [`KernelBuilder`], its uniforms renumbered into this module's
     /// table. Returns its index.
     pub fn push_kernel(&mut self, built: BuiltKernel) -> usize {
-        let BuiltKernel { mut kernel, uniforms } = built;
+        let BuiltKernel {
+            mut kernel,
+            uniforms,
+        } = built;
         for a in &mut kernel.args {
             if let ArgSource::Uniform(u) = a {
                 *u = self.uniform(&uniforms[u.0 as usize]);
@@ -706,5 +709,42 @@ impl KernelBuilder {
             },
             uniforms: self.uniforms,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kernels_built_apart_share_the_module_uniform_table() {
+        let mut m = Module::default();
+        let y = m.buffer("y", Domain::Single, 2, "");
+        let mut a = KernelBuilder::new("a", Domain::Single, "test");
+        let (t, p) = (a.uniform("t"), a.uniform("param.p"));
+        let s = a.b.add(t, p);
+        a.store(y, 0, s);
+        let mut b = KernelBuilder::new("b", Domain::Single, "test");
+        // A sub-function with its own table, inlined: its unbound uniform is renamed.
+        let mut sub = KernelBuilder::new("sub", Domain::Single, "test");
+        let (x, q) = (sub.uniform("x"), sub.uniform("param.q"));
+        let r = sub.b.mul(x, q);
+        sub.b.func.outputs.push(r);
+        let (sub_args, func) = sub.into_parts();
+        assert_eq!(sub_args.uniform_name(&sub_args.sources[1]), Some("param.q"));
+        let p2 = b.uniform("param.p");
+        let out = b.inline(&sub_args, &func, &[p2])[0];
+        b.store(y, 1, out);
+        m.push_kernel(a.finish());
+        m.push_kernel(b.finish());
+        assert_eq!(m.uniforms, ["t", "param.p", "param.q"]);
+        let id = |n: &str| m.uniform_named(n).unwrap();
+        assert_eq!(m.kernels[0].uniforms(), [id("t"), id("param.p")]);
+        assert_eq!(m.kernels[1].uniforms(), [id("param.p"), id("param.q")]);
+        for k in &m.kernels {
+            valid::validate_kernel(&m, k).unwrap();
+        }
+        let text = m.to_string();
+        assert!(text.contains("uniform param.q"), "{text}");
     }
 }

@@ -8,7 +8,7 @@ use super::expr::{Env, ExprLowerer, Program};
 use super::fem::{FemBuffers, element_force_kernel, material_fields, material_is_isochoric};
 use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
-use crate::ir::{ArgSource, CmpOp, Domain, KernelBuilder, Module, V};
+use crate::ir::{ArgSource, BufferId, CmpOp, Domain, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
 
 /// The module of a scene plus what the host needs to run it.
@@ -32,6 +32,51 @@ pub struct SceneModule {
     /// from the element buffer `param.NAME`. The runtime applies such a material only to
     /// elements of the field's set.
     pub material_fields: Vec<Vec<String>>,
+    /// The buffers the host fills or reads, by role.
+    pub buffers: SceneBuffers,
+}
+
+/// The ids of the buffers the host fills or reads (resolved once, when the scene is lowered).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SceneBuffers {
+    pub x: BufferId,
+    pub v: BufferId,
+    pub x_next: BufferId,
+    pub v_next: BufferId,
+    pub mass: BufferId,
+    pub fixed: BufferId,
+    pub vol0: BufferId,
+    pub elem_force: BufferId,
+    pub elem_j: BufferId,
+    /// FEM only.
+    pub dm_inv: Option<BufferId>,
+    /// FEM only.
+    pub elem_energy: Option<BufferId>,
+    /// The spring mesh only.
+    pub edge_l0: Option<BufferId>,
+}
+
+impl SceneBuffers {
+    fn of(m: &Module) -> Result<SceneBuffers, LowerError> {
+        let id = |n: &str| {
+            m.buffer_named(n)
+                .ok_or_else(|| LowerError::new(format!("the step has no buffer `{n}`")))
+        };
+        Ok(SceneBuffers {
+            x: id("x")?,
+            v: id("v")?,
+            x_next: id("x_next")?,
+            v_next: id("v_next")?,
+            mass: id("mass")?,
+            fixed: id("fixed")?,
+            vol0: id("vol0")?,
+            elem_force: id("elem_force")?,
+            elem_j: id("elem_j")?,
+            dm_inv: m.buffer_named("dm_inv"),
+            elem_energy: m.buffer_named("elem_energy"),
+            edge_l0: m.buffer_named("edge_l0"),
+        })
+    }
 }
 
 /// Lower the scene described by a checked script.
@@ -149,7 +194,9 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     }
     let adjoint =
         adjoint(&module, &[("x", "x_next"), ("v", "v_next")], &scale).map_err(LowerError::new)?;
+    let buffers = SceneBuffers::of(&module)?;
     Ok(SceneModule {
+        buffers,
         module,
         materials,
         chambers,

@@ -35,14 +35,7 @@ impl<'s> Loss<'s> {
 
     /// The loss term at one state: positions and velocities (flat, 3 per node), time, and the
     /// other uniforms (params, inputs).
-    pub fn eval(
-        &self,
-        scene: &Scene,
-        x: &[f64],
-        v: &[f64],
-        t: f64,
-        uniforms: &Uniforms,
-    ) -> f64 {
+    pub fn eval(&self, scene: &Scene, x: &[f64], v: &[f64], t: f64, uniforms: &Uniforms) -> f64 {
         interp::eval(
             &self.kernels.func,
             &self.arg_values(scene, x, v, t, uniforms),

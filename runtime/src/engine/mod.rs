@@ -167,7 +167,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         backend
             .prepare(scene)
             .unwrap_or_else(|e| panic!("backend {}: {e}", backend.name()));
-        let id = |n: &str| m.buffer_named(n).unwrap_or_else(|| panic!("buffer {n}"));
+        let bufs = scene.lowered.buffers;
         // The adjoint module extends the forward one: same uniform table, more kernels.
         let mut uniforms = Uniforms::new(&scene.lowered.adjoint.module.uniforms, &scene.uniforms);
         let (t, dt) = (uniforms.intern("t"), uniforms.intern("dt"));
@@ -186,35 +186,38 @@ impl<'s, B: Backend> Simulation<'s, B> {
             })
             .collect();
         let ids = Ids {
-            x: id("x"),
-            v: id("v"),
-            x_next: id("x_next"),
-            v_next: id("v_next"),
-            elem_force: id("elem_force"),
-            elem_j: id("elem_j"),
-            elem_energy: m.buffer_named("elem_energy"),
+            x: bufs.x,
+            v: bufs.v,
+            x_next: bufs.x_next,
+            v_next: bufs.v_next,
+            elem_force: bufs.elem_force,
+            elem_j: bufs.elem_j,
+            elem_energy: bufs.elem_energy,
             t,
             dt,
             fields,
         };
-        let mut fill = |name: &str, data: Vec<f64>| {
-            if let Some(b) = m.buffer_named(name) {
+        let mut fill = |b: Option<BufferId>, data: Vec<f64>| {
+            if let Some(b) = b {
                 backend.set(b, &data);
             }
         };
-        fill("x", scene.mesh.nodes.iter().flatten().copied().collect());
-        fill("mass", scene.pre.mass.clone());
         fill(
-            "fixed",
+            Some(bufs.x),
+            scene.mesh.nodes.iter().flatten().copied().collect(),
+        );
+        fill(Some(bufs.mass), scene.pre.mass.clone());
+        fill(
+            Some(bufs.fixed),
             scene
                 .fixed
                 .iter()
                 .map(|&f| if f { 1.0 } else { 0.0 })
                 .collect(),
         );
-        fill("vol0", scene.pre.rest_volume.clone());
+        fill(Some(bufs.vol0), scene.pre.rest_volume.clone());
         fill(
-            "dm_inv",
+            bufs.dm_inv,
             scene
                 .pre
                 .dm_inv
@@ -224,8 +227,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .copied()
                 .collect(),
         );
-        if m.buffer_named("edge_l0").is_some() {
-            fill("edge_l0", edge_rest_lengths(scene));
+        if bufs.edge_l0.is_some() {
+            fill(bufs.edge_l0, edge_rest_lengths(scene));
         }
         let mut sim = Simulation {
             scene,
