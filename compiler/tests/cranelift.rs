@@ -7,8 +7,8 @@ use softc_compiler::back::Precision;
 use softc_compiler::back::cranelift::{Buffers, CpuModule, Options, Topology};
 use softc_compiler::front::parse;
 use softc_compiler::ir::{
-    ArgSource, BinOp, Buffer, BufferId, CmpOp, Domain, Func, Inst, Kernel, KernelBuilder, Module,
-    Store, UnOp, V, interp,
+    ArgSource, BinOp, Buffer, BufferId, BuiltKernel, CmpOp, Domain, Func, Inst, Kernel,
+    KernelBuilder, Module, Store, UnOp, V, interp,
 };
 use softc_compiler::lower::expr::Program;
 use softc_compiler::lower::fem::element_force_kernel;
@@ -177,6 +177,7 @@ fn all_ops_module() -> (Module, BufferId, BufferId) {
             buffer("out", Domain::Node, n),
         ],
         kernels: vec![kernel],
+        uniforms: vec![],
     };
     (module, input, out)
 }
@@ -388,7 +389,7 @@ fn fem_modules() -> Vec<(String, Module)> {
         .map(|n| {
             let mut m = Module::default();
             let k = element_force_kernel(&program, &mut m, n).unwrap();
-            m.kernels.push(k);
+            m.push_kernel(k);
             (n.to_string(), m)
         })
         .collect()
@@ -649,7 +650,7 @@ fn fem_element_kernels_in_f32_are_close_to_f64() {
 /// A node kernel: the sum of incident element forces (over the node→element CSR) plus an
 /// external load, and the sum of incident triangle loads (node→triangle CSR) scaled by a
 /// uniform.
-fn gather_kernel(m: &mut Module) -> Kernel {
+fn gather_kernel(m: &mut Module) -> BuiltKernel {
     let force = m.buffer_named("elem_force").unwrap();
     let tri_load = m.buffer("tri_load", Domain::Triangle, 9, "load per triangle corner");
     let ext = m.buffer("ext", Domain::Node, 3, "external load");
@@ -687,9 +688,12 @@ fn gathers_equal_a_plain_loop_over_the_csr_bit_for_bit() {
     let topo = mesh.topology();
     let (_, mut m) = fem_modules().swap_remove(0);
     let k = gather_kernel(&mut m);
-    m.kernels.push(k);
+    m.push_kernel(k);
     let [cpu, _] = both_ways(&m, Precision::F64);
-    assert_eq!(cpu.kernel(1).uniforms, vec!["pressure_scale".to_string()]);
+    assert_eq!(
+        cpu.kernel(1).uniforms,
+        [m.uniform_named("pressure_scale").unwrap()]
+    );
     let n_el = mesh.tets.len();
     let n_nodes = mesh.x.len();
     let n_tri = mesh.tris.len();
@@ -782,7 +786,7 @@ fn a_caller_given_csr_order_is_the_summation_order() {
         component: 1,
     });
     k.store(out, 0, g);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
     let mut rng = Rng(3);
     // Values of very different magnitudes, so the summation order shows in the bits.
@@ -864,10 +868,16 @@ fn uniforms_compares_and_selects_on_triangles() {
     let le = k.b.cmp(CmpOp::Le, cross[0], thr);
     let both = k.b.mul(ne, le);
     k.store(out, 3, both);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let kernel = &m.kernels[0];
     let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
-    assert_eq!(cpu.kernel(0).uniforms, ["p", "threshold", "cap"]);
+    let names: Vec<&str> = cpu
+        .kernel(0)
+        .uniforms
+        .iter()
+        .map(|&u| m.uniform_name(u))
+        .collect();
+    assert_eq!(names, ["p", "threshold", "cap"]);
     let n_tri = mesh.tris.len();
     for uniforms in [
         [3e3, 0.0, 1e-3],
@@ -885,7 +895,7 @@ fn uniforms_compares_and_selects_on_triangles() {
                 .args
                 .iter()
                 .map(|a| match a {
-                    ArgSource::Uniform(n) => match n.as_str() {
+                    ArgSource::Uniform(n) => match m.uniform_name(*n) {
                         "p" => uniforms[0],
                         "threshold" => uniforms[1],
                         _ => uniforms[2],
@@ -915,7 +925,7 @@ fn misuse_is_an_error() {
     let topo = mesh.topology();
     let (_, mut m) = fem_modules().swap_remove(2);
     let k = gather_kernel(&mut m);
-    m.kernels.push(k);
+    m.push_kernel(k);
     let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
     let n_el = mesh.tets.len();
     let mut bufs = Buffers::new(&m, &topo, Precision::F64);
@@ -955,7 +965,7 @@ fn misuse_is_an_error() {
         component: 0,
     });
     k.store(el, 0, v);
-    m2.kernels.push(k.finish());
+    m2.push_kernel(k.finish());
     let err = CpuModule::compile(&m2, Precision::F64).unwrap_err();
     assert!(err.contains("bad_own"), "{err}");
     m2.kernels.clear();
@@ -966,7 +976,7 @@ fn misuse_is_an_error() {
         component: 0,
     });
     k.store(el, 0, v);
-    m2.kernels.push(k.finish());
+    m2.push_kernel(k.finish());
     assert!(CpuModule::compile(&m2, Precision::F64).is_err());
     m2.kernels.clear();
     let mut k = KernelBuilder::new("bad_gather", Domain::Node, "test");
@@ -977,7 +987,7 @@ fn misuse_is_an_error() {
         component: 0,
     });
     k.store(nodebuf, 0, v);
-    m2.kernels.push(k.finish());
+    m2.push_kernel(k.finish());
     assert!(CpuModule::compile(&m2, Precision::F64).is_err());
 
     // Stores go to the kernel's own entity of its own domain, corners read node buffers
@@ -990,7 +1000,8 @@ fn misuse_is_an_error() {
     });
     let s = k.b.scale(2.0, a);
     k.store(el, 0, s);
-    m2.kernels = vec![k.finish()];
+    m2.kernels.clear();
+    m2.push_kernel(k.finish());
     let cpu2 = CpuModule::compile(&m2, Precision::F64).unwrap();
     let mut b2 = Buffers::new(&m2, &topo, Precision::F64);
     b2.set(el, &vec![1.5; n_el]).unwrap();
@@ -1063,7 +1074,7 @@ fn measure() {
     // The node kernel with gathers (scalar code), after the yeoh element kernel.
     let (_, mut m) = fem_modules().swap_remove(0);
     let k = gather_kernel(&mut m);
-    m.kernels.push(k);
+    m.push_kernel(k);
     let n_nodes = mesh.x.len();
     for p in [Precision::F64, Precision::F32] {
         let cpu = CpuModule::compile(&m, p).unwrap();
@@ -1143,7 +1154,7 @@ fn single_kernels_run_once() {
     k.store(out, 0, p);
     let r2 = k.b.scale(2.0, r);
     k.store(raw, 1, r2);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let topo = Topology::new(0, vec![], vec![]).unwrap();
     for cpu in both_ways(&m, Precision::F64) {
         assert_eq!(cpu.kernel(0).lanes, 1);
@@ -1173,7 +1184,7 @@ fn caller_owned_storage_and_double_buffering() {
     let one = k.b.constant(1.0);
     let y = k.b.add(x, one);
     k.store(new, 0, y);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let topo = Topology::new(5, vec![], vec![]).unwrap();
     let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
     let mut bufs = Buffers::from_storage(

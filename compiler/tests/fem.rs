@@ -77,6 +77,8 @@ fn kernels() -> Vec<(String, Module, Kernel)> {
         .map(|n| {
             let mut m = Module::default();
             let k = element_force_kernel(&program, &mut m, n).unwrap();
+            let i = m.push_kernel(k);
+            let k = m.kernels[i].clone();
             (n.to_string(), m, k)
         })
         .collect()

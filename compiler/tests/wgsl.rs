@@ -78,7 +78,7 @@ fn everything() -> Module {
         k.store(ef, c, acc3);
     }
     k.store(w1, 0, acc);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
 
     // Triangle kernel.
     let mut k = KernelBuilder::new("pressure_cavity", Domain::Triangle, "pressure cavity");
@@ -92,7 +92,7 @@ fn everything() -> Module {
     for c in 0..9 {
         k.store(tf, c, v);
     }
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
 
     // Node kernel: gathers over both CSR lists.
     let mut k = KernelBuilder::new("integrate", Domain::Node, "sim");
@@ -122,7 +122,7 @@ fn everything() -> Module {
     let s2 = k.b.add(g3, own);
     k.store(out, 0, s1);
     k.store(out, 1, s2);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
 
     // Single kernel.
     let mut k = KernelBuilder::new("reduce", Domain::Single, "loss");
@@ -133,7 +133,7 @@ fn everything() -> Module {
     let d = k.uniform("dt");
     let v = k.b.mul(a, d);
     k.store(s, 0, v);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     m
 }
 
@@ -182,7 +182,12 @@ fn every_argument_source_domain_and_operation_validates_in_f32_and_f64() {
         let integ = &w.kernels[2];
         // Gathers bind both CSR lists, and the three gathered buffers.
         assert_eq!(integ.storage_buffers, 3 + 1 + 1 + 4);
-        assert_eq!(w.kernels[0].uniforms, ["t", "param.w.1.3"]);
+        let names: Vec<&str> = w.kernels[0]
+            .uniforms
+            .iter()
+            .map(|&u| m.uniform_name(u))
+            .collect();
+        assert_eq!(names, ["t", "param.w.1.3"]);
         assert_eq!(w.kernels[0].launch_size, 8 + 2 * p.size() as u64);
         // Each gather loop sums in CSR order, once per CSR list.
         assert_eq!(
@@ -242,14 +247,14 @@ fn names_that_are_wgsl_words_are_renamed() {
     let s = k.b.add(x, y);
     let s = k.b.add(s, u);
     k.store(c, 0, s);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let mut k = KernelBuilder::new("var", Domain::Node, "clashes with a buffer");
     let x = k.load(ArgSource::Own {
         buffer: a,
         component: 0,
     });
     k.store(c, 0, x);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     for p in [Precision::F32, Precision::F64] {
         let w = wgsl::emit(&m, p).unwrap();
         wgsl::validate(&w.source, p).unwrap_or_else(|e| panic!("{e}\n{}", w.source));
@@ -269,7 +274,7 @@ fn malformed_kernels_are_refused_with_a_message() {
         component: 0,
     });
     k.store(x, 0, a);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let e = wgsl::emit(&m, Precision::F32).unwrap_err();
     assert!(e.contains("kernel `bad`") && e.contains("corner"), "{e}");
 
@@ -281,7 +286,7 @@ fn malformed_kernels_are_refused_with_a_message() {
         component: 3,
     });
     k.store(x, 0, a);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let e = wgsl::emit(&m, Precision::F32).unwrap_err();
     assert!(e.contains("component 3"), "{e}");
 }
@@ -300,7 +305,7 @@ fn constants_are_exact_in_their_precision() {
     let nan = k.b.constant(f64::NAN);
     let v = k.b.add(v, nan);
     k.store(x, 0, v);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     let f32s = wgsl::emit(&m, Precision::F32).unwrap().source;
     let f64s = wgsl::emit(&m, Precision::F64).unwrap().source;
     assert!(f32s.contains("0.1f"), "{f32s}");

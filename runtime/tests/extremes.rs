@@ -601,7 +601,7 @@ fn long_horizon_gradient(steps: u64) {
     let d = g.gradients["param.p_peak"];
     let loss_at = |p: f64| {
         let mut sim = cpu(&scene);
-        sim.uniforms.0.insert("param.p_peak".into(), p);
+        sim.uniforms.set_named("param.p_peak", p);
         sim.run(None, None).unwrap().loss.unwrap()
     };
     let p = scene.uniforms["param.p_peak"];

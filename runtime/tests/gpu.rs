@@ -247,7 +247,7 @@ fn math_module() -> Module {
     }
     let p = k.b.bin(BinOp::Pow, a, b);
     k.store(y, 7, p);
-    m.kernels.push(k.finish());
+    m.push_kernel(k.finish());
     m
 }
 
@@ -593,7 +593,7 @@ fn a_batch_of_4_scenes_gives_the_results_of_4_single_runs_in_one_dispatch_per_la
             .map(|i| {
                 let mut sim = Simulation::new(&scene, Gpu::new(module, precision, None).unwrap());
                 for (k, v) in settings(i) {
-                    sim.uniforms.0.insert(k.into(), v);
+                    sim.uniforms.set_named(k, v);
                 }
                 sim.gradient(None, Some(steps), &GradOptions::default())
                     .unwrap()
@@ -604,7 +604,7 @@ fn a_batch_of_4_scenes_gives_the_results_of_4_single_runs_in_one_dispatch_per_la
             .map(|i| {
                 let mut sim = Simulation::new(&scene, batch.scene(i).unwrap());
                 for (k, v) in settings(i) {
-                    sim.uniforms.0.insert(k.into(), v);
+                    sim.uniforms.set_named(k, v);
                 }
                 sim
             })

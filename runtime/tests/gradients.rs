@@ -54,7 +54,7 @@ fn gradient(scene: &Scene, steps: u64, options: &GradOptions) -> GradientReport 
 fn loss_with(scene: &Scene, steps: u64, uniform: &str, value: f64) -> f64 {
     let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
     let mut sim = Simulation::new(scene, cpu);
-    sim.uniforms.0.insert(uniform.to_string(), value);
+    sim.uniforms.set_named(uniform, value);
     sim.run(None, Some(steps)).unwrap().loss.unwrap()
 }
 

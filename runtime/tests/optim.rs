@@ -353,7 +353,7 @@ fn a_batch_averages_loss_and_gradient_over_its_scenes() {
         let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
         let mut sim = Simulation::new(&scene, cpu);
         for (k, v) in &s.inputs {
-            sim.uniforms.0.insert(k.clone(), *v);
+            sim.uniforms.set_named(k, *v);
         }
         let g = sim.gradient(None, None, &GradOptions::default()).unwrap();
         assert_eq!(g.summary.loss.unwrap(), s.loss);

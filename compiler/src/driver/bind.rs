@@ -9,7 +9,7 @@ use super::plan::uniform_name;
 use super::settings::{arg, call_parts};
 use super::{Resolved, const_scalar, const_values};
 use crate::front::ast::*;
-use crate::ir::{ArgSource, Domain, KernelBuilder, interp};
+use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
 use crate::sema::types::Len;
@@ -356,14 +356,13 @@ fn selection(
                 .map_err(|e| e.to_string())?;
             k.b.func.outputs.push(v);
             let (srcs, mut func) = k.into_parts();
-            func.n_args = srcs.len() as u32;
+            func.n_args = srcs.sources.len() as u32;
             let idx: Vec<usize> = srcs
+                .sources
                 .iter()
-                .map(|s| match s {
-                    ArgSource::Uniform(n) => {
-                        ["x", "y", "z"].iter().position(|c| c == n).unwrap_or(0)
-                    }
-                    _ => 0,
+                .map(|s| match srcs.uniform_name(s) {
+                    Some(n) => ["x", "y", "z"].iter().position(|c| *c == n).unwrap_or(0),
+                    None => 0,
                 })
                 .collect();
             points

@@ -5,7 +5,7 @@
 //! are arguments, and so are the loss window's ends.
 
 use crate::front::ast::{ItemKind, LossWhen, Script};
-use crate::ir::{ArgSource, Builder, Domain, Func, Inst, KernelBuilder, V, ad, interp};
+use crate::ir::{Builder, Domain, Func, Inst, KernelBuilder, V, ad, interp};
 use crate::lower::expr::{Env, ExprLowerer, Program};
 use std::collections::HashMap;
 
@@ -127,7 +127,7 @@ pub(super) fn lower_loss(
         .map_err(|e| format!("the loss cannot be evaluated: {e}"))?;
     k.b.func.outputs.push(v);
     let (srcs, mut func) = k.into_parts();
-    func.n_args = srcs.len() as u32;
+    func.n_args = srcs.sources.len() as u32;
     let wrt: Vec<_> = (0..func.n_args)
         .map(|i| {
             func.insts
@@ -152,10 +152,11 @@ pub(super) fn lower_loss(
         }))
         .collect();
     let args = srcs
-        .into_iter()
-        .map(|s| match s {
-            ArgSource::Uniform(n) => Ok(LossArg::of(&n)),
-            other => Err(format!("the loss reads {other:?}")),
+        .sources
+        .iter()
+        .map(|s| match srcs.uniform_name(s) {
+            Some(n) => Ok(LossArg::of(n)),
+            None => Err(format!("the loss reads {s:?}")),
         })
         .collect::<Result<_, _>>()?;
     let window = match &decl.when {
@@ -171,12 +172,13 @@ pub(super) fn lower_loss(
                     .map_err(|e| e.to_string())?;
                 kb.b.func.outputs.push(v);
                 let (srcs, mut func) = kb.into_parts();
-                func.n_args = srcs.len() as u32;
+                func.n_args = srcs.sources.len() as u32;
                 let reads_dt = srcs
+                    .sources
                     .iter()
-                    .map(|s| match s {
-                        ArgSource::Uniform(n) if n == "dt" => Some(true),
-                        ArgSource::Uniform(n) if n == "t_end" => Some(false),
+                    .map(|s| match srcs.uniform_name(s) {
+                        Some("dt") => Some(true),
+                        Some("t_end") => Some(false),
                         _ => None,
                     })
                     .collect::<Option<Vec<_>>>()

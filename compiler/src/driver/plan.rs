@@ -5,7 +5,7 @@
 use super::settings::call_or_name;
 use super::{const_scalar, const_values};
 use crate::front::ast::*;
-use crate::ir::{ArgSource, Domain, Func, KernelBuilder, interp};
+use crate::ir::{Domain, Func, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, Program};
 use crate::sema::ParamInfo;
 
@@ -55,12 +55,13 @@ impl StopCondition {
             .map_err(|e| format!("`stop when` cannot be evaluated: {e}"))?;
         k.b.func.outputs.push(v);
         let (srcs, mut func) = k.into_parts();
-        func.n_args = srcs.len() as u32;
+        func.n_args = srcs.sources.len() as u32;
         let args = srcs
+            .sources
             .iter()
-            .map(|s| match s {
-                ArgSource::Uniform(n) => NAMES.iter().position(|m| m == n),
-                _ => None,
+            .map(|s| {
+                let n = srcs.uniform_name(s)?;
+                NAMES.iter().position(|m| *m == n)
             })
             .collect::<Option<Vec<_>>>()
             .ok_or("`stop when` is not a constant condition")?;

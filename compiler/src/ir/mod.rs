@@ -394,6 +394,11 @@ pub struct Buffer {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct BufferId(pub u32);
 
+/// A scalar known for a whole launch (`t`, `dt`, `param.w.1`, …): an index in
+/// [`Module::uniforms`], or, in a kernel still being built, in its builder's own table.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct UniformId(pub u32);
+
 /// Where a kernel argument comes from.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ArgSource {
@@ -406,7 +411,7 @@ pub enum ArgSource {
         component: u32,
     },
     /// A scalar known for the whole launch: `t`, `dt`, a param, a constant of the scene.
-    Uniform(String),
+    Uniform(UniformId),
     /// Node kernels: the sum over the node's incident entities (CSR order) of
     /// `buffer[entity][corner * stride + component]`, where `corner` is the node's position in
     /// the entity. Deterministic: the order is fixed by the CSR list.
@@ -439,6 +444,20 @@ pub struct Kernel {
 }
 
 impl Kernel {
+    /// The uniforms the kernel reads, in order of first appearance among its arguments (the
+    /// order of a launch's uniform values in every backend).
+    pub fn uniforms(&self) -> Vec<UniformId> {
+        let mut ids = Vec::new();
+        for a in &self.args {
+            if let ArgSource::Uniform(u) = a
+                && !ids.contains(u)
+            {
+                ids.push(*u);
+            }
+        }
+        ids
+    }
+
     /// Remove the arguments the body does not read, renumbering the others.
     pub fn drop_unused_args(&mut self) {
         let mut used = vec![false; self.args.len()];
@@ -470,9 +489,48 @@ impl Kernel {
 pub struct Module {
     pub buffers: Vec<Buffer>,
     pub kernels: Vec<Kernel>,
+    /// The name of each uniform the kernels read, indexed by [`UniformId`] (for printing,
+    /// generated code and the edges that take values by name).
+    pub uniforms: Vec<String>,
 }
 
 impl Module {
+    /// The id of the uniform `name`, added to the table if new.
+    pub fn uniform(&mut self, name: &str) -> UniformId {
+        if let Some(id) = self.uniform_named(name) {
+            return id;
+        }
+        self.uniforms.push(name.into());
+        UniformId(self.uniforms.len() as u32 - 1)
+    }
+
+    pub fn uniform_named(&self, name: &str) -> Option<UniformId> {
+        self.uniforms
+            .iter()
+            .position(|u| u == name)
+            .map(|i| UniformId(i as u32))
+    }
+
+    pub fn uniform_name(&self, id: UniformId) -> &str {
+        &self.uniforms[id.0 as usize]
+    }
+
+    /// Add a kernel built by a [`KernelBuilder`], its uniforms renumbered into this module's
+    /// table. Returns its index.
+    pub fn push_kernel(&mut self, built: BuiltKernel) -> usize {
+        let BuiltKernel {
+            mut kernel,
+            uniforms,
+        } = built;
+        for a in &mut kernel.args {
+            if let ArgSource::Uniform(u) = a {
+                *u = self.uniform(&uniforms[u.0 as usize]);
+            }
+        }
+        self.kernels.push(kernel);
+        self.kernels.len() - 1
+    }
+
     pub fn buffer(&mut self, name: &str, domain: Domain, width: u32, doc: &str) -> BufferId {
         if let Some(i) = self.buffers.iter().position(|b| b.name == name) {
             return BufferId(i as u32);
@@ -494,11 +552,39 @@ impl Module {
     }
 }
 
+/// A kernel as a [`KernelBuilder`] finished it: its [`ArgSource::Uniform`] ids index
+/// `uniforms` until [`Module::push_kernel`] renumbers them into the module's table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BuiltKernel {
+    pub kernel: Kernel,
+    pub uniforms: Vec<String>,
+}
+
+/// The arguments of a function built standalone ([`KernelBuilder::into_parts`]): its sources,
+/// and the names of the uniforms their ids index.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Args {
+    pub sources: Vec<ArgSource>,
+    pub uniforms: Vec<String>,
+}
+
+impl Args {
+    /// The name of a uniform source (`None` for a buffer read).
+    pub fn uniform_name(&self, a: &ArgSource) -> Option<&str> {
+        match a {
+            ArgSource::Uniform(u) => Some(&self.uniforms[u.0 as usize]),
+            _ => None,
+        }
+    }
+}
+
 /// Helps write a kernel: arguments are allocated as they are requested, so the body reads
-/// like the physics and the argument list is exactly what it uses.
+/// like the physics and the argument list is exactly what it uses. Uniforms are numbered in
+/// the builder's own table (see [`BuiltKernel`]).
 pub struct KernelBuilder {
     pub b: Builder,
     args: Vec<ArgSource>,
+    uniforms: Vec<String>,
     stores: Vec<Store>,
     name: String,
     domain: Domain,
@@ -510,11 +596,20 @@ impl KernelBuilder {
         KernelBuilder {
             b: Builder::new(u32::MAX),
             args: Vec::new(),
+            uniforms: Vec::new(),
             stores: Vec::new(),
             name: name.into(),
             domain,
             origin: origin.into(),
         }
+    }
+
+    /// A builder whose uniform ids are `module`'s (to load arguments of its kernels as they
+    /// are).
+    pub fn in_module(module: &Module, name: &str, domain: Domain, origin: &str) -> Self {
+        let mut k = KernelBuilder::new(name, domain, origin);
+        k.uniforms = module.uniforms.clone();
+        k
     }
 
     /// The value of an argument source (the same source twice gives the same value).
@@ -530,7 +625,14 @@ impl KernelBuilder {
     }
 
     pub fn uniform(&mut self, name: &str) -> V {
-        self.load(ArgSource::Uniform(name.into()))
+        let id = match self.uniforms.iter().position(|u| u == name) {
+            Some(i) => i,
+            None => {
+                self.uniforms.push(name.into());
+                self.uniforms.len() - 1
+            }
+        };
+        self.load(ArgSource::Uniform(UniformId(id as u32)))
     }
 
     pub fn store(&mut self, buffer: BufferId, component: u32, value: V) {
@@ -543,15 +645,32 @@ impl KernelBuilder {
         });
     }
 
-    /// The argument sources and the body built so far (for a sub-function to be inlined).
-    pub fn into_parts(self) -> (Vec<ArgSource>, Func) {
-        (self.args, self.b.finish())
+    /// The arguments and the body built so far (for a sub-function to be inlined, or a
+    /// function evaluated on its own).
+    pub fn into_parts(self) -> (Args, Func) {
+        let args = Args {
+            sources: self.args,
+            uniforms: self.uniforms,
+        };
+        (args, self.b.finish())
     }
 
-    /// Inline `func` (built by another `KernelBuilder` whose arguments were `sub_args`): its
-    /// first `bound.len()` arguments take the given values, the others are loaded here.
-    /// Returns the values of its outputs.
-    pub fn inline(&mut self, sub_args: &[ArgSource], func: &Func, bound: &[V]) -> Vec<V> {
+    /// Inline `func` (built by another `KernelBuilder` whose arguments were `sub`): its first
+    /// `bound.len()` arguments take the given values, the others are loaded here. Returns the
+    /// values of its outputs.
+    pub fn inline(&mut self, sub: &Args, func: &Func, bound: &[V]) -> Vec<V> {
+        self.inline_sources(&sub.sources, &sub.uniforms, func, bound)
+    }
+
+    /// [`KernelBuilder::inline`] with the sub-function's sources and uniform names apart (a
+    /// module's kernel: its sources and the module's table).
+    pub fn inline_sources(
+        &mut self,
+        sub_args: &[ArgSource],
+        sub_uniforms: &[String],
+        func: &Func,
+        bound: &[V],
+    ) -> Vec<V> {
         let mut map: Vec<V> = Vec::with_capacity(func.insts.len());
         for inst in &func.insts {
             let m = |v: V| map[v.0 as usize];
@@ -559,7 +678,10 @@ impl KernelBuilder {
                 Inst::Const(c) => self.b.constant(c),
                 Inst::Arg(i) => match bound.get(i as usize) {
                     Some(&v) => v,
-                    None => self.load(sub_args[i as usize].clone()),
+                    None => match &sub_args[i as usize] {
+                        ArgSource::Uniform(u) => self.uniform(&sub_uniforms[u.0 as usize]),
+                        a => self.load(a.clone()),
+                    },
                 },
                 Inst::Un(op, a) => self.b.un(op, m(a)),
                 Inst::Bin(op, a, b) => self.b.bin(op, m(a), m(b)),
@@ -571,17 +693,58 @@ impl KernelBuilder {
         func.outputs.iter().map(|o| map[o.0 as usize]).collect()
     }
 
-    pub fn finish(self) -> Kernel {
+    /// The kernel, to be added to a module with [`Module::push_kernel`].
+    pub fn finish(self) -> BuiltKernel {
         let mut body = self.b.finish();
         body.n_args = self.args.len() as u32;
         body.prune();
-        Kernel {
-            name: self.name,
-            domain: self.domain,
-            origin: self.origin,
-            args: self.args,
-            body,
-            stores: self.stores,
+        BuiltKernel {
+            kernel: Kernel {
+                name: self.name,
+                domain: self.domain,
+                origin: self.origin,
+                args: self.args,
+                body,
+                stores: self.stores,
+            },
+            uniforms: self.uniforms,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kernels_built_apart_share_the_module_uniform_table() {
+        let mut m = Module::default();
+        let y = m.buffer("y", Domain::Single, 2, "");
+        let mut a = KernelBuilder::new("a", Domain::Single, "test");
+        let (t, p) = (a.uniform("t"), a.uniform("param.p"));
+        let s = a.b.add(t, p);
+        a.store(y, 0, s);
+        let mut b = KernelBuilder::new("b", Domain::Single, "test");
+        // A sub-function with its own table, inlined: its unbound uniform is renamed.
+        let mut sub = KernelBuilder::new("sub", Domain::Single, "test");
+        let (x, q) = (sub.uniform("x"), sub.uniform("param.q"));
+        let r = sub.b.mul(x, q);
+        sub.b.func.outputs.push(r);
+        let (sub_args, func) = sub.into_parts();
+        assert_eq!(sub_args.uniform_name(&sub_args.sources[1]), Some("param.q"));
+        let p2 = b.uniform("param.p");
+        let out = b.inline(&sub_args, &func, &[p2])[0];
+        b.store(y, 1, out);
+        m.push_kernel(a.finish());
+        m.push_kernel(b.finish());
+        assert_eq!(m.uniforms, ["t", "param.p", "param.q"]);
+        let id = |n: &str| m.uniform_named(n).unwrap();
+        assert_eq!(m.kernels[0].uniforms(), [id("t"), id("param.p")]);
+        assert_eq!(m.kernels[1].uniforms(), [id("param.p"), id("param.q")]);
+        for k in &m.kernels {
+            valid::validate_kernel(&m, k).unwrap();
+        }
+        let text = m.to_string();
+        assert!(text.contains("uniform param.q"), "{text}");
     }
 }

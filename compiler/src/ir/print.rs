@@ -53,7 +53,7 @@ fn write_kernel(f: &mut fmt::Formatter<'_>, m: &Module, k: &Kernel) -> fmt::Resu
                 "{}[corner {corner}].{component}",
                 m.buffers[buffer.0 as usize].name
             ),
-            ArgSource::Uniform(n) => format!("uniform {n}"),
+            ArgSource::Uniform(u) => format!("uniform {}", m.uniform_name(*u)),
             ArgSource::Gather {
                 buffer,
                 over,

@@ -76,7 +76,11 @@ pub fn validate_kernel(m: &Module, k: &Kernel) -> Result<(), String> {
                     ));
                 }
             }
-            ArgSource::Uniform(_) => {}
+            ArgSource::Uniform(u) => {
+                if m.uniforms.get(u.0 as usize).is_none() {
+                    return err(format!("argument {i} reads an undeclared uniform"));
+                }
+            }
             ArgSource::Gather {
                 buffer,
                 over,

@@ -149,7 +149,7 @@ pub fn element_force_kernel(
     program: &Program,
     module: &mut Module,
     material: &str,
-) -> Result<crate::ir::Kernel, LowerError> {
+) -> Result<crate::ir::BuiltKernel, LowerError> {
     let bufs = FemBuffers::declare(module);
     let fields = declare_fields(program, module, material)?;
     let mut k = KernelBuilder::new(

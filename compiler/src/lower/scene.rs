@@ -8,7 +8,7 @@ use super::expr::{Env, ExprLowerer, Program};
 use super::fem::{FemBuffers, element_force_kernel, material_fields, material_is_isochoric};
 use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
-use crate::ir::{ArgSource, CmpOp, Domain, KernelBuilder, Module, V};
+use crate::ir::{ArgSource, BufferId, CmpOp, Domain, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
 
 /// The module of a scene plus what the host needs to run it.
@@ -32,6 +32,51 @@ pub struct SceneModule {
     /// from the element buffer `param.NAME`. The runtime applies such a material only to
     /// elements of the field's set.
     pub material_fields: Vec<Vec<String>>,
+    /// The buffers the host fills or reads, by role.
+    pub buffers: SceneBuffers,
+}
+
+/// The ids of the buffers the host fills or reads (resolved once, when the scene is lowered).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SceneBuffers {
+    pub x: BufferId,
+    pub v: BufferId,
+    pub x_next: BufferId,
+    pub v_next: BufferId,
+    pub mass: BufferId,
+    pub fixed: BufferId,
+    pub vol0: BufferId,
+    pub elem_force: BufferId,
+    pub elem_j: BufferId,
+    /// FEM only.
+    pub dm_inv: Option<BufferId>,
+    /// FEM only.
+    pub elem_energy: Option<BufferId>,
+    /// The spring mesh only.
+    pub edge_l0: Option<BufferId>,
+}
+
+impl SceneBuffers {
+    fn of(m: &Module) -> Result<SceneBuffers, LowerError> {
+        let id = |n: &str| {
+            m.buffer_named(n)
+                .ok_or_else(|| LowerError::new(format!("the step has no buffer `{n}`")))
+        };
+        Ok(SceneBuffers {
+            x: id("x")?,
+            v: id("v")?,
+            x_next: id("x_next")?,
+            v_next: id("v_next")?,
+            mass: id("mass")?,
+            fixed: id("fixed")?,
+            vol0: id("vol0")?,
+            elem_force: id("elem_force")?,
+            elem_j: id("elem_j")?,
+            dm_inv: m.buffer_named("dm_inv"),
+            elem_energy: m.buffer_named("elem_energy"),
+            edge_l0: m.buffer_named("edge_l0"),
+        })
+    }
 }
 
 /// Lower the scene described by a checked script.
@@ -92,7 +137,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
                 spring_force_kernel(program, &mut module, m, volume_stiffness)?
             }
         };
-        module.kernels.push(k);
+        module.push_kernel(k);
         // Only FEM evaluates W at the element's own J; the spring mesh inverts like any other.
         inversion_safe
             .push(matches!(model, ForceModel::Fem) && !material_is_isochoric(program, m)?);
@@ -107,7 +152,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     );
     for s in sim {
         if let StmtKind::Pressure { chamber, value } = &s.kind {
-            module.kernels.push(pressure_kernel(
+            module.push_kernel(pressure_kernel(
                 program,
                 x_buf,
                 tri_force,
@@ -121,14 +166,16 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         module.buffers.retain(|b| b.name != "tri_force");
     }
     let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
-    module.kernels.push(node);
+    module.push_kernel(node);
     let mut scale = Vec::new();
     if let Some(e) = script.optimize_setting("gradient_scale") {
         scale.push(("v", constant(program, e, "gradient_scale")?));
     }
     let adjoint =
         adjoint(&module, &[("x", "x_next"), ("v", "v_next")], &scale).map_err(LowerError::new)?;
+    let buffers = SceneBuffers::of(&module)?;
     Ok(SceneModule {
+        buffers,
         module,
         materials,
         chambers,
@@ -231,7 +278,7 @@ fn pressure_kernel(
     tri_force: crate::ir::BufferId,
     chamber: &str,
     pressure: &Expr,
-) -> Result<crate::ir::Kernel, LowerError> {
+) -> Result<crate::ir::BuiltKernel, LowerError> {
     let mut k = KernelBuilder::new(
         &format!("pressure_{chamber}"),
         Domain::Triangle,
@@ -281,7 +328,7 @@ fn node_kernel(
     module: &mut Module,
     script: &Script,
     pressure: bool,
-) -> Result<crate::ir::Kernel, LowerError> {
+) -> Result<crate::ir::BuiltKernel, LowerError> {
     let x = module.buffer("x", Domain::Node, 3, "node positions, m");
     let v = module.buffer("v", Domain::Node, 3, "node velocities, m/s");
     let x_next = module.buffer("x_next", Domain::Node, 3, "positions after the step, m");

@@ -67,7 +67,7 @@ pub fn spring_force_kernel(
     module: &mut Module,
     material: &str,
     alpha: &Expr,
-) -> Result<crate::ir::Kernel, LowerError> {
+) -> Result<crate::ir::BuiltKernel, LowerError> {
     let bufs = SpringBuffers::declare(module);
     let fields = declare_fields(program, module, material)?;
     let l0_buf = bufs.edge_l0;

@@ -22,7 +22,10 @@
 //! state — from `adj_x_next`, ∂L/∂x of the next. Everything is a fixed-order sum, so adjoints
 //! are as reproducible as the forward run.
 
-use crate::ir::{ArgSource, BufferId, Builder, Domain, Kernel, KernelBuilder, Module, V, ad};
+use crate::ir::{
+    ArgSource, BufferId, Builder, BuiltKernel, Domain, Kernel, KernelBuilder, Module, UniformId, V,
+    ad,
+};
 use std::collections::{BTreeMap, BTreeSet};
 
 /// The adjoint of a step, added to a copy of the forward module.
@@ -70,7 +73,9 @@ pub struct AdjointState {
 /// `Σ over entities of buffer[entity][component]` is ∂L/∂(uniform), summed over steps.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ParamGradient {
-    pub uniform: String,
+    pub uniform: UniformId,
+    /// The uniform's name (`param.w.1`), for messages and printing.
+    pub name: String,
     pub buffer: BufferId,
     pub component: u32,
 }
@@ -182,15 +187,16 @@ pub fn adjoint(
             .map(|s| module.buffers[s.buffer.0 as usize].name.clone())
             .unwrap_or_else(|| k.name.clone())
     };
-    let mut group_params: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    let is_param = |u: UniformId| module.uniform_name(u).starts_with("param.");
+    let mut group_params: BTreeMap<String, Vec<UniformId>> = BTreeMap::new();
     for k in &module.kernels {
         let g = group_params.entry(group_of(k)).or_default();
         for a in &k.args {
             if let ArgSource::Uniform(u) = a
-                && u.starts_with("param.")
+                && is_param(*u)
                 && !g.contains(u)
             {
-                g.push(u.clone());
+                g.push(*u);
             }
         }
     }
@@ -205,13 +211,14 @@ pub fn adjoint(
             continue;
         }
         let group = group_of(k);
-        let mut kb = KernelBuilder::new(
+        let mut kb = KernelBuilder::in_module(
+            &m,
             &format!("adj_{}", k.name),
             k.domain,
             &format!("adjoint of {}", k.origin),
         );
         let args: Vec<V> = k.args.iter().map(|a| kb.load(a.clone())).collect();
-        let outputs = kb.inline(&k.args, &k.body, &args);
+        let outputs = kb.inline_sources(&k.args, &m.uniforms, &k.body, &args);
         // s = Σ output · bar: its gradient is the vector-Jacobian product.
         let mut terms = Vec::new();
         for st in &active_stores {
@@ -326,13 +333,14 @@ pub fn adjoint(
                         k.name, m.buffers[buffer.0 as usize].name
                     ));
                 }
-                ArgSource::Uniform(u) if u.starts_with("param.") => {
-                    let names = &group_params[&group];
-                    let c = names.iter().position(|n| n == u).expect("collected") as u32;
+                ArgSource::Uniform(u) if is_param(*u) => {
+                    let ids = &group_params[&group];
+                    let c = ids.iter().position(|n| n == u).expect("collected") as u32;
+                    let names: Vec<&str> = ids.iter().map(|&id| module.uniform_name(id)).collect();
                     let buffer = m.buffer(
                         &format!("grad@{group}"),
                         k.domain,
-                        names.len() as u32,
+                        ids.len() as u32,
                         &format!(
                             "∂L/∂param summed over steps, per entity ({})",
                             names.join(", ")
@@ -343,7 +351,8 @@ pub fn adjoint(
                         .any(|p: &ParamGradient| p.buffer == buffer && p.uniform == *u)
                     {
                         params.push(ParamGradient {
-                            uniform: u.clone(),
+                            uniform: *u,
+                            name: module.uniform_name(*u).to_string(),
                             buffer,
                             component: c,
                         });
@@ -362,9 +371,9 @@ pub fn adjoint(
         if !stored_any {
             continue;
         }
-        m.kernels.push(finish_compact(kb));
+        let kernel = m.push_kernel(finish_compact(kb));
         reverse.push(ReverseKernel {
-            kernel: m.kernels.len() - 1,
+            kernel,
             range_of: Some(ki),
         });
     }
@@ -374,7 +383,8 @@ pub fn adjoint(
             let b = &m.buffers[s.state.0 as usize];
             (b.domain, b.width)
         };
-        let mut kb = KernelBuilder::new(
+        let mut kb = KernelBuilder::in_module(
+            &m,
             &format!("adj_state_{}", s.name),
             domain,
             &format!("adjoint of the state {}", s.name),
@@ -387,9 +397,9 @@ pub fn adjoint(
             }
             kb.store(s.adj, c, v);
         }
-        m.kernels.push(finish_compact(kb));
+        let kernel = m.push_kernel(finish_compact(kb));
         reverse.push(ReverseKernel {
-            kernel: m.kernels.len() - 1,
+            kernel,
             range_of: None,
         });
     }
@@ -495,8 +505,8 @@ fn read_adjoint(
 
 /// Finish a kernel and drop the arguments its pruned body no longer reads (the recomputed
 /// forward values an adjoint does not need, e.g. the forces in the integrator's adjoint).
-fn finish_compact(kb: KernelBuilder) -> Kernel {
+fn finish_compact(kb: KernelBuilder) -> BuiltKernel {
     let mut k = kb.finish();
-    k.drop_unused_args();
+    k.kernel.drop_unused_args();
     k
 }

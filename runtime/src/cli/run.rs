@@ -326,7 +326,8 @@ fn run_scene(scene: &Scene, args: &RunArgs, dt: Option<f64>, err: &mut dyn Write
                 {
                     let x: Vec<f64> = s.x.iter().flatten().copied().collect();
                     let v: Vec<f64> = s.v.iter().flatten().copied().collect();
-                    s.loss = Some(l.eval(scene, &x, &v, s.steps as f64 * s.dt, &scene.uniforms));
+                    let u = crate::devices::Uniforms::new(&[], &scene.uniforms);
+                    s.loss = Some(l.eval(scene, &x, &v, s.steps as f64 * s.dt, &u));
                 }
                 Ok(((s, None), "reference"))
             })
@@ -513,7 +514,7 @@ fn prepare<'s, B: Backend>(
 ) -> Result<Simulation<'s, B>, String> {
     let mut sim = Simulation::new(scene, backend);
     for (name, value) in inputs {
-        sim.uniforms.0.insert(name.clone(), *value);
+        sim.uniforms.set_named(name, *value);
     }
     sim.vtk = match vtk_output(args, scene, err) {
         Ok(v) => v,

@@ -109,8 +109,8 @@ impl Backend for Cpu {
 
     fn run(&mut self, k: usize, range: Range<usize>, u: &Uniforms) -> Result<(), String> {
         self.scratch.clear();
-        for name in &self.module.kernel(k).uniforms {
-            self.scratch.push(u.get(name));
+        for &id in &self.module.kernel(k).uniforms {
+            self.scratch.push(u.get(id));
         }
         let threads = self.threads_for(range.len());
         let (Some(bufs), Some(topo)) = (self.buffers.as_mut(), self.topology.as_ref()) else {
@@ -145,8 +145,8 @@ impl Backend for Cpu {
         let uniforms: Vec<Vec<f64>> = kernels
             .iter()
             .map(|&k| {
-                let names = &self.module.kernel(k).uniforms;
-                names.iter().map(|name| u.get(name)).collect()
+                let ids = &self.module.kernel(k).uniforms;
+                ids.iter().map(|&id| u.get(id)).collect()
             })
             .collect();
         let ranges: Vec<Range<usize>> = launches.iter().map(|(_, r)| r.clone()).collect();

@@ -576,7 +576,7 @@ impl Core {
                 _ => None,
             })
             .collect();
-        let values = kernel.uniforms.iter().map(|name| u.get(name)).collect();
+        let values = kernel.uniforms.iter().map(|&id| u.get(id)).collect();
         self.stats.launches += 1;
         self.record(
             scene,

@@ -57,7 +57,7 @@ fn arg_value(k: &Kernel, a: &ArgSource, e: usize, st: &HostState, u: &Uniforms) 
             };
             st.get(*buffer, node as usize, *component)
         }
-        ArgSource::Uniform(name) => u.get(name),
+        ArgSource::Uniform(id) => u.get(*id),
         ArgSource::Gather {
             buffer,
             over,

@@ -12,7 +12,8 @@ pub use choice::{BackendChoice, Device, DeviceChoice, Devices, PrecisionChoice, 
 
 use crate::engine::scene::Scene;
 use softc_compiler::back::Precision;
-use softc_compiler::ir::{BufferId, Domain};
+use softc_compiler::ir::{BufferId, Domain, UniformId};
+use std::collections::BTreeMap;
 use std::ops::Range;
 
 /// Executes kernels and owns the buffers they read and write. The IR interpreter is the
@@ -82,16 +83,82 @@ impl Drop for Lockstep {
     }
 }
 
-/// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`) by name.
+/// Values of the uniforms (`t`, `dt`, `param.*`, `input.*`), indexed by [`UniformId`]: the
+/// first ids are those of the module the kernels come from (a scene's adjoint module extends
+/// its forward module with the same table), then come the other named values a run may need
+/// (params and inputs that only the loss reads). Kernel launches read values by id; names are
+/// for the edges (the optimizer, `--set`, the loss).
 #[derive(Clone, Debug, Default)]
-pub struct Uniforms(pub std::collections::BTreeMap<String, f64>);
+pub struct Uniforms {
+    names: Vec<String>,
+    values: Vec<Option<f64>>,
+}
 
 impl Uniforms {
-    pub fn get(&self, name: &str) -> f64 {
-        *self
-            .0
-            .get(name)
-            .unwrap_or_else(|| panic!("uniform `{name}` has no value"))
+    /// A table that starts with `table` (a module's [`softc_compiler::ir::Module::uniforms`]), with the values of
+    /// `named` (names outside `table` are added after it).
+    pub fn new(table: &[String], named: &BTreeMap<String, f64>) -> Self {
+        let mut u = Uniforms {
+            names: table.to_vec(),
+            values: vec![None; table.len()],
+        };
+        for (name, &v) in named {
+            u.set_named(name, v);
+        }
+        u
+    }
+
+    /// The value of a uniform.
+    #[inline]
+    pub fn get(&self, id: UniformId) -> f64 {
+        match self.values.get(id.0 as usize) {
+            Some(Some(v)) => *v,
+            _ => panic!("uniform `{}` has no value", self.name(id)),
+        }
+    }
+
+    /// The value of a uniform, if it has one.
+    pub fn value(&self, id: UniformId) -> Option<f64> {
+        self.values.get(id.0 as usize).copied().flatten()
+    }
+
+    pub fn set(&mut self, id: UniformId, value: f64) {
+        self.values[id.0 as usize] = Some(value);
+    }
+
+    /// The id of a uniform by name (resolve once, then use [`Uniforms::get`]).
+    pub fn id(&self, name: &str) -> Option<UniformId> {
+        self.names
+            .iter()
+            .position(|n| n == name)
+            .map(|i| UniformId(i as u32))
+    }
+
+    /// The id of `name`, added to the table (without a value) if new.
+    pub fn intern(&mut self, name: &str) -> UniformId {
+        match self.id(name) {
+            Some(id) => id,
+            None => {
+                self.names.push(name.into());
+                self.values.push(None);
+                UniformId(self.names.len() as u32 - 1)
+            }
+        }
+    }
+
+    pub fn name(&self, id: UniformId) -> &str {
+        self.names.get(id.0 as usize).map_or("?", String::as_str)
+    }
+
+    /// The value of a uniform by name, if it has one.
+    pub fn named(&self, name: &str) -> Option<f64> {
+        self.id(name).and_then(|id| self.value(id))
+    }
+
+    /// Set a uniform by name (added to the table if new).
+    pub fn set_named(&mut self, name: &str, value: f64) {
+        let id = self.intern(name);
+        self.set(id, value);
     }
 }
 

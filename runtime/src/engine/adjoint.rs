@@ -108,7 +108,7 @@ impl<B: Backend> Simulation<'_, B> {
     fn add_loss_gradient(&mut self, l: &Loss, t: f64, direct: &mut BTreeMap<String, f64>) -> f64 {
         let adj = &self.scene.lowered.adjoint;
         let (x, v) = self.save_state();
-        let (value, ds) = l.eval_grad(self.scene, &x, &v, t, &self.uniforms.0);
+        let (value, ds) = l.eval_grad(self.scene, &x, &v, t, &self.uniforms);
         let (ax, av) = (adj.state[0].adj_next, adj.state[1].adj_next);
         let mut gx = self.backend.get(ax);
         let mut gv = self.backend.get(av);
@@ -130,7 +130,7 @@ impl<B: Backend> Simulation<'_, B> {
     /// The adjoint of step `k`: state `k` is current, ∂L/∂(state k+1) in `adj_*_next`.
     fn reverse_step(&mut self, k: u64, dt: f64) -> Result<(), RunError> {
         let adj = &self.scene.lowered.adjoint;
-        self.uniforms.0.insert("t".into(), k as f64 * dt);
+        self.uniforms.set(self.ids.t, k as f64 * dt);
         if adj.needs_forward {
             self.run_force_kernels()?;
         }
@@ -188,7 +188,7 @@ impl<B: Backend> Simulation<'_, B> {
         self.upload_fields();
         let (dt, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
-        self.uniforms.0.insert("dt".into(), dt);
+        self.uniforms.set(self.ids.dt, dt);
         let loss = Loss::build(self.scene, dt, steps)
             .map_err(RunError)?
             .ok_or_else(|| {
@@ -378,7 +378,7 @@ impl<B: Backend> Simulation<'_, B> {
                 .entry(p.buffer)
                 .or_insert_with(|| self.backend.get(p.buffer));
             let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
-            *gradients.entry(p.uniform.clone()).or_insert(0.0) += sum;
+            *gradients.entry(p.name.clone()).or_insert(0.0) += sum;
         }
         // Per-element params: each element's accumulator is the derivative of its entry.
         for f in &adj.fields {

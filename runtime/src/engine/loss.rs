@@ -3,8 +3,10 @@
 //! window (thesis eq. 7.1), with the run's `t_end` and `dt`.
 
 use super::scene::Scene;
+use crate::devices::Uniforms;
 use softc_compiler::driver::{LossArg, LossKernels};
-use softc_compiler::ir::interp;
+use softc_compiler::ir::{UniformId, interp};
+use std::cell::OnceCell;
 
 pub use softc_compiler::driver::LossWindow;
 
@@ -13,6 +15,9 @@ pub struct Loss<'s> {
     t_end: f64,
     dt: f64,
     pub window: LossWindow,
+    /// The id of each `LossArg::Uniform` argument's uniform (in argument order), resolved by
+    /// name at the first evaluation: a `Loss` serves one run, so one table of uniforms.
+    ids: OnceCell<Vec<Option<UniformId>>>,
 }
 
 impl<'s> Loss<'s> {
@@ -24,19 +29,13 @@ impl<'s> Loss<'s> {
             t_end,
             dt,
             window: kernels.window(t_end, dt),
+            ids: OnceCell::new(),
         }))
     }
 
     /// The loss term at one state: positions and velocities (flat, 3 per node), time, and the
     /// other uniforms (params, inputs).
-    pub fn eval(
-        &self,
-        scene: &Scene,
-        x: &[f64],
-        v: &[f64],
-        t: f64,
-        uniforms: &std::collections::BTreeMap<String, f64>,
-    ) -> f64 {
+    pub fn eval(&self, scene: &Scene, x: &[f64], v: &[f64], t: f64, uniforms: &Uniforms) -> f64 {
         interp::eval(
             &self.kernels.func,
             &self.arg_values(scene, x, v, t, uniforms),
@@ -50,7 +49,7 @@ impl<'s> Loss<'s> {
         x: &[f64],
         v: &[f64],
         t: f64,
-        uniforms: &std::collections::BTreeMap<String, f64>,
+        uniforms: &Uniforms,
     ) -> (f64, Vec<f64>) {
         let out = interp::eval(
             &self.kernels.grad,
@@ -70,8 +69,19 @@ impl<'s> Loss<'s> {
         x: &[f64],
         v: &[f64],
         t: f64,
-        uniforms: &std::collections::BTreeMap<String, f64>,
+        uniforms: &Uniforms,
     ) -> Vec<f64> {
+        let ids = self.ids.get_or_init(|| {
+            self.kernels
+                .args
+                .iter()
+                .filter_map(|a| match a {
+                    LossArg::Uniform(name) => Some(uniforms.id(name)),
+                    _ => None,
+                })
+                .collect()
+        });
+        let mut ids = ids.iter();
         self.kernels
             .args
             .iter()
@@ -82,7 +92,12 @@ impl<'s> Loss<'s> {
                 LossArg::T => t,
                 LossArg::TEnd => self.t_end,
                 LossArg::Dt => self.dt,
-                LossArg::Uniform(name) => uniforms.get(name).copied().unwrap_or(f64::NAN),
+                LossArg::Uniform(_) => ids
+                    .next()
+                    .copied()
+                    .flatten()
+                    .and_then(|id| uniforms.value(id))
+                    .unwrap_or(f64::NAN),
             })
             .collect()
     }

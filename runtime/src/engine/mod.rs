@@ -23,7 +23,7 @@ use crate::outputs::csv::CsvOutput;
 use crate::outputs::vtk::{Frame, VtkOutput};
 use scene::{DtChoice, Scene};
 use softc_compiler::back::Precision;
-use softc_compiler::ir::BufferId;
+use softc_compiler::ir::{BufferId, UniformId};
 use std::ops::Range;
 
 /// The end (exclusive) of the stretch of steps from `from` before `limit` that ends at the
@@ -141,6 +141,7 @@ pub struct Simulation<'s, B: Backend> {
     ids: Ids,
 }
 
+/// Buffers and uniforms the host reads or writes, resolved once when the simulation is made.
 struct Ids {
     x: BufferId,
     v: BufferId,
@@ -148,6 +149,12 @@ struct Ids {
     v_next: BufferId,
     elem_force: BufferId,
     elem_j: BufferId,
+    elem_energy: Option<BufferId>,
+    t: UniformId,
+    dt: UniformId,
+    /// Per-element params: the index in `Scene::fields`, the buffer `param.NAME` and the
+    /// uniform of each set element's value.
+    fields: Vec<(usize, BufferId, Vec<UniformId>)>,
 }
 
 /// How often the state is checked for blow-ups and inversions.
@@ -160,33 +167,57 @@ impl<'s, B: Backend> Simulation<'s, B> {
         backend
             .prepare(scene)
             .unwrap_or_else(|e| panic!("backend {}: {e}", backend.name()));
-        let id = |n: &str| m.buffer_named(n).unwrap_or_else(|| panic!("buffer {n}"));
+        let bufs = scene.lowered.buffers;
+        // The adjoint module extends the forward one: same uniform table, more kernels.
+        let mut uniforms = Uniforms::new(&scene.lowered.adjoint.module.uniforms, &scene.uniforms);
+        let (t, dt) = (uniforms.intern("t"), uniforms.intern("dt"));
+        uniforms.set(t, 0.0);
+        uniforms.set(dt, 0.0);
+        let fields = scene
+            .fields
+            .iter()
+            .enumerate()
+            .filter_map(|(index, f)| {
+                let b = m.buffer_named(&format!("param.{}", f.name))?;
+                let ids = (0..f.elements.len())
+                    .map(|i| uniforms.intern(&format!("param.{}.{i}", f.name)))
+                    .collect();
+                Some((index, b, ids))
+            })
+            .collect();
         let ids = Ids {
-            x: id("x"),
-            v: id("v"),
-            x_next: id("x_next"),
-            v_next: id("v_next"),
-            elem_force: id("elem_force"),
-            elem_j: id("elem_j"),
+            x: bufs.x,
+            v: bufs.v,
+            x_next: bufs.x_next,
+            v_next: bufs.v_next,
+            elem_force: bufs.elem_force,
+            elem_j: bufs.elem_j,
+            elem_energy: bufs.elem_energy,
+            t,
+            dt,
+            fields,
         };
-        let mut fill = |name: &str, data: Vec<f64>| {
-            if let Some(b) = m.buffer_named(name) {
+        let mut fill = |b: Option<BufferId>, data: Vec<f64>| {
+            if let Some(b) = b {
                 backend.set(b, &data);
             }
         };
-        fill("x", scene.mesh.nodes.iter().flatten().copied().collect());
-        fill("mass", scene.pre.mass.clone());
         fill(
-            "fixed",
+            Some(bufs.x),
+            scene.mesh.nodes.iter().flatten().copied().collect(),
+        );
+        fill(Some(bufs.mass), scene.pre.mass.clone());
+        fill(
+            Some(bufs.fixed),
             scene
                 .fixed
                 .iter()
                 .map(|&f| if f { 1.0 } else { 0.0 })
                 .collect(),
         );
-        fill("vol0", scene.pre.rest_volume.clone());
+        fill(Some(bufs.vol0), scene.pre.rest_volume.clone());
         fill(
-            "dm_inv",
+            bufs.dm_inv,
             scene
                 .pre
                 .dm_inv
@@ -196,12 +227,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .copied()
                 .collect(),
         );
-        if m.buffer_named("edge_l0").is_some() {
-            fill("edge_l0", edge_rest_lengths(scene));
+        if bufs.edge_l0.is_some() {
+            fill(bufs.edge_l0, edge_rest_lengths(scene));
         }
-        let mut uniforms = Uniforms(scene.uniforms.clone());
-        uniforms.0.insert("t".into(), 0.0);
-        uniforms.0.insert("dt".into(), 0.0);
         let mut sim = Simulation {
             scene,
             backend,
@@ -222,16 +250,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// is applied only within its set). `run` and `gradient` call this first, so a changed
     /// uniform takes effect in the next run.
     pub fn upload_fields(&mut self) {
-        let m = &self.scene.lowered.module;
-        for f in &self.scene.fields {
-            let Some(b) = m.buffer_named(&format!("param.{}", f.name)) else {
-                continue;
-            };
+        for (index, b, ids) in &self.ids.fields {
+            let f = &self.scene.fields[*index];
             let mut data = vec![f64::NAN; self.scene.mesh.tets.len()];
-            for (i, &e) in f.elements.iter().enumerate() {
-                data[e as usize] = self.uniforms.get(&format!("param.{}.{i}", f.name));
+            for (&e, &id) in f.elements.iter().zip(ids) {
+                data[e as usize] = self.uniforms.get(id);
             }
-            self.backend.set(b, &data);
+            self.backend.set(*b, &data);
         }
     }
 
@@ -242,7 +267,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let zeros = vec![0.0; x.len()];
         self.backend.set(self.ids.x, &x);
         self.backend.set(self.ids.v, &zeros);
-        self.uniforms.0.insert("t".into(), 0.0);
+        self.uniforms.set(self.ids.t, 0.0);
         self.last_good = None;
     }
 
@@ -334,7 +359,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .map_err(RunError)?;
             if ran {
                 // As `step` leaves it after the last step.
-                self.uniforms.0.insert("t".into(), (to - 1) as f64 * dt);
+                self.uniforms.set(self.ids.t, (to - 1) as f64 * dt);
                 return Ok(());
             }
         }
@@ -346,7 +371,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
 
     /// One step from state `step` to `step + 1`.
     fn step(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
-        self.uniforms.0.insert("t".into(), step as f64 * dt);
+        self.uniforms.set(self.ids.t, step as f64 * dt);
         self.run_force_kernels()?;
         let node_kernel = self.scene.material_ranges.len() + self.scene.chamber_ranges.len();
         self.backend
@@ -367,7 +392,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         self.upload_fields();
         let (dt, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
-        self.uniforms.0.insert("dt".into(), dt);
+        self.uniforms.set(self.ids.dt, dt);
         let loss_fn = loss::Loss::build(self.scene, dt, steps).map_err(RunError)?;
         let stepped = self.run_steps(dt, steps, loss_fn.as_ref());
         // The logs are written whether or not the run finished: a blow-up keeps its history.
@@ -387,7 +412,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         summary.loss = loss_fn.map(|l| match l.window {
             loss::LossWindow::End => {
                 let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
-                l.eval(self.scene, &x, &v, steps as f64 * dt, &self.uniforms.0)
+                l.eval(self.scene, &x, &v, steps as f64 * dt, &self.uniforms)
             }
             loss::LossWindow::Over { .. } => loss_sum,
         });
@@ -439,7 +464,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 }
             }
             if vtk_due(&self.vtk, step) {
-                self.uniforms.0.insert("t".into(), step as f64 * dt);
+                self.uniforms.set(self.ids.t, step as f64 * dt);
                 self.write_vtk(step as f64 * dt)?;
             }
             // The steps up to the next one after which the host has work (a state check, an
@@ -487,7 +512,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let start = std::time::Instant::now();
         self.upload_fields();
         let (dt, estimate) = self.resolve_dt(dt_override)?;
-        self.uniforms.0.insert("dt".into(), dt);
+        self.uniforms.set(self.ids.dt, dt);
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
         let max_norm = |a: &[f64], b: Option<&[f64]>| {
             a.chunks(3)
@@ -558,7 +583,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             return 0.0;
         }
         let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
-        l.eval(self.scene, &x, &v, t, &self.uniforms.0)
+        l.eval(self.scene, &x, &v, t, &self.uniforms)
     }
 
     fn write_vtk(&mut self, t: f64) -> Result<(), RunError> {
@@ -566,10 +591,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let x = self.backend.get(self.ids.x);
         let v = self.backend.get(self.ids.v);
         let energy = self
-            .scene
-            .lowered
-            .module
-            .buffer_named("elem_energy")
+            .ids
+            .elem_energy
             .map(|b| self.backend.get(b))
             .unwrap_or_default();
         let j = self.backend.get(self.ids.elem_j);

@@ -14,6 +14,7 @@ use crate::devices::Backend;
 use crate::engine::adjoint::GradOptions;
 use crate::engine::{RunError, RunSummary, Simulation};
 use serde::{Deserialize, Serialize};
+use softc_compiler::ir::UniformId;
 use std::collections::BTreeMap;
 
 /// The loss of one scene of an iteration.
@@ -80,6 +81,9 @@ pub struct Trainer<'s, B: Backend> {
     pub state: TrainState,
     /// Each entry's natural size in u (for `normalize = auto`).
     natural: Vec<f64>,
+    /// Per simulation, the uniform of each trained entry (resolved once: an iteration sets
+    /// the params by id).
+    entry_ids: Vec<Vec<UniformId>>,
 }
 
 /// The unconstrained value of every entry from the scene's (initial or `--set`) values.
@@ -170,12 +174,22 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                 }
             }
         };
+        let entry_ids = sims
+            .iter_mut()
+            .map(|sim| {
+                plan.entries
+                    .iter()
+                    .map(|e| sim.uniforms.intern(&e.uniform))
+                    .collect()
+            })
+            .collect();
         Ok(Trainer {
             plan,
             sims,
             grad,
             state,
             natural,
+            entry_ids,
         })
     }
 
@@ -199,10 +213,16 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
     }
 
     fn set_params(&mut self) {
-        let params = self.params();
-        for sim in &mut self.sims {
-            for (k, v) in &params {
-                sim.uniforms.0.insert(k.clone(), *v);
+        let values: Vec<f64> = self
+            .plan
+            .entries
+            .iter()
+            .zip(&self.state.u)
+            .map(|(e, &u)| e.bounds.to_param(u))
+            .collect();
+        for (sim, ids) in self.sims.iter_mut().zip(&self.entry_ids) {
+            for (&id, &v) in ids.iter().zip(&values) {
+                sim.uniforms.set(id, v);
             }
         }
     }
@@ -245,7 +265,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let n_scenes = assignments.len().min(self.sims.len());
         let results = crate::engine::in_lockstep(&mut self.sims[..n_scenes], |i, sim| {
             for (k, v) in &assignments[i] {
-                sim.uniforms.0.insert(k.clone(), *v);
+                sim.uniforms.set_named(k, *v);
             }
             sim.reset();
             sim.gradient(Some(dt), Some(steps), grad)
@@ -370,7 +390,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let (dt, steps) = (self.state.dt, self.state.steps);
         let sim = &mut self.sims[0];
         for (k, v) in params.iter().chain(inputs) {
-            sim.uniforms.0.insert(k.clone(), *v);
+            sim.uniforms.set_named(k, *v);
         }
         sim.reset();
         sim.vtk = vtk;

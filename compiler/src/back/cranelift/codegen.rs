@@ -19,7 +19,7 @@ use super::KernelCtx;
 use super::libm::Lib;
 use crate::back::Precision;
 use crate::ir::valid::{corners, validate_kernel};
-use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp};
+use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp, UniformId};
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{
     AbiParam, FuncRef, Function, InstBuilder, MemFlagsData, Type, UserFuncName, Value, types,
@@ -29,19 +29,6 @@ use cranelift_jit::JITModule;
 use cranelift_module::{FuncId, Linkage, Module as _};
 use std::collections::HashMap;
 use std::mem::offset_of;
-
-/// The uniforms a kernel reads, in order of first appearance among its arguments.
-pub(super) fn uniform_names(k: &Kernel) -> Vec<String> {
-    let mut names: Vec<String> = Vec::new();
-    for a in &k.args {
-        if let ArgSource::Uniform(n) = a
-            && !names.contains(n)
-        {
-            names.push(n.clone());
-        }
-    }
-    names
-}
 
 /// Imported helper functions, declared once per JIT module.
 #[derive(Default)]
@@ -91,7 +78,7 @@ struct Hoisted {
     conn: Option<Value>,
     /// The uniforms (scalars), in the order of `uniforms`.
     uni_vals: Vec<Value>,
-    uniforms: Vec<String>,
+    uniforms: Vec<UniformId>,
     /// Imported helper functions.
     fref: HashMap<Lib, FuncRef>,
 }
@@ -189,7 +176,7 @@ impl Translator<'_> {
                 .entry(id)
                 .or_insert_with(|| b.ins().load(PTR, readonly(), arr, off(8 * id as usize)))
         };
-        let uniforms = uniform_names(k);
+        let uniforms = k.uniforms();
         let mut uni_vals = Vec::new();
         if !uniforms.is_empty() {
             let up = ctx_load(&mut b, offset_of!(KernelCtx, uniforms));
@@ -499,11 +486,11 @@ impl Translator<'_> {
                                 .collect();
                             pack(b, &xs)
                         }
-                        ArgSource::Uniform(name) => {
+                        ArgSource::Uniform(id) => {
                             let j = h
                                 .uniforms
                                 .iter()
-                                .position(|n| n == name)
+                                .position(|n| n == id)
                                 .expect("uniforms are collected from the arguments");
                             let u = h.uni_vals[j];
                             if lanes == 1 { u } else { b.ins().splat(vty, u) }

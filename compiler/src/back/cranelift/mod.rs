@@ -39,13 +39,13 @@
 //! let sum = k.b.add(a, b);
 //! let v = k.b.mul(s, sum);
 //! k.store(y, 0, v);
-//! m.kernels.push(k.finish());
+//! m.push_kernel(k.finish());
 //!
 //! let cpu = CpuModule::compile(&m, Precision::F64).unwrap();
 //! let topo = Topology::new(5, vec![0, 1, 2, 3, 1, 2, 3, 4], vec![]).unwrap();
 //! let mut bufs = Buffers::new(&m, &topo, Precision::F64);
 //! bufs.set(x, &[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
-//! assert_eq!(cpu.kernel(0).uniforms, ["scale"]);
+//! assert_eq!(cpu.kernel(0).uniforms, [m.uniform_named("scale").unwrap()]);
 //! cpu.run_parallel(0, &mut bufs, &topo, &[0.5], 0..2, 2).unwrap();
 //! assert_eq!(bufs.get(y), [2.5, 3.5]);
 //! assert!(cpu.clif(0).contains("fmul"));
@@ -58,7 +58,7 @@ mod step_loop;
 pub use step_loop::StepLoop;
 
 pub use crate::back::{Precision, Topology, node_csr};
-use crate::ir::{ArgSource, BufferId, Domain, Module};
+use crate::ir::{ArgSource, BufferId, Domain, Module, UniformId};
 /// The layout checks of a kernel against its module (shared with the WGSL backend).
 use codegen::{Imports, MinMax, Translator};
 use cranelift_codegen::{Context, settings, settings::Configurable};
@@ -114,7 +114,7 @@ pub struct CompiledKernel {
     pub name: String,
     pub domain: Domain,
     /// The uniforms the kernel reads, in the order its uniforms array holds them.
-    pub uniforms: Vec<String>,
+    pub uniforms: Vec<UniformId>,
     /// The Cranelift IR of the kernel, as generated (before Cranelift's optimizations).
     pub clif: String,
     /// Wall time spent translating, verifying and compiling this kernel.
@@ -167,6 +167,8 @@ pub struct CpuModule {
     /// `(domain, width)` of each buffer.
     layout: Vec<(Domain, u32)>,
     names: Vec<String>,
+    /// The module's uniform names (messages and listings).
+    uniform_names: Vec<String>,
     _code: Code,
 }
 
@@ -308,7 +310,7 @@ impl CpuModule {
                 CompiledKernel {
                     name: k.name.clone(),
                     domain: k.domain,
-                    uniforms: codegen::uniform_names(k),
+                    uniforms: k.uniforms(),
                     clif,
                     compile_time: t + link,
                     lanes: if simd {
@@ -326,6 +328,7 @@ impl CpuModule {
             kernels,
             layout: module.buffers.iter().map(|b| (b.domain, b.width)).collect(),
             names: module.buffers.iter().map(|b| b.name.clone()).collect(),
+            uniform_names: module.uniforms.clone(),
             _code: Code(Some(jit)),
         })
     }
@@ -357,12 +360,22 @@ impl CpuModule {
         for k in &self.kernels {
             s.push_str(&format!("; kernel {} over {:?}\n", k.name, k.domain));
             if !k.uniforms.is_empty() {
-                s.push_str(&format!("; uniforms: {}\n", k.uniforms.join(", ")));
+                s.push_str(&format!("; uniforms: {}\n", self.uniform_list(k)));
             }
             s.push_str(&k.clif);
             s.push('\n');
         }
         s
+    }
+
+    /// The names of a kernel's uniforms, comma-separated.
+    fn uniform_list(&self, k: &CompiledKernel) -> String {
+        let names: Vec<&str> = k
+            .uniforms
+            .iter()
+            .map(|u| self.uniform_names[u.0 as usize].as_str())
+            .collect();
+        names.join(", ")
     }
 
     /// Run kernel `kernel` over the entities `range` on the calling thread. `uniforms` holds
@@ -492,7 +505,7 @@ impl CpuModule {
                 "kernel `{}` takes {} uniforms ({}), {} given",
                 k.name,
                 k.uniforms.len(),
-                k.uniforms.join(", "),
+                self.uniform_list(k),
                 uniforms.len()
             ));
         }
@@ -510,6 +523,11 @@ impl CpuModule {
     /// [`StepLoop`] and [`CpuModule::run_loop`]). The loop calls this module's code: keep the
     /// module alive as long as the loop.
     pub fn compile_loop(&self, kernels: &[usize]) -> Result<StepLoop, String> {
+        let t = self
+            .uniform_names
+            .iter()
+            .position(|u| u == "t")
+            .map(|i| UniformId(i as u32));
         let launches = kernels
             .iter()
             .map(|&k| {
@@ -519,7 +537,7 @@ impl CpuModule {
                     .ok_or_else(|| format!("no kernel {k}"))?;
                 Ok(step_loop::LoopLaunch {
                     func: ck.func as *const u8,
-                    t_index: ck.uniforms.iter().position(|u| u == "t"),
+                    t_index: t.and_then(|t| ck.uniforms.iter().position(|&u| u == t)),
                 })
             })
             .collect::<Result<Vec<_>, String>>()?;

@@ -46,18 +46,20 @@
 //! let s = k.uniform("scale");
 //! let v = k.b.mul(s, a);
 //! k.store(y, 0, v);
-//! m.kernels.push(k.finish());
+//! m.push_kernel(k.finish());
 //!
 //! let w = wgsl::emit(&m, Precision::F32).unwrap();
 //! assert!(w.source.contains("@compute @workgroup_size(64)\nfn demo("));
-//! assert_eq!(w.kernels[0].uniforms, ["scale"]);
+//! assert_eq!(w.kernels[0].uniforms, [m.uniform_named("scale").unwrap()]);
 //! wgsl::validate(&w.source, Precision::F32).unwrap();
 //! ```
 
 mod math;
 
 pub use crate::back::Precision;
-use crate::ir::{ArgSource, BinOp, BufferId, CmpOp, Domain, Inst, Kernel, Module, UnOp, V};
+use crate::ir::{
+    ArgSource, BinOp, BufferId, CmpOp, Domain, Inst, Kernel, Module, UnOp, UniformId, V,
+};
 use std::collections::BTreeSet;
 use std::fmt::Write as _;
 
@@ -121,7 +123,7 @@ pub struct WgslKernel {
     pub entry: String,
     pub domain: Domain,
     /// The uniforms of the launch block, in its field order (after `begin` and `count`).
-    pub uniforms: Vec<String>,
+    pub uniforms: Vec<UniformId>,
     /// `(binding number, what it holds)` for every binding the entry point uses.
     pub bindings: Vec<(u32, Binding)>,
     /// Bytes of the launch block (`begin`, `count`, in a batch `scene` and the three entity
@@ -560,7 +562,11 @@ fn emit_with(
     let mut kernels = Vec::new();
     let mut bodies = String::new();
     for (ki, k) in module.kernels.iter().enumerate() {
-        let uniforms = uniform_names(k);
+        let uniform_ids = k.uniforms();
+        let uniforms: Vec<&str> = uniform_ids
+            .iter()
+            .map(|&u| module.uniform_name(u))
+            .collect();
         let mut fields = BTreeSet::new();
         let field_names: Vec<String> = uniforms.iter().map(|u| ident(u, &mut fields)).collect();
         let launch = format!("launch_{}", entries[ki]);
@@ -587,7 +593,7 @@ fn emit_with(
             let _ = writeln!(w, "    count: u32,");
         }
         for (f, u) in field_names.iter().zip(&uniforms) {
-            if f == u {
+            if f == *u {
                 let _ = writeln!(w, "    {f}: real,");
             } else {
                 let _ = writeln!(w, "    {f}: real, // {u}");
@@ -675,7 +681,7 @@ fn emit_with(
             &buf_names,
             &block,
             batch.is_some(),
-            &uniforms,
+            &uniform_ids,
             &field_names,
             precision,
             &mut helpers,
@@ -690,7 +696,7 @@ fn emit_with(
             name: k.name.clone(),
             entry: entries[ki].clone(),
             domain: k.domain,
-            uniforms,
+            uniforms: uniform_ids,
             bindings,
             launch_size: size,
             uniform_offset,
@@ -720,19 +726,6 @@ fn domain_word(d: Domain) -> &'static str {
     }
 }
 
-/// The uniforms a kernel reads, in first-use order (the launch block's field order).
-pub fn uniform_names(k: &Kernel) -> Vec<String> {
-    let mut names: Vec<String> = Vec::new();
-    for a in &k.args {
-        if let ArgSource::Uniform(n) = a
-            && !names.contains(n)
-        {
-            names.push(n.clone());
-        }
-    }
-    names
-}
-
 #[allow(clippy::too_many_arguments)]
 fn emit_body(
     w: &mut String,
@@ -741,7 +734,7 @@ fn emit_body(
     buf_names: &[String],
     launch: &str,
     batched: bool,
-    uniforms: &[String],
+    uniforms: &[UniformId],
     fields: &[String],
     p: Precision,
     helpers: &mut math::Helpers,
@@ -849,8 +842,8 @@ fn emit_body(
                     row(*buffer, &format!("n{corner}"), format!("{component}u"))
                 );
             }
-            ArgSource::Uniform(name) => {
-                let j = uniforms.iter().position(|u| u == name).unwrap_or(0);
+            ArgSource::Uniform(id) => {
+                let j = uniforms.iter().position(|u| u == id).unwrap_or(0);
                 let _ = writeln!(w, "    let arg{i} = {launch}.{};", fields[j]);
             }
             ArgSource::Gather { .. } => {}
