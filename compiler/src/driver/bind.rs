@@ -12,6 +12,7 @@ use crate::front::ast::*;
 use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
+use crate::sema::mesh_probe::Shape;
 use crate::sema::types::Len;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -281,31 +282,17 @@ fn region_contains(program: &Program, e: &Expr) -> Fail<PointTest> {
             arg(args, name, pos).ok_or_else(|| format!("missing `{name}`"))?,
         )
     };
-    const EPS: f64 = 1e-9;
-    Ok(match f {
-        "box" => {
-            let (lo, hi) = (v("min", 0)?, v("max", 1)?);
-            Box::new(move |p| (0..3).all(|k| p[k] >= lo[k] - EPS && p[k] <= hi[k] + EPS))
-        }
-        "sphere" => {
-            let (c, r) = (v("center", 0)?, v("radius", 1)?[0]);
-            Box::new(move |p| {
-                (0..3).map(|k| (p[k] - c[k]).powi(2)).sum::<f64>() <= (r + EPS).powi(2)
-            })
-        }
-        "cylinder" => {
-            let (a, b, r) = (v("start", 0)?, v("end", 1)?, v("radius", 2)?[0]);
-            Box::new(move |p| {
-                let ab: Vec<f64> = (0..3).map(|k| b[k] - a[k]).collect();
-                let ap: Vec<f64> = (0..3).map(|k| p[k] - a[k]).collect();
-                let l2: f64 = ab.iter().map(|x| x * x).sum();
-                let s = ab.iter().zip(&ap).map(|(x, y)| x * y).sum::<f64>() / l2;
-                let d2: f64 = (0..3).map(|k| (ap[k] - s * ab[k]).powi(2)).sum();
-                (-EPS..=1.0 + EPS).contains(&s) && d2 <= (r + EPS).powi(2)
-            })
-        }
+    let v3 = |name: &str, pos: usize| -> Fail<[f64; 3]> {
+        let x = v(name, pos)?;
+        Ok([x[0], x[1], x[2]])
+    };
+    let shape = match f {
+        "box" => Shape::Box(v3("min", 0)?, v3("max", 1)?),
+        "sphere" => Shape::Sphere(v3("center", 0)?, v("radius", 1)?[0]),
+        "cylinder" => Shape::Cylinder(v3("start", 0)?, v3("end", 1)?, v("radius", 2)?[0]),
         other => return Err(format!("`{other}` is not a region")),
-    })
+    };
+    Ok(Box::new(move |p| shape.contains(p)))
 }
 
 /// Indices selected by a `nodes` (points = nodes) or `elements` (points = centroids) value.

@@ -78,16 +78,17 @@ pub trait MeshProbe: Send + Sync {
     fn probe(&self, path: &Path, unit: f64) -> Result<MeshSummary, String>;
 }
 
-/// A region's geometry, in metres.
+/// A region's geometry, in metres: what the checker tests selections with and what binding a
+/// scene to its mesh selects with (one definition of containment).
 #[derive(Debug, Clone)]
-pub(super) enum Shape {
+pub(crate) enum Shape {
     Box([f64; 3], [f64; 3]),
     Sphere([f64; 3], f64),
     Cylinder([f64; 3], [f64; 3], f64),
 }
 
 impl Shape {
-    pub(super) fn contains(&self, p: [f64; 3]) -> bool {
+    pub(crate) fn contains(&self, p: [f64; 3]) -> bool {
         // A tolerance of a nanometre keeps nodes exactly on a face inside.
         const EPS: f64 = 1e-9;
         match self {
@@ -101,11 +102,9 @@ impl Shape {
                     return false;
                 }
                 let s = dot(ap, ab) / len2;
-                if !(-EPS..=1.0 + EPS).contains(&s) {
-                    return false;
-                }
-                let foot = [a[0] + s * ab[0], a[1] + s * ab[1], a[2] + s * ab[2]];
-                dist2(p, foot) <= (r + EPS) * (r + EPS)
+                // The distance from the axis: |ap - s·ab|.
+                let off = [ap[0] - s * ab[0], ap[1] - s * ab[1], ap[2] - s * ab[2]];
+                (-EPS..=1.0 + EPS).contains(&s) && dot(off, off) <= (r + EPS) * (r + EPS)
             }
         }
     }
