@@ -604,3 +604,57 @@ fn time_loop_speed() {
         }
     }
 }
+
+/// Mass scaling changes inertia only: a column hanging under gravity settles where it settles
+/// without it (gravity acts on the physical mass; a scaled weight would stretch it 4× as far).
+#[test]
+fn mass_scaling_leaves_the_steady_state_under_gravity_unchanged() {
+    use softc::devices::cpu::Cpu;
+    use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
+    use softc_compiler::back::Precision;
+    let dir = std::env::temp_dir().join(format!("softc-scaled-column-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let spec = KuhnSpec {
+        n: [5, 1, 1],
+        min: [0.0, 0.0, 0.0],
+        max: [10.0, 2.0, 2.0],
+        cavity_min: [-2.0, -2.0, -2.0],
+        cavity_max: [-1.0, -1.0, -1.0],
+    };
+    let mesh = kuhn_grid(&spec, softc::mesh::LengthUnit::Millimetre).unwrap();
+    let file = dir.join("column.msh");
+    softc::mesh::save(&mesh, &file, softc::mesh::LengthUnit::Millimetre).unwrap();
+    let tip_ux = |scaling: f64, duration: f64| {
+        let script = dir.join(format!("column-{scaling}.soft"));
+        std::fs::write(
+            &script,
+            format!(
+                "mesh body = load(\"{}\")\n\
+                 material gel = neo_hookean_ln(mu: 5 kPa, lambda: 0 kPa, density: 1000 kg/m^3)\n\
+                 nodes base = named(body, \"base\")\n\
+                 nodes tip = named(body, \"tip\")\n\
+                 sim {{\n  dt = auto\n  duration = {duration} s\n  damping = 300 /s\n  \
+                 mass_scaling = {scaling}\n  gravity = [0.0981, 0, 0] m/s^2\n  fix base\n}}\n",
+                file.display()
+            ),
+        )
+        .unwrap();
+        let scene = Scene::load(&script, &[]).unwrap();
+        let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
+        let s = Simulation::new(&scene, cpu).run(None, None).unwrap();
+        let (_, tip) = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap();
+        tip.iter()
+            .map(|&i| s.x[i as usize][0] - scene.mesh.nodes[i as usize][0])
+            .sum::<f64>()
+            / tip.len() as f64
+    };
+    let plain = tip_ux(1.0, 0.12);
+    // Four times the inertia: modes 2× slower, the overdamped ones 4× slower to settle.
+    let scaled = tip_ux(4.0, 0.6);
+    std::fs::remove_dir_all(&dir).ok();
+    let rel = ((scaled - plain) / plain).abs();
+    assert!(
+        rel < 1e-4,
+        "mass_scaling = 4 moved the steady state: {scaled:e} m against {plain:e} m (rel. {rel:e})"
+    );
+}

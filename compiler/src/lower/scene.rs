@@ -345,8 +345,18 @@ fn node_kernel(
         Some(e) => Some(lw.lower(&mut k, &Env::new(), e)?.scalar()?),
         None => None,
     };
+    // Gravity acts on the physical mass: with `mass_scaling = s` the scaled inertia m·s
+    // meets the force m·g, an acceleration g/s (the steady state does not depend on s).
+    let scaling = match script.sim_setting("mass_scaling") {
+        Some(e) => constant(program, e, "mass_scaling")?,
+        None => 1.0,
+    };
     let g = match gravity {
-        Some(e) => Some(super::expr::flatten(&lw.lower(&mut k, &Env::new(), e)?)),
+        Some(e) => {
+            let g = super::expr::flatten(&lw.lower(&mut k, &Env::new(), e)?);
+            let s = k.b.constant(scaling);
+            Some(g.into_iter().map(|gd| k.b.div(gd, s)).collect::<Vec<_>>())
+        }
         None => None,
     };
     let dt = k.uniform("dt");

@@ -216,7 +216,8 @@ impl<'a> Reference<'a> {
             springs,
             pressures: pressure_stmts.into_iter().map(|(_, e)| e).collect(),
             damping: syntax.sim_setting("damping"),
-            gravity,
+            // Gravity acts on the physical mass: an acceleration g / mass_scaling.
+            gravity: gravity.map(|g| g / scaling),
             ev,
         })
     }
