@@ -515,3 +515,34 @@ fn a_per_element_field_is_trained_like_any_param() {
         .fold((f64::INFINITY, 0.0f64), |(a, b), v| (a.min(*v), b.max(*v)));
     assert!(hi / lo > 1.01, "{lo} .. {hi}");
 }
+
+/// A loss that is not a number is an error naming when it was taken, never a result: no
+/// `"loss": null` with exit 0, and no gradient of it.
+#[test]
+fn a_non_finite_loss_stops_the_run_with_an_error() {
+    let dir = scratch("nan-loss");
+    // The tip moves down (negative z displacement): the square root of it is NaN.
+    let script = variant(
+        "pressure.soft",
+        &[(
+            "loss = mean(n in tip) (x[n].z - x0[n].z + 0.03 mm)^2 at end",
+            "loss = mean(n in tip) sqrt((x[n].z - x0[n].z) / 1 mm) * 1 mm^2 at end",
+        )],
+        &dir,
+    );
+    let s = script.to_str().unwrap();
+    for extra in [&[][..], &["--grad"][..]] {
+        let mut args = vec!["run", s, "--no-optimize", "--steps", "50"];
+        args.extend_from_slice(extra);
+        let (code, out, err) = softc(&args);
+        assert_eq!(
+            code, 1,
+            "{extra:?}: exit {code}\nstdout: {out}\nstderr: {err}"
+        );
+        assert!(
+            err.contains("the loss is NaN at the end of the run (step 50"),
+            "{extra:?}: {err}"
+        );
+        assert!(!out.contains("\"gradients\""), "{extra:?}: {out}");
+    }
+}

@@ -306,6 +306,8 @@ impl<B: Backend> Simulation<'_, B> {
             final_state = self.save_state();
             loss_value = self.add_loss_gradient(&loss, 0.0, &mut direct);
         }
+        let loss_value =
+            super::loss::require_finite(loss_value, loss.window, steps, dt).map_err(RunError)?;
         let forward_seconds = start.elapsed().as_secs_f64();
 
         // The backward pass.

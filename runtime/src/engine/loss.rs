@@ -111,3 +111,27 @@ impl<'s> Loss<'s> {
         }
     }
 }
+
+/// A loss that is not a finite number is an error, not a result: the state was checked finite
+/// at every step, so the loss expression itself is undefined there (the run stops with this
+/// message instead of reporting `"loss": null` and a gradient of it).
+pub fn require_finite(value: f64, window: LossWindow, steps: u64, dt: f64) -> Result<f64, String> {
+    if value.is_finite() {
+        return Ok(value);
+    }
+    let what = if value.is_nan() { "NaN" } else { "infinite" };
+    let when = match window {
+        LossWindow::End => format!(
+            "at the end of the run (step {steps}, t = {:e} s)",
+            steps as f64 * dt
+        ),
+        LossWindow::Over { from, to } => {
+            format!("summed over its window [{from:e} s, {to:e} s]")
+        }
+    };
+    Err(format!(
+        "the loss is {what} {when} while the state is finite: the `loss` expression is not \
+         defined there (a logarithm or root of a negative number, a division by zero, an \
+         overflow); fix the expression, e.g. take `abs(…)` or add a small offset"
+    ))
+}

@@ -409,13 +409,19 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.write_vtk(steps as f64 * dt)?;
         }
         let mut summary = self.summary(steps, dt, estimate, start);
-        summary.loss = loss_fn.map(|l| match l.window {
-            loss::LossWindow::End => {
-                let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
-                l.eval(self.scene, &x, &v, steps as f64 * dt, &self.uniforms)
-            }
-            loss::LossWindow::Over { .. } => loss_sum,
-        });
+        summary.loss = loss_fn
+            .map(|l| {
+                let value = match l.window {
+                    loss::LossWindow::End => {
+                        let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
+                        l.eval(self.scene, &x, &v, steps as f64 * dt, &self.uniforms)
+                    }
+                    loss::LossWindow::Over { .. } => loss_sum,
+                };
+                loss::require_finite(value, l.window, steps, dt)
+            })
+            .transpose()
+            .map_err(RunError)?;
         Ok(summary)
     }
 
