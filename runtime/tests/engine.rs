@@ -334,14 +334,53 @@ fn an_inverted_element_recovers_with_the_inversion_safe_material_only() {
     assert!(e.contains("inverted") && e.contains("element"), "{e}");
 }
 
+/// A clamped neo-Hookean column (10 × 2 × 2 mm, ν = 0) on an `n` Kuhn grid, hanging under
+/// 0.01 g along +x with `sim_extra` added to its sim block; returns the tip's mean x
+/// displacement after `duration`.
+fn hanging_column_tip(dir: &Path, n: [usize; 3], duration: f64, sim_extra: &str) -> f64 {
+    use softc::devices::cpu::Cpu;
+    use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
+    use softc_compiler::back::Precision;
+    let spec = KuhnSpec {
+        n,
+        min: [0.0, 0.0, 0.0],
+        max: [10.0, 2.0, 2.0],
+        // No cell centre lies in this box: a solid column.
+        cavity_min: [-2.0, -2.0, -2.0],
+        cavity_max: [-1.0, -1.0, -1.0],
+    };
+    let mesh = kuhn_grid(&spec, softc::mesh::LengthUnit::Millimetre).unwrap();
+    let file = dir.join(format!("column{}.msh", n[0]));
+    softc::mesh::save(&mesh, &file, softc::mesh::LengthUnit::Millimetre).unwrap();
+    let script = dir.join(format!("column{}-{}.soft", n[0], sim_extra.len()));
+    std::fs::write(
+        &script,
+        format!(
+            "mesh body = load(\"{}\")\n\
+             material gel = neo_hookean_ln(mu: 5 kPa, lambda: 0 kPa, density: 1000 kg/m^3)\n\
+             nodes base = named(body, \"base\")\n\
+             nodes tip = named(body, \"tip\")\n\
+             sim {{\n  dt = auto\n  duration = {duration} s\n  damping = 300 /s\n  \
+             {sim_extra}gravity = [0.0981, 0, 0] m/s^2\n  fix base\n}}\n",
+            file.display()
+        ),
+    )
+    .unwrap();
+    let scene = Scene::load(&script, &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
+    let s = Simulation::new(&scene, cpu).run(None, None).unwrap();
+    let (_, tip) = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap();
+    tip.iter()
+        .map(|&i| s.x[i as usize][0] - scene.mesh.nodes[i as usize][0])
+        .sum::<f64>()
+        / tip.len() as f64
+}
+
 /// A column hanging under its own weight (clamped at x = 0, gravity along +x), ν = 0: small
 /// strain theory gives the free end's displacement ρ g L² / (2E). The explicit run is damped to
 /// its steady state; the result converges to the closed form as the mesh is refined.
 #[test]
 fn hanging_column_matches_the_closed_form_and_converges() {
-    use softc::devices::cpu::Cpu;
-    use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
-    use softc_compiler::back::Precision;
     let dir = std::env::temp_dir().join(format!("softc-column-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     // A small load (0.01 g) keeps strains at 1e-4, where the small-strain closed form holds.
@@ -349,40 +388,7 @@ fn hanging_column_matches_the_closed_form_and_converges() {
     let exact = rho * g * l * l / (2.0 * e);
     let mut errors = Vec::new();
     for n in [[5, 1, 1], [10, 2, 2], [20, 4, 4]] {
-        let spec = KuhnSpec {
-            n,
-            min: [0.0, 0.0, 0.0],
-            max: [10.0, 2.0, 2.0],
-            // No cell centre lies in this box: a solid column.
-            cavity_min: [-2.0, -2.0, -2.0],
-            cavity_max: [-1.0, -1.0, -1.0],
-        };
-        let mesh = kuhn_grid(&spec, softc::mesh::LengthUnit::Millimetre).unwrap();
-        let file = dir.join(format!("column{}.msh", n[0]));
-        softc::mesh::save(&mesh, &file, softc::mesh::LengthUnit::Millimetre).unwrap();
-        let script = dir.join(format!("column{}.soft", n[0]));
-        std::fs::write(
-            &script,
-            format!(
-                "mesh body = load(\"{}\")\n\
-                 material gel = neo_hookean_ln(mu: 5 kPa, lambda: 0 kPa, density: 1000 kg/m^3)\n\
-                 nodes base = named(body, \"base\")\n\
-                 nodes tip = named(body, \"tip\")\n\
-                 sim {{\n  dt = auto\n  duration = 0.12 s\n  damping = 300 /s\n  \
-                 gravity = [0.0981, 0, 0] m/s^2\n  fix base\n}}\n",
-                file.display()
-            ),
-        )
-        .unwrap();
-        let scene = Scene::load(&script, &[]).unwrap();
-        let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
-        let s = Simulation::new(&scene, cpu).run(None, None).unwrap();
-        let (_, tip) = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap();
-        let ux = tip
-            .iter()
-            .map(|&i| s.x[i as usize][0] - scene.mesh.nodes[i as usize][0])
-            .sum::<f64>()
-            / tip.len() as f64;
+        let ux = hanging_column_tip(&dir, n, 0.12, "");
         errors.push(((ux - exact) / exact).abs());
     }
     eprintln!("hanging column: relative errors {errors:?} (exact {exact:e} m)");
@@ -609,48 +615,11 @@ fn time_loop_speed() {
 /// without it (gravity acts on the physical mass; a scaled weight would stretch it 4× as far).
 #[test]
 fn mass_scaling_leaves_the_steady_state_under_gravity_unchanged() {
-    use softc::devices::cpu::Cpu;
-    use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
-    use softc_compiler::back::Precision;
     let dir = std::env::temp_dir().join(format!("softc-scaled-column-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let spec = KuhnSpec {
-        n: [5, 1, 1],
-        min: [0.0, 0.0, 0.0],
-        max: [10.0, 2.0, 2.0],
-        cavity_min: [-2.0, -2.0, -2.0],
-        cavity_max: [-1.0, -1.0, -1.0],
-    };
-    let mesh = kuhn_grid(&spec, softc::mesh::LengthUnit::Millimetre).unwrap();
-    let file = dir.join("column.msh");
-    softc::mesh::save(&mesh, &file, softc::mesh::LengthUnit::Millimetre).unwrap();
-    let tip_ux = |scaling: f64, duration: f64| {
-        let script = dir.join(format!("column-{scaling}.soft"));
-        std::fs::write(
-            &script,
-            format!(
-                "mesh body = load(\"{}\")\n\
-                 material gel = neo_hookean_ln(mu: 5 kPa, lambda: 0 kPa, density: 1000 kg/m^3)\n\
-                 nodes base = named(body, \"base\")\n\
-                 nodes tip = named(body, \"tip\")\n\
-                 sim {{\n  dt = auto\n  duration = {duration} s\n  damping = 300 /s\n  \
-                 mass_scaling = {scaling}\n  gravity = [0.0981, 0, 0] m/s^2\n  fix base\n}}\n",
-                file.display()
-            ),
-        )
-        .unwrap();
-        let scene = Scene::load(&script, &[]).unwrap();
-        let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
-        let s = Simulation::new(&scene, cpu).run(None, None).unwrap();
-        let (_, tip) = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap();
-        tip.iter()
-            .map(|&i| s.x[i as usize][0] - scene.mesh.nodes[i as usize][0])
-            .sum::<f64>()
-            / tip.len() as f64
-    };
-    let plain = tip_ux(1.0, 0.12);
+    let plain = hanging_column_tip(&dir, [5, 1, 1], 0.12, "");
     // Four times the inertia: modes 2× slower, the overdamped ones 4× slower to settle.
-    let scaled = tip_ux(4.0, 0.6);
+    let scaled = hanging_column_tip(&dir, [5, 1, 1], 0.6, "mass_scaling = 4\n  ");
     std::fs::remove_dir_all(&dir).ok();
     let rel = ((scaled - plain) / plain).abs();
     assert!(
