@@ -10,3 +10,4 @@ pub mod optim;
 pub mod outputs;
 pub mod reference;
 pub mod session;
+pub mod solvers;

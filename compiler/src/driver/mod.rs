@@ -19,11 +19,13 @@ pub use plan::{
     InputDecl, InputSource, LrScheduleSpec, NormalizeSpec, OptimizeSpec, OptimizerSpec,
     StopCondition,
 };
-pub use settings::{CheckpointSpec, CsvLog, DtChoice, ForceModelKind, GradSettings, SimSettings};
+pub use settings::{
+    CheckpointSpec, CsvLog, DtChoice, ForceModelKind, GradSettings, Integrator, SimSettings,
+};
 pub use variant::Variant;
 
 // What the runtime needs of the compiler's other layers, in one place.
-pub use crate::lower::scene::SceneModule;
+pub use crate::lower::scene::{SceneModule, StaticKernels};
 pub use crate::lower::springs::TET_EDGES;
 pub use crate::sema::ParamInfo;
 pub use crate::sema::mesh_probe::{MeshProbe, MeshSummary};

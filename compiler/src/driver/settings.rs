@@ -39,6 +39,9 @@ pub struct CsvLog {
 /// The sim block, resolved.
 #[derive(Debug, Clone)]
 pub struct SimSettings {
+    /// `semi_implicit_euler` steps, or `quasi_static` equilibrium states: then `dt` is the
+    /// spacing of the states (`duration / steps`) and `steps` their number.
+    pub integrator: Integrator,
     pub dt: DtChoice,
     pub steps: Option<u64>,
     /// The simulated duration in seconds, when the script fixes it.
@@ -64,6 +67,26 @@ impl SimSettings {
                 .map(|e| const_scalar(program, e))
                 .transpose()
         };
+        let integrator = match ast.sim_setting("integrator").map(|e| &e.kind) {
+            Some(ExprKind::Name(n)) if n.name == "quasi_static" => Integrator::QuasiStatic,
+            _ => Integrator::SemiImplicitEuler,
+        };
+        if integrator == Integrator::QuasiStatic {
+            let steps = setting("steps")?.map(|s| s as u64).unwrap_or(1).max(1);
+            let t_end = match (duration, ast.sim_setting("dt")) {
+                (Some(d), _) => d,
+                (None, Some(dt)) => const_scalar(program, dt)? * steps as f64,
+                (None, None) => return Err("a quasi-static sim block needs `duration`".into()),
+            };
+            return Ok(SimSettings {
+                integrator,
+                dt: DtChoice::Given(t_end / steps as f64),
+                steps: Some(steps),
+                duration: Some(t_end),
+                mass_scaling: 1.0,
+                ..Self::outputs_and_model(program, ast)?
+            });
+        }
         let dt = match ast.sim_setting("dt") {
             None => return Err("the sim block has no `dt`".into()),
             Some(e) => match &e.kind {
@@ -78,6 +101,18 @@ impl SimSettings {
         };
         let steps = setting("steps")?.map(|s| s as u64);
         let mass_scaling = setting("mass_scaling")?.unwrap_or(1.0);
+        Ok(SimSettings {
+            integrator,
+            dt,
+            steps,
+            duration,
+            mass_scaling,
+            ..Self::outputs_and_model(program, ast)?
+        })
+    }
+
+    /// The settings both integrators read: precision, force model, outputs.
+    fn outputs_and_model(program: &Program, ast: &Script) -> Result<SimSettings, String> {
         let precision = match ast.sim_setting("precision").map(|e| &e.kind) {
             Some(ExprKind::Name(n)) if n.name == "f64" => Some(Precision::F64),
             Some(ExprKind::Name(n)) if n.name == "f32" => Some(Precision::F32),
@@ -133,10 +168,11 @@ impl SimSettings {
             }
         }
         Ok(SimSettings {
-            dt,
-            steps,
-            duration,
-            mass_scaling,
+            integrator: Integrator::SemiImplicitEuler,
+            dt: DtChoice::Given(f64::NAN),
+            steps: None,
+            duration: None,
+            mass_scaling: 1.0,
             precision,
             model,
             vtk_every,
@@ -152,6 +188,16 @@ impl SimSettings {
             _ => 1,
         }
     }
+}
+
+/// How a run advances.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Integrator {
+    /// Explicit time steps (thesis eq. 2.2).
+    #[default]
+    SemiImplicitEuler,
+    /// Equilibrium states found by Newton's method on the assembled tangent.
+    QuasiStatic,
 }
 
 /// The optimize block's `checkpoint` setting.

@@ -147,3 +147,154 @@ pub fn gradient(func: Func, y: V, wrt: &[V]) -> (Func, Vec<V>) {
         .collect();
     (b.finish(), grads)
 }
+
+/// Forward-mode derivatives (tangents): given the derivative of some values along one
+/// direction (`seeds`: value, its tangent), the derivative of every value up to `upto`
+/// (exclusive) along it, appended to `b`. `None` is a structural zero: nothing it depends on
+/// is seeded, so no code is generated for it (a unit seed on one corner coordinate touches
+/// only what that coordinate reaches). Used for element stiffness matrices (one direction per
+/// corner coordinate) and Hessian-vector products; the one-sided rules at kinks are those of
+/// [`gradient`].
+pub fn tangent(b: &mut Builder, upto: usize, seeds: &[(V, V)]) -> Vec<Option<V>> {
+    let mut tan: Vec<Option<V>> = vec![None; upto];
+    for &(v, t) in seeds {
+        tan[v.0 as usize] = Some(t);
+    }
+    let zero_or = |b: &mut Builder, t: Option<V>| t.unwrap_or_else(|| b.constant(0.0));
+    for i in 0..upto {
+        if tan[i].is_some() {
+            // A seeded value (an argument) keeps its seed.
+            continue;
+        }
+        let yv = V(i as u32);
+        tan[i] = match b.func.insts[i] {
+            Inst::Const(_) | Inst::Arg(_) | Inst::Cmp(..) => None,
+            Inst::Un(op, a) => {
+                let Some(ta) = tan[a.0 as usize] else {
+                    continue;
+                };
+                Some(match op {
+                    UnOp::Neg => b.neg(ta),
+                    UnOp::Abs => {
+                        let zero = b.constant(0.0);
+                        let negative = b.cmp(CmpOp::Lt, a, zero);
+                        let nt = b.neg(ta);
+                        b.select(negative, nt, ta)
+                    }
+                    UnOp::Sqrt => {
+                        let half = b.scale(0.5, ta);
+                        b.div(half, yv)
+                    }
+                    UnOp::Exp => b.mul(ta, yv),
+                    UnOp::Ln => b.div(ta, a),
+                    UnOp::Sin => {
+                        let c = b.un(UnOp::Cos, a);
+                        b.mul(ta, c)
+                    }
+                    UnOp::Cos => {
+                        let s = b.un(UnOp::Sin, a);
+                        let ts = b.mul(ta, s);
+                        b.neg(ts)
+                    }
+                    UnOp::Tan => {
+                        let one = b.constant(1.0);
+                        let y2 = b.mul(yv, yv);
+                        let s = b.add(one, y2);
+                        b.mul(ta, s)
+                    }
+                    UnOp::Tanh => {
+                        let one = b.constant(1.0);
+                        let y2 = b.mul(yv, yv);
+                        let s = b.sub(one, y2);
+                        b.mul(ta, s)
+                    }
+                    UnOp::Floor | UnOp::Ceil => continue,
+                })
+            }
+            Inst::Bin(op, l, r) => {
+                let (tl, tr) = (tan[l.0 as usize], tan[r.0 as usize]);
+                if tl.is_none() && tr.is_none() {
+                    continue;
+                }
+                match op {
+                    BinOp::Add => match (tl, tr) {
+                        (Some(a), Some(c)) => Some(b.add(a, c)),
+                        (t, None) | (None, t) => t,
+                    },
+                    BinOp::Sub => match (tl, tr) {
+                        (Some(a), Some(c)) => Some(b.sub(a, c)),
+                        (Some(a), None) => Some(a),
+                        (None, Some(c)) => Some(b.neg(c)),
+                        (None, None) => None,
+                    },
+                    BinOp::Mul => {
+                        let a = tl.map(|t| b.mul(t, r));
+                        let c = tr.map(|t| b.mul(l, t));
+                        match (a, c) {
+                            (Some(a), Some(c)) => Some(b.add(a, c)),
+                            (t, None) | (None, t) => t,
+                        }
+                    }
+                    BinOp::Div => {
+                        // (tl − y·tr) / r
+                        let a = tl.map(|t| b.div(t, r));
+                        let c = tr.map(|t| {
+                            let q = b.div(yv, r);
+                            b.mul(t, q)
+                        });
+                        match (a, c) {
+                            (Some(a), Some(c)) => Some(b.sub(a, c)),
+                            (Some(a), None) => Some(a),
+                            (None, Some(c)) => Some(b.neg(c)),
+                            (None, None) => None,
+                        }
+                    }
+                    BinOp::Pow => {
+                        let a = tl.map(|t| match b.func.constant(r) {
+                            Some(p) => {
+                                let lp = b.powf(l, p - 1.0);
+                                let k = b.scale(p, lp);
+                                b.mul(t, k)
+                            }
+                            None => {
+                                let one = b.constant(1.0);
+                                let rm1 = b.sub(r, one);
+                                let lp = b.bin(BinOp::Pow, l, rm1);
+                                let k = b.mul(r, lp);
+                                b.mul(t, k)
+                            }
+                        });
+                        let c = tr.map(|t| {
+                            let ln = b.un(UnOp::Ln, l);
+                            let k = b.mul(yv, ln);
+                            b.mul(t, k)
+                        });
+                        match (a, c) {
+                            (Some(a), Some(c)) => Some(b.add(a, c)),
+                            (t, None) | (None, t) => t,
+                        }
+                    }
+                    BinOp::Min | BinOp::Max => {
+                        let op = if op == BinOp::Min {
+                            CmpOp::Le
+                        } else {
+                            CmpOp::Ge
+                        };
+                        let left = b.cmp(op, l, r);
+                        let (a, c) = (zero_or(b, tl), zero_or(b, tr));
+                        Some(b.select(left, a, c))
+                    }
+                }
+            }
+            Inst::Select(c, l, r) => {
+                let (tl, tr) = (tan[l.0 as usize], tan[r.0 as usize]);
+                if tl.is_none() && tr.is_none() {
+                    continue;
+                }
+                let (a, d) = (zero_or(b, tl), zero_or(b, tr));
+                Some(b.select(c, a, d))
+            }
+        };
+    }
+    tan
+}

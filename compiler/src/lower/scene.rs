@@ -10,6 +10,7 @@ use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, BufferId, CmpOp, Domain, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
+use crate::passes::tangent::force_jacobian;
 
 /// The module of a scene plus what the host needs to run it.
 #[derive(Debug, Clone)]
@@ -34,6 +35,8 @@ pub struct SceneModule {
     pub material_fields: Vec<Vec<String>>,
     /// The buffers the host fills or reads, by role.
     pub buffers: SceneBuffers,
+    /// `integrator = quasi_static`: the equilibrium solve's kernels.
+    pub statics: Option<StaticKernels>,
 }
 
 /// The ids of the buffers the host fills or reads (resolved once, when the scene is lowered).
@@ -89,23 +92,10 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         return Err(LowerError::new("the script has no sim block"));
     }
     let sim = script.sim_block();
-    // Settings the checker accepts whose kernels do not exist yet: refuse them rather than
-    // silently simulating something else.
-    for s in sim {
-        if let StmtKind::Assign { name, value } = &s.kind {
-            let unsupported = match (name.name.as_str(), &value.kind) {
-                ("integrator", ExprKind::Name(n)) if n.name == "quasi_static" => {
-                    Some("the quasi-static integrator")
-                }
-                _ => None,
-            };
-            if let Some(what) = unsupported {
-                return Err(LowerError::new(format!(
-                    "{what} is not implemented yet; use `integrator = semi_implicit_euler`"
-                )));
-            }
-        }
-    }
+    let quasi_static = matches!(
+        script.sim_setting("integrator").map(|e| &e.kind),
+        Some(ExprKind::Name(n)) if n.name == "quasi_static"
+    );
     // Per-element params: one value per element of one set.
     for item in &script.items {
         if let ItemKind::Param(p) = &item.kind
@@ -158,6 +148,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
                 tri_force,
                 &chamber.name,
                 value,
+                quasi_static,
             )?);
             chambers.push(chamber.name.clone());
         }
@@ -165,14 +156,23 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     if chambers.is_empty() {
         module.buffers.retain(|b| b.name != "tri_force");
     }
-    let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
-    module.push_kernel(node);
-    let mut scale = Vec::new();
-    if let Some(e) = script.optimize_setting("gradient_scale") {
-        scale.push(("v", constant(program, e, "gradient_scale")?));
-    }
-    let adjoint =
-        adjoint(&module, &[("x", "x_next"), ("v", "v_next")], &scale).map_err(LowerError::new)?;
+    let (adjoint, statics) = if quasi_static {
+        let node = equilibrium_kernel(program, &mut module, script, !chambers.is_empty())?;
+        module.push_kernel(node);
+        let mut adjoint = adjoint(&module, &[("x", "residual")], &[]).map_err(LowerError::new)?;
+        let statics = StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len())?;
+        (adjoint, Some(statics))
+    } else {
+        let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
+        module.push_kernel(node);
+        let mut scale = Vec::new();
+        if let Some(e) = script.optimize_setting("gradient_scale") {
+            scale.push(("v", constant(program, e, "gradient_scale")?));
+        }
+        let adjoint = adjoint(&module, &[("x", "x_next"), ("v", "v_next")], &scale)
+            .map_err(LowerError::new)?;
+        (adjoint, None)
+    };
     let buffers = SceneBuffers::of(&module)?;
     Ok(SceneModule {
         buffers,
@@ -183,7 +183,59 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         springs: !matches!(model, ForceModel::Fem),
         inversion_safe,
         material_fields: fields_of,
+        statics,
     })
+}
+
+/// What a quasi-static scene adds to its adjoint module: the force Jacobians a Newton solve
+/// assembles. Its forward module's node kernel is [`equilibrium_kernel`] (no time step), its
+/// adjoint is that of x ↦ residual, and the `load` uniform scales every load (continuation).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StaticKernels {
+    /// Net force on each node (node × 3), 0 at fixed nodes: equilibrium is residual = 0.
+    pub residual: BufferId,
+    /// Per material (kernel order): the kernel writing its elements' ∂f/∂x (element × 144).
+    pub element_jacobians: Vec<usize>,
+    pub elem_dforce: BufferId,
+    /// Per chamber (kernel order): the kernel writing its triangles' ∂f/∂x (triangle × 81).
+    pub chamber_jacobians: Vec<usize>,
+    pub tri_dforce: Option<BufferId>,
+}
+
+impl StaticKernels {
+    /// Append the Jacobian kernels of the forward kernels (materials, then chambers) to `m`.
+    fn add(m: &mut Module, materials: usize, chambers: usize) -> Result<Self, LowerError> {
+        let id = |m: &Module, n: &str| {
+            m.buffer_named(n)
+                .ok_or_else(|| LowerError::new(format!("the solve has no buffer `{n}`")))
+        };
+        let (x, residual, elem_force) = (id(m, "x")?, id(m, "residual")?, id(m, "elem_force")?);
+        let mut element_jacobians = Vec::new();
+        for k in 0..materials {
+            let built =
+                force_jacobian(m, k, elem_force, x, "elem_dforce").map_err(LowerError::new)?;
+            element_jacobians.push(m.push_kernel(built));
+        }
+        let mut chamber_jacobians = Vec::new();
+        let tri_dforce = if chambers > 0 {
+            let tri_force = id(m, "tri_force")?;
+            for c in 0..chambers {
+                let built = force_jacobian(m, materials + c, tri_force, x, "tri_dforce")
+                    .map_err(LowerError::new)?;
+                chamber_jacobians.push(m.push_kernel(built));
+            }
+            m.buffer_named("tri_dforce")
+        } else {
+            None
+        };
+        Ok(StaticKernels {
+            residual,
+            element_jacobians,
+            elem_dforce: id(m, "elem_dforce")?,
+            chamber_jacobians,
+            tri_dforce,
+        })
+    }
 }
 
 /// The materials a scene uses, in kernel order: as the sim block's `use` lines first name them,
@@ -278,6 +330,7 @@ fn pressure_kernel(
     tri_force: crate::ir::BufferId,
     chamber: &str,
     pressure: &Expr,
+    load_factor: bool,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
     let mut k = KernelBuilder::new(
         &format!("pressure_{chamber}"),
@@ -285,7 +338,11 @@ fn pressure_kernel(
         &format!("pressure {chamber}"),
     );
     let mut lw = ExprLowerer::new(program);
-    let p = lw.lower(&mut k, &Env::new(), pressure)?.scalar()?;
+    let mut p = lw.lower(&mut k, &Env::new(), pressure)?.scalar()?;
+    if load_factor {
+        let load = k.uniform("load");
+        p = k.b.mul(load, p);
+    }
     let xs: Vec<[V; 3]> = (0..3)
         .map(|c| {
             [0, 1, 2].map(|d| {
@@ -409,6 +466,83 @@ fn node_kernel(
         let x1 = k.b.add(xv, dx);
         k.store(x_next, d, x1);
         k.store(v_next, d, v1);
+    }
+    Ok(k.finish())
+}
+
+/// The quasi-static counterpart of [`node_kernel`]: the net force on each free node,
+/// residual = F_elements + F_pressure + load·m·g (0 at fixed nodes), with no time step. A
+/// Newton solve drives it to zero; the adjoint of x ↦ residual gives the transposed
+/// Jacobian-vector products and the ∂residual/∂param products the implicit-function adjoint
+/// needs. `load` scales gravity as the pressure kernels scale pressure. The dynamic state
+/// buffers are declared (the host fills them alike) but not used.
+fn equilibrium_kernel(
+    program: &Program,
+    module: &mut Module,
+    script: &Script,
+    pressure: bool,
+) -> Result<crate::ir::BuiltKernel, LowerError> {
+    module.buffer("x", Domain::Node, 3, "node positions, m");
+    module.buffer(
+        "v",
+        Domain::Node,
+        3,
+        "node velocities, m/s (unused by a static solve)",
+    );
+    module.buffer("x_next", Domain::Node, 3, "unused by a static solve");
+    module.buffer("v_next", Domain::Node, 3, "unused by a static solve");
+    let mass = module.buffer("mass", Domain::Node, 1, "lumped mass, kg");
+    let fixed = module.buffer("fixed", Domain::Node, 1, "1 for fixed nodes, else 0");
+    let residual = module.buffer(
+        "residual",
+        Domain::Node,
+        3,
+        "net force on the node (0 at fixed nodes), N",
+    );
+    let elem_force = module.buffer_named("elem_force").expect("declared");
+    let tri_force = module.buffer_named("tri_force");
+    let mut k = KernelBuilder::new("equilibrium", Domain::Node, "sim");
+    let mut lw = ExprLowerer::new(program);
+    let g = match script.sim_setting("gravity") {
+        Some(e) => Some(super::expr::flatten(&lw.lower(&mut k, &Env::new(), e)?)),
+        None => None,
+    };
+    let is_fixed = k.load(ArgSource::Own {
+        buffer: fixed,
+        component: 0,
+    });
+    let zero = k.b.constant(0.0);
+    let free = k.b.cmp(CmpOp::Eq, is_fixed, zero);
+    let mg = g.map(|g| {
+        let m = k.load(ArgSource::Own {
+            buffer: mass,
+            component: 0,
+        });
+        let load = k.uniform("load");
+        let lm = k.b.mul(load, m);
+        g.into_iter().map(|gd| k.b.mul(lm, gd)).collect::<Vec<_>>()
+    });
+    for d in 0..3u32 {
+        let mut f = k.load(ArgSource::Gather {
+            buffer: elem_force,
+            over: Domain::Element,
+            stride: 3,
+            component: d,
+        });
+        if pressure && let Some(tf) = tri_force {
+            let fp = k.load(ArgSource::Gather {
+                buffer: tf,
+                over: Domain::Triangle,
+                stride: 3,
+                component: d,
+            });
+            f = k.b.add(f, fp);
+        }
+        if let Some(mg) = &mg {
+            f = k.b.add(f, mg[d as usize]);
+        }
+        let r = k.b.select(free, f, zero);
+        k.store(residual, d, r);
     }
     Ok(k.finish())
 }

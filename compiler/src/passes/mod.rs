@@ -2,3 +2,4 @@
 //! built, in [`crate::ir`]).
 
 pub mod adjoint;
+pub mod tangent;

@@ -24,6 +24,12 @@ impl Checker {
                 assigns.push((name, value));
             }
         }
+        // A static solve has no time step: `duration` places its loads in time and `steps`
+        // counts the equilibrium states along it (one, at the end, by default).
+        let quasi_static = assigns.iter().any(|(n, v)| {
+            n.name == "integrator"
+                && matches!(&v.kind, ExprKind::Name(i) if i.name == "quasi_static")
+        });
         let mut dt = None;
         let mut steps = None;
         self.push_scope();
@@ -47,9 +53,36 @@ impl Checker {
             }
         }
         self.sim.defining_duration = false;
-        self.sim.dt = dt;
-        if let (Some(n), Some(dt)) = (steps, dt) {
-            self.sim.duration = Some(n * dt);
+        if quasi_static {
+            for setting in ["dt", "damping", "mass_scaling"] {
+                // `steps` and `dt` without `duration` do define the states' times.
+                let defines_times = setting == "dt" && !seen.contains_key("duration");
+                if let Some(&at) = seen.get(setting).filter(|_| !defines_times) {
+                    self.err(
+                        Diagnostic::warning(
+                            "W0005",
+                            at,
+                            format!("`{setting}` does not affect a quasi-static solve"),
+                        )
+                        .with_hint(
+                            "`integrator = quasi_static` finds equilibrium states directly; \
+                             remove the setting, or use `integrator = semi_implicit_euler` for dynamics",
+                        ),
+                    );
+                }
+            }
+            // States at t_end·k/steps: `dt` in expressions is their spacing.
+            if let Some(d) = self.sim.duration {
+                dt = Some(d / steps.unwrap_or(1.0));
+            } else if let (Some(n), Some(dt)) = (steps, dt) {
+                self.sim.duration = Some(n * dt);
+            }
+            self.sim.dt = dt;
+        } else {
+            self.sim.dt = dt;
+            if let (Some(n), Some(dt)) = (steps, dt) {
+                self.sim.duration = Some(n * dt);
+            }
         }
         // A misspelt setting (`durration`) is reported as unknown with a suggestion; do not also
         // report the setting it was meant to be as missing.
@@ -63,6 +96,16 @@ impl Checker {
         let steps_misspelt = misspelt(&["steps", "duration"]);
         let dt_misspelt = misspelt(&["dt"]);
         match (seen.get("steps"), seen.get("duration")) {
+            (Some(_), None) if quasi_static && !seen.contains_key("dt") => self.err(
+                Diagnostic::error(
+                    "E0312",
+                    Span::new(span.start, span.start + 3),
+                    "a quasi-static sim block needs `duration`: the time at which its loads \
+                     are taken (`steps` counts the equilibrium states along it)",
+                )
+                .with_hint("add e.g. `duration = 1 s`"),
+            ),
+            (Some(_), Some(_)) if quasi_static => {}
             (Some(&a), Some(&b)) => self.err(
                 Diagnostic::error(
                     "E0312",
@@ -81,7 +124,7 @@ impl Checker {
             ),
             _ => {}
         }
-        if !seen.contains_key("dt") && !dt_misspelt {
+        if !seen.contains_key("dt") && !dt_misspelt && !quasi_static {
             self.err(
                 Diagnostic::error(
                     "E0312",

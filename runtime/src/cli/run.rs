@@ -304,7 +304,8 @@ fn emit_json(
 
 /// The kernels a run needs: with `--grad` the adjoint module (a superset of the forward one).
 fn kernel_module<'a>(scene: &'a Scene, args: &RunArgs) -> &'a softc_compiler::ir::Module {
-    if args.grad {
+    // A quasi-static solve's tangent kernels are in the adjoint module.
+    if args.grad || scene.lowered.statics.is_some() {
         &scene.lowered.adjoint.module
     } else {
         &scene.lowered.module
@@ -435,6 +436,9 @@ fn announce_dt<B: Backend>(
     dt: Option<f64>,
     err: &mut dyn Write,
 ) -> Result<(), String> {
+    if sim.scene.lowered.statics.is_some() {
+        return Ok(());
+    }
     let est = sim.stable_dt_estimate().map_err(|e| e.0)?;
     let chosen = match (dt, sim.scene.dt) {
         (Some(d), _) => Some(d),

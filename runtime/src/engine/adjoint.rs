@@ -127,6 +127,70 @@ impl<B: Backend> Simulation<'_, B> {
         value
     }
 
+    /// Zero the accumulators of the param derivatives (`grad@…`, `grad_param.…`).
+    pub(super) fn zero_gradient_accumulators(&mut self) {
+        let adj = &self.scene.lowered.adjoint;
+        let grad_buffers: Vec<_> = {
+            let mut b: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
+            b.extend(adj.fields.iter().map(|f| f.buffer));
+            b.sort();
+            b.dedup();
+            b
+        };
+        for &b in &grad_buffers {
+            let buf = &adj.module.buffers[b.0 as usize];
+            let len = domain_len(self.scene, buf.domain) * buf.width as usize;
+            self.backend.set(b, &vec![0.0; len]);
+        }
+    }
+
+    /// d loss / d param for every param: the accumulators' per-entity partial sums added up
+    /// in entity order, plus the loss's direct derivatives.
+    pub(super) fn collect_gradients(
+        &self,
+        direct: BTreeMap<String, f64>,
+    ) -> Result<BTreeMap<String, f64>, RunError> {
+        let adj = &self.scene.lowered.adjoint;
+        // Param derivatives: per-entity partial sums, added up in entity order.
+        let mut gradients: BTreeMap<String, f64> = self
+            .scene
+            .uniforms
+            .keys()
+            .filter(|k| k.starts_with("param."))
+            .map(|k| (k.clone(), 0.0))
+            .collect();
+        let mut cache = BTreeMap::new();
+        for p in &adj.params {
+            let width = adj.module.buffers[p.buffer.0 as usize].width as usize;
+            let data = cache
+                .entry(p.buffer)
+                .or_insert_with(|| self.backend.get(p.buffer));
+            let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
+            *gradients.entry(p.name.clone()).or_insert(0.0) += sum;
+        }
+        // Per-element params: each element's accumulator is the derivative of its entry.
+        for f in &adj.fields {
+            let data = self.backend.get(f.buffer);
+            let field = self
+                .scene
+                .fields
+                .iter()
+                .find(|s| s.name == f.param)
+                .ok_or_else(|| {
+                    RunError(format!("the scene has no per-element param `{}`", f.param))
+                })?;
+            for (i, &e) in field.elements.iter().enumerate() {
+                *gradients
+                    .entry(format!("param.{}.{i}", f.param))
+                    .or_insert(0.0) += data[e as usize];
+            }
+        }
+        for (name, d) in direct {
+            *gradients.entry(name).or_insert(0.0) += d;
+        }
+        Ok(gradients)
+    }
+
     /// The adjoint of step `k`: state `k` is current, ∂L/∂(state k+1) in `adj_*_next`.
     fn reverse_step(&mut self, k: u64, dt: f64) -> Result<(), RunError> {
         let adj = &self.scene.lowered.adjoint;
@@ -184,6 +248,9 @@ impl<B: Backend> Simulation<'_, B> {
         steps_override: Option<u64>,
         options: &GradOptions,
     ) -> Result<GradientReport, RunError> {
+        if self.scene.lowered.statics.is_some() {
+            return self.static_gradient(dt_override, steps_override);
+        }
         let start = std::time::Instant::now();
         self.upload_fields();
         let (dt, estimate) = self.resolve_dt(dt_override)?;
@@ -232,18 +299,7 @@ impl<B: Backend> Simulation<'_, B> {
             self.backend.set(s.adj, &vec![0.0; len]);
             self.backend.set(s.adj_next, &vec![0.0; len]);
         }
-        let grad_buffers: Vec<_> = {
-            let mut b: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
-            b.extend(adj.fields.iter().map(|f| f.buffer));
-            b.sort();
-            b.dedup();
-            b
-        };
-        for &b in &grad_buffers {
-            let buf = &adj.module.buffers[b.0 as usize];
-            let len = domain_len(self.scene, buf.domain) * buf.width as usize;
-            self.backend.set(b, &vec![0.0; len]);
-        }
+        self.zero_gradient_accumulators();
 
         // The forward run: the schedule's prefix, then the last step.
         let prefix = schedule.forward_prefix();
@@ -365,43 +421,7 @@ impl<B: Backend> Simulation<'_, B> {
                 }
             }
         }
-        // Param derivatives: per-entity partial sums, added up in entity order.
-        let mut gradients: BTreeMap<String, f64> = self
-            .scene
-            .uniforms
-            .keys()
-            .filter(|k| k.starts_with("param."))
-            .map(|k| (k.clone(), 0.0))
-            .collect();
-        let mut cache = BTreeMap::new();
-        for p in &adj.params {
-            let width = adj.module.buffers[p.buffer.0 as usize].width as usize;
-            let data = cache
-                .entry(p.buffer)
-                .or_insert_with(|| self.backend.get(p.buffer));
-            let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
-            *gradients.entry(p.name.clone()).or_insert(0.0) += sum;
-        }
-        // Per-element params: each element's accumulator is the derivative of its entry.
-        for f in &adj.fields {
-            let data = self.backend.get(f.buffer);
-            let field = self
-                .scene
-                .fields
-                .iter()
-                .find(|s| s.name == f.param)
-                .ok_or_else(|| {
-                    RunError(format!("the scene has no per-element param `{}`", f.param))
-                })?;
-            for (i, &e) in field.elements.iter().enumerate() {
-                *gradients
-                    .entry(format!("param.{}.{i}", f.param))
-                    .or_insert(0.0) += data[e as usize];
-            }
-        }
-        for (name, d) in direct {
-            *gradients.entry(name).or_insert(0.0) += d;
-        }
+        let gradients = self.collect_gradients(direct)?;
         let backward_seconds = back_start.elapsed().as_secs_f64();
         Ok(GradientReport {
             summary: RunSummary {
@@ -420,6 +440,7 @@ impl<B: Backend> Simulation<'_, B> {
                     .chunks(3)
                     .map(|c| [c[0], c[1], c[2]])
                     .collect(),
+                solver: None,
             },
             gradients,
             schedule: schedule.kind.clone(),

@@ -12,6 +12,7 @@ pub mod loss;
 pub mod profile;
 pub mod scene;
 mod stable_dt;
+pub mod statics;
 
 // `softc::engine::Backend` and `softc::engine::Cpu`: paths from before the devices had a
 // module of their own, still named in full by tests.
@@ -108,6 +109,8 @@ pub struct RunSummary {
     /// Final positions and velocities.
     pub x: Vec<[f64; 3]>,
     pub v: Vec<[f64; 3]>,
+    /// What the equilibrium solver did (`integrator = quasi_static` only).
+    pub solver: Option<statics::SolverReport>,
 }
 
 /// `x` rounded down to two significant digits (a safety factor that stays on the safe side).
@@ -388,6 +391,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         dt_override: Option<f64>,
         steps_override: Option<u64>,
     ) -> Result<RunSummary, RunError> {
+        if self.scene.lowered.statics.is_some() {
+            return self
+                .solve_static(false, dt_override, steps_override)
+                .map(|r| r.summary);
+        }
         let start = std::time::Instant::now();
         self.upload_fields();
         let (dt, estimate) = self.resolve_dt(dt_override)?;
@@ -443,6 +451,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             wall_seconds: start.elapsed().as_secs_f64(),
             x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
             v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            solver: None,
         }
     }
 

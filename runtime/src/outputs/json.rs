@@ -21,7 +21,7 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
             }),
         );
     }
-    serde_json::json!({
+    let mut json = serde_json::json!({
         "script": scene.script.display().to_string(),
         "backend": backend,
         "loss": s.loss,
@@ -34,7 +34,11 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
         "nodes": scene.mesh.nodes.len(),
         "elements": scene.mesh.tets.len(),
         "sets": sets,
-    })
+    });
+    if let Some(solver) = &s.solver {
+        json["solver"] = serde_json::to_value(solver).unwrap_or_default();
+    }
+    json
 }
 
 /// `param.NAME[.i…]` derivatives as `{NAME: number or nested array}`.

@@ -598,6 +598,7 @@ impl<'a> Reference<'a> {
             wall_seconds: start.elapsed().as_secs_f64(),
             x: x.iter().map(|p| [p[0], p[1], p[2]]).collect(),
             v: v.iter().map(|p| [p[0], p[1], p[2]]).collect(),
+            solver: None,
         })
     }
 }

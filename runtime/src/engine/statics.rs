@@ -1,0 +1,525 @@
+//! Quasi-static solves (`integrator = quasi_static`): equilibrium states found directly by
+//! Newton's method, and their gradients by the implicit function theorem.
+//!
+//! The compiler gives a quasi-static scene an `equilibrium` node kernel (the net force on each
+//! free node, the residual r(x)) instead of the integrator, force-Jacobian kernels for every
+//! force kernel ([`softc_compiler::passes::tangent`]), and the adjoint of x ↦ r. A state is
+//! found by Newton's method on the assembled sparse tangent K = −∂r/∂x (fixed nodes
+//! eliminated, LU by faer with the symbolic factorization reused), with a backtracking line
+//! search on ‖r‖ that refuses steps which invert an element, and load continuation: the
+//! `load` uniform scales pressures and gravity from 0 to 1 towards the first state, time
+//! advances towards the later ones, in increments that halve after a failed solve and grow
+//! after quick ones. Each state starts from the previous one (warm start).
+//!
+//! Gradients: at an equilibrium r(x*(θ), θ) = 0, so for a loss L(x, θ)
+//! dL/dθ = ∂L/∂θ + μᵀ ∂r/∂θ with Kᵀ μ = ∂L/∂x — one transposed solve with the factorized
+//! tangent at the converged state, then the adjoint kernels with ∂L/∂residual = μ produce
+//! μᵀ ∂r/∂θ for every param kind (uniform params, per-element fields), as in an explicit
+//! backward pass. A path of states sums the per-state terms: each state depends on the params
+//! only, not on the states before it (elastic equilibria are path-independent).
+
+use super::loss::{Loss, LossWindow};
+use super::{RunError, RunSummary, Simulation};
+use crate::devices::{Backend, domain_len};
+use crate::solvers::sparse::{BlockPattern, SparseSolver};
+use softc_compiler::driver::LossArg;
+use softc_compiler::driver::StaticKernels;
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+/// Newton iterations per load increment before it counts as failed.
+const MAX_NEWTON: u64 = 25;
+/// Continuation increments (as a fraction of a state's load path) below which the solve gives
+/// up: no equilibrium beyond.
+const MIN_INCREMENT: f64 = 1.0 / 4096.0;
+
+/// What the solver did, for the JSON summary.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct SolverReport {
+    pub kind: &'static str,
+    /// Equilibrium states solved (the `steps` of the script).
+    pub states: u64,
+    /// Accepted load increments, over all states.
+    pub load_steps: u64,
+    /// Increments that failed and were retried smaller.
+    pub rejected_load_steps: u64,
+    pub newton_iterations: u64,
+    pub factorizations: u64,
+    /// The last factorization: `cholesky` (symmetric positive definite) or `lu`.
+    pub factorization: &'static str,
+    /// ‖residual‖ (N) of the last state, and relative to its applied load.
+    pub residual_norm: f64,
+    pub relative_residual: f64,
+    pub converged: bool,
+    pub dofs: usize,
+    pub nonzeros: usize,
+    pub assembly_seconds: f64,
+    pub factor_seconds: f64,
+}
+
+/// A finished quasi-static run.
+#[derive(Clone, Debug)]
+pub struct StaticRun {
+    pub summary: RunSummary,
+    pub solver: SolverReport,
+    /// d loss / d param (SI) when a gradient was asked for.
+    pub gradients: Option<BTreeMap<String, f64>>,
+}
+
+/// The assembled tangent and its factorization.
+struct Tangent {
+    pattern: BlockPattern,
+    lu: SparseSolver,
+    values: Vec<f64>,
+}
+
+/// How one Newton solve ended.
+enum Newton {
+    Converged { iterations: u64 },
+    Failed { why: String },
+}
+
+impl<B: Backend> Simulation<'_, B> {
+    fn static_kernels(&self) -> Result<&StaticKernels, RunError> {
+        self.scene.lowered.statics.as_ref().ok_or_else(|| {
+            RunError("internal error: the scene was not compiled for a quasi-static solve".into())
+        })
+    }
+
+    /// The residual (node-major, 0 at fixed nodes) at the current positions, time `t` and
+    /// load factor `load`; leaves the element forces and `elem_j` of this state in place.
+    fn residual(&mut self, t: f64, load: f64) -> Result<Vec<f64>, RunError> {
+        let residual = self.static_kernels()?.residual;
+        self.uniforms.set(self.ids.t, t);
+        let load_id = self.uniforms.intern("load");
+        self.uniforms.set(load_id, load);
+        self.run_force_kernels()?;
+        let node_kernel = self.scene.material_ranges.len() + self.scene.chamber_ranges.len();
+        self.backend
+            .run(node_kernel, 0..self.scene.mesh.nodes.len(), &self.uniforms)
+            .map_err(RunError)?;
+        Ok(self.backend.get(residual))
+    }
+
+    /// The first element (kernel order) whose material cannot pass through inversion and
+    /// whose volume ratio is not positive, after the force kernels ran.
+    fn inverted_element(&self) -> Option<usize> {
+        let j = self.backend.get(self.ids.elem_j);
+        for (k, range) in self.scene.material_ranges.iter().enumerate() {
+            if self.scene.lowered.inversion_safe[k] {
+                continue;
+            }
+            if let Some(e) = range.clone().find(|&e| j[e].is_nan() || j[e] <= 0.0) {
+                return Some(e);
+            }
+        }
+        None
+    }
+
+    /// Assemble K = −∂r/∂x at the current positions (uniforms as set) and factor it.
+    fn factor_tangent(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+    ) -> Result<(), String> {
+        let start = Instant::now();
+        let statics = self.static_kernels().map_err(|e| e.0)?.clone();
+        for (k, &kernel) in statics.element_jacobians.iter().enumerate() {
+            let range = self.scene.material_ranges[k].clone();
+            self.backend.run(kernel, range, &self.uniforms)?;
+        }
+        for (c, &kernel) in statics.chamber_jacobians.iter().enumerate() {
+            let range = self.scene.chamber_ranges[c].clone();
+            self.backend.run(kernel, range, &self.uniforms)?;
+        }
+        let elem = self.backend.get(statics.elem_dforce);
+        let tri = statics
+            .tri_dforce
+            .map(|b| self.backend.get(b))
+            .unwrap_or_default();
+        tangent.pattern.assemble(&elem, &tri, &mut tangent.values);
+        if let Some(i) = tangent.values.iter().position(|v| !v.is_finite()) {
+            return Err(format!(
+                "the tangent stiffness has a non-finite entry (entry {i})"
+            ));
+        }
+        let factor_start = Instant::now();
+        report.assembly_seconds += (factor_start - start).as_secs_f64();
+        let kind = tangent
+            .lu
+            .factor(&tangent.values)
+            .map_err(|e| format!("the tangent stiffness is singular ({e})"))?;
+        report.factorization = kind;
+        report.factor_seconds += factor_start.elapsed().as_secs_f64();
+        report.factorizations += 1;
+        Ok(())
+    }
+
+    /// Newton's method at time `t` and load factor `load` from the current positions.
+    fn newton(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        t: f64,
+        load: f64,
+        tolerance: f64,
+    ) -> Result<Newton, RunError> {
+        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let mut r = self.residual(t, load)?;
+        if let Some(e) = self.inverted_element() {
+            return Ok(Newton::Failed {
+                why: format!("element {} is inverted", e),
+            });
+        }
+        let mut r_norm = norm(&r);
+        if !r_norm.is_finite() {
+            return Ok(Newton::Failed {
+                why: "the forces are not finite".into(),
+            });
+        }
+        for it in 0..MAX_NEWTON {
+            if r_norm <= tolerance {
+                return Ok(Newton::Converged { iterations: it });
+            }
+            report.newton_iterations += 1;
+            if let Err(why) = self.factor_tangent(tangent, report) {
+                return Ok(Newton::Failed { why });
+            }
+            let mut dx = tangent.pattern.restrict(&r);
+            tangent.lu.solve(&mut dx);
+            let dx = tangent.pattern.extend(&dx);
+            let x0 = self.backend.get(self.ids.x);
+            // Backtracking on ‖r‖; steps that invert an element or make a force non-finite
+            // are refused.
+            let mut alpha = 1.0;
+            let mut accepted = None;
+            let mut why = String::from("the residual stopped decreasing");
+            for _ in 0..12 {
+                let x: Vec<f64> = x0.iter().zip(&dx).map(|(a, d)| a + alpha * d).collect();
+                self.backend.set(self.ids.x, &x);
+                let r_new = self.residual(t, load)?;
+                let n_new = norm(&r_new);
+                if let Some(e) = self.inverted_element() {
+                    why = format!("every step towards equilibrium inverts element {}", e);
+                } else if n_new.is_finite()
+                    && (n_new <= (1.0 - 1e-4 * alpha) * r_norm || n_new <= tolerance)
+                {
+                    accepted = Some((r_new, n_new));
+                    break;
+                }
+                alpha *= 0.5;
+            }
+            match accepted {
+                Some((r_new, n_new)) => {
+                    r = r_new;
+                    r_norm = n_new;
+                }
+                None => {
+                    self.backend.set(self.ids.x, &x0);
+                    return Ok(Newton::Failed { why });
+                }
+            }
+        }
+        if r_norm <= tolerance {
+            return Ok(Newton::Converged {
+                iterations: MAX_NEWTON,
+            });
+        }
+        Ok(Newton::Failed {
+            why: format!("no convergence in {MAX_NEWTON} Newton iterations"),
+        })
+    }
+
+    /// The norm of the loads (pressure forces and gravity on free nodes) at `t` and `load`:
+    /// the residual at the rest positions, where the elastic forces vanish.
+    fn load_norm(&mut self, t: f64, load: f64) -> Result<f64, RunError> {
+        let x = self.backend.get(self.ids.x);
+        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        self.backend.set(self.ids.x, &rest);
+        let r = self.residual(t, load)?;
+        self.backend.set(self.ids.x, &x);
+        Ok(r.iter().map(|v| v * v).sum::<f64>().sqrt())
+    }
+
+    /// Move the equilibrium from (t0, load0), where the current positions are one, to
+    /// (t1, load1) by continuation.
+    fn continue_to(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        from: (f64, f64),
+        to: (f64, f64),
+    ) -> Result<(), RunError> {
+        let rtol = match self.backend.precision() {
+            softc_compiler::back::Precision::F64 => 1e-10,
+            softc_compiler::back::Precision::F32 => 1e-5,
+        };
+        let scale = self.load_norm(to.0, to.1)?;
+        let tolerance = rtol * scale.max(f64::MIN_POSITIVE);
+        let at = |s: f64| (from.0 + s * (to.0 - from.0), from.1 + s * (to.1 - from.1));
+        let (mut s, mut ds) = (0.0f64, 1.0f64);
+        let mut good = self.backend.get(self.ids.x);
+        while s < 1.0 {
+            let s_try = (s + ds).min(1.0);
+            let (t, load) = at(s_try);
+            match self.newton(tangent, report, t, load, tolerance)? {
+                Newton::Converged { iterations } => {
+                    s = s_try;
+                    good = self.backend.get(self.ids.x);
+                    report.load_steps += 1;
+                    if iterations <= 4 {
+                        ds = (2.0 * ds).min(1.0);
+                    }
+                }
+                Newton::Failed { why, .. } => {
+                    self.backend.set(self.ids.x, &good);
+                    report.rejected_load_steps += 1;
+                    ds *= 0.5;
+                    if ds < MIN_INCREMENT {
+                        let (t_ok, load_ok) = at(s);
+                        let (t_bad, load_bad) = at(s_try);
+                        // Leave the last equilibrium's forces in place for outputs.
+                        self.residual(t_ok, load_ok)?;
+                        return Err(RunError(format!(
+                            "no equilibrium found beyond {:.1} % of the loads at t = {} s (the \
+                             last equilibrium; at {:.1} % / t = {} s: {why}). The load path \
+                             has a limit point there (a snap-through, a ballooning cavity) or \
+                             the loads are too large for the material: a pressure-controlled \
+                             static solve cannot pass it. Lower the loads, or simulate the \
+                             dynamics with `integrator = semi_implicit_euler`",
+                            100.0 * load_ok,
+                            t_ok,
+                            100.0 * load_bad,
+                            t_bad
+                        )));
+                    }
+                }
+            }
+        }
+        let r = self.residual(to.0, to.1)?;
+        let r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+        report.residual_norm = r_norm;
+        report.relative_residual = if scale > 0.0 { r_norm / scale } else { 0.0 };
+        report.converged = r_norm <= tolerance;
+        Ok(())
+    }
+
+    /// Solve the scene's equilibrium states (`steps` of them, at t_end·k/steps); with
+    /// `gradient`, also d loss / d every param.
+    pub fn solve_static(
+        &mut self,
+        gradient: bool,
+        dt_override: Option<f64>,
+        steps_override: Option<u64>,
+    ) -> Result<StaticRun, RunError> {
+        let start = Instant::now();
+        let scene = self.scene;
+        if scene.fixed.iter().all(|f| !f) {
+            return Err(RunError(
+                "a quasi-static solve needs fixed nodes: this body is free, so its equilibrium \
+                 is only defined up to a rigid motion. Add `fix REGION` to the sim block"
+                    .into(),
+            ));
+        }
+        if dt_override.is_some() {
+            return Err(RunError(
+                "a quasi-static solve has no time step: `--dt` does not apply (`--steps N` \
+                 sets the number of equilibrium states)"
+                    .into(),
+            ));
+        }
+        self.upload_fields();
+        let t_end = scene.duration.ok_or_else(|| {
+            RunError("internal error: a quasi-static scene has no duration".into())
+        })?;
+        let steps = steps_override.or(scene.steps).unwrap_or(1).max(1);
+        let h = t_end / steps as f64;
+        self.uniforms.set(self.ids.dt, h);
+        let loss = Loss::build(scene, h, steps).map_err(RunError)?;
+        if gradient && loss.is_none() {
+            return Err(RunError(
+                "the script has no `loss`: there is nothing to differentiate".into(),
+            ));
+        }
+        let pattern =
+            BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris).map_err(RunError)?;
+        let lu = SparseSolver::new(&pattern).map_err(RunError)?;
+        let mut report = SolverReport {
+            kind: "quasi_static",
+            states: steps,
+            dofs: pattern.n,
+            nonzeros: pattern.nnz(),
+            ..Default::default()
+        };
+        let mut tangent = Tangent {
+            pattern,
+            lu,
+            values: Vec::new(),
+        };
+        self.reset();
+        if gradient {
+            self.zero_gradient_accumulators();
+        }
+        let mut direct = BTreeMap::new();
+        let mut loss_sum = 0.0;
+        let mut end_value = None;
+        let rest = &scene.mesh.nodes;
+        for k in 1..=steps {
+            let t = k as f64 * h;
+            let from = if k == 1 { (t, 0.0) } else { (t - h, 1.0) };
+            let solved = self.continue_to(&mut tangent, &mut report, from, (t, 1.0));
+            if let Err(e) = solved {
+                // The last equilibrium is an answer too: write it where outputs were asked.
+                if self.vtk.is_some() {
+                    self.run_element_kernels()?;
+                    self.write_vtk(t)?;
+                }
+                for c in &self.csv {
+                    c.finish().map_err(RunError)?;
+                }
+                return Err(e);
+            }
+            if !self.csv.is_empty() {
+                let x = self.backend.get(self.ids.x);
+                for c in &mut self.csv {
+                    c.record(k, t, rest, &x);
+                }
+            }
+            if let Some(vtk) = &self.vtk
+                && (k % vtk.every.max(1) == 0 || k == steps)
+            {
+                self.run_element_kernels()?;
+                self.write_vtk(t)?;
+            }
+            let Some(l) = &loss else { continue };
+            let contributes = match l.window {
+                LossWindow::End => k == steps,
+                LossWindow::Over { .. } => l.in_window(t, h),
+            };
+            if !contributes {
+                continue;
+            }
+            let value = if gradient {
+                self.static_adjoint(&mut tangent, &mut report, l, t, &mut direct)?
+            } else {
+                let x = self.backend.get(self.ids.x);
+                let v = vec![0.0; x.len()];
+                l.eval(scene, &x, &v, t, &self.uniforms)
+            };
+            match l.window {
+                LossWindow::End => end_value = Some(value),
+                LossWindow::Over { .. } => loss_sum += value,
+            }
+        }
+        for c in &self.csv {
+            c.finish().map_err(RunError)?;
+        }
+        let loss_value = loss
+            .as_ref()
+            .map(|l| {
+                let value = match l.window {
+                    LossWindow::End => end_value.unwrap_or(f64::NAN),
+                    LossWindow::Over { .. } => loss_sum,
+                };
+                super::loss::require_finite(value, l.window, steps, h)
+            })
+            .transpose()
+            .map_err(RunError)?;
+        let gradients = if gradient {
+            Some(self.collect_gradients(direct)?)
+        } else {
+            None
+        };
+        let x = self.backend.get(self.ids.x);
+        Ok(StaticRun {
+            summary: RunSummary {
+                loss: loss_value,
+                steps,
+                dt: h,
+                dt_stable_estimate: None,
+                wall_seconds: start.elapsed().as_secs_f64(),
+                x: x.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+                v: vec![[0.0; 3]; x.len() / 3],
+                solver: Some(report.clone()),
+            },
+            solver: report,
+            gradients,
+        })
+    }
+
+    /// At an equilibrium state (time `t`, full load): the loss term, with μᵀ ∂r/∂θ added to
+    /// the param accumulators (Kᵀ μ = ∂L/∂x) and ∂L/∂θ to `direct`.
+    fn static_adjoint(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        l: &Loss,
+        t: f64,
+        direct: &mut BTreeMap<String, f64>,
+    ) -> Result<f64, RunError> {
+        let scene = self.scene;
+        let adj = &scene.lowered.adjoint;
+        let x = self.backend.get(self.ids.x);
+        let v = vec![0.0; x.len()];
+        let (value, ds) = l.eval_grad(scene, &x, &v, t, &self.uniforms);
+        let mut g = vec![0.0; x.len()];
+        for (arg, d) in l.args().iter().zip(ds) {
+            match arg {
+                LossArg::X { node, d: c } => g[3 * node + c] += d,
+                LossArg::Uniform(name) if name.starts_with("param.") => {
+                    *direct.entry(name.clone()).or_insert(0.0) += d;
+                }
+                _ => {}
+            }
+        }
+        // The factorization at the converged state (Newton's last one was at the iterate
+        // before it): exact gradients need the tangent where the equilibrium is.
+        self.residual(t, 1.0)?;
+        self.factor_tangent(tangent, report).map_err(|e| {
+            RunError(format!(
+                "the gradient needs the tangent at the equilibrium at t = {t} s: {e}"
+            ))
+        })?;
+        let mut mu = tangent.pattern.restrict(&g);
+        tangent.lu.solve_transpose(&mut mu);
+        let mu = tangent.pattern.extend(&mu);
+        let state = &adj.state[0];
+        self.backend.set(state.adj_next, &mu);
+        for rk in &adj.reverse {
+            let range = match rk.range_of {
+                Some(f) => self.kernel_range(f),
+                None => 0..domain_len(scene, adj.module.kernels[rk.kernel].domain),
+            };
+            self.backend
+                .run(rk.kernel, range, &self.uniforms)
+                .map_err(RunError)?;
+        }
+        Ok(value)
+    }
+
+    /// [`Simulation::gradient`] of a quasi-static scene: the states and the loss, and its
+    /// gradient by one transposed solve per state that the loss reads.
+    pub(super) fn static_gradient(
+        &mut self,
+        dt_override: Option<f64>,
+        steps_override: Option<u64>,
+    ) -> Result<super::adjoint::GradientReport, RunError> {
+        let start = Instant::now();
+        let run = self.solve_static(true, dt_override, steps_override)?;
+        let seconds = start.elapsed().as_secs_f64();
+        let reversed = run.summary.steps;
+        Ok(super::adjoint::GradientReport {
+            gradients: run.gradients.unwrap_or_default(),
+            schedule: "implicit function theorem (one transposed solve per state)".into(),
+            stored_states: 1,
+            state_bytes: 3 * self.scene.mesh.nodes.len() * std::mem::size_of::<f64>(),
+            recompute_ratio: 1.0,
+            reversed_steps: reversed,
+            forward_seconds: seconds,
+            backward_seconds: 0.0,
+            health: Vec::new(),
+            initial_state: None,
+            summary: run.summary,
+        })
+    }
+}
