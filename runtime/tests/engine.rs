@@ -117,7 +117,7 @@ fn runs_are_bit_identical_and_param_overrides_apply() {
 fn every_example_sets_up_a_scene() {
     for ex in [
         "verification.soft",
-        "pressure_optimization.soft",
+        "pressure_optimization_explicit.soft",
         "meta_optimization.soft",
         "controller_synthesis.soft",
         "benchmark-10k.soft",

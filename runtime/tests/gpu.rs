@@ -98,7 +98,7 @@ const ROLLOUTS: &[(&str, u64, Option<f64>)] = &[
     // The four studies scale masses by 100 (their targets are steady states), which allows
     // a 10x larger step: the same motion per step as an unscaled scene at dt/10.
     ("verification.soft", 400, Some(1e-4)),
-    ("pressure_optimization.soft", 400, Some(1e-4)),
+    ("pressure_optimization_explicit.soft", 400, Some(1e-4)),
     ("meta_optimization.soft", 400, Some(1e-4)),
     ("controller_synthesis.soft", 400, Some(2.5e-5)),
     ("verification_endoscope.soft", 400, Some(5e-5)),
@@ -776,7 +776,7 @@ fn the_optimization_studies_run_end_to_end_on_the_gpu() {
     let fast = [("ramp(t, 0.5 s)", "ramp(t, 5 ms)")];
     let controller_ramp = [("ramp(t, 0.1 s)", "ramp(t, 2 ms)")];
     for (example, edits, steps, iterations, factor) in [
-        ("pressure_optimization.soft", &fast[..], "300", "2", 1.0001),
+        ("pressure_optimization_explicit.soft", &fast[..], "300", "2", 1.0001),
         ("meta_optimization.soft", &fast[..], "300", "2", 1.00001),
         (
             "controller_synthesis.soft",

@@ -145,7 +145,7 @@ fn example_gradients_match_central_differences() {
     // 12th digit and a central difference would drown in round-off, so the target is 0 here
     // (same kernels, same shape of loss). The positions' own round-off (1e-18 m against
     // displacements of 1e-7 m) bounds the central difference's accuracy to about 1e-6.
-    let pressure = variant("pressure_optimization.soft", "+ 10 mm)^2", ")^2");
+    let pressure = variant("pressure_optimization_explicit.soft", "+ 10 mm)^2", ")^2");
     check_all_params(&pressure, 60, 1e-3, 1e-5);
     // Meta-optimization with 1 ms windows so that 5 of its 12 damping windows are in the run.
     let meta = variant("meta_optimization.soft", "+ 10 mm)^2", ")^2");

@@ -458,7 +458,7 @@ fn short_versions_of_the_studies_lower_their_loss() {
     let controller_ramp = [("ramp(t, 0.1 s)", "ramp(t, 2 ms)")];
     for (example, edits, steps, iterations, factor, monotone) in [
         (
-            "pressure_optimization.soft",
+            "pressure_optimization_explicit.soft",
             &fast_ramp[..],
             "300",
             "4",

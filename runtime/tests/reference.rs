@@ -112,7 +112,7 @@ fn benchmark_50k_agrees_with_the_engine() {
 // (the longer rollouts below hold both to 1e-6).
 #[test]
 fn pressure_optimization_agrees_with_the_engine() {
-    agree_to(&example("pressure_optimization"), Some(135e-6), 40, 1e-5);
+    agree_to(&example("pressure_optimization_explicit"), Some(135e-6), 40, 1e-5);
 }
 
 #[test]
@@ -585,7 +585,7 @@ sim {{
 /// At rest every material is stress-free.
 #[test]
 fn rest_is_stress_free() {
-    let scene = load(&example("pressure_optimization"));
+    let scene = load(&example("pressure_optimization_explicit"));
     let mut r = Reference::new(&scene).unwrap();
     for e in [0, scene.mesh.tets.len() - 1] {
         let x = scene.mesh.tets[e].map(|n| scene.mesh.nodes[n as usize]);
