@@ -776,7 +776,13 @@ fn the_optimization_studies_run_end_to_end_on_the_gpu() {
     let fast = [("ramp(t, 0.5 s)", "ramp(t, 5 ms)")];
     let controller_ramp = [("ramp(t, 0.1 s)", "ramp(t, 2 ms)")];
     for (example, edits, steps, iterations, factor) in [
-        ("pressure_optimization_explicit.soft", &fast[..], "300", "2", 1.0001),
+        (
+            "pressure_optimization_explicit.soft",
+            &fast[..],
+            "300",
+            "2",
+            1.0001,
+        ),
         ("meta_optimization.soft", &fast[..], "300", "2", 1.00001),
         (
             "controller_synthesis.soft",

@@ -112,7 +112,12 @@ fn benchmark_50k_agrees_with_the_engine() {
 // (the longer rollouts below hold both to 1e-6).
 #[test]
 fn pressure_optimization_agrees_with_the_engine() {
-    agree_to(&example("pressure_optimization_explicit"), Some(135e-6), 40, 1e-5);
+    agree_to(
+        &example("pressure_optimization_explicit"),
+        Some(135e-6),
+        40,
+        1e-5,
+    );
 }
 
 #[test]

@@ -227,3 +227,94 @@ fn a_static_script_needs_no_time_step_and_is_warned_about_dynamic_settings() {
         report.diagnostics
     );
 }
+
+/// The gradient tests' every-kind scene (pressure, material constant, per-window damping,
+/// controller weights, a windowed loss on positions and velocities) stepped by backward Euler
+/// at 25× the explicit step: every derivative against central differences of implicit runs.
+#[test]
+fn implicit_euler_gradients_match_central_differences_for_every_param_kind() {
+    let text = std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
+        .unwrap()
+        .replace(
+            "  dt = 20 us\n  steps = 200\n",
+            "  dt = 0.5 ms\n  steps = 8\n  integrator = implicit_euler\n",
+        )
+        .replace(
+            "\"../../../../meshes/",
+            &format!("\"{}/meshes/", root().display()),
+        );
+    assert!(text.contains("implicit_euler"));
+    let path = scratch("all_kinds_implicit.soft");
+    std::fs::write(&path, text).unwrap();
+    let scene = Scene::load(&path, &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let report = Simulation::new(&scene, cpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    let solver = report.summary.solver.clone().unwrap();
+    assert_eq!(solver.kind, "implicit_euler");
+    let mut worst: f64 = 0.0;
+    for (name, value) in [
+        ("param.p0", 2e3),
+        ("param.c10", 0.1e6),
+        ("param.w.0", 200.0),
+        ("param.w.1", -100.0),
+        ("param.beta.0", 20.0),
+        ("param.beta.3", 20.0),
+    ] {
+        let h = 1e-4 * f64::abs(value);
+        let fd = (static_loss(&scene, name, value + h) - static_loss(&scene, name, value - h))
+            / (2.0 * h);
+        let ad = report.gradients[name];
+        let rel = ((ad - fd) / fd).abs();
+        eprintln!("{name}: adjoint {ad:e}, central differences {fd:e}, relative {rel:e}");
+        assert!(fd.abs() > 0.0, "{name} does not change the loss");
+        worst = worst.max(rel);
+    }
+    assert!(worst < 1e-6, "worst relative difference {worst:e}");
+}
+
+/// Backward Euler is (at least) first order: halving dt halves its distance to a fine explicit
+/// run of the same damped, ramp-loaded scene, from a step ~100× the explicit one.
+#[test]
+fn implicit_euler_converges_at_first_order_to_the_explicit_solution() {
+    let params = "material gel = neo_hookean(mu: 20 kPa, kappa: 0.2 MPa, density: 1070 kg/m^3)";
+    let loads = "  use gel\n  damping = 100 /s\n  pressure cavity = 1 kPa * ramp(t, 40 ms)";
+    let tip = |path: &Path, dt: Option<f64>| {
+        let scene = Scene::load(path, &[]).unwrap();
+        let module = match scene.lowered.statics {
+            Some(_) => &scene.lowered.adjoint.module,
+            None => &scene.lowered.module,
+        };
+        let cpu = Cpu::new(module, Precision::F64, Some(1)).unwrap();
+        let s = Simulation::new(&scene, cpu).run(dt, None).unwrap();
+        tip_mean_z(&scene, &s.x)
+    };
+    let explicit = beam_script(
+        "explicit_dyn.soft",
+        params,
+        &format!("  dt = auto(safety: 0.5)\n  duration = 40 ms\n{loads}"),
+        "",
+    );
+    let implicit = beam_script(
+        "implicit_dyn.soft",
+        params,
+        &format!("  dt = 2 ms\n  duration = 40 ms\n  integrator = implicit_euler\n{loads}"),
+        "",
+    );
+    let reference = tip(&explicit, None);
+    let errors: Vec<f64> = [2e-3, 1e-3, 0.5e-3]
+        .iter()
+        .map(|&dt| ((tip(&implicit, Some(dt)) - reference) / reference).abs())
+        .collect();
+    eprintln!("implicit Euler relative errors at dt = 2, 1, 0.5 ms: {errors:?}");
+    let orders: Vec<f64> = errors.windows(2).map(|w| (w[0] / w[1]).log2()).collect();
+    eprintln!("observed orders {orders:?}");
+    // Measured: 2.2 %, 0.89 %, 0.30 % (orders 1.3 and 1.6: the ramp's transient is still
+    // resolved better than first order predicts at these steps, ω·dt ≈ 0.1–0.4).
+    assert!(errors[2] < 0.005, "{errors:?}");
+    assert!(
+        orders.iter().all(|&p| p > 0.9),
+        "not first order: {orders:?}"
+    );
+}

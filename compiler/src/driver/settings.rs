@@ -69,6 +69,7 @@ impl SimSettings {
         };
         let integrator = match ast.sim_setting("integrator").map(|e| &e.kind) {
             Some(ExprKind::Name(n)) if n.name == "quasi_static" => Integrator::QuasiStatic,
+            Some(ExprKind::Name(n)) if n.name == "implicit_euler" => Integrator::ImplicitEuler,
             _ => Integrator::SemiImplicitEuler,
         };
         if integrator == Integrator::QuasiStatic {
@@ -198,6 +199,8 @@ pub enum Integrator {
     SemiImplicitEuler,
     /// Equilibrium states found by Newton's method on the assembled tangent.
     QuasiStatic,
+    /// Backward Euler: one Newton solve on M/dt² + K per step.
+    ImplicitEuler,
 }
 
 /// The optimize block's `checkpoint` setting.

@@ -394,6 +394,10 @@ pub const CONSTANT_DOCS: &[(&str, &str)] = &[
         "`integrator`: v += dt·F/m; x += dt·v (thesis eq. 2.2)",
     ),
     (
+        "implicit_euler",
+        "`integrator`: backward Euler, a Newton solve per step (steps far above the explicit limit)",
+    ),
+    (
         "quasi_static",
         "`integrator`: the steady state by a static equilibrium solve",
     ),
@@ -448,7 +452,7 @@ pub(super) fn setting_doc(name: &str) -> &'static str {
         "dt" => "time step: a time, `auto` or `auto(safety: S)`",
         "steps" => "number of time steps (integer)",
         "duration" => "simulated time",
-        "integrator" => "`semi_implicit_euler` or `quasi_static`",
+        "integrator" => "`semi_implicit_euler`, `implicit_euler` or `quasi_static`",
         "damping" => "mass-proportional damping (rate, e.g. `20 /s`)",
         "model" => "`fem` or `springs(volume_stiffness: …)`",
         "gravity" => "acceleration 3-vector, e.g. `[0, 0, -9.81] m/s^2`",

@@ -92,10 +92,11 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         return Err(LowerError::new("the script has no sim block"));
     }
     let sim = script.sim_block();
-    let quasi_static = matches!(
-        script.sim_setting("integrator").map(|e| &e.kind),
-        Some(ExprKind::Name(n)) if n.name == "quasi_static"
-    );
+    let integrator = match script.sim_setting("integrator").map(|e| &e.kind) {
+        Some(ExprKind::Name(n)) => n.name.as_str(),
+        _ => "semi_implicit_euler",
+    };
+    let quasi_static = integrator == "quasi_static";
     // Per-element params: one value per element of one set.
     for item in &script.items {
         if let ItemKind::Param(p) = &item.kind
@@ -160,7 +161,35 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         let node = equilibrium_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
         let mut adjoint = adjoint(&module, &[("x", "residual")], &[]).map_err(LowerError::new)?;
-        let statics = StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len())?;
+        let statics =
+            StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), false)?;
+        (adjoint, Some(statics))
+    } else if integrator == "implicit_euler" {
+        let node = implicit_euler_kernel(program, &mut module, script, !chambers.is_empty())?;
+        module.push_kernel(node);
+        // The step's inputs besides the iterate x: the state it starts from. Their adjoints
+        // (∂residual/∂x_prev, ∂residual/∂v_prev transposed) carry the gradient back a step;
+        // the "next" buffers only pair them for the pass and are never written.
+        for b in ["x_prev_next", "v_prev_next"] {
+            module.buffer(
+                b,
+                Domain::Node,
+                3,
+                "unused: pairs a step input for the adjoint",
+            );
+        }
+        let mut adjoint = adjoint(
+            &module,
+            &[
+                ("x", "residual"),
+                ("x_prev", "x_prev_next"),
+                ("v_prev", "v_prev_next"),
+            ],
+            &[],
+        )
+        .map_err(LowerError::new)?;
+        let statics =
+            StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), true)?;
         (adjoint, Some(statics))
     } else {
         let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
@@ -200,11 +229,28 @@ pub struct StaticKernels {
     /// Per chamber (kernel order): the kernel writing its triangles' ∂f/∂x (triangle × 81).
     pub chamber_jacobians: Vec<usize>,
     pub tri_dforce: Option<BufferId>,
+    /// `integrator = implicit_euler`: the residual's own dependence on each node's position
+    /// (inertia and damping, node × 9), and the state a step starts from (node × 3 each).
+    pub implicit: Option<ImplicitStep>,
+}
+
+/// What a backward Euler step adds to the equilibrium machinery.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImplicitStep {
+    pub node_jacobian: usize,
+    pub node_dforce: BufferId,
+    pub x_prev: BufferId,
+    pub v_prev: BufferId,
 }
 
 impl StaticKernels {
     /// Append the Jacobian kernels of the forward kernels (materials, then chambers) to `m`.
-    fn add(m: &mut Module, materials: usize, chambers: usize) -> Result<Self, LowerError> {
+    fn add(
+        m: &mut Module,
+        materials: usize,
+        chambers: usize,
+        implicit: bool,
+    ) -> Result<Self, LowerError> {
         let id = |m: &Module, n: &str| {
             m.buffer_named(n)
                 .ok_or_else(|| LowerError::new(format!("the solve has no buffer `{n}`")))
@@ -228,12 +274,26 @@ impl StaticKernels {
         } else {
             None
         };
+        let implicit = if implicit {
+            let node = materials + chambers;
+            let built =
+                force_jacobian(m, node, residual, x, "node_dforce").map_err(LowerError::new)?;
+            Some(ImplicitStep {
+                node_jacobian: m.push_kernel(built),
+                node_dforce: id(m, "node_dforce")?,
+                x_prev: id(m, "x_prev")?,
+                v_prev: id(m, "v_prev")?,
+            })
+        } else {
+            None
+        };
         Ok(StaticKernels {
             residual,
             element_jacobians,
             elem_dforce: id(m, "elem_dforce")?,
             chamber_jacobians,
             tri_dforce,
+            implicit,
         })
     }
 }
@@ -540,6 +600,122 @@ fn equilibrium_kernel(
         }
         if let Some(mg) = &mg {
             f = k.b.add(f, mg[d as usize]);
+        }
+        let r = k.b.select(free, f, zero);
+        k.store(residual, d, r);
+    }
+    Ok(k.finish())
+}
+
+/// Backward Euler (`integrator = implicit_euler`) as a residual: with the step's start state
+/// (x_prev, v_prev) and the step h = dt, the end positions x solve
+///   R(x) = F(x) + m·g/s − m·(x − x_prev − h·v_prev)/h² − β·m·(x − x_prev)/h = 0
+/// on free nodes (m the scaled mass, as in [`node_kernel`]: gravity acts on the physical mass,
+/// damping is mass-proportional); then v = (x − x_prev)/h. R is the negative gradient of the
+/// incremental potential, so the same Newton solve and tangent as a static equilibrium serve,
+/// the inertia adding m(1/h² + β/h) to the diagonal.
+fn implicit_euler_kernel(
+    program: &Program,
+    module: &mut Module,
+    script: &Script,
+    pressure: bool,
+) -> Result<crate::ir::BuiltKernel, LowerError> {
+    let x = module.buffer(
+        "x",
+        Domain::Node,
+        3,
+        "node positions (the step's iterate), m",
+    );
+    module.buffer("v", Domain::Node, 3, "node velocities, m/s");
+    module.buffer("x_next", Domain::Node, 3, "unused by an implicit step");
+    module.buffer("v_next", Domain::Node, 3, "unused by an implicit step");
+    let x_prev = module.buffer(
+        "x_prev",
+        Domain::Node,
+        3,
+        "positions at the step's start, m",
+    );
+    let v_prev = module.buffer(
+        "v_prev",
+        Domain::Node,
+        3,
+        "velocities at the step's start, m/s",
+    );
+    let mass = module.buffer("mass", Domain::Node, 1, "lumped (scaled) mass, kg");
+    let fixed = module.buffer("fixed", Domain::Node, 1, "1 for fixed nodes, else 0");
+    let residual = module.buffer(
+        "residual",
+        Domain::Node,
+        3,
+        "backward Euler residual (0 at fixed nodes), N",
+    );
+    let elem_force = module.buffer_named("elem_force").expect("declared");
+    let tri_force = module.buffer_named("tri_force");
+    let mut k = KernelBuilder::new("implicit_euler", Domain::Node, "sim");
+    let mut lw = ExprLowerer::new(program);
+    let beta = match script.sim_setting("damping") {
+        Some(e) => Some(lw.lower(&mut k, &Env::new(), e)?.scalar()?),
+        None => None,
+    };
+    let scaling = match script.sim_setting("mass_scaling") {
+        Some(e) => constant(program, e, "mass_scaling")?,
+        None => 1.0,
+    };
+    let g = match script.sim_setting("gravity") {
+        Some(e) => Some(super::expr::flatten(&lw.lower(&mut k, &Env::new(), e)?)),
+        None => None,
+    };
+    let h = k.uniform("dt");
+    let m = k.load(ArgSource::Own {
+        buffer: mass,
+        component: 0,
+    });
+    let is_fixed = k.load(ArgSource::Own {
+        buffer: fixed,
+        component: 0,
+    });
+    let zero = k.b.constant(0.0);
+    let free = k.b.cmp(CmpOp::Eq, is_fixed, zero);
+    let h2 = k.b.mul(h, h);
+    for d in 0..3u32 {
+        let own = |k: &mut KernelBuilder, buffer| {
+            k.load(ArgSource::Own {
+                buffer,
+                component: d,
+            })
+        };
+        let (xd, xp, vp) = (own(&mut k, x), own(&mut k, x_prev), own(&mut k, v_prev));
+        let mut f = k.load(ArgSource::Gather {
+            buffer: elem_force,
+            over: Domain::Element,
+            stride: 3,
+            component: d,
+        });
+        if pressure && let Some(tf) = tri_force {
+            let fp = k.load(ArgSource::Gather {
+                buffer: tf,
+                over: Domain::Triangle,
+                stride: 3,
+                component: d,
+            });
+            f = k.b.add(f, fp);
+        }
+        if let Some(g) = &g {
+            let gs = k.b.scale(1.0 / scaling, g[d as usize]);
+            let mg = k.b.mul(m, gs);
+            f = k.b.add(f, mg);
+        }
+        let dx = k.b.sub(xd, xp);
+        let hv = k.b.mul(h, vp);
+        let miss = k.b.sub(dx, hv);
+        let mm = k.b.mul(m, miss);
+        let inertia = k.b.div(mm, h2);
+        f = k.b.sub(f, inertia);
+        if let Some(beta) = beta {
+            let bm = k.b.mul(beta, m);
+            let bmdx = k.b.mul(bm, dx);
+            let damp = k.b.div(bmdx, h);
+            f = k.b.sub(f, damp);
         }
         let r = k.b.select(free, f, zero);
         k.store(residual, d, r);

@@ -24,7 +24,8 @@ fn corners(d: Domain) -> u32 {
 
 /// The Jacobian kernel of forward kernel `kernel` of `module`: the forces it stores in `force`
 /// (entity × 3·corners) differentiated with respect to the positions it reads from `x` (node ×
-/// 3) at its corners. Declares the output buffer `out` (entity × (3·corners)²) in `module`.
+/// 3) at its corners (a node kernel: its own position; the implicit integrator's inertia and
+/// damping terms). Declares the output buffer `out` (entity × (3·corners)²) in `module`.
 pub fn force_jacobian(
     module: &mut Module,
     kernel: usize,
@@ -48,6 +49,7 @@ pub fn force_jacobian(
             "∂f_i/∂x_j per {}: force component i, corner coordinate j (row-major), N/m",
             match k.domain {
                 Domain::Triangle => "chamber triangle",
+                Domain::Node => "node",
                 _ => "element",
             }
         ),
@@ -70,12 +72,18 @@ pub fn force_jacobian(
             .args
             .iter()
             .zip(&args)
-            .filter(|(a, _)| {
-                **a == ArgSource::Corner {
-                    buffer: x,
-                    corner,
-                    component,
-                }
+            .filter(|(a, _)| match **a {
+                // An entity with corners reads each corner's position; a node its own.
+                ArgSource::Corner {
+                    buffer,
+                    corner: c,
+                    component: d,
+                } => buffer == x && c == corner && d == component,
+                ArgSource::Own {
+                    buffer,
+                    component: d,
+                } => k.domain == Domain::Node && buffer == x && d == component,
+                _ => false,
             })
             .map(|(_, &v)| (v, one))
             .collect();

@@ -13,6 +13,7 @@ pub const CONSTANTS: &[(&str, Obj)] = &[
     ("fem", Obj::ForceModel),
     ("semi_implicit_euler", Obj::Integrator),
     ("quasi_static", Obj::Integrator),
+    ("implicit_euler", Obj::Integrator),
     ("f32", Obj::Precision),
     ("f64", Obj::Precision),
     ("vtk", Obj::OutputKind),

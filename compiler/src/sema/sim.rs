@@ -424,7 +424,7 @@ impl Checker {
             "dt" | "steps" | "duration" => {}
             "integrator" | "model" | "precision" => {
                 let options: &[&str] = match name.name.as_str() {
-                    "integrator" => &["semi_implicit_euler", "quasi_static"],
+                    "integrator" => &["semi_implicit_euler", "implicit_euler", "quasi_static"],
                     "model" => &["fem", "springs"],
                     _ => &["f32", "f64"],
                 };
@@ -433,7 +433,10 @@ impl Checker {
                 }
                 let t = self.check_expr(value);
                 let (want, options) = match name.name.as_str() {
-                    "integrator" => (Obj::Integrator, "`semi_implicit_euler` or `quasi_static`"),
+                    "integrator" => (
+                        Obj::Integrator,
+                        "`semi_implicit_euler`, `implicit_euler` or `quasi_static`",
+                    ),
                     "model" => (Obj::ForceModel, "`fem` or `springs(volume_stiffness: …)`"),
                     _ => (Obj::Precision, "`f32` or `f64`"),
                 };

@@ -8,6 +8,7 @@
 
 pub mod adjoint;
 pub mod checkpoint;
+pub mod implicit;
 pub mod loss;
 pub mod profile;
 pub mod scene;
@@ -391,10 +392,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
         dt_override: Option<f64>,
         steps_override: Option<u64>,
     ) -> Result<RunSummary, RunError> {
-        if self.scene.lowered.statics.is_some() {
-            return self
-                .solve_static(false, dt_override, steps_override)
-                .map(|r| r.summary);
+        if let Some(statics) = &self.scene.lowered.statics {
+            let run = if statics.implicit.is_some() {
+                self.solve_implicit(false, dt_override, steps_override)
+            } else {
+                self.solve_static(false, dt_override, steps_override)
+            };
+            return run.map(|r| r.summary);
         }
         let start = std::time::Instant::now();
         self.upload_fields();

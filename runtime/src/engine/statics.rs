@@ -67,20 +67,31 @@ pub struct StaticRun {
 }
 
 /// The assembled tangent and its factorization.
-struct Tangent {
-    pattern: BlockPattern,
-    lu: SparseSolver,
+pub(super) struct Tangent {
+    pub(super) pattern: BlockPattern,
+    pub(super) lu: SparseSolver,
     values: Vec<f64>,
 }
 
+impl Tangent {
+    pub(super) fn new(pattern: BlockPattern) -> Result<Self, RunError> {
+        let lu = SparseSolver::new(&pattern).map_err(RunError)?;
+        Ok(Tangent {
+            pattern,
+            lu,
+            values: Vec::new(),
+        })
+    }
+}
+
 /// How one Newton solve ended.
-enum Newton {
+pub(super) enum Newton {
     Converged { iterations: u64 },
     Failed { why: String },
 }
 
 impl<B: Backend> Simulation<'_, B> {
-    fn static_kernels(&self) -> Result<&StaticKernels, RunError> {
+    pub(super) fn static_kernels(&self) -> Result<&StaticKernels, RunError> {
         self.scene.lowered.statics.as_ref().ok_or_else(|| {
             RunError("internal error: the scene was not compiled for a quasi-static solve".into())
         })
@@ -88,7 +99,7 @@ impl<B: Backend> Simulation<'_, B> {
 
     /// The residual (node-major, 0 at fixed nodes) at the current positions, time `t` and
     /// load factor `load`; leaves the element forces and `elem_j` of this state in place.
-    fn residual(&mut self, t: f64, load: f64) -> Result<Vec<f64>, RunError> {
+    pub(super) fn residual(&mut self, t: f64, load: f64) -> Result<Vec<f64>, RunError> {
         let residual = self.static_kernels()?.residual;
         self.uniforms.set(self.ids.t, t);
         let load_id = self.uniforms.intern("load");
@@ -117,7 +128,7 @@ impl<B: Backend> Simulation<'_, B> {
     }
 
     /// Assemble K = −∂r/∂x at the current positions (uniforms as set) and factor it.
-    fn factor_tangent(
+    pub(super) fn factor_tangent(
         &mut self,
         tangent: &mut Tangent,
         report: &mut SolverReport,
@@ -137,7 +148,18 @@ impl<B: Backend> Simulation<'_, B> {
             .tri_dforce
             .map(|b| self.backend.get(b))
             .unwrap_or_default();
-        tangent.pattern.assemble(&elem, &tri, &mut tangent.values);
+        let node = match &statics.implicit {
+            Some(step) => {
+                let nodes = 0..self.scene.mesh.nodes.len();
+                self.backend
+                    .run(step.node_jacobian, nodes, &self.uniforms)?;
+                self.backend.get(step.node_dforce)
+            }
+            None => Vec::new(),
+        };
+        tangent
+            .pattern
+            .assemble(&elem, &tri, &node, &mut tangent.values);
         if let Some(i) = tangent.values.iter().position(|v| !v.is_finite()) {
             return Err(format!(
                 "the tangent stiffness has a non-finite entry (entry {i})"
@@ -156,13 +178,14 @@ impl<B: Backend> Simulation<'_, B> {
     }
 
     /// Newton's method at time `t` and load factor `load` from the current positions.
-    fn newton(
+    pub(super) fn newton(
         &mut self,
         tangent: &mut Tangent,
         report: &mut SolverReport,
         t: f64,
         load: f64,
         tolerance: f64,
+        floor: f64,
     ) -> Result<Newton, RunError> {
         let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
         let mut r = self.residual(t, load)?;
@@ -188,6 +211,12 @@ impl<B: Backend> Simulation<'_, B> {
             let mut dx = tangent.pattern.restrict(&r);
             tangent.lu.solve(&mut dx);
             let dx = tangent.pattern.extend(&dx);
+            // A Newton step that moves no node by more than round-off of the body's size:
+            // converged, whatever the residual's round-off floor is (the net force of large
+            // element forces cancels only to their round-off).
+            if dx.iter().fold(0.0f64, |m, d| m.max(d.abs())) <= self.round_off_length() {
+                return Ok(Newton::Converged { iterations: it + 1 });
+            }
             let x0 = self.backend.get(self.ids.x);
             // Backtracking on ‖r‖; steps that invert an element or make a force non-finite
             // are refused.
@@ -209,6 +238,13 @@ impl<B: Backend> Simulation<'_, B> {
                 }
                 alpha *= 0.5;
             }
+            if std::env::var_os("SOFTC_DEBUG_NEWTON").is_some() {
+                eprintln!(
+                    "newton t={t} load={load} it={it} |r|={r_norm:e} tol={tolerance:e} alpha={alpha} new={:?} |dx|={:e}",
+                    accepted.as_ref().map(|a: &(Vec<f64>, f64)| a.1),
+                    dx.iter().fold(0.0f64, |m, d| m.max(d.abs()))
+                );
+            }
             match accepted {
                 Some((r_new, n_new)) => {
                     r = r_new;
@@ -216,6 +252,11 @@ impl<B: Backend> Simulation<'_, B> {
                 }
                 None => {
                     self.backend.set(self.ids.x, &x0);
+                    // At the round-off floor no step decreases the residual further.
+                    if r_norm <= floor {
+                        self.residual(t, load)?;
+                        return Ok(Newton::Converged { iterations: it + 1 });
+                    }
                     return Ok(Newton::Failed { why });
                 }
             }
@@ -228,6 +269,24 @@ impl<B: Backend> Simulation<'_, B> {
         Ok(Newton::Failed {
             why: format!("no convergence in {MAX_NEWTON} Newton iterations"),
         })
+    }
+
+    /// A displacement at the round-off level of the positions: the body's size times a few
+    /// ulps of the backend's precision.
+    fn round_off_length(&self) -> f64 {
+        let nodes = &self.scene.mesh.nodes;
+        let mut size = 0.0f64;
+        for d in 0..3 {
+            let (lo, hi) = nodes.iter().fold((f64::MAX, f64::MIN), |(lo, hi), p| {
+                (lo.min(p[d]), hi.max(p[d]))
+            });
+            size = size.max(hi - lo);
+        }
+        let eps = match self.backend.precision() {
+            softc_compiler::back::Precision::F64 => f64::EPSILON,
+            softc_compiler::back::Precision::F32 => f32::EPSILON as f64,
+        };
+        64.0 * eps * size
     }
 
     /// The norm of the loads (pressure forces and gravity on free nodes) at `t` and `load`:
@@ -262,7 +321,7 @@ impl<B: Backend> Simulation<'_, B> {
         while s < 1.0 {
             let s_try = (s + ds).min(1.0);
             let (t, load) = at(s_try);
-            match self.newton(tangent, report, t, load, tolerance)? {
+            match self.newton(tangent, report, t, load, tolerance, tolerance)? {
                 Newton::Converged { iterations } => {
                     s = s_try;
                     good = self.backend.get(self.ids.x);
@@ -347,7 +406,6 @@ impl<B: Backend> Simulation<'_, B> {
         }
         let pattern =
             BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris).map_err(RunError)?;
-        let lu = SparseSolver::new(&pattern).map_err(RunError)?;
         let mut report = SolverReport {
             kind: "quasi_static",
             states: steps,
@@ -355,11 +413,7 @@ impl<B: Backend> Simulation<'_, B> {
             nonzeros: pattern.nnz(),
             ..Default::default()
         };
-        let mut tangent = Tangent {
-            pattern,
-            lu,
-            values: Vec::new(),
-        };
+        let mut tangent = Tangent::new(pattern)?;
         self.reset();
         if gradient {
             self.zero_gradient_accumulators();
@@ -509,12 +563,21 @@ impl<B: Backend> Simulation<'_, B> {
         steps_override: Option<u64>,
     ) -> Result<super::adjoint::GradientReport, RunError> {
         let start = Instant::now();
-        let run = self.solve_static(true, dt_override, steps_override)?;
+        let implicit = self.static_kernels()?.implicit.is_some();
+        let run = if implicit {
+            self.solve_implicit(true, dt_override, steps_override)?
+        } else {
+            self.solve_static(true, dt_override, steps_override)?
+        };
         let seconds = start.elapsed().as_secs_f64();
         let reversed = run.summary.steps;
         Ok(super::adjoint::GradientReport {
             gradients: run.gradients.unwrap_or_default(),
-            schedule: "implicit function theorem (one transposed solve per state)".into(),
+            schedule: if implicit {
+                "every state stored; one transposed solve per step".into()
+            } else {
+                "implicit function theorem (one transposed solve per state)".into()
+            },
             stored_states: 1,
             state_bytes: 3 * self.scene.mesh.nodes.len() * std::mem::size_of::<f64>(),
             recompute_ratio: 1.0,

@@ -30,6 +30,8 @@ pub struct BlockPattern {
     elem_pos: Vec<u32>,
     /// Per chamber triangle, the value index of entry `i·9 + j`.
     tri_pos: Vec<u32>,
+    /// Per node, the value index of entry `i·3 + j` of its diagonal block.
+    node_pos: Vec<u32>,
 }
 
 impl BlockPattern {
@@ -110,6 +112,7 @@ impl BlockPattern {
         };
         let elem_pos = tets.iter().flat_map(|t| positions(t)).collect();
         let tri_pos = tris.iter().flat_map(|t| positions(t)).collect();
+        let node_pos = (0..n_nodes as u32).flat_map(|n| positions(&[n])).collect();
         Ok(BlockPattern {
             n: n as usize,
             dof,
@@ -117,6 +120,7 @@ impl BlockPattern {
             row_idx,
             elem_pos,
             tri_pos,
+            node_pos,
         })
     }
 
@@ -150,12 +154,23 @@ impl BlockPattern {
             .collect()
     }
 
-    /// The stiffness K = −∂residual/∂x from the element Jacobians (element × 144, ∂f/∂x) and
-    /// the chamber triangles' (triangle × 81), summed entity by entity in kernel order.
-    pub fn assemble(&self, elem_jac: &[f64], tri_jac: &[f64], values: &mut Vec<f64>) {
+    /// The stiffness K = −∂residual/∂x from the element Jacobians (element × 144, ∂f/∂x), the
+    /// chamber triangles' (triangle × 81) and the nodes' own (node × 9: an implicit step's
+    /// inertia; empty for a static solve), summed entity by entity in kernel order.
+    pub fn assemble(
+        &self,
+        elem_jac: &[f64],
+        tri_jac: &[f64],
+        node_jac: &[f64],
+        values: &mut Vec<f64>,
+    ) {
         values.clear();
         values.resize(self.nnz(), 0.0);
-        for (pos, jac) in [(&self.elem_pos, elem_jac), (&self.tri_pos, tri_jac)] {
+        for (pos, jac) in [
+            (&self.elem_pos, elem_jac),
+            (&self.tri_pos, tri_jac),
+            (&self.node_pos, node_jac),
+        ] {
             for (&p, &v) in pos.iter().zip(jac) {
                 if p != NONE {
                     values[p as usize] -= v;
