@@ -60,7 +60,7 @@ impl<B: Backend> Simulation<'_, B> {
             converged: true,
             ..Default::default()
         };
-        let mut tangent = Tangent::new(pattern)?;
+        let mut tangent = Tangent::new(pattern, self.backend.precision())?;
         self.reset();
         if gradient {
             self.zero_gradient_accumulators();

@@ -188,6 +188,8 @@ pub struct SparseSolver {
     symbolic: SymbolicSparseColMat<usize>,
     /// The position of each entry's transpose (the pattern is structurally symmetric).
     transpose: Vec<usize>,
+    /// Relative tolerance of the symmetry test (the entries' round-off).
+    symmetry: f64,
     symbolic_llt: Option<SymbolicLlt<usize>>,
     symbolic_lu: Option<SymbolicLu<usize>>,
     factor: Option<Factor>,
@@ -199,7 +201,7 @@ enum Factor {
 }
 
 impl SparseSolver {
-    pub fn new(p: &BlockPattern) -> Result<Self, String> {
+    pub fn new(p: &BlockPattern, symmetry: f64) -> Result<Self, String> {
         let symbolic =
             SymbolicSparseColMat::new_checked(p.n, p.n, p.col_ptr.clone(), None, p.row_idx.clone());
         // Entry k is (row_idx[k], column j); its transpose is (j, row_idx[k]).
@@ -217,6 +219,7 @@ impl SparseSolver {
         Ok(SparseSolver {
             symbolic,
             transpose,
+            symmetry,
             symbolic_llt: None,
             symbolic_lu: None,
             factor: None,
@@ -226,7 +229,7 @@ impl SparseSolver {
     /// Whether the values form a symmetric matrix (to round-off).
     fn symmetric(&self, values: &[f64]) -> bool {
         let scale = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let tol = 1e-10 * scale;
+        let tol = self.symmetry * scale;
         values
             .iter()
             .zip(&self.transpose)
