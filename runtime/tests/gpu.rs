@@ -860,3 +860,31 @@ fn the_optimization_studies_run_end_to_end_on_the_gpu() {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
+
+/// A quasi-static solve and its gradient on the GPU backend (f32 kernels, the tangent
+/// assembled and factored on the host) against the CPU in f64: the static fixture's path of
+/// states and its d loss / d p0.
+#[test]
+fn quasi_static_solves_and_gradients_on_the_gpu_match_the_cpu() {
+    use softc::engine::adjoint::GradOptions;
+    let scene = Scene::load(&root().join("runtime/tests/fixtures/grad/static.soft"), &[]).unwrap();
+    let module = &scene.lowered.adjoint.module;
+    let Some(gpu) = gpu(module, Precision::F32) else {
+        return;
+    };
+    let cpu = Cpu::new(module, Precision::F64, Some(1)).unwrap();
+    let on_cpu = Simulation::new(&scene, cpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    let on_gpu = Simulation::new(&scene, gpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    let solver = on_gpu.summary.solver.clone().unwrap();
+    assert!(solver.converged, "{solver:?}");
+    let state = mean_rel_diff(&scene, &on_gpu.summary, &on_cpu.summary);
+    let (g, c) = (on_gpu.gradients["param.p0"], on_cpu.gradients["param.p0"]);
+    let grad = ((g - c) / c).abs();
+    eprintln!("quasi-static on the GPU: state {state:e}, d loss/d p0 {grad:e} from the CPU");
+    assert!(state < 1e-4, "{state:e}");
+    assert!(grad < 1e-3, "{g} vs {c}");
+}
