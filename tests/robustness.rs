@@ -234,3 +234,68 @@ fn the_binary_survives_pathological_input() {
     assert!(err.contains("E0002"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+// ---- The command line under hostile use (issue 20) ----
+
+/// A scratch folder of this test process.
+fn scratch(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-hostile-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The 1k benchmark scene, run for a few steps with extra flags.
+fn run_bench_1k(extra: &[&str]) -> (i32, String, String) {
+    let script = softc_tests::root().join("examples/benchmark-1k.soft");
+    let mut args = vec!["run", script.to_str().unwrap(), "--steps", "5"];
+    args.extend_from_slice(extra);
+    softc_tests::softc(&args)
+}
+
+#[test]
+fn set_and_dt_values_need_the_dimension_of_what_they_set() {
+    // Issue 20 item 1: `p_peak=3mm` ran at 0.003 Pa, `p_peak=3` and `p_peak=3/s` at 3 Pa,
+    // `--dt 40mm` at 0.04 s.
+    for (flag, said) in [
+        ("p_peak=3mm", "is a length"),
+        ("p_peak=3", "has no unit"),
+        ("p_peak=3/s", "is a rate"),
+    ] {
+        let (code, _, err) = run_bench_1k(&["--set", flag]);
+        assert_eq!(code, 2, "{flag}: {err}");
+        assert!(
+            err.contains(&format!("--set {flag}"))
+                && err.contains(said)
+                && err.contains("pressure"),
+            "{flag}: {err}"
+        );
+        assert!(
+            err.contains("p_peak=3Pa"),
+            "{flag}: the fix is shown: {err}"
+        );
+    }
+    for (flag, said) in [("40mm", "is a length"), ("40", "has no unit")] {
+        let (code, _, err) = run_bench_1k(&["--dt", flag]);
+        assert_eq!(code, 2, "--dt {flag}: {err}");
+        assert!(
+            err.contains(&format!("--dt {flag}")) && err.contains(said),
+            "{err}"
+        );
+    }
+    // The right dimension runs, negative values parse (and meet the param's bounds).
+    let (code, _, err) = run_bench_1k(&["--set", "p_peak=4.5kPa", "--dt", "40us"]);
+    assert_eq!(code, 0, "{err}");
+    let (value, _) = softc::session::parse_quantity("-3kPa").unwrap();
+    assert_eq!(value, -3000.0);
+    let tip_z = |flag: &str| {
+        let (code, out, err) = run_bench_1k(&["--set", flag]);
+        assert_eq!(code, 0, "{flag}: {err}");
+        let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+        v["sets"]["tip"]["mean_displacement"][2].as_f64().unwrap()
+    };
+    let (up, down) = (tip_z("p_peak=3kPa"), tip_z("p_peak=-3kPa"));
+    assert!(
+        up != 0.0 && (up + down).abs() < 1e-3 * up.abs(),
+        "{up} {down}"
+    );
+}

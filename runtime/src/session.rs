@@ -13,6 +13,109 @@ pub fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::driver::Dim), 
     softc_compiler::driver::parse_quantity(text)
 }
 
+/// A `--set NAME=VALUE` flag, read: the value in SI units and the dimension its unit has.
+#[derive(Clone, Debug)]
+pub struct SetFlag {
+    pub name: String,
+    /// As written after `=`.
+    pub text: String,
+    pub value: f64,
+    pub dim: softc_compiler::driver::Dim,
+}
+
+/// Read a `--set NAME=VALUE` flag (`p_max=2.5kPa`, `p=-3kPa`, `beta.3=15/s`); the value's
+/// dimension is checked against the script's declaration by [`check_set_dims`].
+pub fn parse_set(flag: &str) -> Result<SetFlag, String> {
+    let Some((name, text)) = flag.split_once('=') else {
+        return Err(format!(
+            "--set expects NAME=VALUE with a unit, e.g. `--set p_max=2.5kPa`; found `{flag}`"
+        ));
+    };
+    let name = name.trim();
+    if name.is_empty() {
+        return Err(format!("--set {flag}: the name before `=` is missing"));
+    }
+    let (value, dim) = parse_quantity(text.trim()).map_err(|e| format!("--set {name}: {e}"))?;
+    if !value.is_finite() {
+        return Err(format!(
+            "--set {name}={text}: the value is not a finite number"
+        ));
+    }
+    Ok(SetFlag {
+        name: name.to_string(),
+        text: text.trim().to_string(),
+        value,
+        dim,
+    })
+}
+
+/// `--set` values must have the dimension of the param or input they set: `p_peak=3mm` is a
+/// length, not a pressure, and a bare `p_peak=3` has no unit (units are required). Names the
+/// script does not declare are left to the caller.
+pub fn check_set_dims(
+    resolved: &softc_compiler::driver::Resolved,
+    sets: &[SetFlag],
+) -> Result<(), String> {
+    for s in sets {
+        let Some(want) = resolved.value_dim(&s.name) else {
+            continue;
+        };
+        if want == s.dim {
+            continue;
+        }
+        let si = want.si_unit();
+        let example = format!(
+            "--set {}={}{}",
+            s.name,
+            s.text
+                .trim_end_matches(|c: char| !(c.is_ascii_digit() || c == '.'))
+                .trim(),
+            si.strip_prefix('1').unwrap_or(&si)
+        );
+        let base = s.name.split('.').next().unwrap_or(&s.name);
+        let want_a = with_article(&want.name());
+        return Err(if s.dim.is_none() {
+            format!(
+                "--set {}={}: the value has no unit, and `{base}` is {want_a}: write it with a \
+                 unit of {want} (SI: {si}), e.g. `{example}`",
+                s.name, s.text
+            )
+        } else {
+            format!(
+                "--set {}={}: `{}` is {}, but `{base}` is {want_a}: give a value in a unit of \
+                 {want} (SI: {si}), e.g. `{example}`",
+                s.name,
+                s.text,
+                s.text,
+                with_article(&s.dim.name())
+            )
+        });
+    }
+    Ok(())
+}
+
+/// `a length`, `an acceleration`.
+fn with_article(noun: &str) -> String {
+    let vowel = noun.starts_with(|c: char| "aeiou".contains(c));
+    format!("{} {noun}", if vowel { "an" } else { "a" })
+}
+
+/// `--dt VALUE`: a time with its unit (`20us`).
+pub fn parse_dt(text: &str) -> Result<f64, String> {
+    let (dt, dim) = parse_quantity(text.trim()).map_err(|e| format!("--dt: {e}"))?;
+    if dim != softc_compiler::driver::Dim::TIME {
+        return Err(if dim.is_none() {
+            format!("--dt {text}: the value has no unit; write a time, e.g. `--dt 20us`")
+        } else {
+            format!(
+                "--dt {text}: `{text}` is {}, not a time; write a time, e.g. `--dt 20us`",
+                with_article(&dim.name())
+            )
+        });
+    }
+    Ok(dt)
+}
+
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
 /// `truncate`, overridden by `checkpoint` (`--checkpoint`) and `memory_budget`
 /// (`--memory-budget`).

@@ -5,7 +5,7 @@ use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
 use crate::engine::{RunSummary, Simulation};
 use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
-use crate::session::{csv_outputs, grad_options, parse_quantity, vtk_every};
+use crate::session::{check_set_dims, csv_outputs, grad_options, parse_dt, parse_set, vtk_every};
 use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
@@ -147,20 +147,17 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         let _ = writeln!(err, "softc: cannot read `{}`: {e}", args.file.display());
         return 2;
     }
-    let mut overrides = Vec::new();
+    let mut sets = Vec::new();
     for s in &args.set {
-        let Some((name, value)) = s.split_once('=') else {
-            let _ = writeln!(err, "softc: --set expects NAME=VALUE, found `{s}`");
-            return 2;
-        };
-        match parse_quantity(value) {
-            Ok((v, _)) => overrides.push((name.trim().to_string(), v)),
+        match parse_set(s) {
+            Ok(flag) => sets.push(flag),
             Err(e) => {
-                let _ = writeln!(err, "softc: --set {name}: {e}");
+                let _ = writeln!(err, "softc: {e}");
                 return 2;
             }
         }
     }
+    let mut overrides: Vec<(String, f64)> = Vec::new();
     if let Some(path) = &args.params {
         match params_file(path) {
             Ok(values) => overrides.extend(values),
@@ -170,10 +167,13 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             }
         }
     }
-    let dt = match args.dt.as_deref().map(parse_quantity).transpose() {
-        Ok(v) => v.map(|(x, _)| x),
+    // `--set` wins over `--params`: the first entry of a name is the one applied.
+    let from_set: Vec<(String, f64)> = sets.iter().map(|s| (s.name.clone(), s.value)).collect();
+    overrides.splice(0..0, from_set);
+    let dt = match args.dt.as_deref().map(parse_dt).transpose() {
+        Ok(v) => v,
         Err(e) => {
-            let _ = writeln!(err, "softc: --dt: {e}");
+            let _ = writeln!(err, "softc: {e}");
             return 2;
         }
     };
@@ -197,6 +197,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             );
             return 2;
         }
+    }
+    if let Err(e) = check_set_dims(&scene.resolved, &sets) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
     }
     if !args.grad && !args.no_optimize {
         match crate::optim::Plan::from_scene(&scene) {
