@@ -299,3 +299,35 @@ fn set_and_dt_values_need_the_dimension_of_what_they_set() {
         "{up} {down}"
     );
 }
+
+#[test]
+fn arguments_that_are_not_utf8_are_usage_errors() {
+    // Issue 20 item 12 (the binary itself: runtime/tests/mesh_cli.rs).
+    use std::ffi::OsString;
+    use std::os::unix::ffi::OsStringExt;
+    let script = softc_tests::root().join("examples/benchmark-1k.soft");
+    let bad = OsString::from_vec(b"p_peak=3\xffkPa".to_vec());
+    let args: Vec<OsString> = vec![
+        "softc".into(),
+        "run".into(),
+        script.into(),
+        "--set".into(),
+        bad,
+    ];
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    let code = softc::cli::run(&args, &mut out, &mut err);
+    let err = String::from_utf8_lossy(&err);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("argument 4") && err.contains("p_peak=3"),
+        "{err}"
+    );
+    // A script name that is not UTF-8 is a name like any other.
+    let missing = OsString::from_vec(b"/nonexistent/\xff.soft".to_vec());
+    let args: Vec<OsString> = vec!["softc".into(), "check".into(), missing];
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    let code = softc::cli::run(&args, &mut out, &mut err);
+    let err = String::from_utf8_lossy(&err);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("cannot read `/nonexistent/"), "{err}");
+}
