@@ -331,3 +331,24 @@ fn arguments_that_are_not_utf8_are_usage_errors() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("cannot read `/nonexistent/"), "{err}");
 }
+
+#[test]
+fn fmt_writes_through_a_symbolic_link() {
+    // Issue 20 item 7: `softc fmt link.soft` replaced the link with a formatted file and left
+    // the script it points to as it was.
+    let d = scratch("fmt-link");
+    let real = d.join("real.soft");
+    std::fs::write(&real, "let   a =   3 mm\n").unwrap();
+    let link = d.join("link.soft");
+    std::os::unix::fs::symlink(&real, &link).unwrap();
+    let (code, _, err) = softc_tests::softc(&["fmt", link.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink()
+    );
+    assert_eq!(std::fs::read_to_string(&real).unwrap(), "let a = 3 mm\n");
+    std::fs::remove_dir_all(&d).ok();
+}
