@@ -352,3 +352,30 @@ fn fmt_writes_through_a_symbolic_link() {
     assert_eq!(std::fs::read_to_string(&real).unwrap(), "let a = 3 mm\n");
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn unwritable_outputs_are_refused_before_the_run() {
+    // Issue 20 item 6: an unwritable `--json` path was found after the run, and its results
+    // were lost.
+    let d = scratch("outputs");
+    let file = d.join("a-file");
+    std::fs::write(&file, "x").unwrap();
+    let in_file = file.join("out.json");
+    let proc_dir = "/proc/softc-cannot-create-this";
+    for (flag, path, said) in [
+        ("--json", in_file.to_str().unwrap(), "does not exist"),
+        ("--json", d.to_str().unwrap(), "is a folder"),
+        ("--vtk", proc_dir, "cannot be created"),
+        ("--out", proc_dir, "cannot be created"),
+    ] {
+        let (code, out, err) = run_bench_1k(&[flag, path]);
+        assert_eq!(code, 2, "{flag} {path}: {err}");
+        assert!(
+            err.contains(&format!("{flag} {path}")) && err.contains(said),
+            "{err}"
+        );
+        assert!(!err.contains("steps of"), "refused before the run: {err}");
+        assert!(out.is_empty());
+    }
+    std::fs::remove_dir_all(&d).ok();
+}

@@ -394,6 +394,19 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
 }
 
 pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    // Outputs are checked before the (long) measurements.
+    if let Some(p) = &args.json
+        && let Err(e) = crate::outputs::atomic::check_writable_file(p)
+    {
+        let _ = writeln!(err, "error: --json {}: {e}", p.display());
+        return 2;
+    }
+    if args.tradeoff.is_some()
+        && let Err(e) = crate::outputs::atomic::check_writable_dir(&args.out)
+    {
+        let _ = writeln!(err, "error: --out {}: {e}", args.out.display());
+        return 2;
+    }
     if args.profile {
         return match profile(&args, out) {
             Ok(()) => 0,
@@ -495,8 +508,14 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         });
         let text = serde_json::to_string_pretty(&json).unwrap_or_default();
         if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
-            let _ = writeln!(err, "error: cannot write `{}`: {e}", path.display());
-            return 1;
+            // Not lost: the rows go to stdout.
+            let _ = writeln!(
+                err,
+                "error: cannot write `{}`: {e}; the JSON follows on stdout",
+                path.display()
+            );
+            let _ = writeln!(out, "{text}");
+            return 2;
         }
     }
     0

@@ -87,20 +87,28 @@ pub fn optimize(
         }
     };
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
-    let mut targets: Vec<PathBuf> = args.json.iter().cloned().collect();
+    let mut status = 0;
+    let mut on_stdout = args.json.is_none();
     if let Some(d) = &ctx.dir {
-        targets.push(d.join("result.json"));
-    }
-    for path in &targets {
-        if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
+        let path = d.join("result.json");
+        if let Err(e) = crate::outputs::atomic::write_atomically(&path, text.as_bytes()) {
             let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
-            return 2;
+            (status, on_stdout) = (2, true);
         }
     }
-    if args.json.is_none() {
+    if let Some(path) = &args.json
+        && let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes())
+    {
+        let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
+        (status, on_stdout) = (2, true);
+    }
+    if on_stdout {
+        if status != 0 {
+            let _ = writeln!(err, "softc: the JSON result follows on stdout");
+        }
         let _ = writeln!(out, "{text}");
     }
-    0
+    status
 }
 
 struct Context<'a> {

@@ -177,6 +177,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 2;
         }
     };
+    if let Err(e) = check_outputs(&args) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
     let scene = match Scene::load(&args.file, &overrides) {
         Ok(s) => s,
         Err(e) => {
@@ -285,7 +289,29 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     emit_json(args.json.as_deref(), &text, out, err)
 }
 
-/// The JSON summary into `--json PATH` (atomically) or onto stdout.
+/// Every output a run writes (`--json`, `--vtk`, `--csv`, `--out`, `--resume`) checked before
+/// the work: a run is not lost to an output found unwritable at its end.
+fn check_outputs(args: &RunArgs) -> Result<(), String> {
+    use crate::outputs::atomic::{check_writable_dir, check_writable_file};
+    if let Some(p) = &args.json {
+        check_writable_file(p).map_err(|e| format!("--json {}: {e}", p.display()))?;
+    }
+    let dirs = [
+        ("--vtk", &args.vtk),
+        ("--csv", &args.csv),
+        ("--out", &args.out),
+        ("--resume", &args.resume),
+    ];
+    for (flag, dir) in dirs {
+        if let Some(d) = dir {
+            check_writable_dir(d).map_err(|e| format!("{flag} {}: {e}", d.display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// The JSON summary into `--json PATH` (atomically) or onto stdout. If the file cannot be
+/// written after all, the JSON goes to stdout instead of being lost (and the status is 2).
 fn emit_json(
     path: Option<&std::path::Path>,
     text: &str,
@@ -295,7 +321,12 @@ fn emit_json(
     match path {
         Some(path) => {
             if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
-                let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
+                let _ = writeln!(
+                    err,
+                    "softc: cannot write `{}`: {e}; the JSON follows on stdout",
+                    path.display()
+                );
+                let _ = writeln!(out, "{text}");
                 return 2;
             }
         }

@@ -58,6 +58,83 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     result
 }
 
+/// Whether `path` can be written as a file later ([`write_atomically`]): checked before a run
+/// so its results are not lost at the end. Names the problem and the way out; creates nothing.
+pub fn check_writable_file(path: &Path) -> Result<(), String> {
+    let target = link_target(path).map_err(|e| e.to_string())?;
+    if target.is_dir() {
+        return Err(format!(
+            "`{}` is a folder; give the path of a file in it",
+            path.display()
+        ));
+    }
+    let dir = target
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    if !dir.is_dir() {
+        return Err(format!(
+            "the folder `{}` does not exist; create it or write elsewhere",
+            dir.display()
+        ));
+    }
+    probe(dir)
+}
+
+/// Whether files can be written into the folder `dir` later: an existing folder must be
+/// writable, a missing one creatable (its nearest existing ancestor a writable folder). Creates
+/// nothing.
+pub fn check_writable_dir(dir: &Path) -> Result<(), String> {
+    let mut existing = dir;
+    loop {
+        match std::fs::metadata(existing) {
+            Ok(m) if m.is_dir() => break,
+            Ok(_) => {
+                return Err(if existing == dir {
+                    format!("`{}` is a file, not a folder", dir.display())
+                } else {
+                    format!(
+                        "`{}` cannot be created: `{}` is a file, not a folder",
+                        dir.display(),
+                        existing.display()
+                    )
+                });
+            }
+            Err(_) => match existing.parent() {
+                Some(p) if !p.as_os_str().is_empty() => existing = p,
+                _ => {
+                    existing = Path::new(".");
+                    break;
+                }
+            },
+        }
+    }
+    probe(existing).map_err(|e| {
+        if existing == dir {
+            e
+        } else {
+            format!("`{}` cannot be created: {e}", dir.display())
+        }
+    })
+}
+
+/// Create (and remove) a file in `dir`: the one reliable test of write permission (access
+/// bits do not tell of read-only mounts, ACLs or root).
+fn probe(dir: &Path) -> Result<(), String> {
+    let tmp = dir.join(format!(".softc-write-test.{}.tmp", std::process::id()));
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&tmp)
+    {
+        Ok(_) => {
+            let _ = std::fs::remove_file(&tmp);
+            Ok(())
+        }
+        Err(e) => Err(format!("cannot write into `{}`: {e}", dir.display())),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -97,6 +174,27 @@ mod tests {
         std::os::unix::fs::symlink("a", d.join("b")).unwrap();
         let e = write_atomically(&d.join("a"), b"x").unwrap_err();
         assert!(e.to_string().contains("symbolic links"), "{e}");
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn outputs_are_checked_before_the_work() {
+        let d = scratch("check");
+        let file = d.join("f.json");
+        std::fs::write(&file, "x").unwrap();
+        assert!(check_writable_file(&file).is_ok());
+        assert!(check_writable_file(&d.join("new.json")).is_ok());
+        let e = check_writable_file(&d).unwrap_err();
+        assert!(e.contains("is a folder"), "{e}");
+        let e = check_writable_file(&d.join("missing/x.json")).unwrap_err();
+        assert!(e.contains("does not exist"), "{e}");
+        assert!(check_writable_dir(&d).is_ok());
+        assert!(check_writable_dir(&d.join("a/b/c")).is_ok());
+        assert!(!d.join("a").exists(), "nothing is created");
+        let e = check_writable_dir(&file).unwrap_err();
+        assert!(e.contains("is a file, not a folder"), "{e}");
+        let e = check_writable_dir(&file.join("sub")).unwrap_err();
+        assert!(e.contains("is a file, not a folder"), "{e}");
         std::fs::remove_dir_all(&d).unwrap();
     }
 }
