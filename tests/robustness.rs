@@ -379,3 +379,61 @@ fn unwritable_outputs_are_refused_before_the_run() {
     }
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn a_second_run_on_an_out_folder_in_use_is_refused() {
+    // Issue 20 item 2: two optimizations on one `--out DIR` were both accepted, and one
+    // silently overwrote the other. A run holds the folder's lock for its life; here this test
+    // holds it, as a first run would.
+    let d = scratch("lock");
+    let out = d.join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let first = std::fs::File::create(out.join(".softc.lock")).unwrap();
+    first.try_lock().unwrap();
+    let script = softc_tests::root().join("runtime/tests/fixtures/optim/pressure.soft");
+    let script = script.to_str().unwrap();
+    let args = [
+        "run",
+        script,
+        "--iterations",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let (code, _, err) = softc_tests::softc(&args);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("in use by another softc run") && err.contains("--out"),
+        "{err}"
+    );
+    assert!(!out.join("state.json").exists());
+    let (code, _, err) = softc_tests::softc(&["run", script, "--resume", out.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("in use by another softc run"), "{err}");
+    // Once the first run is over, the folder is free.
+    drop(first);
+    let (code, _, err) = softc_tests::softc(&args);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.join("state.json").exists());
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn a_plain_run_holds_its_output_folders() {
+    // The sibling of item 2 for plain runs: `--vtk DIR` and `--csv DIR` of two runs.
+    let d = scratch("lock-vtk");
+    let first = std::fs::File::create(d.join(".softc.lock")).unwrap();
+    first.try_lock().unwrap();
+    let (code, _, err) = run_bench_1k(&["--vtk", d.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--vtk") && err.contains("in use by another softc run"),
+        "{err}"
+    );
+    drop(first);
+    // One folder for both outputs is one run's.
+    let dir = d.to_str().unwrap();
+    let (code, _, err) = run_bench_1k(&["--vtk", dir, "--csv", dir]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}

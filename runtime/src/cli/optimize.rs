@@ -31,6 +31,28 @@ pub fn optimize(
         plan.iterations = n.max(1);
     }
     let dir = args.resume.as_ref().or(args.out.as_ref()).cloned();
+    // One run per folder, held for the whole run: a second one would overwrite this one's
+    // state and results (issue 20). Locked before the state is read or checked.
+    let lock = match (&args.resume, &args.out) {
+        (Some(d), _) if !d.is_dir() => {
+            let _ = writeln!(
+                err,
+                "softc: --resume {}: no such folder; give the --out folder of an earlier run",
+                d.display()
+            );
+            return 2;
+        }
+        (Some(d), _) => crate::outputs::lock::lock_folder(d, "--resume").map(Some),
+        (None, Some(d)) => crate::outputs::lock::lock_folder(d, "--out").map(Some),
+        (None, None) => Ok(None),
+    };
+    let _lock = match lock {
+        Ok(l) => l,
+        Err(e) => {
+            let _ = writeln!(err, "softc: {e}");
+            return 2;
+        }
+    };
     let resume = match &args.resume {
         Some(d) => match load_state(d) {
             Ok(s) => Some(s),
@@ -52,12 +74,6 @@ pub fn optimize(
             d.display(),
             d.display()
         );
-        return 2;
-    }
-    if let Some(d) = &dir
-        && let Err(e) = std::fs::create_dir_all(d)
-    {
-        let _ = writeln!(err, "softc: cannot create `{}`: {e}", d.display());
         return 2;
     }
     let ctx = Context {

@@ -216,6 +216,27 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             }
         }
     }
+    // A plain run's output folders are held for the run, as an optimization's --out folder.
+    let mut _locks = Vec::new();
+    let mut locked: Vec<PathBuf> = Vec::new();
+    for (flag, dir) in [("--vtk", &args.vtk), ("--csv", &args.csv)] {
+        let Some(d) = dir else { continue };
+        let same = |p: &PathBuf| {
+            d.canonicalize()
+                .is_ok_and(|c| p.canonicalize().is_ok_and(|q| q == c))
+        };
+        if locked.iter().any(same) {
+            continue;
+        }
+        match crate::outputs::lock::lock_folder(d, flag) {
+            Ok(l) => _locks.push(l),
+            Err(e) => {
+                let _ = writeln!(err, "softc: {e}");
+                return 2;
+            }
+        }
+        locked.push(d.clone());
+    }
     if args.grad && args.backend == BackendChoice::Reference {
         let _ = writeln!(
             err,
