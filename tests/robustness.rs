@@ -437,3 +437,44 @@ fn a_plain_run_holds_its_output_folders() {
     assert_eq!(code, 0, "{err}");
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn usage_errors_exit_2_before_any_work() {
+    // Issue 20 item 18: a folder or an unreadable script, bad --checkpoint/--memory-budget
+    // values (refused only after the stable-step estimate) and --csv into a file exited 1.
+    let d = scratch("usage");
+    let (code, _, err) = softc_tests::softc(&["run", d.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("is a folder"), "{err}");
+    let file = d.join("a-file");
+    std::fs::write(&file, "x").unwrap();
+    let file = file.to_str().unwrap();
+    for (flags, said) in [
+        (
+            &["--grad", "--checkpoint", "sometimes"][..],
+            "--checkpoint sometimes",
+        ),
+        (
+            &["--grad", "--checkpoint", "periodic:0"][..],
+            "--checkpoint periodic:0",
+        ),
+        (
+            &["--grad", "--memory-budget", "12 mm"][..],
+            "--memory-budget 12 mm",
+        ),
+        (
+            &["--grad", "--memory-budget", "-5MB"][..],
+            "--memory-budget -5MB",
+        ),
+        (&["--csv", file][..], "is a file, not a folder"),
+    ] {
+        let (code, _, err) = run_bench_1k(flags);
+        assert_eq!(code, 2, "{flags:?}: {err}");
+        assert!(err.contains(said), "{flags:?}: {err}");
+        assert!(
+            !err.contains("stable step estimate"),
+            "before any work: {err}"
+        );
+    }
+    std::fs::remove_dir_all(&d).ok();
+}

@@ -142,35 +142,45 @@ pub fn grad_options(
         o.truncate = script.truncate;
     }
     if let Some(c) = checkpoint {
-        let number = |s: &str| {
-            s.trim()
-                .parse::<u64>()
-                .ok()
-                .filter(|n| *n >= 1)
-                .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
-        };
-        o.checkpoint = match c.split_once(':') {
-            None if c == "auto" => Checkpointing::Auto,
-            None if c == "store_all" => Checkpointing::StoreAll,
-            Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
-            Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
-            _ => {
-                return Err(format!(
-                    "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
-                ));
-            }
-        };
+        o.checkpoint = parse_checkpoint(c)?;
     }
     if let Some(m) = memory_budget {
-        let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
-        if dim != softc_compiler::driver::Dim::MEMORY || bytes <= 0.0 {
-            return Err(format!(
-                "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
-            ));
-        }
-        o.memory_budget = Some(bytes as u64);
+        o.memory_budget = Some(parse_memory_budget(m)?);
     }
     Ok(o)
+}
+
+/// `--checkpoint auto|store_all|periodic:K|revolve:N`.
+pub fn parse_checkpoint(c: &str) -> Result<Checkpointing, String> {
+    let number = |s: &str| {
+        s.trim()
+            .parse::<u64>()
+            .ok()
+            .filter(|n| *n >= 1)
+            .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
+    };
+    Ok(match c.split_once(':') {
+        None if c == "auto" => Checkpointing::Auto,
+        None if c == "store_all" => Checkpointing::StoreAll,
+        Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
+        Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
+        _ => {
+            return Err(format!(
+                "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
+            ));
+        }
+    })
+}
+
+/// `--memory-budget 512MB`: a positive memory size, in bytes.
+pub fn parse_memory_budget(m: &str) -> Result<u64, String> {
+    let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
+    if dim != softc_compiler::driver::Dim::MEMORY || !(bytes >= 1.0 && bytes.is_finite()) {
+        return Err(format!(
+            "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
+        ));
+    }
+    Ok(bytes as u64)
 }
 
 /// The node-set logs of the script's `output csv(SET) every …` statements, written into

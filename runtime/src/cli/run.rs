@@ -5,7 +5,10 @@ use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
 use crate::engine::{RunSummary, Simulation};
 use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
-use crate::session::{check_set_dims, csv_outputs, grad_options, parse_dt, parse_set, vtk_every};
+use crate::session::{
+    check_set_dims, csv_outputs, grad_options, parse_checkpoint, parse_dt, parse_memory_budget,
+    parse_set, vtk_every,
+};
 use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
@@ -29,7 +32,7 @@ pub struct RunArgs {
     #[arg(long)]
     pub threads: Option<usize>,
     /// Override a param's value, with its unit: `--set p_max=2.5kPa`.
-    #[arg(long = "set", value_name = "NAME=VALUE")]
+    #[arg(long = "set", value_name = "NAME=VALUE", allow_hyphen_values = true)]
     pub set: Vec<String>,
     /// Set params to the values of a JSON file's `params` object (SI units; arrays nested as
     /// `softc run --json` writes them), e.g. an optimization's `result.json`: run the trained
@@ -40,7 +43,7 @@ pub struct RunArgs {
     #[arg(long)]
     pub steps: Option<u64>,
     /// Override the time step, with its unit: `--dt 20us`.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub dt: Option<String>,
     /// Write the JSON summary here (SI units).
     #[arg(long)]
@@ -62,7 +65,7 @@ pub struct RunArgs {
     pub checkpoint: Option<String>,
     /// Memory for the stored states of the backward pass, e.g. `512MB` (overrides the optimize
     /// block's `memory_budget`).
-    #[arg(long, value_name = "BYTES")]
+    #[arg(long, value_name = "BYTES", allow_hyphen_values = true)]
     pub memory_budget: Option<String>,
     /// With `--grad`: also report d loss / d (initial position) and d loss / d (initial
     /// velocity) of every node (`initial_state_gradients` in the JSON).
@@ -143,8 +146,29 @@ fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
 }
 
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
-    if let Err(e) = std::fs::metadata(&args.file) {
+    // An unreadable script or a folder is a usage error (exit 2), found before anything else.
+    let readable = std::fs::metadata(&args.file).and_then(|m| {
+        if m.is_dir() {
+            Err(std::io::Error::other("it is a folder, not a script"))
+        } else if !m.is_file() {
+            Err(std::io::Error::other("not a regular file"))
+        } else {
+            std::fs::File::open(&args.file).map(|_| ())
+        }
+    });
+    if let Err(e) = readable {
         let _ = writeln!(err, "softc: cannot read `{}`: {e}", args.file.display());
+        return 2;
+    }
+    // Every flag's value is checked before the script is compiled and run.
+    let checked = (args.checkpoint.as_deref().map(parse_checkpoint).transpose()).and(
+        args.memory_budget
+            .as_deref()
+            .map(parse_memory_budget)
+            .transpose(),
+    );
+    if let Err(e) = checked {
+        let _ = writeln!(err, "softc: {e}");
         return 2;
     }
     let mut sets = Vec::new();
