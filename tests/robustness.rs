@@ -478,3 +478,34 @@ fn usage_errors_exit_2_before_any_work() {
     }
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn a_step_count_beyond_the_limit_is_refused_unless_asked_for() {
+    // Issue 20 item 14: `dt = 1e-12 s` with `duration = 1 s` started 10¹² steps silently.
+    let d = scratch("steps");
+    let text = std::fs::read_to_string(softc_tests::root().join("examples/benchmark-1k.soft"))
+        .unwrap()
+        .replace(
+            "../meshes/",
+            &format!("{}/meshes/", softc_tests::root().display()),
+        )
+        .replace(
+            "dt = 40 us\n  steps = 4000",
+            "dt = 1e-12 s\n  duration = 1 s",
+        );
+    let script = d.join("tiny-dt.soft");
+    std::fs::write(&script, text).unwrap();
+    let script = script.to_str().unwrap();
+    let start = Instant::now();
+    let (code, _, err) = softc_tests::softc(&["run", script]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("1000000000000 steps") && err.contains("--steps 1000000000000"),
+        "{err}"
+    );
+    assert!(start.elapsed() < Duration::from_secs(60));
+    // Asked for, a count runs.
+    let (code, _, err) = softc_tests::softc(&["run", script, "--steps", "3"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}

@@ -116,6 +116,35 @@ pub fn parse_dt(text: &str) -> Result<f64, String> {
     Ok(dt)
 }
 
+/// The most steps a run takes without being asked for them: a step count from the script's
+/// `duration` and a tiny dt (`dt = 1e-12 s`, 10¹² steps over 1 s) would run for days
+/// silently. 10 million steps of the 1k benchmark scene are about 20 minutes on one core.
+pub const MAX_UNASKED_STEPS: u64 = 10_000_000;
+
+/// Refuse a step count over [`MAX_UNASKED_STEPS`] that comes from `duration / dt`, unless it
+/// was asked for (`--steps`, or the script's `steps =`). `estimate` is the stable step.
+pub fn check_step_count(
+    scene: &Scene,
+    dt: f64,
+    steps: u64,
+    steps_flag: bool,
+    estimate: Option<f64>,
+) -> Result<(), String> {
+    let sim = &scene.resolved.sim;
+    if steps_flag || sim.steps.is_some() || steps <= MAX_UNASKED_STEPS {
+        return Ok(());
+    }
+    let duration = sim.duration.unwrap_or(steps as f64 * dt);
+    let auto = estimate.map_or(String::new(), |e| {
+        format!(" (`dt = auto` takes 0.9 of the stable step, {e:.3e} s here)")
+    });
+    Err(format!(
+        "dt = {dt:e} s over duration = {duration:e} s makes {steps} steps, more than the \
+         {MAX_UNASKED_STEPS} softc runs unless asked: use a larger dt{auto} or a shorter \
+         duration, or ask for the steps with --steps {steps}"
+    ))
+}
+
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
 /// `truncate`, overridden by `checkpoint` (`--checkpoint`) and `memory_budget`
 /// (`--memory-budget`).

@@ -241,6 +241,13 @@ fn train<B: Backend + Send>(
         ctx.resume.clone(),
     )
     .map_err(|e| e.0)?;
+    crate::session::check_step_count(
+        scene,
+        trainer.state.dt,
+        trainer.state.steps,
+        args.steps.is_some(),
+        None,
+    )?;
     let _ = writeln!(
         err,
         "optimizing {} values with {} over {} scene(s) per iteration: {} steps of {:e} s each{}",

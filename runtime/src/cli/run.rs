@@ -601,7 +601,12 @@ fn prepare<'s, B: Backend>(
         Err(_) => return Err(String::new()),
     };
     announce_dt(&mut sim, dt, err)?;
-    let (step, _) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
+    let (step, n) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
+    let estimate = sim.stable_dt_estimate().ok();
+    crate::session::check_step_count(scene, step, n, args.steps.is_some(), estimate)?;
+    sim.progress = Some(crate::outputs::progress::Progress::new(
+        args.file.display().to_string(),
+    ));
     sim.csv = csv_outputs(args.csv.as_deref(), scene, step, err)?;
     Ok(sim)
 }

@@ -270,6 +270,9 @@ impl<B: Backend> Simulation<'_, B> {
                         if current % CHECK_EVERY == 1 {
                             self.check_state(current - 1, dt)?;
                         }
+                        if let Some(p) = &mut self.progress {
+                            p.update("forward", current, steps);
+                        }
                     }
                 }
                 Action::Store { slot } => slots[slot] = Some((current, self.save_state())),
@@ -352,6 +355,9 @@ impl<B: Backend> Simulation<'_, B> {
                     }
                     if step % CHECK_EVERY == 0 || step == stop_at {
                         health.push(self.adjoint_health(step, dt)?);
+                        if let Some(p) = &mut self.progress {
+                            p.update("backward", steps - step, steps - stop_at);
+                        }
                     }
                     if step == stop_at {
                         if step == 0 {
