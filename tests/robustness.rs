@@ -509,3 +509,85 @@ fn a_step_count_beyond_the_limit_is_refused_unless_asked_for() {
     assert_eq!(code, 0, "{err}");
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn smaller_defects_of_messages_and_outputs() {
+    // Issue 20 item 19.
+    let d = scratch("smaller");
+    let pressure = softc_tests::root().join("runtime/tests/fixtures/optim/pressure.soft");
+    let pressure = pressure.to_str().unwrap();
+    // A bounds message in the script's terms, not Rust's debug text `Both(0.0, 50000.0)`.
+    let (code, _, err) =
+        softc_tests::softc(&["run", pressure, "--iterations", "1", "--set", "p_peak=0kPa"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("[0, 50000]") && !err.contains("Both("),
+        "{err}"
+    );
+    // A backend change on --resume names the backend.
+    let out = d.join("out");
+    let out = out.to_str().unwrap();
+    let (code, _, err) = softc_tests::softc(&["run", pressure, "--iterations", "1", "--out", out]);
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = softc_tests::softc(&[
+        "run",
+        pressure,
+        "--iterations",
+        "2",
+        "--resume",
+        out,
+        "--backend",
+        "interp",
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--backend cpu (saved) vs interp (now)"),
+        "{err}"
+    );
+    // `--dt 0s` was run and reported as "estimate 0 s".
+    for dt in ["0s", "-1us"] {
+        let (code, _, err) = run_bench_1k(&["--dt", dt]);
+        assert_eq!(code, 2, "{err}");
+        assert!(
+            err.contains(&format!("--dt {dt}")) && err.contains("positive"),
+            "{err}"
+        );
+    }
+    // A read-only --out folder was found after the first iteration, the message naming no
+    // path.
+    let (code, _, err) = softc_tests::softc(&["run", pressure, "--out", "/proc/softc-out"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--out /proc/softc-out") && !err.contains("iteration 1/"),
+        "{err}"
+    );
+    // A 1 B --memory-budget was silently exceeded.
+    let (code, _, err) = run_bench_1k(&["--grad", "--memory-budget", "1B"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("memory budget of 1 bytes") && err.contains("give at least"),
+        "{err}"
+    );
+    // The VTU wrote points in mm and displacement in m, unlabelled: one unit system (SI), and
+    // every array's name says its unit.
+    let vtk = d.join("vtk");
+    let (code, _, err) = run_bench_1k(&["--vtk", vtk.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let last = vtk.join("benchmark-1k_000001.vtu");
+    let text = String::from_utf8_lossy(&std::fs::read(&last).unwrap()).into_owned();
+    for name in [
+        "displacement_m",
+        "velocity_m_per_s",
+        "strain_energy_density_J_per_m3",
+        "length unit: m",
+    ] {
+        assert!(text.contains(name), "{name}");
+    }
+    let mesh = softc::mesh::read(&last, softc::mesh::LengthUnit::Metre).unwrap();
+    let max_x = mesh.nodes.iter().map(|n| n[0]).fold(f64::MIN, f64::max);
+    assert!(
+        (max_x - 0.06).abs() < 1e-6,
+        "points in metres: the 60 mm beam ends at {max_x}"
+    );
+    std::fs::remove_dir_all(&d).ok();
+}

@@ -100,7 +100,7 @@ fn with_article(noun: &str) -> String {
     format!("{} {noun}", if vowel { "an" } else { "a" })
 }
 
-/// `--dt VALUE`: a time with its unit (`20us`).
+/// `--dt VALUE`: a positive, finite time with its unit (`20us`).
 pub fn parse_dt(text: &str) -> Result<f64, String> {
     let (dt, dim) = parse_quantity(text.trim()).map_err(|e| format!("--dt: {e}"))?;
     if dim != softc_compiler::driver::Dim::TIME {
@@ -112,6 +112,11 @@ pub fn parse_dt(text: &str) -> Result<f64, String> {
                 with_article(&dim.name())
             )
         });
+    }
+    if !(dt > 0.0 && dt.is_finite()) {
+        return Err(format!(
+            "--dt {text}: the time step must be positive and finite, e.g. `--dt 20us`"
+        ));
     }
     Ok(dt)
 }

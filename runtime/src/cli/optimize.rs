@@ -63,6 +63,17 @@ pub fn optimize(
         },
         None => None,
     };
+    if let (Some(d), Some(state)) = (&args.resume, &resume)
+        && let Some(changed) = changed_settings(&state.settings, &run_settings(args))
+    {
+        let _ = writeln!(
+            err,
+            "softc: --resume {}: the saved run was made with other settings: {changed}; resume \
+             with the saved ones, or start afresh with --out NEW_FOLDER",
+            d.display()
+        );
+        return 2;
+    }
     if let Some(d) = &args.out
         && args.resume.is_none()
         && d.join(STATE_FILE).exists()
@@ -145,6 +156,46 @@ fn load_state(dir: &Path) -> Result<TrainState, String> {
             path.display()
         )
     })
+}
+
+/// The command line's settings a resumed run must keep, by flag, as the state records them.
+fn run_settings(args: &RunArgs) -> BTreeMap<String, String> {
+    let default = |v: Option<String>| v.unwrap_or_else(|| "(not given)".into());
+    let mut m = BTreeMap::new();
+    m.insert(
+        "--backend".into(),
+        format!("{:?}", args.backend).to_lowercase(),
+    );
+    m.insert(
+        "--precision".into(),
+        default(args.precision.map(|p| format!("{p:?}").to_lowercase())),
+    );
+    m.insert("--dt".into(), default(args.dt.clone()));
+    m.insert("--steps".into(), default(args.steps.map(|s| s.to_string())));
+    m.insert(
+        "--set".into(),
+        default((!args.set.is_empty()).then(|| args.set.join(" "))),
+    );
+    m.insert(
+        "--params".into(),
+        default(args.params.as_ref().map(|p| p.display().to_string())),
+    );
+    m
+}
+
+/// Which recorded settings differ from this run's: `--backend cpu (saved) vs interp (now)`.
+fn changed_settings(
+    saved: &BTreeMap<String, String>,
+    now: &BTreeMap<String, String>,
+) -> Option<String> {
+    let changed: Vec<String> = saved
+        .iter()
+        .filter_map(|(flag, was)| {
+            let is = now.get(flag)?;
+            (is != was).then(|| format!("{flag} {was} (saved) vs {is} (now)"))
+        })
+        .collect();
+    (!changed.is_empty()).then(|| changed.join(", "))
 }
 
 /// What a resumed run must agree with: the script, the overrides and the numerics (not the
@@ -241,6 +292,7 @@ fn train<B: Backend + Send>(
         ctx.resume.clone(),
     )
     .map_err(|e| e.0)?;
+    trainer.state.settings = run_settings(args);
     crate::session::check_step_count(
         scene,
         trainer.state.dt,
@@ -290,8 +342,13 @@ fn train<B: Backend + Send>(
         }
         if let Some(d) = &ctx.dir {
             let text = serde_json::to_string(&trainer.state).map_err(|e| e.to_string())?;
-            crate::outputs::atomic::write_atomically(&d.join(STATE_FILE), text.as_bytes())
-                .map_err(|e| format!("cannot save the optimization state: {e}"))?;
+            let path = d.join(STATE_FILE);
+            crate::outputs::atomic::write_atomically(&path, text.as_bytes()).map_err(|e| {
+                format!(
+                    "cannot save the optimization state to `{}`: {e}",
+                    path.display()
+                )
+            })?;
             write_plots(d, &script_name, &trainer.state.history, &trainer)?;
         }
     }
@@ -317,14 +374,11 @@ fn train<B: Backend + Send>(
             let folder = d.join("vtk");
             std::fs::create_dir_all(&folder)
                 .map_err(|e| format!("cannot create `{}`: {e}", folder.display()))?;
-            Some(crate::outputs::vtk::VtkOutput {
-                series: crate::mesh::writers::PvdSeries::new(
-                    &folder,
-                    "optimized",
-                    crate::mesh::LengthUnit::Millimetre,
-                ),
-                every: crate::session::vtk_every(scene).unwrap_or(100),
-            })
+            Some(crate::outputs::vtk::VtkOutput::new(
+                &folder,
+                "optimized",
+                crate::session::vtk_every(scene).unwrap_or(100),
+            ))
         }
         None => None,
     };

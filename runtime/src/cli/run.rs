@@ -558,14 +558,7 @@ fn vtk_output(
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "run".into());
-    Ok(Some(crate::outputs::vtk::VtkOutput {
-        series: crate::mesh::writers::PvdSeries::new(
-            dir,
-            &name,
-            crate::mesh::LengthUnit::Millimetre,
-        ),
-        every,
-    }))
+    Ok(Some(crate::outputs::vtk::VtkOutput::new(dir, &name, every)))
 }
 
 /// A forward run, or with `--grad` a forward and backward pass, on one backend. An empty error
