@@ -591,3 +591,331 @@ fn smaller_defects_of_messages_and_outputs() {
     );
     std::fs::remove_dir_all(&d).ok();
 }
+
+// ---- Property test: random flag values and random meshes through the command line ----
+
+/// `softc ARGS` in-process on a thread with the binary's large stack: its exit status, stdout
+/// and stderr. A panic or a run past `limit` fails the test, naming the arguments.
+fn softc_limited(args: &[std::ffi::OsString], limit: Duration) -> (i32, String, String) {
+    let mut argv: Vec<std::ffi::OsString> = vec!["softc".into()];
+    argv.extend(args.iter().cloned());
+    let shown = format!("{argv:?}");
+    let (tx, rx) = std::sync::mpsc::channel();
+    let worker = std::thread::Builder::new()
+        .stack_size(64 << 20)
+        .spawn(move || {
+            let (mut out, mut err) = (Vec::new(), Vec::new());
+            let code = softc::cli::run(&argv, &mut out, &mut err);
+            let _ = tx.send((
+                code,
+                String::from_utf8_lossy(&out).into_owned(),
+                String::from_utf8_lossy(&err).into_owned(),
+            ));
+        })
+        .unwrap();
+    match rx.recv_timeout(limit) {
+        Ok(r) => {
+            worker.join().unwrap();
+            r
+        }
+        // The sender went away without a result: the thread panicked.
+        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+            let _ = worker.join();
+            panic!("softc panicked on {shown}")
+        }
+        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+            panic!("softc ran past {limit:?} on {shown} (a hang)")
+        }
+    }
+}
+
+/// A fixed seed: the same cases on every run and machine.
+fn deterministic_runner(cases: u32) -> proptest::test_runner::TestRunner {
+    use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
+    let config = Config {
+        cases,
+        failure_persistence: None,
+        ..Config::default()
+    };
+    TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha))
+}
+
+/// The small fixture meshes of every format softc reads, by extension.
+const MESH_FIXTURES: &[&str] = &[
+    "cube_v41.msh",
+    "cube_v22.msh",
+    "gmsh_cube_v41_bin.msh",
+    "cube.vtk",
+    "cube_binary.vtk",
+    "cube_ascii.vtu",
+    "cube_binary.vtu",
+    "cube.inp",
+    "cube.node",
+];
+
+/// Random bytes, or a fixture mesh corrupted: truncated, bytes overwritten, a range repeated.
+fn mesh_bytes() -> impl Strategy<Value = (usize, bool, Vec<u8>)> {
+    let random = (
+        0..MESH_FIXTURES.len(),
+        proptest::collection::vec(any::<u8>(), 0..2000),
+    )
+        .prop_map(|(k, b)| (k, true, b));
+    let corrupted = (
+        0..MESH_FIXTURES.len(),
+        any::<proptest::sample::Index>(),
+        proptest::collection::vec((any::<proptest::sample::Index>(), any::<u8>()), 0..6),
+        0..3u8,
+    )
+        .prop_map(|(k, cut, flips, how)| {
+            let dir = softc_tests::root().join("runtime/tests/fixtures/mesh");
+            let mut b = std::fs::read(dir.join(MESH_FIXTURES[k])).unwrap();
+            let at = cut.index(b.len().max(1));
+            match how {
+                0 => b.truncate(at),
+                1 => {
+                    let copy = b[at..].to_vec();
+                    b.extend_from_slice(&copy[..copy.len().min(200)]);
+                }
+                _ => {}
+            }
+            for (i, byte) in flips {
+                if !b.is_empty() {
+                    let i = i.index(b.len());
+                    b[i] = byte;
+                }
+            }
+            (k, false, b)
+        });
+    prop_oneof![random, corrupted]
+}
+
+#[test]
+fn random_meshes_through_the_command_line_are_refused_by_name() {
+    let d = scratch("prop-mesh");
+    let mut runner = deterministic_runner(96);
+    let counter = std::sync::atomic::AtomicUsize::new(0);
+    let result = runner.run(&mesh_bytes(), |(k, random, bytes)| {
+        let case = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let ext = MESH_FIXTURES[k].rsplit('.').next().unwrap();
+        let name = format!("case{case}.{ext}");
+        let mesh = d.join(&name);
+        std::fs::write(&mesh, &bytes).unwrap();
+        if ext == "node" {
+            // tetgen's elements beside the nodes, as the fixture has them.
+            let ele = softc_tests::root().join("runtime/tests/fixtures/mesh/cube.ele");
+            std::fs::copy(ele, mesh.with_extension("ele")).unwrap();
+        }
+        let info: Vec<std::ffi::OsString> = vec!["mesh".into(), "info".into(), mesh.clone().into()];
+        let (code, _, err) = softc_limited(&info, Duration::from_secs(30));
+        prop_assert!(
+            (code == 1 || (code == 0 && !random)),
+            "mesh info {name}: exit {code}: {err}"
+        );
+        if code != 0 {
+            prop_assert!(
+                err.contains(&name),
+                "mesh info {name}: the message names no file: {err}"
+            );
+        }
+        // The same mesh through a script.
+        let script = d.join(format!("case{case}.soft"));
+        std::fs::write(
+            &script,
+            format!(
+                "mesh body = load(\"{name}\")\n\
+                 material rubber = neo_hookean(mu: 100 kPa, kappa: 1 MPa, density: 1070 kg/m^3)\n\
+                 region clamp = box(min: [-1, -1, -1] mm, max: [0.1, 100, 100] mm)\n\
+                 sim {{\n  dt = 1 us\n  steps = 2\n  damping = 20 /s\n  fix clamp\n}}\n"
+            ),
+        )
+        .unwrap();
+        let run: Vec<std::ffi::OsString> = vec!["run".into(), script.into()];
+        let (code, _, err) = softc_limited(&run, Duration::from_secs(30));
+        prop_assert!(
+            (code == 1 || (code == 0 && !random)),
+            "run with {name}: exit {code}: {err}"
+        );
+        if code != 0 {
+            prop_assert!(
+                err.contains(&name),
+                "run with {name}: the message names no file: {err}"
+            );
+        }
+        Ok(())
+    });
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
+/// Numbers, units and the rest of what flag values are made of.
+const NUMBERS: &[&str] = &[
+    "0",
+    "1",
+    "-1",
+    "2.5",
+    "-3",
+    "40",
+    "1e308",
+    "1e-308",
+    "1e400",
+    "nan",
+    "inf",
+    "-0",
+    "007",
+    "99999999999999999999",
+    "0x10",
+    "1_000",
+    ".5",
+    "5.",
+    "1e",
+    "",
+];
+const UNITS: &[&str] = &[
+    "", "s", "us", "ms", " us", "mm", "kPa", "Pa", "/s", "B", "MB", "GiB", "kg/m^3", "%", "µs",
+    "kPa/s", "m^2",
+];
+const OTHER: &[&str] = &[
+    "=",
+    ":",
+    ",",
+    "..",
+    "-",
+    "--",
+    "p_peak",
+    "p_peak=",
+    "p_peak.1=",
+    "periodic:",
+    "revolve:",
+    "store_all",
+    "auto",
+    "cpu",
+    "interp",
+    "reference",
+    "f32",
+    "f64",
+    "\"",
+    "\\",
+    "(",
+    "\u{202e}",
+    "\u{0}",
+    "\n",
+    "é",
+    " ",
+];
+
+/// The flags of `softc run` whose values are drawn, each with values it may well take (not
+/// `--steps`, kept at 2 so no case runs long, nor outputs, which get paths of their own, nor
+/// `--backend gpu`, slow on a software adapter).
+const VALUE_FLAGS: &[(&str, &[&str])] = &[
+    ("--set", &[]),
+    ("--dt", &[]),
+    (
+        "--threads",
+        &["0", "1", "2", "64", "100000", "18446744073709551615"],
+    ),
+    (
+        "--checkpoint",
+        &[
+            "auto",
+            "store_all",
+            "periodic:1",
+            "periodic:3",
+            "revolve:1",
+            "revolve:2",
+        ],
+    ),
+    ("--memory-budget", &[]),
+    ("--backend", &["cpu", "interp", "reference"]),
+    ("--precision", &["f32", "f64"]),
+    ("--adapter", &["", "lavapipe", "x"]),
+    ("--iterations", &["0", "1", "3"]),
+];
+
+/// A value: a number with a unit (`--set` with a name), one the flag may well take, or pieces
+/// of anything.
+fn flag_value(flag: usize) -> impl Strategy<Value = String> {
+    let quantity = (0..NUMBERS.len(), 0..UNITS.len()).prop_map(move |(n, u)| {
+        let name = if VALUE_FLAGS[flag].0 == "--set" {
+            "p_peak="
+        } else {
+            ""
+        };
+        format!("{name}{}{}", NUMBERS[n], UNITS[u])
+    });
+    let known = VALUE_FLAGS[flag].1;
+    let plausible = (0..known.len().max(1))
+        .prop_map(move |i| known.get(i).map_or(String::new(), |v| v.to_string()));
+    let pieces = proptest::collection::vec(
+        prop_oneof![
+            (0..NUMBERS.len()).prop_map(|i| NUMBERS[i]),
+            (0..UNITS.len()).prop_map(|i| UNITS[i]),
+            (0..OTHER.len()).prop_map(|i| OTHER[i]),
+        ],
+        1..4,
+    )
+    .prop_map(|v| v.concat());
+    if known.is_empty() {
+        prop_oneof![3 => quantity, 1 => pieces].boxed()
+    } else {
+        prop_oneof![3 => plausible, 1 => quantity, 1 => pieces].boxed()
+    }
+}
+
+/// One to three different flags with values, each maybe with `--grad`.
+fn flag_values() -> impl Strategy<Value = Vec<(usize, String, bool)>> {
+    proptest::sample::subsequence((0..VALUE_FLAGS.len()).collect::<Vec<_>>(), 1..4).prop_flat_map(
+        |flags| {
+            flags
+                .into_iter()
+                .map(|f| (Just(f), flag_value(f), any::<bool>()))
+                .collect::<Vec<_>>()
+        },
+    )
+}
+
+#[test]
+fn random_flag_values_are_refused_by_name_or_run() {
+    let script = softc_tests::root().join("examples/benchmark-1k.soft");
+    let mut runner = deterministic_runner(80);
+    let result = runner.run(&flag_values(), |flags| {
+        let mut args: Vec<std::ffi::OsString> = vec![
+            "run".into(),
+            script.clone().into(),
+            "--steps".into(),
+            "2".into(),
+        ];
+        let mut given = Vec::new();
+        for (f, value, grad) in flags {
+            args.push(VALUE_FLAGS[f].0.into());
+            args.push(value.clone().into());
+            if grad && !args.iter().any(|a| a == "--grad") {
+                args.push("--grad".into());
+            }
+            given.push((VALUE_FLAGS[f].0, value));
+        }
+        let (code, _, err) = softc_limited(&args, Duration::from_secs(60));
+        prop_assert!((0..=2).contains(&code), "{args:?}: exit {code}: {err}");
+        if code != 0 {
+            // The message names a flag or a value it was given (clap's included), or the script.
+            let named = given.iter().any(|(f, v)| {
+                err.contains(f) || (!v.trim().is_empty() && err.contains(v.trim()))
+            }) || err.contains("benchmark-1k.soft")
+                || err.contains("--grad")
+                // clap's own word for a value it read as flags (`-00` as `-0`): a part of it.
+                || err.split("unexpected argument '").nth(1).is_some_and(|rest| {
+                    let arg = rest.split('\'').next().unwrap_or_default();
+                    !arg.is_empty() && given.iter().any(|(_, v)| v.contains(arg))
+                });
+            prop_assert!(
+                named,
+                "{args:?}: exit {code}, the message names no input: {err}"
+            );
+        }
+        Ok(())
+    });
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+}

@@ -152,7 +152,7 @@ pub fn run<A: AsRef<OsStr>>(args: &[A], out: &mut dyn Write, err: &mut dyn Write
         } => compile_file(&file, emit, precision, batch, out, err),
         Command::Run(args) => run::run(args, out, err),
         Command::Bench(args) => bench::run(args, out, err),
-        Command::Mesh { command } => mesh::run(command),
+        Command::Mesh { command } => mesh::run(command, out, err),
         Command::Lsp => crate::lsp::run_stdio(),
     }
 }

@@ -18,18 +18,18 @@ pub struct RunArgs {
     /// The script to run.
     pub file: PathBuf,
     /// Which backend runs the kernels.
-    #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
+    #[arg(long, value_enum, default_value_t = BackendChoice::Cpu, allow_hyphen_values = true)]
     pub backend: BackendChoice,
     /// Floating-point precision of the kernels (cpu: default f64; gpu: default f32; the
     /// interpreter is f64). The script's `precision` setting applies when this is not given.
-    #[arg(long, value_enum)]
+    #[arg(long, value_enum, allow_hyphen_values = true)]
     pub precision: Option<PrecisionChoice>,
     /// The GPU adapter of `--backend gpu`: a case-insensitive part of its name (or a backend
     /// name such as `vulkan`); default: a discrete GPU, else integrated, else software.
     #[arg(long, value_name = "NAME")]
     pub adapter: Option<String>,
     /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub threads: Option<usize>,
     /// Override a param's value, with its unit: `--set p_max=2.5kPa`.
     #[arg(long = "set", value_name = "NAME=VALUE", allow_hyphen_values = true)]
@@ -40,7 +40,7 @@ pub struct RunArgs {
     #[arg(long, value_name = "JSON")]
     pub params: Option<PathBuf>,
     /// Override the number of steps.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub steps: Option<u64>,
     /// Override the time step, with its unit: `--dt 20us`.
     #[arg(long, allow_hyphen_values = true)]
@@ -61,7 +61,7 @@ pub struct RunArgs {
     pub grad: bool,
     /// Which states the backward pass stores (overrides the optimize block's `checkpoint`):
     /// `auto`, `store_all`, `periodic:K` (every K-th state) or `revolve:N` (N snapshots).
-    #[arg(long, value_name = "SCHEDULE")]
+    #[arg(long, value_name = "SCHEDULE", allow_hyphen_values = true)]
     pub checkpoint: Option<String>,
     /// Memory for the stored states of the backward pass, e.g. `512MB` (overrides the optimize
     /// block's `memory_budget`).
@@ -79,7 +79,7 @@ pub struct RunArgs {
     #[arg(long, value_name = "DIR")]
     pub resume: Option<PathBuf>,
     /// Override the optimize block's number of iterations.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub iterations: Option<u64>,
     /// Run the simulation once with the params' initial values even if the script has an
     /// `optimize` block.
