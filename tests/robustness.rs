@@ -234,3 +234,688 @@ fn the_binary_survives_pathological_input() {
     assert!(err.contains("E0002"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+// ---- The command line under hostile use (issue 20) ----
+
+/// A scratch folder of this test process.
+fn scratch(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-hostile-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The 1k benchmark scene, run for a few steps with extra flags.
+fn run_bench_1k(extra: &[&str]) -> (i32, String, String) {
+    let script = softc_tests::root().join("examples/benchmark-1k.soft");
+    let mut args = vec!["run", script.to_str().unwrap(), "--steps", "5"];
+    args.extend_from_slice(extra);
+    softc_tests::softc(&args)
+}
+
+#[test]
+fn set_and_dt_values_need_the_dimension_of_what_they_set() {
+    // Issue 20 item 1: `p_peak=3mm` ran at 0.003 Pa, `p_peak=3` and `p_peak=3/s` at 3 Pa,
+    // `--dt 40mm` at 0.04 s.
+    for (flag, said) in [
+        ("p_peak=3mm", "is a length"),
+        ("p_peak=3", "has no unit"),
+        ("p_peak=3/s", "is a rate"),
+    ] {
+        let (code, _, err) = run_bench_1k(&["--set", flag]);
+        assert_eq!(code, 2, "{flag}: {err}");
+        assert!(
+            err.contains(&format!("--set {flag}"))
+                && err.contains(said)
+                && err.contains("pressure"),
+            "{flag}: {err}"
+        );
+        assert!(
+            err.contains("p_peak=3Pa"),
+            "{flag}: the fix is shown: {err}"
+        );
+    }
+    for (flag, said) in [("40mm", "is a length"), ("40", "has no unit")] {
+        let (code, _, err) = run_bench_1k(&["--dt", flag]);
+        assert_eq!(code, 2, "--dt {flag}: {err}");
+        assert!(
+            err.contains(&format!("--dt {flag}")) && err.contains(said),
+            "{err}"
+        );
+    }
+    // The right dimension runs, negative values parse (and meet the param's bounds).
+    let (code, _, err) = run_bench_1k(&["--set", "p_peak=4.5kPa", "--dt", "40us"]);
+    assert_eq!(code, 0, "{err}");
+    let (value, _) = softc::session::parse_quantity("-3kPa").unwrap();
+    assert_eq!(value, -3000.0);
+    let tip_z = |flag: &str| {
+        let (code, out, err) = run_bench_1k(&["--set", flag]);
+        assert_eq!(code, 0, "{flag}: {err}");
+        let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+        v["sets"]["tip"]["mean_displacement"][2].as_f64().unwrap()
+    };
+    let (up, down) = (tip_z("p_peak=3kPa"), tip_z("p_peak=-3kPa"));
+    assert!(
+        up != 0.0 && (up + down).abs() < 1e-3 * up.abs(),
+        "{up} {down}"
+    );
+}
+
+#[test]
+fn arguments_that_are_not_utf8_are_usage_errors() {
+    // Issue 20 item 12 (the binary itself: runtime/tests/mesh_cli.rs).
+    use std::ffi::OsString;
+    use std::os::unix::ffi::OsStringExt;
+    let script = softc_tests::root().join("examples/benchmark-1k.soft");
+    let bad = OsString::from_vec(b"p_peak=3\xffkPa".to_vec());
+    let args: Vec<OsString> = vec![
+        "softc".into(),
+        "run".into(),
+        script.into(),
+        "--set".into(),
+        bad,
+    ];
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    let code = softc::cli::run(&args, &mut out, &mut err);
+    let err = String::from_utf8_lossy(&err);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("argument 4") && err.contains("p_peak=3"),
+        "{err}"
+    );
+    // A script name that is not UTF-8 is a name like any other.
+    let missing = OsString::from_vec(b"/nonexistent/\xff.soft".to_vec());
+    let args: Vec<OsString> = vec!["softc".into(), "check".into(), missing];
+    let (mut out, mut err) = (Vec::new(), Vec::new());
+    let code = softc::cli::run(&args, &mut out, &mut err);
+    let err = String::from_utf8_lossy(&err);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("cannot read `/nonexistent/"), "{err}");
+}
+
+#[test]
+fn fmt_writes_through_a_symbolic_link() {
+    // Issue 20 item 7: `softc fmt link.soft` replaced the link with a formatted file and left
+    // the script it points to as it was.
+    let d = scratch("fmt-link");
+    let real = d.join("real.soft");
+    std::fs::write(&real, "let   a =   3 mm\n").unwrap();
+    let link = d.join("link.soft");
+    std::os::unix::fs::symlink(&real, &link).unwrap();
+    let (code, _, err) = softc_tests::softc(&["fmt", link.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink()
+    );
+    assert_eq!(std::fs::read_to_string(&real).unwrap(), "let a = 3 mm\n");
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn unwritable_outputs_are_refused_before_the_run() {
+    // Issue 20 item 6: an unwritable `--json` path was found after the run, and its results
+    // were lost.
+    let d = scratch("outputs");
+    let file = d.join("a-file");
+    std::fs::write(&file, "x").unwrap();
+    let in_file = file.join("out.json");
+    let proc_dir = "/proc/softc-cannot-create-this";
+    for (flag, path, said) in [
+        ("--json", in_file.to_str().unwrap(), "does not exist"),
+        ("--json", d.to_str().unwrap(), "is a folder"),
+        ("--vtk", proc_dir, "cannot be created"),
+        ("--out", proc_dir, "cannot be created"),
+    ] {
+        let (code, out, err) = run_bench_1k(&[flag, path]);
+        assert_eq!(code, 2, "{flag} {path}: {err}");
+        assert!(
+            err.contains(&format!("{flag} {path}")) && err.contains(said),
+            "{err}"
+        );
+        assert!(!err.contains("steps of"), "refused before the run: {err}");
+        assert!(out.is_empty());
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn a_second_run_on_an_out_folder_in_use_is_refused() {
+    // Issue 20 item 2: two optimizations on one `--out DIR` were both accepted, and one
+    // silently overwrote the other. A run holds the folder's lock for its life; here this test
+    // holds it, as a first run would.
+    let d = scratch("lock");
+    let out = d.join("out");
+    std::fs::create_dir_all(&out).unwrap();
+    let first = std::fs::File::create(out.join(".softc.lock")).unwrap();
+    first.try_lock().unwrap();
+    let script = softc_tests::root().join("runtime/tests/fixtures/optim/pressure.soft");
+    let script = script.to_str().unwrap();
+    let args = [
+        "run",
+        script,
+        "--iterations",
+        "1",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    let (code, _, err) = softc_tests::softc(&args);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("in use by another softc run") && err.contains("--out"),
+        "{err}"
+    );
+    assert!(!out.join("state.json").exists());
+    let (code, _, err) = softc_tests::softc(&["run", script, "--resume", out.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("in use by another softc run"), "{err}");
+    // Once the first run is over, the folder is free.
+    drop(first);
+    let (code, _, err) = softc_tests::softc(&args);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.join("state.json").exists());
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn a_plain_run_holds_its_output_folders() {
+    // The sibling of item 2 for plain runs: `--vtk DIR` and `--csv DIR` of two runs.
+    let d = scratch("lock-vtk");
+    let first = std::fs::File::create(d.join(".softc.lock")).unwrap();
+    first.try_lock().unwrap();
+    let (code, _, err) = run_bench_1k(&["--vtk", d.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--vtk") && err.contains("in use by another softc run"),
+        "{err}"
+    );
+    drop(first);
+    // One folder for both outputs is one run's.
+    let dir = d.to_str().unwrap();
+    let (code, _, err) = run_bench_1k(&["--vtk", dir, "--csv", dir]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn usage_errors_exit_2_before_any_work() {
+    // Issue 20 item 18: a folder or an unreadable script, bad --checkpoint/--memory-budget
+    // values (refused only after the stable-step estimate) and --csv into a file exited 1.
+    let d = scratch("usage");
+    let (code, _, err) = softc_tests::softc(&["run", d.to_str().unwrap()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("is a folder"), "{err}");
+    let file = d.join("a-file");
+    std::fs::write(&file, "x").unwrap();
+    let file = file.to_str().unwrap();
+    for (flags, said) in [
+        (
+            &["--grad", "--checkpoint", "sometimes"][..],
+            "--checkpoint sometimes",
+        ),
+        (
+            &["--grad", "--checkpoint", "periodic:0"][..],
+            "--checkpoint periodic:0",
+        ),
+        (
+            &["--grad", "--memory-budget", "12 mm"][..],
+            "--memory-budget 12 mm",
+        ),
+        (
+            &["--grad", "--memory-budget", "-5MB"][..],
+            "--memory-budget -5MB",
+        ),
+        (&["--csv", file][..], "is a file, not a folder"),
+    ] {
+        let (code, _, err) = run_bench_1k(flags);
+        assert_eq!(code, 2, "{flags:?}: {err}");
+        assert!(err.contains(said), "{flags:?}: {err}");
+        assert!(
+            !err.contains("stable step estimate"),
+            "before any work: {err}"
+        );
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn a_step_count_beyond_the_limit_is_refused_unless_asked_for() {
+    // Issue 20 item 14: `dt = 1e-12 s` with `duration = 1 s` started 10¹² steps silently.
+    let d = scratch("steps");
+    let text = std::fs::read_to_string(softc_tests::root().join("examples/benchmark-1k.soft"))
+        .unwrap()
+        .replace(
+            "../meshes/",
+            &format!("{}/meshes/", softc_tests::root().display()),
+        )
+        .replace(
+            "dt = 40 us\n  steps = 4000",
+            "dt = 1e-12 s\n  duration = 1 s",
+        );
+    let script = d.join("tiny-dt.soft");
+    std::fs::write(&script, text).unwrap();
+    let script = script.to_str().unwrap();
+    let start = Instant::now();
+    let (code, _, err) = softc_tests::softc(&["run", script]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("1000000000000 steps") && err.contains("--steps 1000000000000"),
+        "{err}"
+    );
+    assert!(start.elapsed() < Duration::from_secs(60));
+    // Asked for, a count runs.
+    let (code, _, err) = softc_tests::softc(&["run", script, "--steps", "3"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn smaller_defects_of_messages_and_outputs() {
+    // Issue 20 item 19.
+    let d = scratch("smaller");
+    let pressure = softc_tests::root().join("runtime/tests/fixtures/optim/pressure.soft");
+    let pressure = pressure.to_str().unwrap();
+    // A bounds message in the script's terms, not Rust's debug text `Both(0.0, 50000.0)`.
+    let (code, _, err) =
+        softc_tests::softc(&["run", pressure, "--iterations", "1", "--set", "p_peak=0kPa"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("[0, 50000]") && !err.contains("Both("),
+        "{err}"
+    );
+    // A backend change on --resume names the backend.
+    let out = d.join("out");
+    let out = out.to_str().unwrap();
+    let (code, _, err) = softc_tests::softc(&["run", pressure, "--iterations", "1", "--out", out]);
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = softc_tests::softc(&[
+        "run",
+        pressure,
+        "--iterations",
+        "2",
+        "--resume",
+        out,
+        "--backend",
+        "interp",
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--backend cpu (saved) vs interp (now)"),
+        "{err}"
+    );
+    // `--dt 0s` was run and reported as "estimate 0 s".
+    for dt in ["0s", "-1us"] {
+        let (code, _, err) = run_bench_1k(&["--dt", dt]);
+        assert_eq!(code, 2, "{err}");
+        assert!(
+            err.contains(&format!("--dt {dt}")) && err.contains("positive"),
+            "{err}"
+        );
+    }
+    // A read-only --out folder was found after the first iteration, the message naming no
+    // path.
+    let (code, _, err) = softc_tests::softc(&["run", pressure, "--out", "/proc/softc-out"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--out /proc/softc-out") && !err.contains("iteration 1/"),
+        "{err}"
+    );
+    // A 1 B --memory-budget was silently exceeded.
+    let (code, _, err) = run_bench_1k(&["--grad", "--memory-budget", "1B"]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("memory budget of 1 bytes") && err.contains("give at least"),
+        "{err}"
+    );
+    // The VTU wrote points in mm and displacement in m, unlabelled: one unit system (SI), and
+    // every array's name says its unit.
+    let vtk = d.join("vtk");
+    let (code, _, err) = run_bench_1k(&["--vtk", vtk.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let last = vtk.join("benchmark-1k_000001.vtu");
+    let text = String::from_utf8_lossy(&std::fs::read(&last).unwrap()).into_owned();
+    for name in [
+        "displacement_m",
+        "velocity_m_per_s",
+        "strain_energy_density_J_per_m3",
+        "length unit: m",
+    ] {
+        assert!(text.contains(name), "{name}");
+    }
+    let mesh = softc::mesh::read(&last, softc::mesh::LengthUnit::Metre).unwrap();
+    let max_x = mesh.nodes.iter().map(|n| n[0]).fold(f64::MIN, f64::max);
+    assert!(
+        (max_x - 0.06).abs() < 1e-6,
+        "points in metres: the 60 mm beam ends at {max_x}"
+    );
+    std::fs::remove_dir_all(&d).ok();
+}
+
+// ---- Property test: random flag values and random meshes through the command line ----
+
+/// `softc ARGS` in-process on a thread with the binary's large stack: its exit status, stdout
+/// and stderr. A panic or a run past `limit` fails the test, naming the arguments.
+fn softc_limited(args: &[std::ffi::OsString], limit: Duration) -> (i32, String, String) {
+    let mut argv: Vec<std::ffi::OsString> = vec!["softc".into()];
+    argv.extend(args.iter().cloned());
+    let shown = format!("{argv:?}");
+    let (tx, rx) = std::sync::mpsc::channel();
+    let worker = std::thread::Builder::new()
+        .stack_size(64 << 20)
+        .spawn(move || {
+            let (mut out, mut err) = (Vec::new(), Vec::new());
+            let code = softc::cli::run(&argv, &mut out, &mut err);
+            let _ = tx.send((
+                code,
+                String::from_utf8_lossy(&out).into_owned(),
+                String::from_utf8_lossy(&err).into_owned(),
+            ));
+        })
+        .unwrap();
+    match rx.recv_timeout(limit) {
+        Ok(r) => {
+            worker.join().unwrap();
+            r
+        }
+        // The sender went away without a result: the thread panicked.
+        Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+            let _ = worker.join();
+            panic!("softc panicked on {shown}")
+        }
+        Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+            panic!("softc ran past {limit:?} on {shown} (a hang)")
+        }
+    }
+}
+
+/// A fixed seed: the same cases on every run and machine.
+fn deterministic_runner(cases: u32) -> proptest::test_runner::TestRunner {
+    use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
+    let config = Config {
+        cases,
+        failure_persistence: None,
+        ..Config::default()
+    };
+    TestRunner::new_with_rng(config, TestRng::deterministic_rng(RngAlgorithm::ChaCha))
+}
+
+/// The small fixture meshes of every format softc reads, by extension.
+const MESH_FIXTURES: &[&str] = &[
+    "cube_v41.msh",
+    "cube_v22.msh",
+    "gmsh_cube_v41_bin.msh",
+    "cube.vtk",
+    "cube_binary.vtk",
+    "cube_ascii.vtu",
+    "cube_binary.vtu",
+    "cube.inp",
+    "cube.node",
+];
+
+/// Random bytes, or a fixture mesh corrupted: truncated, bytes overwritten, a range repeated.
+fn mesh_bytes() -> impl Strategy<Value = (usize, bool, Vec<u8>)> {
+    let random = (
+        0..MESH_FIXTURES.len(),
+        proptest::collection::vec(any::<u8>(), 0..2000),
+    )
+        .prop_map(|(k, b)| (k, true, b));
+    let corrupted = (
+        0..MESH_FIXTURES.len(),
+        any::<proptest::sample::Index>(),
+        proptest::collection::vec((any::<proptest::sample::Index>(), any::<u8>()), 0..6),
+        0..3u8,
+    )
+        .prop_map(|(k, cut, flips, how)| {
+            let dir = softc_tests::root().join("runtime/tests/fixtures/mesh");
+            let mut b = std::fs::read(dir.join(MESH_FIXTURES[k])).unwrap();
+            let at = cut.index(b.len().max(1));
+            match how {
+                0 => b.truncate(at),
+                1 => {
+                    let copy = b[at..].to_vec();
+                    b.extend_from_slice(&copy[..copy.len().min(200)]);
+                }
+                _ => {}
+            }
+            for (i, byte) in flips {
+                if !b.is_empty() {
+                    let i = i.index(b.len());
+                    b[i] = byte;
+                }
+            }
+            (k, false, b)
+        });
+    prop_oneof![random, corrupted]
+}
+
+#[test]
+fn random_meshes_through_the_command_line_are_refused_by_name() {
+    let d = scratch("prop-mesh");
+    let mut runner = deterministic_runner(96);
+    let counter = std::sync::atomic::AtomicUsize::new(0);
+    let result = runner.run(&mesh_bytes(), |(k, random, bytes)| {
+        let case = counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let ext = MESH_FIXTURES[k].rsplit('.').next().unwrap();
+        let name = format!("case{case}.{ext}");
+        let mesh = d.join(&name);
+        std::fs::write(&mesh, &bytes).unwrap();
+        if ext == "node" {
+            // tetgen's elements beside the nodes, as the fixture has them.
+            let ele = softc_tests::root().join("runtime/tests/fixtures/mesh/cube.ele");
+            std::fs::copy(ele, mesh.with_extension("ele")).unwrap();
+        }
+        let info: Vec<std::ffi::OsString> = vec!["mesh".into(), "info".into(), mesh.clone().into()];
+        let (code, _, err) = softc_limited(&info, Duration::from_secs(30));
+        prop_assert!(
+            (code == 1 || (code == 0 && !random)),
+            "mesh info {name}: exit {code}: {err}"
+        );
+        if code != 0 {
+            prop_assert!(
+                err.contains(&name),
+                "mesh info {name}: the message names no file: {err}"
+            );
+        }
+        // The same mesh through a script.
+        let script = d.join(format!("case{case}.soft"));
+        std::fs::write(
+            &script,
+            format!(
+                "mesh body = load(\"{name}\")\n\
+                 material rubber = neo_hookean(mu: 100 kPa, kappa: 1 MPa, density: 1070 kg/m^3)\n\
+                 region clamp = box(min: [-1, -1, -1] mm, max: [0.1, 100, 100] mm)\n\
+                 sim {{\n  dt = 1 us\n  steps = 2\n  damping = 20 /s\n  fix clamp\n}}\n"
+            ),
+        )
+        .unwrap();
+        let run: Vec<std::ffi::OsString> = vec!["run".into(), script.into()];
+        let (code, _, err) = softc_limited(&run, Duration::from_secs(30));
+        prop_assert!(
+            (code == 1 || (code == 0 && !random)),
+            "run with {name}: exit {code}: {err}"
+        );
+        if code != 0 {
+            prop_assert!(
+                err.contains(&name),
+                "run with {name}: the message names no file: {err}"
+            );
+        }
+        Ok(())
+    });
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
+/// Numbers, units and the rest of what flag values are made of.
+const NUMBERS: &[&str] = &[
+    "0",
+    "1",
+    "-1",
+    "2.5",
+    "-3",
+    "40",
+    "1e308",
+    "1e-308",
+    "1e400",
+    "nan",
+    "inf",
+    "-0",
+    "007",
+    "99999999999999999999",
+    "0x10",
+    "1_000",
+    ".5",
+    "5.",
+    "1e",
+    "",
+];
+const UNITS: &[&str] = &[
+    "", "s", "us", "ms", " us", "mm", "kPa", "Pa", "/s", "B", "MB", "GiB", "kg/m^3", "%", "µs",
+    "kPa/s", "m^2",
+];
+const OTHER: &[&str] = &[
+    "=",
+    ":",
+    ",",
+    "..",
+    "-",
+    "--",
+    "p_peak",
+    "p_peak=",
+    "p_peak.1=",
+    "periodic:",
+    "revolve:",
+    "store_all",
+    "auto",
+    "cpu",
+    "interp",
+    "reference",
+    "f32",
+    "f64",
+    "\"",
+    "\\",
+    "(",
+    "\u{202e}",
+    "\u{0}",
+    "\n",
+    "é",
+    " ",
+];
+
+/// The flags of `softc run` whose values are drawn, each with values it may well take (not
+/// `--steps`, kept at 2 so no case runs long, nor outputs, which get paths of their own, nor
+/// `--backend gpu`, slow on a software adapter).
+const VALUE_FLAGS: &[(&str, &[&str])] = &[
+    ("--set", &[]),
+    ("--dt", &[]),
+    (
+        "--threads",
+        &["0", "1", "2", "64", "100000", "18446744073709551615"],
+    ),
+    (
+        "--checkpoint",
+        &[
+            "auto",
+            "store_all",
+            "periodic:1",
+            "periodic:3",
+            "revolve:1",
+            "revolve:2",
+        ],
+    ),
+    ("--memory-budget", &[]),
+    ("--backend", &["cpu", "interp", "reference"]),
+    ("--precision", &["f32", "f64"]),
+    ("--adapter", &["", "lavapipe", "x"]),
+    ("--iterations", &["0", "1", "3"]),
+];
+
+/// A value: a number with a unit (`--set` with a name), one the flag may well take, or pieces
+/// of anything.
+fn flag_value(flag: usize) -> impl Strategy<Value = String> {
+    let quantity = (0..NUMBERS.len(), 0..UNITS.len()).prop_map(move |(n, u)| {
+        let name = if VALUE_FLAGS[flag].0 == "--set" {
+            "p_peak="
+        } else {
+            ""
+        };
+        format!("{name}{}{}", NUMBERS[n], UNITS[u])
+    });
+    let known = VALUE_FLAGS[flag].1;
+    let plausible = (0..known.len().max(1))
+        .prop_map(move |i| known.get(i).map_or(String::new(), |v| v.to_string()));
+    let pieces = proptest::collection::vec(
+        prop_oneof![
+            (0..NUMBERS.len()).prop_map(|i| NUMBERS[i]),
+            (0..UNITS.len()).prop_map(|i| UNITS[i]),
+            (0..OTHER.len()).prop_map(|i| OTHER[i]),
+        ],
+        1..4,
+    )
+    .prop_map(|v| v.concat());
+    if known.is_empty() {
+        prop_oneof![3 => quantity, 1 => pieces].boxed()
+    } else {
+        prop_oneof![3 => plausible, 1 => quantity, 1 => pieces].boxed()
+    }
+}
+
+/// One to three different flags with values, each maybe with `--grad`.
+fn flag_values() -> impl Strategy<Value = Vec<(usize, String, bool)>> {
+    proptest::sample::subsequence((0..VALUE_FLAGS.len()).collect::<Vec<_>>(), 1..4).prop_flat_map(
+        |flags| {
+            flags
+                .into_iter()
+                .map(|f| (Just(f), flag_value(f), any::<bool>()))
+                .collect::<Vec<_>>()
+        },
+    )
+}
+
+#[test]
+fn random_flag_values_are_refused_by_name_or_run() {
+    let script = softc_tests::root().join("examples/benchmark-1k.soft");
+    let mut runner = deterministic_runner(80);
+    let result = runner.run(&flag_values(), |flags| {
+        let mut args: Vec<std::ffi::OsString> = vec![
+            "run".into(),
+            script.clone().into(),
+            "--steps".into(),
+            "2".into(),
+        ];
+        let mut given = Vec::new();
+        for (f, value, grad) in flags {
+            args.push(VALUE_FLAGS[f].0.into());
+            args.push(value.clone().into());
+            if grad && !args.iter().any(|a| a == "--grad") {
+                args.push("--grad".into());
+            }
+            given.push((VALUE_FLAGS[f].0, value));
+        }
+        let (code, _, err) = softc_limited(&args, Duration::from_secs(60));
+        prop_assert!((0..=2).contains(&code), "{args:?}: exit {code}: {err}");
+        if code != 0 {
+            // The message names a flag or a value it was given (clap's included), or the script.
+            let named = given.iter().any(|(f, v)| {
+                err.contains(f) || (!v.trim().is_empty() && err.contains(v.trim()))
+            }) || err.contains("benchmark-1k.soft")
+                || err.contains("--grad")
+                // clap's own word for a value it read as flags (`-00` as `-0`): a part of it.
+                || err.split("unexpected argument '").nth(1).is_some_and(|rest| {
+                    let arg = rest.split('\'').next().unwrap_or_default();
+                    !arg.is_empty() && given.iter().any(|(_, v)| v.contains(arg))
+                });
+            prop_assert!(
+                named,
+                "{args:?}: exit {code}, the message names no input: {err}"
+            );
+        }
+        Ok(())
+    });
+    if let Err(e) = result {
+        panic!("{e}");
+    }
+}

@@ -7,13 +7,13 @@ fn main() {
         .parent()
         .expect("the workspace root")
         .to_path_buf();
-    let mut args = vec![
-        "softc".to_string(),
-        "bench".to_string(),
-        "--examples".to_string(),
-        root.join("examples").display().to_string(),
+    let mut args: Vec<std::ffi::OsString> = vec![
+        "softc".into(),
+        "bench".into(),
+        "--examples".into(),
+        root.join("examples").into(),
     ];
     // cargo passes `--bench` to harness-less benches; it is not a softc flag.
-    args.extend(std::env::args().skip(1).filter(|a| a != "--bench"));
+    args.extend(std::env::args_os().skip(1).filter(|a| a != "--bench"));
     std::process::exit(softc::cli::main_with_args(args));
 }

@@ -13,6 +13,143 @@ pub fn parse_quantity(text: &str) -> Result<(f64, softc_compiler::driver::Dim), 
     softc_compiler::driver::parse_quantity(text)
 }
 
+/// A `--set NAME=VALUE` flag, read: the value in SI units and the dimension its unit has.
+#[derive(Clone, Debug)]
+pub struct SetFlag {
+    pub name: String,
+    /// As written after `=`.
+    pub text: String,
+    pub value: f64,
+    pub dim: softc_compiler::driver::Dim,
+}
+
+/// Read a `--set NAME=VALUE` flag (`p_max=2.5kPa`, `p=-3kPa`, `beta.3=15/s`); the value's
+/// dimension is checked against the script's declaration by [`check_set_dims`].
+pub fn parse_set(flag: &str) -> Result<SetFlag, String> {
+    let Some((name, text)) = flag.split_once('=') else {
+        return Err(format!(
+            "--set expects NAME=VALUE with a unit, e.g. `--set p_max=2.5kPa`; found `{flag}`"
+        ));
+    };
+    let name = name.trim();
+    if name.is_empty() {
+        return Err(format!("--set {flag}: the name before `=` is missing"));
+    }
+    let (value, dim) = parse_quantity(text.trim()).map_err(|e| format!("--set {name}: {e}"))?;
+    if !value.is_finite() {
+        return Err(format!(
+            "--set {name}={text}: the value is not a finite number"
+        ));
+    }
+    Ok(SetFlag {
+        name: name.to_string(),
+        text: text.trim().to_string(),
+        value,
+        dim,
+    })
+}
+
+/// `--set` values must have the dimension of the param or input they set: `p_peak=3mm` is a
+/// length, not a pressure, and a bare `p_peak=3` has no unit (units are required). Names the
+/// script does not declare are left to the caller.
+pub fn check_set_dims(
+    resolved: &softc_compiler::driver::Resolved,
+    sets: &[SetFlag],
+) -> Result<(), String> {
+    for s in sets {
+        let Some(want) = resolved.value_dim(&s.name) else {
+            continue;
+        };
+        if want == s.dim {
+            continue;
+        }
+        let si = want.si_unit();
+        let example = format!(
+            "--set {}={}{}",
+            s.name,
+            s.text
+                .trim_end_matches(|c: char| !(c.is_ascii_digit() || c == '.'))
+                .trim(),
+            si.strip_prefix('1').unwrap_or(&si)
+        );
+        let base = s.name.split('.').next().unwrap_or(&s.name);
+        let want_a = with_article(&want.name());
+        return Err(if s.dim.is_none() {
+            format!(
+                "--set {}={}: the value has no unit, and `{base}` is {want_a}: write it with a \
+                 unit of {want} (SI: {si}), e.g. `{example}`",
+                s.name, s.text
+            )
+        } else {
+            format!(
+                "--set {}={}: `{}` is {}, but `{base}` is {want_a}: give a value in a unit of \
+                 {want} (SI: {si}), e.g. `{example}`",
+                s.name,
+                s.text,
+                s.text,
+                with_article(&s.dim.name())
+            )
+        });
+    }
+    Ok(())
+}
+
+/// `a length`, `an acceleration`.
+fn with_article(noun: &str) -> String {
+    let vowel = noun.starts_with(|c: char| "aeiou".contains(c));
+    format!("{} {noun}", if vowel { "an" } else { "a" })
+}
+
+/// `--dt VALUE`: a positive, finite time with its unit (`20us`).
+pub fn parse_dt(text: &str) -> Result<f64, String> {
+    let (dt, dim) = parse_quantity(text.trim()).map_err(|e| format!("--dt: {e}"))?;
+    if dim != softc_compiler::driver::Dim::TIME {
+        return Err(if dim.is_none() {
+            format!("--dt {text}: the value has no unit; write a time, e.g. `--dt 20us`")
+        } else {
+            format!(
+                "--dt {text}: `{text}` is {}, not a time; write a time, e.g. `--dt 20us`",
+                with_article(&dim.name())
+            )
+        });
+    }
+    if !(dt > 0.0 && dt.is_finite()) {
+        return Err(format!(
+            "--dt {text}: the time step must be positive and finite, e.g. `--dt 20us`"
+        ));
+    }
+    Ok(dt)
+}
+
+/// The most steps a run takes without being asked for them: a step count from the script's
+/// `duration` and a tiny dt (`dt = 1e-12 s`, 10¹² steps over 1 s) would run for days
+/// silently. 10 million steps of the 1k benchmark scene are about 20 minutes on one core.
+pub const MAX_UNASKED_STEPS: u64 = 10_000_000;
+
+/// Refuse a step count over [`MAX_UNASKED_STEPS`] that comes from `duration / dt`, unless it
+/// was asked for (`--steps`, or the script's `steps =`). `estimate` is the stable step.
+pub fn check_step_count(
+    scene: &Scene,
+    dt: f64,
+    steps: u64,
+    steps_flag: bool,
+    estimate: Option<f64>,
+) -> Result<(), String> {
+    let sim = &scene.resolved.sim;
+    if steps_flag || sim.steps.is_some() || steps <= MAX_UNASKED_STEPS {
+        return Ok(());
+    }
+    let duration = sim.duration.unwrap_or(steps as f64 * dt);
+    let auto = estimate.map_or(String::new(), |e| {
+        format!(" (`dt = auto` takes 0.9 of the stable step, {e:.3e} s here)")
+    });
+    Err(format!(
+        "dt = {dt:e} s over duration = {duration:e} s makes {steps} steps, more than the \
+         {MAX_UNASKED_STEPS} softc runs unless asked: use a larger dt{auto} or a shorter \
+         duration, or ask for the steps with --steps {steps}"
+    ))
+}
+
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
 /// `truncate`, overridden by `checkpoint` (`--checkpoint`) and `memory_budget`
 /// (`--memory-budget`).
@@ -39,35 +176,45 @@ pub fn grad_options(
         o.truncate = script.truncate;
     }
     if let Some(c) = checkpoint {
-        let number = |s: &str| {
-            s.trim()
-                .parse::<u64>()
-                .ok()
-                .filter(|n| *n >= 1)
-                .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
-        };
-        o.checkpoint = match c.split_once(':') {
-            None if c == "auto" => Checkpointing::Auto,
-            None if c == "store_all" => Checkpointing::StoreAll,
-            Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
-            Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
-            _ => {
-                return Err(format!(
-                    "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
-                ));
-            }
-        };
+        o.checkpoint = parse_checkpoint(c)?;
     }
     if let Some(m) = memory_budget {
-        let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
-        if dim != softc_compiler::driver::Dim::MEMORY || bytes <= 0.0 {
-            return Err(format!(
-                "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
-            ));
-        }
-        o.memory_budget = Some(bytes as u64);
+        o.memory_budget = Some(parse_memory_budget(m)?);
     }
     Ok(o)
+}
+
+/// `--checkpoint auto|store_all|periodic:K|revolve:N`.
+pub fn parse_checkpoint(c: &str) -> Result<Checkpointing, String> {
+    let number = |s: &str| {
+        s.trim()
+            .parse::<u64>()
+            .ok()
+            .filter(|n| *n >= 1)
+            .ok_or_else(|| format!("--checkpoint {c}: expected a positive integer after `:`"))
+    };
+    Ok(match c.split_once(':') {
+        None if c == "auto" => Checkpointing::Auto,
+        None if c == "store_all" => Checkpointing::StoreAll,
+        Some(("periodic", k)) => Checkpointing::Periodic(number(k)?),
+        Some(("revolve", n)) => Checkpointing::Revolve(number(n)? as usize),
+        _ => {
+            return Err(format!(
+                "--checkpoint {c}: expected auto, store_all, periodic:K or revolve:N"
+            ));
+        }
+    })
+}
+
+/// `--memory-budget 512MB`: a positive memory size, in bytes.
+pub fn parse_memory_budget(m: &str) -> Result<u64, String> {
+    let (bytes, dim) = parse_quantity(m).map_err(|e| format!("--memory-budget: {e}"))?;
+    if dim != softc_compiler::driver::Dim::MEMORY || !(bytes >= 1.0 && bytes.is_finite()) {
+        return Err(format!(
+            "--memory-budget {m}: expected a positive memory size such as 512MB or 2GiB"
+        ));
+    }
+    Ok(bytes as u64)
 }
 
 /// The node-set logs of the script's `output csv(SET) every …` statements, written into

@@ -701,7 +701,7 @@ fn a_plain_run_of_several_scenes_runs_them_as_one_gpu_batch() {
     // verification.soft lists two pressures: on the GPU `softc run` runs both scenes as one
     // batch, and each scene's summary equals the CPU's (f64: to the software exp/pow's bits).
     let script = root().join("examples/verification.soft");
-    let short = ["--steps", "300", "--dt", "1e-4", "--precision", "f64"];
+    let short = ["--steps", "300", "--dt", "100us", "--precision", "f64"];
     let Some((code, out, err)) = softc_run_gpu(&script, &short) else {
         return;
     };
@@ -757,7 +757,7 @@ fn a_scene_that_blows_up_in_a_gpu_batch_is_reported_and_does_not_hold_the_others
     std::fs::create_dir_all(&dir).unwrap();
     let script = dir.join("blowup.soft");
     std::fs::write(&script, text).unwrap();
-    let short = ["--steps", "600", "--dt", "1e-4"];
+    let short = ["--steps", "600", "--dt", "100us"];
     let Some((code, _, err)) = softc_run_gpu(&script, &short) else {
         return;
     };

@@ -170,3 +170,35 @@ fn bad_inputs_exit_1_with_file_and_problem() {
     assert!(e.contains("missing.vtu"));
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// Issue 20 item 12: an argument that is not UTF-8 panicked the binary (`std::env::args`). A
+/// file name may be any bytes; a flag value that must be text is refused with a message.
+#[test]
+fn the_binary_takes_arguments_that_are_not_utf8() {
+    use std::ffi::OsString;
+    use std::os::unix::ffi::OsStringExt;
+    let d = tmp("nonutf8");
+    let mut name = b"beam-\xff\xfe".to_vec();
+    name.extend_from_slice(b".msh");
+    let mesh = d.join(OsString::from_vec(name));
+    std::fs::copy(meshes().join("bench_1k.msh"), &mesh).unwrap();
+    let softc = || std::process::Command::new(env!("CARGO_BIN_EXE_softc"));
+    let out = softc().args(["mesh", "info"]).arg(&mesh).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{err}");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("valid"));
+    let out = softc()
+        .args(["mesh", "info", "--unit"])
+        .arg(OsString::from_vec(b"m\xff".to_vec()))
+        .arg(&mesh)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("not valid UTF-8") && err.contains("argument 4"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}

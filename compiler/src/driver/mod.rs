@@ -224,7 +224,16 @@ pub fn compile(
     let sim =
         SimSettings::resolve(&program, &syntax, checked_script.duration).map_err(&lower_err)?;
     let grad = GradSettings::resolve(&program, &syntax).map_err(&lower_err)?;
-    let inputs = plan::inputs(&program, &syntax).map_err(&lower_err)?;
+    let mut inputs = plan::inputs(&program, &syntax).map_err(&lower_err)?;
+    for input in &mut inputs {
+        let checked = checked_script
+            .globals
+            .iter()
+            .find(|g| g.kind == crate::sema::SymKind::Input && g.name == input.name);
+        if let Some(crate::sema::types::Ty::Num { dim, .. }) = checked.and_then(|g| g.ty.as_ref()) {
+            input.dim = *dim;
+        }
+    }
     let optimize = OptimizeSpec::resolve(&program, &syntax, &checked_script.params, &inputs)
         .map_err(&lower_err)?;
     let densities = kernels
@@ -272,6 +281,19 @@ impl Resolved {
         crate::sema::prelude_ast()
     }
 
+    /// The physical dimension of a param or input given by name (`p_max`, or an entry
+    /// `beta.3`): what a value set from outside the script (`softc run --set`) must have.
+    pub fn value_dim(&self, name: &str) -> Option<Dim> {
+        let base = name.split('.').next().unwrap_or(name);
+        if let Some(p) = self.params.iter().find(|p| p.name == base) {
+            return match &p.ty {
+                crate::sema::types::Ty::Num { dim, .. } => Some(*dim),
+                _ => None,
+            };
+        }
+        self.inputs.iter().find(|i| i.name == base).map(|i| i.dim)
+    }
+
     fn lowering_program(&self) -> Program<'_> {
         Program::new(&self.syntax, crate::sema::prelude_ast())
     }
@@ -305,7 +327,7 @@ pub(crate) fn const_scalar(program: &Program, e: &Expr) -> Result<f64, String> {
 /// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end: the
 /// value in SI units and its dimension.
 pub fn parse_quantity(text: &str) -> Result<(f64, Dim), String> {
-    use crate::front::ast::{ExprKind, Item, ItemKind};
+    use crate::front::ast::{ExprKind, Item, ItemKind, UnaryOp};
     let src = format!("let __value = {text}");
     let ast = crate::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
     let Some(Item {
@@ -315,7 +337,15 @@ pub fn parse_quantity(text: &str) -> Result<(f64, Dim), String> {
     else {
         return Err(format!("`{text}` is not a value"));
     };
-    let (num, dim) = match &l.value.kind {
+    // A leading minus sign: `-3kPa` (the grammar reads it as negation of `3kPa`).
+    let (value_expr, sign) = match &l.value.kind {
+        ExprKind::Unary {
+            op: UnaryOp::Neg,
+            operand,
+        } => (&**operand, -1.0),
+        _ => (&l.value, 1.0),
+    };
+    let (num, dim) = match &value_expr.kind {
         ExprKind::Number { value, unit, .. } => {
             let mut factor = 1.0;
             let mut dim = Dim::NONE;
@@ -325,7 +355,7 @@ pub fn parse_quantity(text: &str) -> Result<(f64, Dim), String> {
                 factor *= k.powi(f.power);
                 dim = dim.times(d.powi(f.power).unwrap_or(d));
             }
-            (value * factor, dim)
+            (sign * value * factor, dim)
         }
         _ => return Err(format!("`{text}` is not a number with a unit")),
     };

@@ -95,6 +95,8 @@ pub enum InputSource {
 #[derive(Debug, Clone)]
 pub struct InputDecl {
     pub name: String,
+    /// The physical dimension of every entry (`input p: pressure` → pressure), as checked.
+    pub dim: crate::sema::units::Dim,
     pub shape: Vec<usize>,
     /// The uniform of each entry (`input.target.0`, …).
     pub uniforms: Vec<String>,
@@ -306,6 +308,8 @@ pub(super) fn inputs(program: &Program, ast: &Script) -> Result<Vec<InputDecl>, 
         };
         out.push(InputDecl {
             name: decl.name.name.clone(),
+            // Filled from the checked types by `compile`.
+            dim: crate::sema::units::Dim::NONE,
             shape,
             uniforms,
             source,

@@ -394,6 +394,19 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
 }
 
 pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    // Outputs are checked before the (long) measurements.
+    if let Some(p) = &args.json
+        && let Err(e) = crate::outputs::atomic::check_writable_file(p)
+    {
+        let _ = writeln!(err, "error: --json {}: {e}", p.display());
+        return 2;
+    }
+    if args.tradeoff.is_some()
+        && let Err(e) = crate::outputs::atomic::check_writable_dir(&args.out)
+    {
+        let _ = writeln!(err, "error: --out {}: {e}", args.out.display());
+        return 2;
+    }
     if args.profile {
         return match profile(&args, out) {
             Ok(()) => 0,
@@ -404,11 +417,23 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         };
     }
     if let Some(script) = &args.tradeoff {
-        return match sweep(&args, script).and_then(|s| tradeoff::run(&s, out, err)) {
-            Ok(()) => 0,
+        let sweep = match sweep(&args, script) {
+            Ok(s) => s,
             Err(e) => {
                 let _ = writeln!(err, "error: {}: {e}", script.display());
-                1
+                return 2;
+            }
+        };
+        return match tradeoff::run(&sweep, out, err) {
+            Ok(()) => 0,
+            Err(e) => {
+                // A bad flag found once the script is read (a `--set` of the wrong dimension).
+                let (code, e) = match e.strip_prefix(tradeoff::USAGE) {
+                    Some(e) => (2, e.to_string()),
+                    None => (1, e),
+                };
+                let _ = writeln!(err, "error: {}: {e}", script.display());
+                code
             }
         };
     }
@@ -483,8 +508,14 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         });
         let text = serde_json::to_string_pretty(&json).unwrap_or_default();
         if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
-            let _ = writeln!(err, "error: cannot write `{}`: {e}", path.display());
-            return 1;
+            // Not lost: the rows go to stdout.
+            let _ = writeln!(
+                err,
+                "error: cannot write `{}`: {e}; the JSON follows on stdout",
+                path.display()
+            );
+            let _ = writeln!(out, "{text}");
+            return 2;
         }
     }
     0
@@ -512,15 +543,12 @@ fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<tradeoff::Sweep, 
         .rsplit_once('.')
         .and_then(|(set, a)| Some((set, ["x", "y", "z"].iter().position(|x| *x == a)?)))
         .ok_or_else(|| format!("--output `{}`: expected SET.x, SET.y or SET.z", args.output))?;
-    let mut overrides = Vec::new();
-    for s in &args.set {
-        let (name, value) = s
-            .split_once('=')
-            .ok_or_else(|| format!("--set expects NAME=VALUE, found `{s}`"))?;
-        let (v, _) =
-            crate::session::parse_quantity(value).map_err(|e| format!("--set {name}: {e}"))?;
-        overrides.push((name.trim().to_string(), v));
-    }
+    let sets: Vec<crate::session::SetFlag> = args
+        .set
+        .iter()
+        .map(|s| crate::session::parse_set(s))
+        .collect::<Result<_, _>>()?;
+    let overrides = sets.iter().map(|s| (s.name.clone(), s.value)).collect();
     let safeties = list("safeties", &args.safeties, positive)?;
     if safeties.iter().any(|s| *s > 1.0) {
         return Err("--safeties: a safety factor is at most 1".into());
@@ -539,6 +567,7 @@ fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<tradeoff::Sweep, 
         settle: list("settle", &args.settle, positive)?,
         springs: args.springs.clone(),
         overrides,
+        sets,
         threads: args.threads,
         out: args.out.clone(),
     })

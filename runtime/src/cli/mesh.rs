@@ -1,5 +1,6 @@
 //! `softc mesh ...`: generate, inspect, convert meshes, and build the benchmark grid.
 
+use std::io::Write;
 use std::path::PathBuf;
 
 use crate::mesh::{LengthUnit, commands};
@@ -46,48 +47,44 @@ pub enum MeshCommand {
     },
 }
 
-fn unit(s: &str) -> Result<LengthUnit, i32> {
+fn unit(s: &str, err: &mut dyn Write) -> Result<LengthUnit, i32> {
     s.parse::<LengthUnit>().map_err(|e| {
-        eprintln!("error: --unit: {e}");
+        let _ = writeln!(err, "error: --unit {s}: {e}");
         2
     })
 }
 
-/// Run a mesh subcommand: 0 ok, 1 bad input (message on stderr naming file and problem),
+/// Run a mesh subcommand: 0 ok, 1 bad input (message on `err` naming file and problem),
 /// 2 usage.
-pub fn run(cmd: MeshCommand) -> i32 {
-    let mut out = std::io::stdout();
-    let mut err = std::io::stderr();
+pub fn run(cmd: MeshCommand, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     match cmd {
         MeshCommand::Generate {
             spec,
             output,
             resolution,
         } => {
-            if resolution.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
-                eprintln!("error: --resolution must be a positive number");
+            if let Some(r) = resolution.filter(|r| !(*r > 0.0 && r.is_finite())) {
+                let _ = writeln!(err, "error: --resolution {r}: must be a positive number");
                 return 2;
             }
-            commands::generate(&spec, &output, resolution, &mut out, &mut err)
+            commands::generate(&spec, &output, resolution, out, err)
         }
         MeshCommand::Info {
             file,
             json,
             unit: u,
-        } => match unit(&u) {
-            Ok(u) => commands::info(&file, u, json, &mut out, &mut err),
+        } => match unit(&u, err) {
+            Ok(u) => commands::info(&file, u, json, out, err),
             Err(c) => c,
         },
         MeshCommand::Convert {
             input,
             output,
             unit: u,
-        } => match unit(&u) {
-            Ok(u) => commands::convert(&input, &output, u, &mut out, &mut err),
+        } => match unit(&u, err) {
+            Ok(u) => commands::convert(&input, &output, u, out, err),
             Err(c) => c,
         },
-        MeshCommand::Kuhn { nx, ny, nz, output } => {
-            commands::kuhn([nx, ny, nz], &output, &mut out, &mut err)
-        }
+        MeshCommand::Kuhn { nx, ny, nz, output } => commands::kuhn([nx, ny, nz], &output, out, err),
     }
 }

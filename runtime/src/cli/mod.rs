@@ -18,6 +18,7 @@ use crate::devices::{BackendChoice, PrecisionChoice};
 use clap::{Parser, Subcommand, ValueEnum};
 use softc_compiler::CheckOptions;
 use softc_compiler::diag::{Diagnostic, SourceFile};
+use std::ffi::{OsStr, OsString};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -103,10 +104,29 @@ pub enum MessageFormat {
     Json,
 }
 
-/// Run the command line with explicit output streams (tests call this in-process).
-pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
-    let cli = match Cli::try_parse_from(args) {
+/// Run the command line with explicit output streams (tests call this in-process). Arguments
+/// are OS strings: a file name or flag value that is not UTF-8 is a usage error with a message,
+/// never a panic.
+pub fn run<A: AsRef<OsStr>>(args: &[A], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+    let cli = match Cli::try_parse_from(args.iter().map(|a| a.as_ref().to_os_string())) {
         Ok(cli) => cli,
+        Err(e) if e.kind() == clap::error::ErrorKind::InvalidUtf8 => {
+            // clap does not say which argument: name it (lossily) and where it may go.
+            let bad = args
+                .iter()
+                .enumerate()
+                .skip(1)
+                .find(|(_, a)| a.as_ref().to_str().is_none());
+            let which = bad.map_or(String::new(), |(i, a)| {
+                format!(" (argument {i}: `{}`)", a.as_ref().to_string_lossy())
+            });
+            let _ = writeln!(
+                err,
+                "softc: a command, flag or value is not valid UTF-8{which}; only file names may \
+                 be arbitrary bytes: write names and values in UTF-8 (see `softc --help`)"
+            );
+            return 2;
+        }
         Err(e) => {
             let code = if e.use_stderr() { 2 } else { 0 };
             let _ = if e.use_stderr() {
@@ -132,14 +152,15 @@ pub fn run(args: &[String], out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         } => compile_file(&file, emit, precision, batch, out, err),
         Command::Run(args) => run::run(args, out, err),
         Command::Bench(args) => bench::run(args, out, err),
-        Command::Mesh { command } => mesh::run(command),
+        Command::Mesh { command } => mesh::run(command, out, err),
         Command::Lsp => crate::lsp::run_stdio(),
     }
 }
 
 /// Entry point of the binary: runs the front end on a thread with a large stack, so that even
 /// pathological scripts (deep nesting near the parser's limits) cannot overflow it.
-pub fn main_with_args(args: Vec<String>) -> i32 {
+pub fn main_with_args<A: Into<OsString>>(args: Vec<A>) -> i32 {
+    let args: Vec<OsString> = args.into_iter().map(Into::into).collect();
     let worker = std::thread::Builder::new()
         .name("softc".into())
         .stack_size(64 << 20)

@@ -31,6 +31,28 @@ pub fn optimize(
         plan.iterations = n.max(1);
     }
     let dir = args.resume.as_ref().or(args.out.as_ref()).cloned();
+    // One run per folder, held for the whole run: a second one would overwrite this one's
+    // state and results (issue 20). Locked before the state is read or checked.
+    let lock = match (&args.resume, &args.out) {
+        (Some(d), _) if !d.is_dir() => {
+            let _ = writeln!(
+                err,
+                "softc: --resume {}: no such folder; give the --out folder of an earlier run",
+                d.display()
+            );
+            return 2;
+        }
+        (Some(d), _) => crate::outputs::lock::lock_folder(d, "--resume").map(Some),
+        (None, Some(d)) => crate::outputs::lock::lock_folder(d, "--out").map(Some),
+        (None, None) => Ok(None),
+    };
+    let _lock = match lock {
+        Ok(l) => l,
+        Err(e) => {
+            let _ = writeln!(err, "softc: {e}");
+            return 2;
+        }
+    };
     let resume = match &args.resume {
         Some(d) => match load_state(d) {
             Ok(s) => Some(s),
@@ -41,6 +63,17 @@ pub fn optimize(
         },
         None => None,
     };
+    if let (Some(d), Some(state)) = (&args.resume, &resume)
+        && let Some(changed) = changed_settings(&state.settings, &run_settings(args))
+    {
+        let _ = writeln!(
+            err,
+            "softc: --resume {}: the saved run was made with other settings: {changed}; resume \
+             with the saved ones, or start afresh with --out NEW_FOLDER",
+            d.display()
+        );
+        return 2;
+    }
     if let Some(d) = &args.out
         && args.resume.is_none()
         && d.join(STATE_FILE).exists()
@@ -52,12 +85,6 @@ pub fn optimize(
             d.display(),
             d.display()
         );
-        return 2;
-    }
-    if let Some(d) = &dir
-        && let Err(e) = std::fs::create_dir_all(d)
-    {
-        let _ = writeln!(err, "softc: cannot create `{}`: {e}", d.display());
         return 2;
     }
     let ctx = Context {
@@ -87,20 +114,28 @@ pub fn optimize(
         }
     };
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
-    let mut targets: Vec<PathBuf> = args.json.iter().cloned().collect();
+    let mut status = 0;
+    let mut on_stdout = args.json.is_none();
     if let Some(d) = &ctx.dir {
-        targets.push(d.join("result.json"));
-    }
-    for path in &targets {
-        if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
+        let path = d.join("result.json");
+        if let Err(e) = crate::outputs::atomic::write_atomically(&path, text.as_bytes()) {
             let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
-            return 2;
+            (status, on_stdout) = (2, true);
         }
     }
-    if args.json.is_none() {
+    if let Some(path) = &args.json
+        && let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes())
+    {
+        let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
+        (status, on_stdout) = (2, true);
+    }
+    if on_stdout {
+        if status != 0 {
+            let _ = writeln!(err, "softc: the JSON result follows on stdout");
+        }
         let _ = writeln!(out, "{text}");
     }
-    0
+    status
 }
 
 struct Context<'a> {
@@ -121,6 +156,46 @@ fn load_state(dir: &Path) -> Result<TrainState, String> {
             path.display()
         )
     })
+}
+
+/// The command line's settings a resumed run must keep, by flag, as the state records them.
+fn run_settings(args: &RunArgs) -> BTreeMap<String, String> {
+    let default = |v: Option<String>| v.unwrap_or_else(|| "(not given)".into());
+    let mut m = BTreeMap::new();
+    m.insert(
+        "--backend".into(),
+        format!("{:?}", args.backend).to_lowercase(),
+    );
+    m.insert(
+        "--precision".into(),
+        default(args.precision.map(|p| format!("{p:?}").to_lowercase())),
+    );
+    m.insert("--dt".into(), default(args.dt.clone()));
+    m.insert("--steps".into(), default(args.steps.map(|s| s.to_string())));
+    m.insert(
+        "--set".into(),
+        default((!args.set.is_empty()).then(|| args.set.join(" "))),
+    );
+    m.insert(
+        "--params".into(),
+        default(args.params.as_ref().map(|p| p.display().to_string())),
+    );
+    m
+}
+
+/// Which recorded settings differ from this run's: `--backend cpu (saved) vs interp (now)`.
+fn changed_settings(
+    saved: &BTreeMap<String, String>,
+    now: &BTreeMap<String, String>,
+) -> Option<String> {
+    let changed: Vec<String> = saved
+        .iter()
+        .filter_map(|(flag, was)| {
+            let is = now.get(flag)?;
+            (is != was).then(|| format!("{flag} {was} (saved) vs {is} (now)"))
+        })
+        .collect();
+    (!changed.is_empty()).then(|| changed.join(", "))
 }
 
 /// What a resumed run must agree with: the script, the overrides and the numerics (not the
@@ -217,6 +292,14 @@ fn train<B: Backend + Send>(
         ctx.resume.clone(),
     )
     .map_err(|e| e.0)?;
+    trainer.state.settings = run_settings(args);
+    crate::session::check_step_count(
+        scene,
+        trainer.state.dt,
+        trainer.state.steps,
+        args.steps.is_some(),
+        None,
+    )?;
     let _ = writeln!(
         err,
         "optimizing {} values with {} over {} scene(s) per iteration: {} steps of {:e} s each{}",
@@ -259,8 +342,13 @@ fn train<B: Backend + Send>(
         }
         if let Some(d) = &ctx.dir {
             let text = serde_json::to_string(&trainer.state).map_err(|e| e.to_string())?;
-            crate::outputs::atomic::write_atomically(&d.join(STATE_FILE), text.as_bytes())
-                .map_err(|e| format!("cannot save the optimization state: {e}"))?;
+            let path = d.join(STATE_FILE);
+            crate::outputs::atomic::write_atomically(&path, text.as_bytes()).map_err(|e| {
+                format!(
+                    "cannot save the optimization state to `{}`: {e}",
+                    path.display()
+                )
+            })?;
             write_plots(d, &script_name, &trainer.state.history, &trainer)?;
         }
     }
@@ -286,14 +374,11 @@ fn train<B: Backend + Send>(
             let folder = d.join("vtk");
             std::fs::create_dir_all(&folder)
                 .map_err(|e| format!("cannot create `{}`: {e}", folder.display()))?;
-            Some(crate::outputs::vtk::VtkOutput {
-                series: crate::mesh::writers::PvdSeries::new(
-                    &folder,
-                    "optimized",
-                    crate::mesh::LengthUnit::Millimetre,
-                ),
-                every: crate::session::vtk_every(scene).unwrap_or(100),
-            })
+            Some(crate::outputs::vtk::VtkOutput::new(
+                &folder,
+                "optimized",
+                crate::session::vtk_every(scene).unwrap_or(100),
+            ))
         }
         None => None,
     };

@@ -5,7 +5,10 @@ use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
 use crate::engine::{RunSummary, Simulation};
 use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
-use crate::session::{csv_outputs, grad_options, parse_quantity, vtk_every};
+use crate::session::{
+    check_set_dims, csv_outputs, grad_options, parse_checkpoint, parse_dt, parse_memory_budget,
+    parse_set, vtk_every,
+};
 use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
@@ -15,21 +18,21 @@ pub struct RunArgs {
     /// The script to run.
     pub file: PathBuf,
     /// Which backend runs the kernels.
-    #[arg(long, value_enum, default_value_t = BackendChoice::Cpu)]
+    #[arg(long, value_enum, default_value_t = BackendChoice::Cpu, allow_hyphen_values = true)]
     pub backend: BackendChoice,
     /// Floating-point precision of the kernels (cpu: default f64; gpu: default f32; the
     /// interpreter is f64). The script's `precision` setting applies when this is not given.
-    #[arg(long, value_enum)]
+    #[arg(long, value_enum, allow_hyphen_values = true)]
     pub precision: Option<PrecisionChoice>,
     /// The GPU adapter of `--backend gpu`: a case-insensitive part of its name (or a backend
     /// name such as `vulkan`); default: a discrete GPU, else integrated, else software.
     #[arg(long, value_name = "NAME")]
     pub adapter: Option<String>,
     /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub threads: Option<usize>,
     /// Override a param's value, with its unit: `--set p_max=2.5kPa`.
-    #[arg(long = "set", value_name = "NAME=VALUE")]
+    #[arg(long = "set", value_name = "NAME=VALUE", allow_hyphen_values = true)]
     pub set: Vec<String>,
     /// Set params to the values of a JSON file's `params` object (SI units; arrays nested as
     /// `softc run --json` writes them), e.g. an optimization's `result.json`: run the trained
@@ -37,10 +40,10 @@ pub struct RunArgs {
     #[arg(long, value_name = "JSON")]
     pub params: Option<PathBuf>,
     /// Override the number of steps.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub steps: Option<u64>,
     /// Override the time step, with its unit: `--dt 20us`.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub dt: Option<String>,
     /// Write the JSON summary here (SI units).
     #[arg(long)]
@@ -58,11 +61,11 @@ pub struct RunArgs {
     pub grad: bool,
     /// Which states the backward pass stores (overrides the optimize block's `checkpoint`):
     /// `auto`, `store_all`, `periodic:K` (every K-th state) or `revolve:N` (N snapshots).
-    #[arg(long, value_name = "SCHEDULE")]
+    #[arg(long, value_name = "SCHEDULE", allow_hyphen_values = true)]
     pub checkpoint: Option<String>,
     /// Memory for the stored states of the backward pass, e.g. `512MB` (overrides the optimize
     /// block's `memory_budget`).
-    #[arg(long, value_name = "BYTES")]
+    #[arg(long, value_name = "BYTES", allow_hyphen_values = true)]
     pub memory_budget: Option<String>,
     /// With `--grad`: also report d loss / d (initial position) and d loss / d (initial
     /// velocity) of every node (`initial_state_gradients` in the JSON).
@@ -76,7 +79,7 @@ pub struct RunArgs {
     #[arg(long, value_name = "DIR")]
     pub resume: Option<PathBuf>,
     /// Override the optimize block's number of iterations.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub iterations: Option<u64>,
     /// Run the simulation once with the params' initial values even if the script has an
     /// `optimize` block.
@@ -143,24 +146,42 @@ fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
 }
 
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
-    if let Err(e) = std::fs::metadata(&args.file) {
+    // An unreadable script or a folder is a usage error (exit 2), found before anything else.
+    let readable = std::fs::metadata(&args.file).and_then(|m| {
+        if m.is_dir() {
+            Err(std::io::Error::other("it is a folder, not a script"))
+        } else if !m.is_file() {
+            Err(std::io::Error::other("not a regular file"))
+        } else {
+            std::fs::File::open(&args.file).map(|_| ())
+        }
+    });
+    if let Err(e) = readable {
         let _ = writeln!(err, "softc: cannot read `{}`: {e}", args.file.display());
         return 2;
     }
-    let mut overrides = Vec::new();
+    // Every flag's value is checked before the script is compiled and run.
+    let checked = (args.checkpoint.as_deref().map(parse_checkpoint).transpose()).and(
+        args.memory_budget
+            .as_deref()
+            .map(parse_memory_budget)
+            .transpose(),
+    );
+    if let Err(e) = checked {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
+    let mut sets = Vec::new();
     for s in &args.set {
-        let Some((name, value)) = s.split_once('=') else {
-            let _ = writeln!(err, "softc: --set expects NAME=VALUE, found `{s}`");
-            return 2;
-        };
-        match parse_quantity(value) {
-            Ok((v, _)) => overrides.push((name.trim().to_string(), v)),
+        match parse_set(s) {
+            Ok(flag) => sets.push(flag),
             Err(e) => {
-                let _ = writeln!(err, "softc: --set {name}: {e}");
+                let _ = writeln!(err, "softc: {e}");
                 return 2;
             }
         }
     }
+    let mut overrides: Vec<(String, f64)> = Vec::new();
     if let Some(path) = &args.params {
         match params_file(path) {
             Ok(values) => overrides.extend(values),
@@ -170,13 +191,20 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             }
         }
     }
-    let dt = match args.dt.as_deref().map(parse_quantity).transpose() {
-        Ok(v) => v.map(|(x, _)| x),
+    // `--set` wins over `--params`: the first entry of a name is the one applied.
+    let from_set: Vec<(String, f64)> = sets.iter().map(|s| (s.name.clone(), s.value)).collect();
+    overrides.splice(0..0, from_set);
+    let dt = match args.dt.as_deref().map(parse_dt).transpose() {
+        Ok(v) => v,
         Err(e) => {
-            let _ = writeln!(err, "softc: --dt: {e}");
+            let _ = writeln!(err, "softc: {e}");
             return 2;
         }
     };
+    if let Err(e) = check_outputs(&args) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
     let scene = match Scene::load(&args.file, &overrides) {
         Ok(s) => s,
         Err(e) => {
@@ -198,6 +226,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 2;
         }
     }
+    if let Err(e) = check_set_dims(&scene.resolved, &sets) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
     if !args.grad && !args.no_optimize {
         match crate::optim::Plan::from_scene(&scene) {
             Ok(Some(plan)) => return super::optimize(&args, &scene, plan, dt, out, err),
@@ -207,6 +239,27 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 return 1;
             }
         }
+    }
+    // A plain run's output folders are held for the run, as an optimization's --out folder.
+    let mut _locks = Vec::new();
+    let mut locked: Vec<PathBuf> = Vec::new();
+    for (flag, dir) in [("--vtk", &args.vtk), ("--csv", &args.csv)] {
+        let Some(d) = dir else { continue };
+        let same = |p: &PathBuf| {
+            d.canonicalize()
+                .is_ok_and(|c| p.canonicalize().is_ok_and(|q| q == c))
+        };
+        if locked.iter().any(same) {
+            continue;
+        }
+        match crate::outputs::lock::lock_folder(d, flag) {
+            Ok(l) => _locks.push(l),
+            Err(e) => {
+                let _ = writeln!(err, "softc: {e}");
+                return 2;
+            }
+        }
+        locked.push(d.clone());
     }
     if args.grad && args.backend == BackendChoice::Reference {
         let _ = writeln!(
@@ -281,7 +334,29 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     emit_json(args.json.as_deref(), &text, out, err)
 }
 
-/// The JSON summary into `--json PATH` (atomically) or onto stdout.
+/// Every output a run writes (`--json`, `--vtk`, `--csv`, `--out`, `--resume`) checked before
+/// the work: a run is not lost to an output found unwritable at its end.
+fn check_outputs(args: &RunArgs) -> Result<(), String> {
+    use crate::outputs::atomic::{check_writable_dir, check_writable_file};
+    if let Some(p) = &args.json {
+        check_writable_file(p).map_err(|e| format!("--json {}: {e}", p.display()))?;
+    }
+    let dirs = [
+        ("--vtk", &args.vtk),
+        ("--csv", &args.csv),
+        ("--out", &args.out),
+        ("--resume", &args.resume),
+    ];
+    for (flag, dir) in dirs {
+        if let Some(d) = dir {
+            check_writable_dir(d).map_err(|e| format!("{flag} {}: {e}", d.display()))?;
+        }
+    }
+    Ok(())
+}
+
+/// The JSON summary into `--json PATH` (atomically) or onto stdout. If the file cannot be
+/// written after all, the JSON goes to stdout instead of being lost (and the status is 2).
 fn emit_json(
     path: Option<&std::path::Path>,
     text: &str,
@@ -291,7 +366,12 @@ fn emit_json(
     match path {
         Some(path) => {
             if let Err(e) = crate::outputs::atomic::write_atomically(path, text.as_bytes()) {
-                let _ = writeln!(err, "softc: cannot write `{}`: {e}", path.display());
+                let _ = writeln!(
+                    err,
+                    "softc: cannot write `{}`: {e}; the JSON follows on stdout",
+                    path.display()
+                );
+                let _ = writeln!(out, "{text}");
                 return 2;
             }
         }
@@ -482,14 +562,7 @@ fn vtk_output(
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "run".into());
-    Ok(Some(crate::outputs::vtk::VtkOutput {
-        series: crate::mesh::writers::PvdSeries::new(
-            dir,
-            &name,
-            crate::mesh::LengthUnit::Millimetre,
-        ),
-        every,
-    }))
+    Ok(Some(crate::outputs::vtk::VtkOutput::new(dir, &name, every)))
 }
 
 /// A forward run, or with `--grad` a forward and backward pass, on one backend. An empty error
@@ -525,7 +598,12 @@ fn prepare<'s, B: Backend>(
         Err(_) => return Err(String::new()),
     };
     announce_dt(&mut sim, dt, err)?;
-    let (step, _) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
+    let (step, n) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
+    let estimate = sim.stable_dt_estimate().ok();
+    crate::session::check_step_count(scene, step, n, args.steps.is_some(), estimate)?;
+    sim.progress = Some(crate::outputs::progress::Progress::new(
+        args.file.display().to_string(),
+    ));
     sim.csv = csv_outputs(args.csv.as_deref(), scene, step, err)?;
     Ok(sim)
 }

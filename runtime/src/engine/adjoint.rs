@@ -270,11 +270,24 @@ impl<B: Backend> Simulation<'_, B> {
         let state_bytes = 2 * 3 * n_nodes * std::mem::size_of::<f64>();
         let reversed = options.truncate.map_or(steps, |t| t.min(steps));
         let schedule = {
-            let budget_states = options.memory_budget.map(|b| {
-                ((b / state_bytes.max(1) as u64) as usize)
-                    .saturating_sub(1)
-                    .max(1)
-            });
+            // The current state is held besides the stored ones: a budget that holds fewer than
+            // two states cannot be kept (it was exceeded silently, issue 20).
+            let budget_states = match options.memory_budget {
+                Some(b) => match (b / state_bytes.max(1) as u64) as usize {
+                    fits @ 2.. => Some(fits - 1),
+                    _ => {
+                        return Err(RunError(format!(
+                            "a memory budget of {b} bytes (--memory-budget or memory_budget) \
+                             holds less than the {} bytes of two states of this scene ({} bytes \
+                             each: the current one and one stored); give at least {} bytes",
+                            2 * state_bytes,
+                            state_bytes,
+                            2 * state_bytes
+                        )));
+                    }
+                },
+                None => None,
+            };
             let s = match options.checkpoint {
                 Checkpointing::StoreAll => Schedule::store_all(steps),
                 Checkpointing::Periodic(k) => Schedule::periodic(steps, k),
@@ -325,6 +338,9 @@ impl<B: Backend> Simulation<'_, B> {
                         loss_sum += self.loss_term(&loss, current, dt);
                         if current % CHECK_EVERY == 1 {
                             self.check_state(current - 1, dt)?;
+                        }
+                        if let Some(p) = &mut self.progress {
+                            p.update("forward", current, steps);
                         }
                     }
                 }
@@ -408,6 +424,9 @@ impl<B: Backend> Simulation<'_, B> {
                     }
                     if step % CHECK_EVERY == 0 || step == stop_at {
                         health.push(self.adjoint_health(step, dt)?);
+                        if let Some(p) = &mut self.progress {
+                            p.update("backward", steps - step, steps - stop_at);
+                        }
                     }
                     if step == stop_at {
                         if step == 0 {

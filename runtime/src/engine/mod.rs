@@ -137,6 +137,8 @@ pub struct Simulation<'s, B: Backend> {
     pub vtk: Option<VtkOutput>,
     /// Node-set logs (`output csv(SET)`) written by `run`.
     pub csv: Vec<CsvOutput>,
+    /// Progress of a long run on stderr (`softc run`), updated at the host's checks.
+    pub progress: Option<crate::outputs::progress::Progress>,
     /// The stable-step estimate, once computed (reused by `run`).
     estimate: Option<f64>,
     /// Positions at the last state check that passed, and its step: where the stable step is
@@ -240,6 +242,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             uniforms,
             vtk: None,
             csv: Vec::new(),
+            progress: None,
             estimate: None,
             last_good: None,
             ids,
@@ -502,6 +505,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             if last % CHECK_EVERY == 0 || last + 1 == steps {
                 self.check_state(last, dt)?;
+            }
+            if let Some(p) = &mut self.progress {
+                p.update("forward", end, steps);
             }
             step = end;
         }

@@ -70,6 +70,10 @@ pub struct TrainState {
     pub method: MethodState,
     pub history: Vec<Record>,
     pub stopped: Option<Stopped>,
+    /// The command line's settings the run was made with (`--backend cpu`, …), so a resume
+    /// with other settings is told which one differs (absent from older states).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub settings: BTreeMap<String, String>,
 }
 
 pub const STATE_FORMAT: u32 = 1;
@@ -94,7 +98,8 @@ fn initial_u(entries: &[Entry], uniforms: &BTreeMap<String, f64>) -> Result<Vec<
             let p = uniforms[&e.uniform];
             e.bounds.to_unconstrained(p).map_err(|m| {
                 format!(
-                    "param `{}`: {m}; a trained param must start strictly inside its bounds",
+                    "param `{}`: {m} (SI units); a trained param must start strictly inside \
+                     its bounds: change its initial value, or the value --set/--params give it",
                     e.uniform.trim_start_matches("param.")
                 )
             })
@@ -171,6 +176,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                     u: u0,
                     history: Vec::new(),
                     stopped: None,
+                    settings: BTreeMap::new(),
                 }
             }
         };

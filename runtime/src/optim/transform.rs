@@ -14,6 +14,18 @@ pub enum Bounds {
     Upper(f64),
 }
 
+/// As the script writes bounds, in SI units: `[0, 50000]`, `[0, ..]`, `[.., 1]`.
+impl std::fmt::Display for Bounds {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Bounds::Free => f.write_str("(none)"),
+            Bounds::Both(lo, hi) => write!(f, "[{lo}, {hi}]"),
+            Bounds::Lower(lo) => write!(f, "[{lo}, ..]"),
+            Bounds::Upper(hi) => write!(f, "[.., {hi}]"),
+        }
+    }
+}
+
 fn sigmoid(u: f64) -> f64 {
     // Split by sign so neither branch overflows exp.
     if u >= 0.0 {
@@ -71,7 +83,7 @@ impl Bounds {
         };
         if !inside {
             return Err(format!(
-                "the value {p:e} is not strictly inside the bounds {self:?}"
+                "the value {p} is not strictly inside the bounds {self}"
             ));
         }
         Ok(match self {
@@ -126,6 +138,13 @@ mod tests {
         assert!(Bounds::Lower(2.0).to_param(-1e6) > 2.0);
         assert!(Bounds::Upper(2.0).to_param(-1e6) < 2.0);
         assert!(Bounds::Both(0.0, 1.0).to_unconstrained(0.0).is_err());
+        // Issue 20 item 19: the message showed Rust's debug text, `Both(0.0, 50000.0)`.
+        let e = Bounds::Both(0.0, 50e3).to_unconstrained(0.0).unwrap_err();
+        assert_eq!(
+            e,
+            "the value 0 is not strictly inside the bounds [0, 50000]"
+        );
+        assert_eq!(Bounds::Lower(0.5).to_string(), "[0.5, ..]");
         assert!(Bounds::Lower(0.0).to_unconstrained(-1.0).is_err());
     }
 }

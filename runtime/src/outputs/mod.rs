@@ -1,11 +1,14 @@
 //! What a run writes: ParaView series ([`vtk`]), node-set logs ([`csv`]), the JSON summary
 //! ([`json`]), each file replaced atomically ([`atomic`]). Below the command line: the engine
 //! writes the VTK and CSV outputs while it runs; `softc run`, its optimization and `softc bench`
-//! write the JSON.
+//! write the JSON. An output folder is held by one run at a time ([`lock`]); a long run shows
+//! its [`progress`].
 
 pub mod atomic;
 pub mod csv;
 pub mod json;
+pub mod lock;
+pub mod progress;
 pub mod vtk;
 
 /// Mean, min and max displacement of a node set per axis (m): what `softc run` reports per set

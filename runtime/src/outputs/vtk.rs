@@ -1,4 +1,7 @@
-//! `--vtk DIR`: the deformed mesh as a ParaView series, one `.vtu` file per written step.
+//! `--vtk DIR`: the deformed mesh as a ParaView series, one `.vtu` file per written step. One
+//! unit system per file, SI as every other output of a run: points and displacement in m,
+//! velocity in m/s, strain-energy density in J/m³, the time in s; each array's name ends in its
+//! unit (`displacement_m`), as the CSV logs' columns do.
 
 use crate::mesh::Mesh;
 use crate::mesh::writers::Field;
@@ -23,7 +26,22 @@ pub struct Frame<'a> {
     pub j: &'a [f64],
 }
 
+/// The array names, each with its SI unit.
+pub const DISPLACEMENT: &str = "displacement_m";
+pub const VELOCITY: &str = "velocity_m_per_s";
+pub const ENERGY_DENSITY: &str = "strain_energy_density_J_per_m3";
+/// The volume ratio (dimensionless).
+pub const VOLUME_RATIO: &str = "J";
+
 impl VtkOutput {
+    /// A series `DIR/NAME.pvd` written every `every` steps, in SI units.
+    pub fn new(dir: &std::path::Path, name: &str, every: u64) -> VtkOutput {
+        VtkOutput {
+            series: crate::mesh::writers::PvdSeries::new(dir, name, crate::mesh::LengthUnit::Metre),
+            every,
+        }
+    }
+
     /// Write one frame of `mesh` (whose elements' rest volumes are `rest_volume`): positions,
     /// displacement and velocity per node; strain energy density and J per element.
     pub fn write_frame(
@@ -46,9 +64,9 @@ impl VtkOutput {
             .map(|(e, v0)| e / v0)
             .collect();
         // The spring mesh has no strain energy: its elements carry J only.
-        let mut cell_fields = vec![("J", Field::Scalar(j))];
+        let mut cell_fields = vec![(VOLUME_RATIO, Field::Scalar(j))];
         if !density.is_empty() {
-            cell_fields.insert(0, ("strain_energy_density", Field::Scalar(&density)));
+            cell_fields.insert(0, (ENERGY_DENSITY, Field::Scalar(&density)));
         }
         self.series
             .write_step(
@@ -56,8 +74,8 @@ impl VtkOutput {
                 t,
                 &pos,
                 &[
-                    ("displacement", Field::Vector(&disp)),
-                    ("velocity", Field::Vector(&vel)),
+                    (DISPLACEMENT, Field::Vector(&disp)),
+                    (VELOCITY, Field::Vector(&vel)),
                 ],
                 &cell_fields,
             )

@@ -41,6 +41,8 @@ pub struct Sweep {
     /// Volume stiffness α of the spring-mesh variants (N/m³); none: FEM only.
     pub springs: Option<String>,
     pub overrides: Vec<(String, f64)>,
+    /// The `--set` flags behind `overrides`, with their units' dimensions.
+    pub sets: Vec<crate::session::SetFlag>,
     pub threads: Option<usize>,
     pub out: PathBuf,
 }
@@ -78,9 +80,15 @@ struct Config {
     settle: f64,
 }
 
+/// The prefix of an error that is a usage error (a bad flag, exit status 2), not a problem in
+/// the script.
+pub const USAGE: &str = "usage: ";
+
 /// Run the sweep; prints progress to `err`, the table to `out`; writes JSON and the plot.
 pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<(), String> {
     let base = Scene::load(&sweep.script, &sweep.overrides).map_err(|e| e.0)?;
+    crate::session::check_set_dims(&base.resolved, &sweep.sets)
+        .map_err(|e| format!("{USAGE}{e}"))?;
     if base.resolved.mesh.span.is_none() {
         return Err("the script's mesh is not `load(\"FILE\")`".into());
     }
