@@ -9,6 +9,7 @@
 //! over the same steps: forward+backward steps/s (median), the bytes of states it stored, its
 //! recompute ratio and d loss / d p_peak.
 
+mod solvers;
 mod tradeoff;
 
 use crate::devices::{Backend, BackendChoice, DeviceChoice, Devices};
@@ -61,6 +62,11 @@ pub struct BenchArgs {
     /// script under `OUT/variants/`.
     #[arg(long, value_name = "SCRIPT")]
     pub tradeoff: Option<PathBuf>,
+    /// Instead of the benchmark table: the static and implicit solvers on the benchmark scene
+    /// of each size — one static solve, its gradient, and 40 backward Euler steps of 4 ms —
+    /// with Newton iterations, assembly and factorization time, tangent size and memory.
+    #[arg(long, conflicts_with_all = ["tradeoff", "profile"])]
+    pub solvers: bool,
     /// With --tradeoff: the output, a node set and an axis (mean displacement).
     #[arg(long, value_name = "SET.AXIS", default_value = "tip.z")]
     pub output: String,
@@ -444,6 +450,15 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             "error: unknown benchmark size `{bad}`; use 1k, 10k or 50k (e.g. --sizes 1k,10k)"
         );
         return 2;
+    }
+    if args.solvers {
+        return match solvers::run(&args, &sizes, out) {
+            Ok(()) => 0,
+            Err(e) => {
+                let _ = writeln!(err, "error: {e}");
+                1
+            }
+        };
     }
     let mut rows = Vec::new();
     for size in &sizes {
