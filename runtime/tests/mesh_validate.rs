@@ -39,9 +39,10 @@ fn inverted_and_degenerate_tets_name_the_element_and_volume() {
         "{}",
         i.message
     );
-    // orient_tets repairs it and counts.
-    assert_eq!(m.orient_tets(), 1);
-    assert!(m.validate().is_empty());
+    // One tet against the rest is not a convention: orient_tets leaves it for validation to
+    // refuse (issue 20 item 3).
+    assert_eq!(m.orient_tets(), 0);
+    assert!(has_errors(&m.validate()));
 
     let mut m = bench();
     let t = m.tets[7];
@@ -388,13 +389,121 @@ fn pinched_boundary_edge_and_node_are_reported() {
             [0.0, -1.0, 0.0],
             [0.0, 0.0, -1.0],
         ],
-        vec![[0, 1, 2, 3], [0, 4, 5, 6]],
+        vec![[0, 1, 2, 3], [0, 4, 6, 5]],
     );
-    let mut node = node;
-    node.orient_tets();
     let issues = node.validate();
     let i = find(&issues, |k| {
         matches!(k, IssueKind::NonManifoldBoundaryNode { node: 0, sheets: 2 })
     });
     assert!(i.message.contains("node 0"), "{}", i.message);
+}
+
+/// A 4×4×4 cube of 1 mm Kuhn cells (no cavity), in metres.
+fn cube4() -> Mesh {
+    let spec = KuhnSpec {
+        n: [4, 4, 4],
+        min: [0.0; 3],
+        max: [4.0; 3],
+        cavity_min: [0.0; 3],
+        cavity_max: [0.0; 3],
+    };
+    kuhn_grid(&spec, LengthUnit::Millimetre).unwrap()
+}
+
+/// `cube4` with its interior node at (1, 1, 1) mm moved past its neighbour at (2, 1, 1) mm:
+/// the tets around it turn inside out (the issue's tangled mesh).
+fn tangled() -> (Mesh, Vec<usize>) {
+    let mut m = cube4();
+    let n = m
+        .nodes
+        .iter()
+        .position(|p| p.iter().all(|c| (c - 1e-3).abs() < 1e-12))
+        .unwrap();
+    m.nodes[n][0] = 2.6e-3;
+    let inverted: Vec<usize> = (0..m.tets.len())
+        .filter(|&e| m.tet_volume(e) < 0.0)
+        .collect();
+    assert!(
+        !inverted.is_empty() && inverted.len() < m.tets.len() / 2,
+        "{inverted:?}"
+    );
+    (m, inverted)
+}
+
+fn scratch(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-val-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn a_tangled_mesh_is_refused_naming_its_inverted_elements() {
+    // Issue 20 item 3: the loader used to reorder the inverted tets one by one, report "valid"
+    // and simulate a body 12.5 mm³ too large.
+    let (m, inverted) = tangled();
+    let d = scratch("tangled");
+    let p = d.join("tangled.msh");
+    save(&m, &p, LengthUnit::Millimetre).unwrap();
+    let e = load(&p, LengthUnit::Millimetre).unwrap_err();
+    assert_eq!(e.kind, MeshErrorKind::Invalid);
+    let named: Vec<usize> = e
+        .issues
+        .iter()
+        .filter_map(|i| match i.kind {
+            IssueKind::InvertedTet { element, .. } => Some(element),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(named, inverted, "{e}");
+    let s = e.to_string();
+    assert!(s.contains("tangled") && s.contains("inverted"), "{s}");
+    // `read` (no validation) reorders nothing either.
+    let r = softc::mesh::read(&p, LengthUnit::Millimetre).unwrap();
+    assert_eq!(r.report.reoriented_tets, 0);
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn a_tangled_mesh_with_its_corners_reordered_is_refused_as_overlapping() {
+    // The same tangle, with the inverted tets' corners swapped in the file so every tet has a
+    // positive volume: the tets around the moved node overlap their neighbours.
+    let (mut m, inverted) = tangled();
+    for &e in &inverted {
+        m.tets[e].swap(2, 3);
+    }
+    assert!((0..m.tets.len()).all(|e| m.tet_volume(e) > 0.0));
+    let d = scratch("overlap");
+    let p = d.join("overlap.msh");
+    save(&m, &p, LengthUnit::Millimetre).unwrap();
+    let e = load(&p, LengthUnit::Millimetre).unwrap_err();
+    std::fs::remove_dir_all(&d).ok();
+    assert_eq!(e.kind, MeshErrorKind::Invalid);
+    let i = find(&e.issues, |k| {
+        matches!(k, IssueKind::OverlappingTets { .. })
+    });
+    let IssueKind::OverlappingTets { elements, .. } = i.kind else {
+        unreachable!()
+    };
+    assert!(
+        elements.iter().any(|x| inverted.contains(x)),
+        "{elements:?} {inverted:?}"
+    );
+    assert!(i.message.contains("overlap"), "{}", i.message);
+}
+
+#[test]
+fn a_mesh_written_with_the_other_orientation_is_reordered_whole() {
+    let m = cube4();
+    let mut flipped = m.clone();
+    for t in &mut flipped.tets {
+        t.swap(0, 1);
+    }
+    let d = scratch("flipped");
+    let p = d.join("flipped.msh");
+    save(&flipped, &p, LengthUnit::Millimetre).unwrap();
+    let back = load(&p, LengthUnit::Millimetre).unwrap();
+    std::fs::remove_dir_all(&d).ok();
+    assert_eq!(back.report.reoriented_tets, m.tets.len());
+    assert!((back.total_volume() - 64e-9).abs() < 1e-20);
+    assert!(back.validate().is_empty());
 }

@@ -75,8 +75,8 @@ pub struct PhysicalName {
 /// What loading or generating had to change, reported rather than silently done.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct LoadReport {
-    /// Tets whose input corner order had negative volume and were reordered (corners 2 and 3
-    /// swapped).
+    /// Tets reordered (corners 2 and 3 swapped) because the file lists the whole mesh with the
+    /// opposite orientation; 0 or the number of tets.
     pub reoriented_tets: usize,
     /// Tagged boundary triangles whose winding was flipped so their normal points into the
     /// solid.
@@ -227,20 +227,32 @@ impl Mesh {
         (lo, hi)
     }
 
-    /// Reorder the corners of negatively oriented tets (swap corners 2 and 3) so every tet has
-    /// positive volume. Degenerate tets (|V| below `1e-12 · h³`, h the bounding-box diagonal)
-    /// are left as they are for [`Mesh::validate`] to report. Returns the number reordered,
-    /// also added to `report.reoriented_tets`.
+    /// Undo a consistent global orientation flip: when most non-degenerate tets have negative
+    /// volume (a file written with the opposite corner-order convention), reorder the corners of
+    /// **every** tet (swap corners 2 and 3). Nothing else is reordered: a tet whose orientation
+    /// disagrees with the rest of the mesh is either out of order in the file or geometrically
+    /// inverted (a node moved past its neighbours, a tangled mesh), and [`Mesh::validate`]
+    /// refuses it by name instead of hiding it (issue 20 item 3). Degenerate tets (|V| below
+    /// `1e-12 · h³`, h the bounding-box diagonal) count for neither side. Returns the number
+    /// reordered, also added to `report.reoriented_tets`.
     pub fn orient_tets(&mut self) -> usize {
         let tol = self.degenerate_volume_tolerance();
-        let mut n = 0;
+        let (mut neg, mut pos) = (0usize, 0usize);
         for e in 0..self.tets.len() {
             let v = self.tet_volume(e);
             if v < -tol {
-                self.tets[e].swap(2, 3);
-                n += 1;
+                neg += 1;
+            } else if v > tol {
+                pos += 1;
             }
         }
+        if neg <= pos {
+            return 0;
+        }
+        for t in &mut self.tets {
+            t.swap(2, 3);
+        }
+        let n = self.tets.len();
         self.report.reoriented_tets += n;
         n
     }

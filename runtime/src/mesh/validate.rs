@@ -15,8 +15,16 @@ pub enum Severity {
 /// What an issue is about. Indices are 0-based (element = tet index, node = node index).
 #[derive(Debug, Clone, PartialEq)]
 pub enum IssueKind {
-    /// A tet with negative volume (corners in the wrong order and not reoriented).
+    /// A tet with negative volume while the rest of the mesh is positive: its corners are out
+    /// of order in the file, or the mesh is tangled (only a whole mesh wound the other way is
+    /// reordered on load).
     InvertedTet { element: usize, volume: f64 },
+    /// Two positively oriented tets on the same side of the face they share: they overlap (the
+    /// mesh is tangled, e.g. a node moved past its neighbours).
+    OverlappingTets {
+        elements: [usize; 2],
+        face: [u32; 3],
+    },
     /// A tet with (near) zero volume or repeated corners.
     DegenerateTet { element: usize, volume: f64 },
     /// A node index that does not exist.
@@ -219,8 +227,11 @@ impl Mesh {
                             volume: v,
                         },
                         format!(
-                            "element {e} (nodes {t:?}) is inverted: volume {v:.3e} m³; swap two of \
-                             its corners"
+                            "element {e} (nodes {t:?}) is inverted: volume {v:.3e} m³ while the \
+                             rest of the mesh is positive — its corners are listed in the wrong \
+                             order, or the mesh is tangled (a node moved past its neighbours); \
+                             softc only reorders a whole mesh written with the other \
+                             orientation: re-mesh, or move the node back"
                         ),
                     ));
                 }
@@ -228,6 +239,7 @@ impl Mesh {
         }
         // Face manifoldness.
         let table = self.face_table();
+        out.extend(self.overlapping_tets(&table, tol));
         let mut i = 0;
         let mut n_nm = 0;
         while i < table.len() {
@@ -404,6 +416,49 @@ impl Mesh {
         }
         // Tags and names.
         out.extend(self.tag_issues());
+        out
+    }
+
+    /// Interior faces whose two (positively oriented, non-degenerate) tets lie on the same side
+    /// of the face: the tets overlap. Independent of the files' corner order, this catches a
+    /// tangled mesh whose inverted tets were listed with their corners reordered.
+    fn overlapping_tets(&self, table: &[([u32; 3], u32, u8)], tol: f64) -> Vec<MeshIssue> {
+        let mut out = Vec::new();
+        let mut count = 0;
+        for w in table.windows(2) {
+            let ((ka, ea, la), (kb, eb, lb)) = (w[0], w[1]);
+            if ka != kb || ea == eb {
+                continue;
+            }
+            let (ea, eb) = (ea as usize, eb as usize);
+            if self.tet_volume(ea) <= tol || self.tet_volume(eb) <= tol {
+                continue; // reported as inverted or degenerate
+            }
+            // The face as `ea` winds it (outward), and `eb`'s corner opposite the face: a
+            // valid neighbour lies outside `ea`, on the positive side.
+            let ta = self.tets[ea];
+            let f = super::model::TET_FACES[la as usize];
+            let opp = self.tets[eb][lb as usize];
+            let p = |n: u32| self.nodes[n as usize];
+            let side = super::model::signed_volume([p(ta[f[0]]), p(ta[f[1]]), p(ta[f[2]]), p(opp)]);
+            if side < 0.0 {
+                count += 1;
+                if count <= MAX_PER_KIND {
+                    out.push(issue(
+                        Severity::Error,
+                        IssueKind::OverlappingTets {
+                            elements: [ea, eb],
+                            face: ka,
+                        },
+                        format!(
+                            "elements {ea} and {eb} overlap: both lie on the same side of the face \
+                             they share (nodes {ka:?}), so the mesh is tangled (a node moved past \
+                             its neighbours?); re-mesh, or move the node back"
+                        ),
+                    ));
+                }
+            }
+        }
         out
     }
 
