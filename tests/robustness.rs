@@ -234,3 +234,114 @@ fn the_binary_survives_pathological_input() {
     assert!(err.contains("E0002"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+// ---- issue 20 (hostile input), items 3, 13, 17, 5, 8, 9, 16, 15, 11 ----
+
+/// A scratch folder for one test.
+fn scratch(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-h20-{tag}-{}", std::process::id()));
+    std::fs::remove_dir_all(&d).ok();
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Run the CLI on another thread; a hang fails the test instead of blocking it.
+fn softc_within(secs: u64, args: &[&str]) -> (i32, String, String) {
+    let args: Vec<String> = args.iter().map(|s| s.to_string()).collect();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let moved = args.clone();
+    std::thread::spawn(move || {
+        let a: Vec<&str> = moved.iter().map(String::as_str).collect();
+        let _ = tx.send(softc_tests::softc(&a));
+    });
+    rx.recv_timeout(Duration::from_secs(secs))
+        .unwrap_or_else(|_| panic!("softc {args:?} did not finish in {secs} s"))
+}
+
+/// A 4×4×4 mm cube of Kuhn cells (no cavity).
+fn cube_mesh() -> softc::mesh::Mesh {
+    use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
+    let spec = KuhnSpec {
+        n: [4, 4, 4],
+        min: [0.0; 3],
+        max: [4.0; 3],
+        cavity_min: [0.0; 3],
+        cavity_max: [0.0; 3],
+    };
+    kuhn_grid(&spec, softc::mesh::LengthUnit::Millimetre).unwrap()
+}
+
+/// A script on `mesh` (a file name beside it): the cube clamped at x = 0, no load.
+fn cube_script(mesh: &str) -> String {
+    format!(
+        "mesh body = load(\"{mesh}\")\n\
+         material rubber = neo_hookean(mu: 0.1 MPa, kappa: 1 MPa, density: 1070 kg/m^3)\n\
+         region clamp = box(min: [-1, -1, -1] mm, max: [0.1, 5, 5] mm)\n\
+         nodes top = select(body, z > 3.9 mm)\n\
+         sim {{\n  dt = auto\n  steps = 20\n  damping = 20 /s\n  fix clamp\n}}\n\
+         loss = sum(n in top) (x[n].z - x0[n].z)^2 at end\n"
+    )
+}
+
+#[test]
+fn issue20_item3_a_tangled_mesh_is_refused_by_check_and_run() {
+    let d = scratch("tangled");
+    let mut m = cube_mesh();
+    let n = m
+        .nodes
+        .iter()
+        .position(|p| p.iter().all(|c| (c - 1e-3).abs() < 1e-12))
+        .unwrap();
+    m.nodes[n][0] = 2.6e-3; // past its neighbour at x = 2 mm
+    softc::mesh::save(&m, &d.join("t.msh"), softc::mesh::LengthUnit::Millimetre).unwrap();
+    let script = d.join("t.soft");
+    std::fs::write(&script, cube_script("t.msh")).unwrap();
+    for cmd in ["check", "run"] {
+        let (code, _, err) = softc_within(120, &[cmd, script.to_str().unwrap()]);
+        assert_eq!(code, 1, "{cmd}: {err}");
+        assert!(
+            err.contains("E0319") && err.contains("inverted") && err.contains("element"),
+            "{cmd}: {err}"
+        );
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[cfg(unix)]
+#[test]
+fn issue20_item13_special_files_are_refused_not_read() {
+    let d = scratch("special");
+    let fifo = d.join("pipe.msh");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    assert!(made.is_ok_and(|s| s.success()), "mkfifo");
+    std::os::unix::fs::symlink("/dev/zero", d.join("zero.msh")).unwrap();
+    for name in ["pipe.msh", "zero.msh"] {
+        // Through the mesh loader...
+        let e =
+            softc::mesh::load(&d.join(name), softc::mesh::LengthUnit::Millimetre).expect_err(name);
+        let s = e.to_string();
+        assert!(s.contains(name) && s.contains("not a regular file"), "{s}");
+        // ...and through a script (it said "not found").
+        let script = d.join(format!("{name}.soft"));
+        std::fs::write(&script, cube_script(name)).unwrap();
+        let (code, _, err) = softc_within(60, &["check", script.to_str().unwrap()]);
+        assert_eq!(code, 1, "{err}");
+        assert!(
+            err.contains("E0319") && err.contains("not a regular file"),
+            "{err}"
+        );
+    }
+    // A script that is a FIFO: a usage error, at once.
+    let sfifo = d.join("script.soft");
+    let made = std::process::Command::new("mkfifo").arg(&sfifo).status();
+    assert!(made.is_ok_and(|s| s.success()), "mkfifo");
+    for cmd in ["check", "run"] {
+        let (code, _, err) = softc_within(60, &[cmd, sfifo.to_str().unwrap()]);
+        assert_ne!(code, 0, "{cmd}: {err}");
+        assert!(
+            err.contains("script.soft") && err.contains("FIFO"),
+            "{cmd}: {err}"
+        );
+    }
+    std::fs::remove_dir_all(&d).ok();
+}

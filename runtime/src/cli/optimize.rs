@@ -113,7 +113,7 @@ struct Context<'a> {
 
 fn load_state(dir: &Path) -> Result<TrainState, String> {
     let path = dir.join(STATE_FILE);
-    let text = std::fs::read_to_string(&path)
+    let text = crate::files::read_regular_text(&path)
         .map_err(|e| format!("cannot read `{}`: {e}", path.display()))?;
     serde_json::from_str(&text).map_err(|e| {
         format!(
@@ -140,7 +140,7 @@ fn fingerprint(args: &RunArgs, scene: &Scene) -> String {
         feed(s.as_bytes());
     }
     if let Some(p) = &args.params {
-        feed(&std::fs::read(p).unwrap_or_default());
+        feed(&crate::files::read_regular(p).unwrap_or_default());
     }
     feed(format!("{:?}", args.dt).as_bytes());
     feed(format!("{:?}", args.steps).as_bytes());

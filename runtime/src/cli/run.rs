@@ -109,7 +109,7 @@ impl RunArgs {
 /// The entries of a JSON file's `params` object (or of the file's top-level object), flattened
 /// to `NAME`, `NAME.i`, `NAME.i.j` as `--set` names them.
 fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| e.to_string())?;
+    let text = crate::files::read_regular_text(path).map_err(|e| e.to_string())?;
     let json: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| format!("not JSON: {e}"))?;
     let params = json.get("params").unwrap_or(&json);

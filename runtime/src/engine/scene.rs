@@ -78,7 +78,7 @@ impl Scene {
         overrides: &[(String, f64)],
         variant: Option<&softc_compiler::driver::Variant>,
     ) -> Result<Scene, SceneError> {
-        let bytes = std::fs::read(path)
+        let bytes = crate::files::read_regular(path)
             .map_err(|e| SceneError(format!("cannot read `{}`: {e}", path.display())))?;
         let probe = Arc::new(crate::mesh::probe::CachingProbe::default());
         let mut options = CompileOptions::for_file(path, Some(probe.clone()));

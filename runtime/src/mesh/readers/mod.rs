@@ -318,8 +318,12 @@ pub(crate) fn parse_float(t: &str) -> Option<f64> {
 
 /// Read a whole file, with the error naming it.
 pub(crate) fn read_bytes(path: &Path) -> Result<Vec<u8>, MeshError> {
-    std::fs::read(path).map_err(|e| {
-        MeshError::io(path, &e).with_fix("check the path and that the file is readable")
+    crate::files::read_regular(path).map_err(|e| {
+        MeshError::io(path, &e).with_fix(if e.kind() == std::io::ErrorKind::InvalidInput {
+            "name a mesh file (.msh, .vtk, .vtu, .node/.ele, .inp), not a pipe, device or folder"
+        } else {
+            "check the path and that the file is readable"
+        })
     })
 }
 
