@@ -35,7 +35,7 @@ fn inverted_and_degenerate_tets_name_the_element_and_volume() {
     });
     assert_eq!(i.severity, Severity::Error);
     assert!(
-        i.message.contains("element 5") && i.message.contains(&format!("{v:.3e}")),
+        i.message.contains("element 6") && i.message.contains(&format!("{v:.3e}")),
         "{}",
         i.message
     );
@@ -51,7 +51,7 @@ fn inverted_and_degenerate_tets_name_the_element_and_volume() {
     let i = find(&issues, |k| {
         matches!(k, IssueKind::DegenerateTet { element: 7, .. })
     });
-    assert!(i.message.contains("element 7") && i.message.contains("degenerate"));
+    assert!(i.message.contains("element 8") && i.message.contains("degenerate"));
 }
 
 #[test]
@@ -66,7 +66,7 @@ fn flat_tet_in_a_file_is_refused_by_load_naming_the_element() {
     assert_eq!(e.kind, MeshErrorKind::Invalid);
     let s = e.to_string();
     assert!(
-        s.contains("flat.msh") && s.contains("element 1") && s.contains("degenerate"),
+        s.contains("flat.msh") && s.contains("element 2 ") && s.contains("degenerate"),
         "{s}"
     );
 }
@@ -91,7 +91,7 @@ fn open_and_non_manifold_chambers() {
     );
     assert!(
         i.message
-            .contains(&format!("nodes {} and {}", edge[0], edge[1])),
+            .contains(&format!("nodes {} and {}", edge[0] + 1, edge[1] + 1)),
         "{}",
         i.message
     );
@@ -157,8 +157,8 @@ fn chamber_face_not_on_the_boundary_is_named() {
     );
     assert_eq!(i.severity, Severity::Error);
     assert!(
-        i.message.contains(&format!("surface triangle {fi}"))
-            && i.message.contains(&format!("{face:?}")),
+        i.message.contains(&format!("surface triangle {}", fi + 1))
+            && i.message.contains(&format!("{:?}", face.map(|n| n + 1))),
         "{}",
         i.message
     );
@@ -175,12 +175,12 @@ fn duplicate_unused_nodes_and_disconnected_pieces() {
         &issues,
         |k| matches!(k, IssueKind::DuplicateNodes { first: 0, second } if *second == dup),
     );
-    assert!(i.message.contains(&format!("nodes 0 and {dup}")));
+    assert!(i.message.contains(&format!("nodes 1 and {}", dup + 1)));
     let i = find(
         &issues,
         |k| matches!(k, IssueKind::UnusedNodes { count: 1, first } if *first == dup),
     );
-    assert!(i.message.contains(&format!("node {dup}")));
+    assert!(i.message.contains(&format!("node {}", dup + 1)));
 
     // A detached tet far away: a second piece, named by its element id.
     let mut m = bench();
@@ -201,7 +201,11 @@ fn duplicate_unused_nodes_and_disconnected_pieces() {
         &issues,
         |k| matches!(k, IssueKind::DisconnectedPieces { pieces: 2, example_element, .. } if *example_element == e),
     );
-    assert!(i.message.contains(&format!("element {e}")), "{}", i.message);
+    assert!(
+        i.message.contains(&format!("element {}", e + 1)),
+        "{}",
+        i.message
+    );
     assert!(has_errors(&issues));
 }
 
@@ -274,7 +278,7 @@ fn non_manifold_faces_bad_nodes_and_wrong_chamber_winding() {
             }
         )
     });
-    assert!(i.message.contains("element 9") && i.message.contains("node 100000"));
+    assert!(i.message.contains("element 10") && i.message.contains("node index 100000"));
 
     let mut m = bench();
     for (f, t) in m.tris.iter_mut().zip(&m.tri_tags) {
@@ -345,10 +349,12 @@ fn load_refuses_disconnected_mesh_listing_the_issue() {
     let e = load(&p, LengthUnit::Millimetre).unwrap_err();
     std::fs::remove_dir_all(&d).unwrap();
     let s = e.to_string();
+    // The detached tet by the file's number: the writer numbers triangles, then tets.
+    let id = m.tris.len() + m.tets.len();
     assert!(
         s.contains("two.msh")
             && s.contains("disconnected")
-            && s.contains("element 1032")
+            && s.contains(&format!("element {id} "))
             && s.contains("fix:"),
         "{s}"
     );
@@ -378,7 +384,7 @@ fn pinched_boundary_edge_and_node_are_reported() {
             }
         )
     });
-    assert!(i.message.contains("nodes 0 and 1"), "{}", i.message);
+    assert!(i.message.contains("nodes 1 and 2"), "{}", i.message);
     let node = Mesh::from_tets(
         vec![
             [0.0, 0.0, 0.0],
@@ -395,7 +401,7 @@ fn pinched_boundary_edge_and_node_are_reported() {
     let i = find(&issues, |k| {
         matches!(k, IssueKind::NonManifoldBoundaryNode { node: 0, sheets: 2 })
     });
-    assert!(i.message.contains("node 0"), "{}", i.message);
+    assert!(i.message.contains("node 1 "), "{}", i.message);
 }
 
 /// A 4×4×4 cube of 1 mm Kuhn cells (no cavity), in metres.
@@ -506,4 +512,25 @@ fn a_mesh_written_with_the_other_orientation_is_reordered_whole() {
     assert_eq!(back.report.reoriented_tets, m.tets.len());
     assert!((back.total_volume() - 64e-9).abs() < 1e-20);
     assert!(back.validate().is_empty());
+}
+
+#[test]
+fn messages_name_nodes_and_elements_by_the_files_numbers() {
+    // Issue 20 item 17: messages said "element 1" for the file's element 12 (0-based indices).
+    let d = scratch("ids");
+    let p = d.join("ids.msh");
+    let text = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n5\n101 0 0 0\n102 1 0 0\n\
+                103 0 1 0\n104 0 0 1\n105 1 1 0\n$EndNodes\n$Elements\n2\n\
+                11 4 2 1 1 101 102 103 104\n12 4 2 1 1 101 102 103 105\n$EndElements\n";
+    std::fs::write(&p, text).unwrap();
+    let e = load(&p, LengthUnit::Millimetre).unwrap_err();
+    std::fs::remove_dir_all(&d).ok();
+    let s = e.to_string();
+    assert!(
+        s.contains("element 12 (nodes [101, 102, 103, 105]) is degenerate"),
+        "{s}"
+    );
+    // Read without validation, the mesh keeps the numbers; a generated one counts from 1.
+    let m = cube4();
+    assert_eq!((m.node_id(0), m.tet_id(0), m.tri_id(0)), (1, 1, 1));
 }

@@ -635,9 +635,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         };
         if let Some((e, j)) = js.iter().enumerate().find(|&(e, j)| *j <= 0.0 && !safe(e)) {
             return Err(RunError(format!(
-                "element {e} inverted at step {} (t = {t:.6} s): J = {j:e}. \
+                "element {} inverted at step {} (t = {t:.6} s): J = {j:e}. \
                  Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element; \
                  an inversion-safe material such as `stable_neo_hookean` may pass through inversion",
+                self.scene.mesh.tet_id(e),
                 step + 1
             )));
         }
@@ -647,14 +648,15 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 "the simulation became unstable at step {} (t = {t:.6} s): node {} has a non-finite position. \
                  The time step dt = {dt:e} s is too large for this mesh and material{}",
                 step + 1,
-                i / 3,
+                self.scene.mesh.node_id(i / 3),
                 self.unstable_hint(dt)
             )));
         }
         if let Some((e, j)) = js.iter().enumerate().find(|(_, j)| !j.is_finite()) {
             return Err(RunError(format!(
-                "element {e} became non-finite at step {} (t = {t:.6} s): J = {j:e}. \
+                "element {} became non-finite at step {} (t = {t:.6} s): J = {j:e}. \
                  Reduce dt (now {dt:e} s) or the load rate",
+                self.scene.mesh.tet_id(e),
                 step + 1
             )));
         }

@@ -97,7 +97,8 @@ impl Scene {
         .clone();
         let bound: Bound = resolved.bind(&lowered, &mesh).map_err(SceneError)?;
         let uniforms = resolved.initial_uniforms(&bound, overrides);
-        // The kernels' element order.
+        // The kernels' element order (the file's element numbers follow, for messages).
+        mesh.ids.tets = bound.order.iter().map(|&e| mesh.tet_id(e)).collect();
         mesh.tets = bound.order.iter().map(|&e| mesh.tets[e]).collect();
         mesh.tet_tags = bound.order.iter().map(|&e| mesh.tet_tags[e]).collect();
         let rho: Vec<f64> = bound

@@ -85,6 +85,29 @@ pub struct LoadReport {
     pub ignored_elements: BTreeMap<String, usize>,
 }
 
+/// The numbers the mesh file gives its nodes, tets and tagged triangles (gmsh, tetgen and Abaqus
+/// ids; VTK point and cell ids, from 0 as ParaView shows them). Messages name nodes and
+/// elements by these, so they can be found in the file. An empty list means "index + 1", the
+/// numbering softc's own `.msh` writer uses for nodes (and generated meshes before they are
+/// written).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FileIds {
+    pub nodes: Vec<i64>,
+    pub tets: Vec<i64>,
+    pub tris: Vec<i64>,
+}
+
+impl FileIds {
+    /// `ids`, or an empty list when they are just `1..=n` (the default numbering).
+    pub fn compact(ids: Vec<i64>) -> Vec<i64> {
+        if ids.iter().enumerate().all(|(i, &id)| id == i as i64 + 1) {
+            Vec::new()
+        } else {
+            ids
+        }
+    }
+}
+
 /// A linear tetrahedral mesh, coordinates in metres.
 ///
 /// Invariants established by the readers and generators (checked by [`Mesh::validate`]):
@@ -111,6 +134,8 @@ pub struct Mesh {
     pub element_sets: BTreeMap<String, Vec<u32>>,
     /// What loading changed.
     pub report: LoadReport,
+    /// The file's numbers of nodes, tets and triangles, for messages.
+    pub ids: FileIds,
 }
 
 /// A boundary face of the tet mesh, oriented with its normal pointing out of the solid.
@@ -172,6 +197,37 @@ impl Mesh {
             tet_tags: vec![1; n],
             ..Default::default()
         }
+    }
+
+    /// The file's number of node `i` (what messages call it).
+    pub fn node_id(&self, i: usize) -> i64 {
+        self.ids.nodes.get(i).copied().unwrap_or(i as i64 + 1)
+    }
+
+    /// The file's number of tet `e` (what messages call it).
+    pub fn tet_id(&self, e: usize) -> i64 {
+        self.ids.tets.get(e).copied().unwrap_or(e as i64 + 1)
+    }
+
+    /// The file's number of tagged triangle `f`.
+    pub fn tri_id(&self, f: usize) -> i64 {
+        self.ids.tris.get(f).copied().unwrap_or(f as i64 + 1)
+    }
+
+    /// Node indices as the file numbers them, for messages: `[12, 40, 7]` (an index out of
+    /// range is shown as `index N?`).
+    pub fn node_list(&self, nodes: &[u32]) -> String {
+        let shown: Vec<String> = nodes
+            .iter()
+            .map(|&n| {
+                if (n as usize) < self.nodes.len() {
+                    self.node_id(n as usize).to_string()
+                } else {
+                    format!("index {n}?")
+                }
+            })
+            .collect();
+        format!("[{}]", shown.join(", "))
     }
 
     pub fn num_nodes(&self) -> usize {
