@@ -345,3 +345,62 @@ fn issue20_item13_special_files_are_refused_not_read() {
     }
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// A small optimization on the cube: the damping `c` trained against the sag under gravity.
+fn cube_optimization(mesh: &str) -> String {
+    format!(
+        "mesh body = load(\"{mesh}\")\n\
+         material rubber = neo_hookean(mu: 0.1 MPa, kappa: 1 MPa, density: 1070 kg/m^3)\n\
+         region clamp = box(min: [-1, -1, -1] mm, max: [0.1, 5, 5] mm)\n\
+         nodes top = select(body, z > 3.9 mm)\n\
+         param c: rate = 20 /s in [1 /s, 100 /s]\n\
+         sim {{\n  dt = auto\n  steps = 20\n  damping = c\n  gravity = [0, 0, -9.81] m/s^2\n  fix clamp\n}}\n\
+         loss = sum(n in top) (x[n].z - x0[n].z)^2 at end\n\
+         optimize c with adam(lr: 0.1) for 2 iterations\n"
+    )
+}
+
+/// The cube mesh and its optimization script in `d`; the script's path.
+fn cube_optimization_files(d: &std::path::Path) -> std::path::PathBuf {
+    softc::mesh::save(
+        &cube_mesh(),
+        &d.join("c.msh"),
+        softc::mesh::LengthUnit::Millimetre,
+    )
+    .unwrap();
+    let script = d.join("opt.soft");
+    std::fs::write(&script, cube_optimization("c.msh")).unwrap();
+    script
+}
+
+#[test]
+fn issue20_item5_resume_refuses_a_changed_mesh() {
+    let d = scratch("resume-mesh");
+    let script = cube_optimization_files(&d);
+    let (s, out) = (script.to_str().unwrap(), d.join("out"));
+    let out = out.to_str().unwrap();
+    let (code, _, err) = softc_within(300, &["run", s, "--out", out, "--iterations", "1"]);
+    assert_eq!(code, 0, "{err}");
+    // A comment in the mesh file is no change...
+    let msh = d.join("c.msh");
+    let text = std::fs::read_to_string(&msh).unwrap();
+    let text = text.replacen(
+        "$EndMeshFormat\n",
+        "$EndMeshFormat\n$Comments\nedited\n$EndComments\n",
+        1,
+    );
+    std::fs::write(&msh, text).unwrap();
+    let (code, _, err) = softc_within(300, &["run", s, "--resume", out, "--iterations", "2"]);
+    assert_eq!(code, 0, "{err}");
+    // ...a moved node is.
+    let mut m = cube_mesh();
+    m.nodes[5][2] += 1e-5;
+    softc::mesh::save(&m, &msh, softc::mesh::LengthUnit::Millimetre).unwrap();
+    let (code, _, err) = softc_within(300, &["run", s, "--resume", out, "--iterations", "3"]);
+    assert_ne!(code, 0, "{err}");
+    assert!(
+        err.contains("different mesh") && err.contains("c.msh"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&d).ok();
+}

@@ -57,7 +57,7 @@ pub enum Stopped {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrainState {
     pub format: u32,
-    /// Identifies the script and settings the state belongs to.
+    /// Identifies the script and settings the state belongs to, then (after `/`) the mesh.
     pub fingerprint: String,
     /// The trained uniforms, in order.
     pub entries: Vec<String>,
@@ -135,6 +135,25 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                     return Err(RunError(format!(
                         "the saved state has format {}, this softc writes {STATE_FORMAT}; start afresh",
                         s.format
+                    )));
+                }
+                // `SCRIPT/MESH`: a changed mesh alone gets a message of its own.
+                let script_part = |f: &str| f.split('/').next().unwrap_or("").to_string();
+                if !s.fingerprint.contains('/') {
+                    return Err(RunError(
+                        "the saved state does not record its mesh (an older softc wrote it);                          run without --resume to start afresh"
+                            .into(),
+                    ));
+                }
+                if s.entries == entries
+                    && script_part(&s.fingerprint) == script_part(&fingerprint)
+                    && s.fingerprint != fingerprint
+                {
+                    return Err(RunError(format!(
+                        "the saved state was made with a different mesh: `{}` changed since \
+                         (positions, elements, tags or sets); run without --resume to start \
+                         afresh, or restore the mesh file",
+                        scene.resolved.mesh.path.display()
                     )));
                 }
                 if s.fingerprint != fingerprint || s.entries != entries {
