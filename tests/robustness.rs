@@ -404,3 +404,77 @@ fn issue20_item5_resume_refuses_a_changed_mesh() {
     );
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn issue20_item8_an_inconsistent_state_json_is_refused_naming_the_field() {
+    let d = scratch("state");
+    let script = cube_optimization_files(&d);
+    let s = script.to_str().unwrap();
+    let good = d.join("good");
+    let (code, _, err) = softc_within(
+        300,
+        &[
+            "run",
+            s,
+            "--out",
+            good.to_str().unwrap(),
+            "--iterations",
+            "1",
+        ],
+    );
+    assert_eq!(code, 0, "{err}");
+    let text = std::fs::read_to_string(good.join("state.json")).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let edit = |f: &dyn Fn(&mut serde_json::Value)| {
+        let mut j = json.clone();
+        f(&mut j);
+        j.to_string()
+    };
+    let cases: Vec<(&str, String, &str)> = vec![
+        (
+            "duplicate",
+            text.replacen(
+                "\"params\":{\"param.c\":",
+                "\"params\":{\"param.c\":1.0,\"param.c\":",
+                1,
+            ),
+            "given twice",
+        ),
+        (
+            "iteration",
+            edit(&|j| j["iteration"] = 5.into()),
+            "`iteration` is 5",
+        ),
+        ("dt", edit(&|j| j["dt"] = 1e-3.into()), "`dt`"),
+        (
+            "moment",
+            edit(&|j| j["method"]["v"][0] = (-1.0).into()),
+            "method.v[0]",
+        ),
+    ];
+    assert!(cases[0].1 != text, "the duplicate was not written");
+    for (name, body, needle) in cases {
+        let dir = d.join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("state.json"), &body).unwrap();
+        let (code, _, err) = softc_within(
+            300,
+            &[
+                "run",
+                s,
+                "--resume",
+                dir.to_str().unwrap(),
+                "--iterations",
+                "2",
+            ],
+        );
+        assert_ne!(code, 0, "{name}: {err}");
+        assert!(err.contains(needle), "{name}: {err}");
+        // The state is left as it was.
+        assert_eq!(
+            std::fs::read_to_string(dir.join("state.json")).unwrap(),
+            body
+        );
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
