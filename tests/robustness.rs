@@ -478,3 +478,68 @@ fn issue20_item8_an_inconsistent_state_json_is_refused_naming_the_field() {
     }
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn issue20_item9_iterations_0_and_params_files_are_checked() {
+    let d = scratch("params");
+    let script = cube_optimization_files(&d);
+    let s = script.to_str().unwrap();
+    // --iterations 0 ran one iteration.
+    let (code, _, err) = softc_within(60, &["run", s, "--iterations", "0"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("--iterations") && err.contains('0'), "{err}");
+    // Negative damping through --params bypassed the bounds [1/s, 100/s].
+    let p = d.join("p.json");
+    std::fs::write(&p, r#"{"params": {"c": -5}}"#).unwrap();
+    let (code, _, err) = softc_within(
+        120,
+        &["run", s, "--no-optimize", "--params", p.to_str().unwrap()],
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("outside the bounds") && err.contains("`c`"),
+        "{err}"
+    );
+    // A short array was applied in part.
+    let arr = d.join("arr.soft");
+    std::fs::write(
+        &arr,
+        cube_optimization("c.msh")
+            .replace(
+                "param c: rate = 20 /s in [1 /s, 100 /s]",
+                "param w: rate[3] = 20 /s in [1 /s, 100 /s]",
+            )
+            .replace("damping = c", "damping = w[0] + w[1] + w[2]")
+            .replace("optimize c", "optimize w"),
+    )
+    .unwrap();
+    std::fs::write(&p, r#"{"params": {"w": [10, 20]}}"#).unwrap();
+    let (code, _, err) = softc_within(
+        120,
+        &[
+            "run",
+            arr.to_str().unwrap(),
+            "--no-optimize",
+            "--params",
+            p.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("`w` has 2 value(s)") && err.contains('3'),
+        "{err}"
+    );
+    std::fs::write(&p, r#"{"params": {"w": [10, 20, 30]}}"#).unwrap();
+    let (code, _, err) = softc_within(
+        120,
+        &[
+            "run",
+            arr.to_str().unwrap(),
+            "--no-optimize",
+            "--params",
+            p.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}

@@ -28,7 +28,8 @@ pub fn optimize(
     err: &mut dyn Write,
 ) -> i32 {
     if let Some(n) = args.iterations {
-        plan.iterations = n.max(1);
+        // At least 1 (clap refuses `--iterations 0`).
+        plan.iterations = n;
     }
     let dir = args.resume.as_ref().or(args.out.as_ref()).cloned();
     let resume = match &args.resume {

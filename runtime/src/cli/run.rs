@@ -75,8 +75,8 @@ pub struct RunArgs {
     /// Continue the optimization saved in this folder (by `--out DIR`) where it stopped.
     #[arg(long, value_name = "DIR")]
     pub resume: Option<PathBuf>,
-    /// Override the optimize block's number of iterations.
-    #[arg(long)]
+    /// Override the optimize block's number of iterations (at least 1).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub iterations: Option<u64>,
     /// Run the simulation once with the params' initial values even if the script has an
     /// `optimize` block.
@@ -104,6 +104,54 @@ impl RunArgs {
             self.memory_budget.as_deref(),
         )
     }
+}
+
+/// The params of a `--params` file against the script (issue 20 item 9): a param given there has
+/// all of its entries (a short array was applied in part), and every value given by `--set` or
+/// `--params` lies within the param's declared bounds (they bypassed the script's check).
+fn check_overrides(
+    scene: &Scene,
+    overrides: &[(String, f64)],
+    from_file: &[(String, f64)],
+) -> Result<(), String> {
+    for slots in &scene.slots {
+        let given = from_file
+            .iter()
+            .filter(|(n, _)| {
+                n == &slots.name
+                    || n.strip_prefix(slots.name.as_str())
+                        .is_some_and(|r| r.starts_with('.'))
+            })
+            .count();
+        if given > 0 && given != slots.uniforms.len() {
+            return Err(format!(
+                "--params: `{}` has {given} value(s) in the file, the script's `{}` has {} \
+                 (shape {:?}); give all of them",
+                slots.name,
+                slots.name,
+                slots.uniforms.len(),
+                slots.shape
+            ));
+        }
+    }
+    for (name, v) in overrides {
+        let base = name.split('.').next().unwrap_or(name);
+        let Some(slots) = scene.slots.iter().find(|s| s.name == base) else {
+            continue;
+        };
+        let below = slots.lower.is_some_and(|lo| *v < lo);
+        let above = slots.upper.is_some_and(|hi| *v > hi);
+        if below || above || !v.is_finite() {
+            let bound = |b: Option<f64>| b.map_or("unbounded".to_string(), |b| format!("{b:e}"));
+            return Err(format!(
+                "--set/--params {name} = {v:e} (SI) is outside the bounds the script declares \
+                 for `{base}`: [{}, {}] (SI); give a value within them",
+                bound(slots.lower),
+                bound(slots.upper)
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The entries of a JSON file's `params` object (or of the file's top-level object), flattened
@@ -161,9 +209,13 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             }
         }
     }
+    let mut from_file = Vec::new();
     if let Some(path) = &args.params {
         match params_file(path) {
-            Ok(values) => overrides.extend(values),
+            Ok(values) => {
+                from_file.clone_from(&values);
+                overrides.extend(values);
+            }
             Err(e) => {
                 let _ = writeln!(err, "softc: --params {}: {e}", path.display());
                 return 2;
@@ -197,6 +249,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             );
             return 2;
         }
+    }
+    if let Err(e) = check_overrides(&scene, &overrides, &from_file) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
     }
     if !args.grad && !args.no_optimize {
         match crate::optim::Plan::from_scene(&scene) {
