@@ -543,3 +543,34 @@ fn issue20_item9_iterations_0_and_params_files_are_checked() {
     assert_eq!(code, 0, "{err}");
     std::fs::remove_dir_all(&d).ok();
 }
+
+#[test]
+fn issue20_item16_a_division_by_zero_in_a_prelude_call_is_e0208_at_the_call() {
+    let d = scratch("lame");
+    softc::mesh::save(
+        &cube_mesh(),
+        &d.join("c.msh"),
+        softc::mesh::LengthUnit::Millimetre,
+    )
+    .unwrap();
+    let script = d.join("s.soft");
+    let text = cube_script("c.msh").replace(
+        "material rubber = neo_hookean(mu: 0.1 MPa, kappa: 1 MPa, density: 1070 kg/m^3)",
+        "let nu = 0.5\nmaterial rubber = neo_hookean_ln(mu: lame_mu(0.3 MPa, nu), \
+         lambda: lame_lambda(0.3 MPa, nu), density: 1070 kg/m^3)",
+    );
+    std::fs::write(&script, &text).unwrap();
+    for cmd in ["check", "run"] {
+        let (code, _, err) = softc_within(60, &[cmd, script.to_str().unwrap()]);
+        assert_eq!(code, 1, "{cmd}: {err}");
+        assert!(
+            err.contains("E0208") && err.contains("lame_lambda") && err.contains("s.soft:3:"),
+            "{cmd}: {err}"
+        );
+    }
+    // ν = 0.45 folds to a value and checks clean.
+    std::fs::write(&script, text.replace("let nu = 0.5", "let nu = 0.45")).unwrap();
+    let (code, _, err) = softc_within(60, &["check", script.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}
