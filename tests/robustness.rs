@@ -545,6 +545,42 @@ fn issue20_item9_iterations_0_and_params_files_are_checked() {
 }
 
 #[test]
+fn issue20_item11_a_run_still_moving_at_end_is_reported() {
+    let d = scratch("moving");
+    softc::mesh::save(
+        &cube_mesh(),
+        &d.join("c.msh"),
+        softc::mesh::LengthUnit::Millimetre,
+    )
+    .unwrap();
+    // 20 steps under gravity: the cube has only started to sag.
+    let script = d.join("s.soft");
+    std::fs::write(
+        &script,
+        cube_script("c.msh").replace(
+            "  fix clamp\n",
+            "  gravity = [0, 0, -9.81] m/s^2\n  fix clamp\n",
+        ),
+    )
+    .unwrap();
+    let (code, out, err) = softc_within(120, &["run", script.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let json: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let ke = json["kinetic_energy"].as_f64().unwrap();
+    let vmax = json["max_speed"].as_f64().unwrap();
+    assert!(ke > 0.0 && vmax > 0.0, "{json}");
+    assert!(err.contains("still") && err.contains("at end"), "{err}");
+    // At rest (no load) there is nothing to report.
+    std::fs::write(&script, cube_script("c.msh")).unwrap();
+    let (code, out, err) = softc_within(120, &["run", script.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let json: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert!(json["max_speed"].as_f64().unwrap() < 1e-9, "{json}");
+    assert!(!err.contains("still"), "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
 fn issue20_item16_a_division_by_zero_in_a_prelude_call_is_e0208_at_the_call() {
     let d = scratch("lame");
     softc::mesh::save(

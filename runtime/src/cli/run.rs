@@ -106,6 +106,17 @@ impl RunArgs {
     }
 }
 
+/// The warning for a run whose loss is taken `at end` while its final state still moves.
+fn steady_loss_moving(scene: &Scene, summary: &RunSummary) -> Option<String> {
+    let loss = scene.loss.as_ref()?;
+    let end = loss.window(summary.steps as f64 * summary.dt, summary.dt)
+        == softc_compiler::driver::LossWindow::End;
+    if !end {
+        return None;
+    }
+    crate::engine::Motion::of(scene, summary).still_moving(scene, summary)
+}
+
 /// The params of a `--params` file against the script (issue 20 item 9): a param given there has
 /// all of its entries (a short array was applied in part), and every value given by `--set` or
 /// `--params` lies within the param's declared bounds (they bypassed the script's check).
@@ -299,6 +310,9 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 1;
         }
     };
+    if let Some(w) = steady_loss_moving(&scene, &summary) {
+        let _ = writeln!(err, "{}: {w}", args.file.display());
+    }
     let mut json = summary_json(&scene, &summary, backend_name);
     if let Some(g) = &grad {
         json["gradients"] = gradients_json(&scene.slots, &g.gradients);

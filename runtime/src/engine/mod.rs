@@ -110,6 +110,87 @@ pub struct RunSummary {
     pub v: Vec<[f64; 3]>,
 }
 
+/// How much a run's final state still moves (issue 20 item 11: a run past a limit point ended
+/// with a normal summary while its surface still moved 50 % in the last 5 ms).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Motion {
+    /// ½ Σ m v² of the simulated system (masses as simulated, `mass_scaling` included), J.
+    pub kinetic_energy: f64,
+    /// The largest node speed, m/s, and its node (index).
+    pub max_speed: f64,
+    pub fastest: usize,
+    /// The largest node displacement from the rest positions, m.
+    pub max_displacement: f64,
+}
+
+/// A loss taken `at end` stands for a steady state; the state counts as still moving when, at
+/// the final speed, the fastest node would move more than this fraction of the largest
+/// displacement over the last tenth of the simulated time (the window the settling criterion
+/// of `bench --tradeoff` averages over).
+pub const STILL_MOVING: f64 = 0.01;
+
+impl Motion {
+    pub fn of(scene: &Scene, s: &RunSummary) -> Motion {
+        let mut m = Motion {
+            kinetic_energy: 0.0,
+            max_speed: 0.0,
+            fastest: 0,
+            max_displacement: 0.0,
+        };
+        let norm = |a: [f64; 3]| (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        for (i, (v, (x, x0))) in
+            s.v.iter()
+                .zip(s.x.iter().zip(&scene.mesh.nodes))
+                .enumerate()
+        {
+            let speed = norm(*v);
+            m.kinetic_energy += 0.5 * scene.pre.mass.get(i).copied().unwrap_or(0.0) * speed * speed;
+            if speed > m.max_speed {
+                m.max_speed = speed;
+                m.fastest = i;
+            }
+            m.max_displacement =
+                m.max_displacement
+                    .max(norm([x[0] - x0[0], x[1] - x0[1], x[2] - x0[2]]));
+        }
+        m
+    }
+
+    /// The warning for a run whose loss is taken `at end` while the state still moves
+    /// ([`STILL_MOVING`]), or `None`.
+    pub fn still_moving(&self, scene: &Scene, s: &RunSummary) -> Option<String> {
+        let t = s.steps as f64 * s.dt;
+        let window = 0.1 * t;
+        let moved = self.max_speed * window;
+        if !(moved > STILL_MOVING * self.max_displacement) || t <= 0.0 {
+            return None;
+        }
+        // Round-off chatter of positions at rest is not motion.
+        let extent = scene
+            .mesh
+            .nodes
+            .iter()
+            .flatten()
+            .fold(0.0f64, |a, c| a.max(c.abs()));
+        if moved <= 64.0 * f64::EPSILON * extent {
+            return None;
+        }
+        Some(format!(
+            "warning: the loss is taken `at end` (a steady state), but the final state still \
+             moves: node {} at {:.3e} m/s would move {:.3e} m over the last tenth of the run \
+             ({window:.3e} s), {:.1} % of the largest displacement {:.3e} m (kinetic energy \
+             {:.3e} J). Run longer (duration/steps), add damping, or lower the load — past a \
+             limit point nothing settles",
+            scene.mesh.node_id(self.fastest),
+            self.max_speed,
+            moved,
+            100.0 * moved / self.max_displacement.max(f64::MIN_POSITIVE),
+            self.max_displacement,
+            self.kinetic_energy
+        ))
+    }
+}
+
 /// `x` rounded down to two significant digits (a safety factor that stays on the safe side).
 fn two_digits_down(x: f64) -> f64 {
     let inverse_scale = 10f64.powf(1.0 - x.log10().floor());
