@@ -610,3 +610,107 @@ fn issue20_item16_a_division_by_zero_in_a_prelude_call_is_e0208_at_the_call() {
     assert_eq!(code, 0, "{err}");
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// The cube script with the sim block's `dt = auto` and `steps = 20` replaced, and a material
+/// and extra sim lines of the test's choosing.
+fn blowup_script(material: &str, dt: &str, steps: u64, extra: &str) -> String {
+    cube_script("c.msh")
+        .replace(
+            "material rubber = neo_hookean(mu: 0.1 MPa, kappa: 1 MPa, density: 1070 kg/m^3)",
+            &format!("material rubber = {material}"),
+        )
+        .replace(
+            "  dt = auto\n  steps = 20\n",
+            &format!("  dt = {dt}\n  steps = {steps}\n{extra}"),
+        )
+}
+
+/// Run `text` as a script beside the cube mesh in `d`: (exit status, stderr).
+fn run_text(d: &std::path::Path, text: &str, extra_args: &[&str]) -> (i32, String) {
+    let script = d.join("b.soft");
+    std::fs::write(&script, text).unwrap();
+    let mut args = vec!["run", script.to_str().unwrap()];
+    args.extend(extra_args);
+    let (code, _, err) = softc_within(300, &args);
+    (code, err)
+}
+
+/// The first number after `at step ` in a message.
+fn step_in(msg: &str) -> u64 {
+    let rest = &msg[msg
+        .find("at step ")
+        .unwrap_or_else(|| panic!("no step: {msg}"))
+        + 8..];
+    rest.split(|c: char| !c.is_ascii_digit())
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
+#[test]
+fn issue20_item15_a_blow_up_names_its_step_and_cause() {
+    let d = scratch("blowup");
+    softc::mesh::save(
+        &cube_mesh(),
+        &d.join("c.msh"),
+        softc::mesh::LengthUnit::Millimetre,
+    )
+    .unwrap();
+    let rubber = "neo_hookean(mu: 0.1 MPa, kappa: 1 MPa, density: 1070 kg/m^3)";
+    let gravity = "  gravity = [0, 0, -9.81] m/s^2\n";
+    // (a) dt 3x the stable step (~20 us): unstable, blamed on dt with a smaller one, at the
+    // step where it happened (not a 50-step check boundary), and the run up to the step before
+    // that is finite.
+    let (code, err) = run_text(&d, &blowup_script(rubber, "60 us", 400, gravity), &[]);
+    assert_eq!(code, 1, "{err}");
+    println!("(a) {err}");
+    assert!(err.contains("unstable") && err.contains("dt <="), "{err}");
+    let s = step_in(&err);
+    assert!(s % 50 != 1 && s > 0, "a check boundary: {err}");
+    let ok = (s - 1).to_string();
+    let (code, e2) = run_text(
+        &d,
+        &blowup_script(rubber, "60 us", 400, gravity),
+        &["--steps", &ok],
+    );
+    assert_eq!(code, 0, "--steps {ok}: {e2}\n(first run: {err})");
+    let (code, _) = run_text(
+        &d,
+        &blowup_script(rubber, "60 us", 400, gravity),
+        &["--steps", &(s + 1).to_string()],
+    );
+    assert_eq!(code, 1);
+    // (b) A negative modulus: the material, not dt.
+    let (code, err) = run_text(
+        &d,
+        &blowup_script(
+            "neo_hookean(mu: -0.1 MPa, kappa: 1 MPa, density: 1070 kg/m^3)",
+            "10 us",
+            2000,
+            gravity,
+        ),
+        &[],
+    );
+    assert_eq!(code, 1, "{err}");
+    println!("(b) {err}");
+    assert!(err.contains("material constants are not physical"), "{err}");
+    assert!(!err.contains("dt <="), "{err}");
+    // (c) Damping of 1e9 /s: the damping, not the elastic step.
+    let (code, err) = run_text(
+        &d,
+        &blowup_script(
+            rubber,
+            "10 us",
+            400,
+            &format!("{gravity}  damping = 1e9 /s\n"),
+        )
+        .replace("  damping = 20 /s\n", ""),
+        &[],
+    );
+    assert_eq!(code, 1, "{err}");
+    println!("(c) {err}");
+    assert!(err.contains("damping is too strong"), "{err}");
+    assert!(!err.contains("dt <="), "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}
