@@ -712,5 +712,19 @@ fn issue20_item15_a_blow_up_names_its_step_and_cause() {
     println!("(c) {err}");
     assert!(err.contains("damping is too strong"), "{err}");
     assert!(!err.contains("dt <="), "{err}");
+    // (d) A load far beyond what the material carries (gravity of 3e5 m/s²): the load, at
+    // the element and step where it inverts, not dt.
+    let (code, err) = run_text(
+        &d,
+        &blowup_script(rubber, "10 us", 400, "  gravity = [0, 0, -3e5] m/s^2\n"),
+        &[],
+    );
+    println!("(d) {err}");
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("inverted at step") && err.contains("not the cause") && err.contains("load"),
+        "{err}"
+    );
+    assert!(!err.contains("dt <="), "{err}");
     std::fs::remove_dir_all(&d).ok();
 }

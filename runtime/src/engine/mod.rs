@@ -765,6 +765,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let mut states: Vec<(u64, Vec<f64>, Vec<f64>)> = Vec::new();
         let mut found = (step, seen);
         let start = self.last_good.as_ref().map_or(0, |l| l.0);
+        // Where the stable step is re-estimated: the state of the last passing check, before
+        // the blow-up deformed it (a state a step before an inversion can be so crushed that
+        // any dt looks too large there, also when a load too large is the cause).
+        let checked = self.last_good.as_ref().map(|l| l.1.clone());
         if let Some((k, x, v)) = self.last_good.take() {
             self.backend.set(self.ids.x, &x);
             self.backend.set(self.ids.v, &v);
@@ -814,13 +818,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 mesh.node_id(node)
             ),
         };
-        let Some((good, x, _)) = last else {
+        let (Some((good, _, _)), Some(x)) = (last, checked) else {
             return format!(
                 "{what}. Reduce dt (now {dt:e} s) or the load rate; `dt = auto` estimates the \
                  stable step"
             );
         };
-        let cause = self.cause(dt, s, good, &x, &problem);
+        let cause = self.cause(dt, s, start, &x, &problem);
         let from = if good > start {
             format!("; the last finite state is step {good}")
         } else {
@@ -857,7 +861,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     }
 
     /// Why a run blew up, with what to do ([`Simulation::diagnose`]): it failed in step
-    /// `failed`; `x` is the last finite state (step `good`).
+    /// `failed`; `x` is the state of the last passing check (step `good`).
     fn cause(&mut self, dt: f64, failed: u64, good: u64, x: &[f64], problem: &Problem) -> String {
         // The stiffness at rest: not positive for non-physical material constants.
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
@@ -908,15 +912,15 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 Some(rest) if here < rest => format!(
                     "The run is unstable because the time step dt = {dt:e} s is too large: the \
                      material stiffens as it \
-                     deforms, the stable step is {here:e} s at step {good} (the last finite \
-                     state), against {rest:e} s at rest where `dt = auto` estimates it. Use dt \
+                     deforms, the stable step is {here:e} s at step {good} (the last state \
+                     checked), against {rest:e} s at rest where `dt = auto` estimates it. Use dt \
                      <= {suggested:e} s, e.g. `dt = auto(safety: {})`",
                     two_digits_down((suggested / rest).min(0.9))
                 ),
                 _ => format!(
                     "The run is unstable because the time step dt = {dt:e} s is too large for \
                      this mesh and material: the \
-                     stable step at step {good} (the last finite state) is {here:e} s; use dt \
+                     stable step at step {good} (the last state checked) is {here:e} s; use dt \
                      <= {suggested:e} s"
                 ),
             };
@@ -926,12 +930,12 @@ impl<'s, B: Backend> Simulation<'s, B> {
         match problem {
             Problem::Inverted { .. } => format!(
                 "The time step is not the cause (dt = {dt:e} s is within the stable step \
-                 {here:e} s at the last finite state): the load deforms the element past \
+                 {here:e} s at step {good}, the last state checked): the load deforms the element past \
                  inversion — {load}"
             ),
             _ => format!(
                 "The time step is not the cause (dt = {dt:e} s is within the stable step \
-                 {here:e} s at the last finite state): the forces grew without bound — {load}"
+                 {here:e} s at step {good}, the last state checked): the forces grew without bound — {load}"
             ),
         }
     }
