@@ -162,7 +162,8 @@ impl Motion {
         let t = s.steps as f64 * s.dt;
         let window = 0.1 * t;
         let moved = self.max_speed * window;
-        if !(moved > STILL_MOVING * self.max_displacement) || t <= 0.0 {
+        // (`moved` may be NaN for a non-finite state: then nothing is claimed.)
+        if moved.is_nan() || moved <= STILL_MOVING * self.max_displacement || t <= 0.0 {
             return None;
         }
         // Round-off chatter of positions at rest is not motion.
@@ -866,16 +867,16 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // The stiffness at rest: not positive for non-physical material constants.
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
         self.backend.set(self.ids.x, &rest);
-        if let Ok(Some((lowest, highest, _))) = self.stiffness_extremes() {
-            if highest <= 0.0 || lowest < -1e-2 * highest.abs() {
-                return format!(
-                    "The material constants are not physical: the stiffness at rest is not \
-                     positive (a deformation mode with ω² = {:e} /s², against {highest:e} /s² \
-                     for the stiffest); check the moduli (E > 0, μ > 0, a bulk modulus > 0) and \
-                     Poisson's ratio (−1 < ν < 0.5). A smaller dt does not help",
-                    lowest.min(highest)
-                );
-            }
+        if let Ok(Some((lowest, highest, _))) = self.stiffness_extremes()
+            && (highest <= 0.0 || lowest < -1e-2 * highest.abs())
+        {
+            return format!(
+                "The material constants are not physical: the stiffness at rest is not \
+                 positive (a deformation mode with ω² = {:e} /s², against {highest:e} /s² \
+                 for the stiffest); check the moduli (E > 0, μ > 0, a bulk modulus > 0) and \
+                 Poisson's ratio (−1 < ν < 0.5). A smaller dt does not help",
+                lowest.min(highest)
+            );
         }
         // Mass damping: v ← (1 − β·dt)·v + …, unstable by itself for β·dt > 2 whatever the
         // elastic step.
