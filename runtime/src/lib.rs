@@ -4,6 +4,7 @@
 pub mod cli;
 pub mod devices;
 pub mod engine;
+pub mod files;
 pub mod lsp;
 pub mod mesh;
 pub mod optim;

@@ -717,6 +717,7 @@ fn without_load_the_rest_state_stays_at_rest_for_ten_thousand_steps() {
 /// around it flatten: the node at (30, 5, 5) mm moves straight towards the face opposite it
 /// in one of its tets until the thinnest of its tets keeps the fraction `ratio` of
 /// its volume. Returns the mesh file and the sliver elements (volume ratio ≤ 1.001 × ratio).
+/// The mesh file and the file numbers of its sliver elements.
 fn sliver_beam(dir: &Path, ratio: f64) -> (PathBuf, Vec<usize>) {
     let mut mesh = kuhn_grid(&beam_grid([6, 2, 2], false), LengthUnit::Millimetre).unwrap();
     let node = mesh
@@ -770,7 +771,10 @@ fn sliver_beam(dir: &Path, ratio: f64) -> (PathBuf, Vec<usize>) {
     assert!(around.iter().all(|&e| mesh.tet_volume(e) > 0.0));
     let path = dir.join(format!("sliver-{ratio:e}.msh"));
     softc::mesh::save(&mesh, &path, LengthUnit::Millimetre).unwrap();
-    (path, slivers)
+    // Messages name elements by the file's numbers: the writer numbers the tagged triangles
+    // first, then the tets.
+    let ids = slivers.iter().map(|e| mesh.tris.len() + e + 1).collect();
+    (path, ids)
 }
 
 fn sliver_script(dir: &Path, mesh: &Path, name: &str) -> PathBuf {

@@ -20,14 +20,14 @@ fn tmpdir(tag: &str) -> PathBuf {
     d
 }
 
-/// The Kuhn unit cube fixtures: 8 nodes, 6 tets (3 given with negative orientation),
+/// The Kuhn unit cube fixtures: 8 nodes, 6 tets (all given with negative orientation),
 /// region 1 "solid", two "base" triangles tagged 10 on x = 0.
 fn check_cube(m: &Mesh, names: bool) {
     assert_eq!(m.nodes.len(), 8);
     assert_eq!(m.tets.len(), 6);
     assert_eq!(
-        m.report.reoriented_tets, 3,
-        "three odd-permutation tets are reordered"
+        m.report.reoriented_tets, 6,
+        "the whole mesh, written with the other orientation, is reordered"
     );
     for e in 0..6 {
         assert!(m.tet_volume(e) > 0.0, "tet {e} positive after load");
@@ -311,7 +311,7 @@ fn malformed_gmsh_is_refused_with_line_and_reason() {
     // Out-of-range node id in an element: names element and node.
     refuse(
         "range.msh",
-        good.replace("4 4 2 1 1 1 2 4 8", "4 4 2 1 1 1 2 4 80")
+        good.replace("4 4 2 1 1 2 1 4 8", "4 4 2 1 1 2 1 4 80")
             .as_bytes(),
         &["element 4", "node 80", ":25"],
     );
@@ -324,7 +324,7 @@ fn malformed_gmsh_is_refused_with_line_and_reason() {
     // Quadratic tets are refused with a fix.
     refuse(
         "quad.msh",
-        good.replace("4 4 2 1 1 1 2 4 8", "4 11 2 1 1 1 2 4 8 1 2 3 4 5 6")
+        good.replace("4 4 2 1 1 2 1 4 8", "4 11 2 1 1 2 1 4 8 1 2 3 4 5 6")
             .as_bytes(),
         &["10-node tetrahedron", "fix:"],
     );
@@ -350,7 +350,7 @@ fn malformed_other_formats_are_refused() {
     );
     refuse(
         "range.vtk",
-        vtk.replace("4 0 1 3 7", "4 0 1 3 70").as_bytes(),
+        vtk.replace("4 1 0 3 7", "4 1 0 3 70").as_bytes(),
         &["node 70"],
     );
     refuse(

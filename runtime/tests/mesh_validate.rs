@@ -35,13 +35,14 @@ fn inverted_and_degenerate_tets_name_the_element_and_volume() {
     });
     assert_eq!(i.severity, Severity::Error);
     assert!(
-        i.message.contains("element 5") && i.message.contains(&format!("{v:.3e}")),
+        i.message.contains("element 6") && i.message.contains(&format!("{v:.3e}")),
         "{}",
         i.message
     );
-    // orient_tets repairs it and counts.
-    assert_eq!(m.orient_tets(), 1);
-    assert!(m.validate().is_empty());
+    // One tet against the rest is not a convention: orient_tets leaves it for validation to
+    // refuse (issue 20 item 3).
+    assert_eq!(m.orient_tets(), 0);
+    assert!(has_errors(&m.validate()));
 
     let mut m = bench();
     let t = m.tets[7];
@@ -50,7 +51,7 @@ fn inverted_and_degenerate_tets_name_the_element_and_volume() {
     let i = find(&issues, |k| {
         matches!(k, IssueKind::DegenerateTet { element: 7, .. })
     });
-    assert!(i.message.contains("element 7") && i.message.contains("degenerate"));
+    assert!(i.message.contains("element 8") && i.message.contains("degenerate"));
 }
 
 #[test]
@@ -65,7 +66,7 @@ fn flat_tet_in_a_file_is_refused_by_load_naming_the_element() {
     assert_eq!(e.kind, MeshErrorKind::Invalid);
     let s = e.to_string();
     assert!(
-        s.contains("flat.msh") && s.contains("element 1") && s.contains("degenerate"),
+        s.contains("flat.msh") && s.contains("element 2 ") && s.contains("degenerate"),
         "{s}"
     );
 }
@@ -90,7 +91,7 @@ fn open_and_non_manifold_chambers() {
     );
     assert!(
         i.message
-            .contains(&format!("nodes {} and {}", edge[0], edge[1])),
+            .contains(&format!("nodes {} and {}", edge[0] + 1, edge[1] + 1)),
         "{}",
         i.message
     );
@@ -156,8 +157,8 @@ fn chamber_face_not_on_the_boundary_is_named() {
     );
     assert_eq!(i.severity, Severity::Error);
     assert!(
-        i.message.contains(&format!("surface triangle {fi}"))
-            && i.message.contains(&format!("{face:?}")),
+        i.message.contains(&format!("surface triangle {}", fi + 1))
+            && i.message.contains(&format!("{:?}", face.map(|n| n + 1))),
         "{}",
         i.message
     );
@@ -174,12 +175,12 @@ fn duplicate_unused_nodes_and_disconnected_pieces() {
         &issues,
         |k| matches!(k, IssueKind::DuplicateNodes { first: 0, second } if *second == dup),
     );
-    assert!(i.message.contains(&format!("nodes 0 and {dup}")));
+    assert!(i.message.contains(&format!("nodes 1 and {}", dup + 1)));
     let i = find(
         &issues,
         |k| matches!(k, IssueKind::UnusedNodes { count: 1, first } if *first == dup),
     );
-    assert!(i.message.contains(&format!("node {dup}")));
+    assert!(i.message.contains(&format!("node {}", dup + 1)));
 
     // A detached tet far away: a second piece, named by its element id.
     let mut m = bench();
@@ -200,7 +201,11 @@ fn duplicate_unused_nodes_and_disconnected_pieces() {
         &issues,
         |k| matches!(k, IssueKind::DisconnectedPieces { pieces: 2, example_element, .. } if *example_element == e),
     );
-    assert!(i.message.contains(&format!("element {e}")), "{}", i.message);
+    assert!(
+        i.message.contains(&format!("element {}", e + 1)),
+        "{}",
+        i.message
+    );
     assert!(has_errors(&issues));
 }
 
@@ -273,7 +278,7 @@ fn non_manifold_faces_bad_nodes_and_wrong_chamber_winding() {
             }
         )
     });
-    assert!(i.message.contains("element 9") && i.message.contains("node 100000"));
+    assert!(i.message.contains("element 10") && i.message.contains("node index 100000"));
 
     let mut m = bench();
     for (f, t) in m.tris.iter_mut().zip(&m.tri_tags) {
@@ -344,10 +349,12 @@ fn load_refuses_disconnected_mesh_listing_the_issue() {
     let e = load(&p, LengthUnit::Millimetre).unwrap_err();
     std::fs::remove_dir_all(&d).unwrap();
     let s = e.to_string();
+    // The detached tet by the file's number: the writer numbers triangles, then tets.
+    let id = m.tris.len() + m.tets.len();
     assert!(
         s.contains("two.msh")
             && s.contains("disconnected")
-            && s.contains("element 1032")
+            && s.contains(&format!("element {id} "))
             && s.contains("fix:"),
         "{s}"
     );
@@ -377,7 +384,7 @@ fn pinched_boundary_edge_and_node_are_reported() {
             }
         )
     });
-    assert!(i.message.contains("nodes 0 and 1"), "{}", i.message);
+    assert!(i.message.contains("nodes 1 and 2"), "{}", i.message);
     let node = Mesh::from_tets(
         vec![
             [0.0, 0.0, 0.0],
@@ -388,13 +395,142 @@ fn pinched_boundary_edge_and_node_are_reported() {
             [0.0, -1.0, 0.0],
             [0.0, 0.0, -1.0],
         ],
-        vec![[0, 1, 2, 3], [0, 4, 5, 6]],
+        vec![[0, 1, 2, 3], [0, 4, 6, 5]],
     );
-    let mut node = node;
-    node.orient_tets();
     let issues = node.validate();
     let i = find(&issues, |k| {
         matches!(k, IssueKind::NonManifoldBoundaryNode { node: 0, sheets: 2 })
     });
-    assert!(i.message.contains("node 0"), "{}", i.message);
+    assert!(i.message.contains("node 1 "), "{}", i.message);
+}
+
+/// A 4×4×4 cube of 1 mm Kuhn cells (no cavity), in metres.
+fn cube4() -> Mesh {
+    let spec = KuhnSpec {
+        n: [4, 4, 4],
+        min: [0.0; 3],
+        max: [4.0; 3],
+        cavity_min: [0.0; 3],
+        cavity_max: [0.0; 3],
+    };
+    kuhn_grid(&spec, LengthUnit::Millimetre).unwrap()
+}
+
+/// `cube4` with its interior node at (1, 1, 1) mm moved past its neighbour at (2, 1, 1) mm:
+/// the tets around it turn inside out (the issue's tangled mesh).
+fn tangled() -> (Mesh, Vec<usize>) {
+    let mut m = cube4();
+    let n = m
+        .nodes
+        .iter()
+        .position(|p| p.iter().all(|c| (c - 1e-3).abs() < 1e-12))
+        .unwrap();
+    m.nodes[n][0] = 2.6e-3;
+    let inverted: Vec<usize> = (0..m.tets.len())
+        .filter(|&e| m.tet_volume(e) < 0.0)
+        .collect();
+    assert!(
+        !inverted.is_empty() && inverted.len() < m.tets.len() / 2,
+        "{inverted:?}"
+    );
+    (m, inverted)
+}
+
+fn scratch(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-val-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn a_tangled_mesh_is_refused_naming_its_inverted_elements() {
+    // Issue 20 item 3: the loader used to reorder the inverted tets one by one, report "valid"
+    // and simulate a body 12.5 mm³ too large.
+    let (m, inverted) = tangled();
+    let d = scratch("tangled");
+    let p = d.join("tangled.msh");
+    save(&m, &p, LengthUnit::Millimetre).unwrap();
+    let e = load(&p, LengthUnit::Millimetre).unwrap_err();
+    assert_eq!(e.kind, MeshErrorKind::Invalid);
+    let named: Vec<usize> = e
+        .issues
+        .iter()
+        .filter_map(|i| match i.kind {
+            IssueKind::InvertedTet { element, .. } => Some(element),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(named, inverted, "{e}");
+    let s = e.to_string();
+    assert!(s.contains("tangled") && s.contains("inverted"), "{s}");
+    // `read` (no validation) reorders nothing either.
+    let r = softc::mesh::read(&p, LengthUnit::Millimetre).unwrap();
+    assert_eq!(r.report.reoriented_tets, 0);
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
+fn a_tangled_mesh_with_its_corners_reordered_is_refused_as_overlapping() {
+    // The same tangle, with the inverted tets' corners swapped in the file so every tet has a
+    // positive volume: the tets around the moved node overlap their neighbours.
+    let (mut m, inverted) = tangled();
+    for &e in &inverted {
+        m.tets[e].swap(2, 3);
+    }
+    assert!((0..m.tets.len()).all(|e| m.tet_volume(e) > 0.0));
+    let d = scratch("overlap");
+    let p = d.join("overlap.msh");
+    save(&m, &p, LengthUnit::Millimetre).unwrap();
+    let e = load(&p, LengthUnit::Millimetre).unwrap_err();
+    std::fs::remove_dir_all(&d).ok();
+    assert_eq!(e.kind, MeshErrorKind::Invalid);
+    let i = find(&e.issues, |k| {
+        matches!(k, IssueKind::OverlappingTets { .. })
+    });
+    let IssueKind::OverlappingTets { elements, .. } = i.kind else {
+        unreachable!()
+    };
+    assert!(
+        elements.iter().any(|x| inverted.contains(x)),
+        "{elements:?} {inverted:?}"
+    );
+    assert!(i.message.contains("overlap"), "{}", i.message);
+}
+
+#[test]
+fn a_mesh_written_with_the_other_orientation_is_reordered_whole() {
+    let m = cube4();
+    let mut flipped = m.clone();
+    for t in &mut flipped.tets {
+        t.swap(0, 1);
+    }
+    let d = scratch("flipped");
+    let p = d.join("flipped.msh");
+    save(&flipped, &p, LengthUnit::Millimetre).unwrap();
+    let back = load(&p, LengthUnit::Millimetre).unwrap();
+    std::fs::remove_dir_all(&d).ok();
+    assert_eq!(back.report.reoriented_tets, m.tets.len());
+    assert!((back.total_volume() - 64e-9).abs() < 1e-20);
+    assert!(back.validate().is_empty());
+}
+
+#[test]
+fn messages_name_nodes_and_elements_by_the_files_numbers() {
+    // Issue 20 item 17: messages said "element 1" for the file's element 12 (0-based indices).
+    let d = scratch("ids");
+    let p = d.join("ids.msh");
+    let text = "$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n5\n101 0 0 0\n102 1 0 0\n\
+                103 0 1 0\n104 0 0 1\n105 1 1 0\n$EndNodes\n$Elements\n2\n\
+                11 4 2 1 1 101 102 103 104\n12 4 2 1 1 101 102 103 105\n$EndElements\n";
+    std::fs::write(&p, text).unwrap();
+    let e = load(&p, LengthUnit::Millimetre).unwrap_err();
+    std::fs::remove_dir_all(&d).ok();
+    let s = e.to_string();
+    assert!(
+        s.contains("element 12 (nodes [101, 102, 103, 105]) is degenerate"),
+        "{s}"
+    );
+    // Read without validation, the mesh keeps the numbers; a generated one counts from 1.
+    let m = cube4();
+    assert_eq!((m.node_id(0), m.tet_id(0), m.tri_id(0)), (1, 1, 1));
 }

@@ -31,6 +31,10 @@ pub trait MeshView {
     fn surface_nodes(&self, tag: i32) -> Vec<u32>;
     fn node_set(&self, name: &str) -> Option<&[u32]>;
     fn element_set(&self, name: &str) -> Option<&[u32]>;
+    /// The mesh file's number of tet `e`, what messages call it (default: `e + 1`).
+    fn tet_id(&self, e: usize) -> i64 {
+        e as i64 + 1
+    }
 }
 
 /// What a param or input slot range belongs to.
@@ -444,7 +448,8 @@ fn assign_materials(
     }
     if let Some(e) = of.iter().position(|&m| m == usize::MAX) {
         return Err(format!(
-            "element {e} has no material: add `use NAME` for the whole mesh before the `use NAME in SET` lines"
+            "element {} has no material: add `use NAME` for the whole mesh before the `use NAME in SET` lines",
+            mesh.tet_id(e)
         ));
     }
     Ok(of)

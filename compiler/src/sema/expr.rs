@@ -1045,9 +1045,15 @@ impl Checker {
         };
         let mut var = sig.body_var;
         let mut failed = false;
+        // Each argument's constant value (`None` when not given: its default).
+        let mut given: Vec<Option<Option<Value>>> = Vec::new();
         for (p, slot) in sig.params.iter().zip(slots) {
-            let Some(arg) = slot else { continue };
+            let Some(arg) = slot else {
+                given.push(None);
+                continue;
+            };
             let t = self.check_expr(arg);
+            given.push(Some(t.value.clone()));
             var = var.max(t.var);
             // A material constant may vary per element: a per-element field (`param mu:
             // pressure[core]`) fits a scalar material parameter.
@@ -1069,7 +1075,90 @@ impl Checker {
         if failed {
             return Typed::error();
         }
+        if kind == SymKind::Fn && var == Var::Const {
+            return self.fold_call(e, gid, &sig, given);
+        }
         Typed::of(sig.ret.clone(), var)
+    }
+
+    /// A call of a `fn` (the prelude's `lame_lambda` included) whose arguments are constants:
+    /// its body evaluated with their values, so the call has a value like the same expression
+    /// written inline, and a division by zero inside it is E0208 at the call (issue 20 item
+    /// 16: `lame_lambda(E, 0.5)` passed the check and failed at run time with no location).
+    fn fold_call(
+        &mut self,
+        e: &Expr,
+        gid: usize,
+        sig: &super::Signature,
+        given: Vec<Option<Option<Value>>>,
+    ) -> Typed {
+        let plain = Typed::of(sig.ret.clone(), Var::Const);
+        const MAX_DEPTH: u32 = 32;
+        if sig.ret.is_error() || self.fold_depth >= MAX_DEPTH {
+            return plain;
+        }
+        let (prelude, index) = (self.syms[gid].prelude, self.syms[gid].item);
+        let ItemKind::Fn(f) = self.item(prelude, index).kind else {
+            return plain;
+        };
+        let name = self.syms[gid].name.clone();
+        // The arguments' values, and the defaults of those not given.
+        let mark = self.diags.len();
+        let mut values = Vec::new();
+        for (p, v) in f.params.iter().zip(given) {
+            let v = match (v, &p.default) {
+                (Some(v), _) => v,
+                (None, Some(d)) => self.check_expr(d).value,
+                (None, None) => None,
+            };
+            values.push(v);
+        }
+        self.diags.truncate(mark);
+        if values.iter().any(Option::is_none) || values.len() != f.params.len() {
+            return plain;
+        }
+        // The body sees its parameters and the globals only, in a function's context.
+        let scopes = std::mem::take(&mut self.scopes);
+        let ctx = std::mem::take(&mut self.ctx);
+        self.fold_depth += 1;
+        self.push_scope();
+        for ((p, value), sp) in f.params.iter().zip(values).zip(&sig.params) {
+            let typed = Typed {
+                ty: sp.ty.clone(),
+                var: Var::Const,
+                value,
+            };
+            self.declare_local(&p.name.name, p.name.span, typed, false);
+        }
+        let body = self.check_expr(&f.body);
+        self.pop_scope();
+        self.fold_depth -= 1;
+        self.ctx = ctx;
+        self.scopes = scopes;
+        let divided_by_zero = self.diags[mark..].iter().any(|d| d.code == "E0208");
+        self.diags.truncate(mark);
+        if divided_by_zero {
+            let shown: Vec<String> = f.params.iter().map(|p| p.name.name.clone()).collect();
+            self.err(
+                Diagnostic::error(
+                    "E0208",
+                    e.span,
+                    format!(
+                        "division by zero in `{name}({})` with these arguments",
+                        shown.join(", ")
+                    ),
+                )
+                .with_hint(format!(
+                    "`{name}` divides by an expression of its parameters that is 0 for these \
+                     values; change the arguments (e.g. Poisson's ratio ν < 0.5)"
+                )),
+            );
+            return Typed::error();
+        }
+        Typed {
+            value: body.value,
+            ..plain
+        }
     }
 
     /// Check that `t` fits the declared type `want` (dimension, shape); report otherwise.

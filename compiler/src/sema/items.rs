@@ -837,6 +837,15 @@ impl Checker {
             );
             return false;
         }
+        if full.exists() && !full.is_file() {
+            // A FIFO or device: reading it would block or never end (issue 20 item 13).
+            let msg = format!("`{path}` is not a regular file (a named pipe, device or socket)");
+            self.err(
+                Diagnostic::error("E0319", span, msg)
+                    .with_hint("name a mesh file, e.g. \"meshes/cuboid.msh\""),
+            );
+            return false;
+        }
         if !full.is_file() {
             let msg = format!("mesh file `{path}` not found");
             self.err(Diagnostic::error("E0319", span, msg).with_hint(format!(

@@ -269,6 +269,8 @@ struct Checker {
     options: CheckOptions,
     diags: Vec<Diagnostic>,
     prelude_diags: usize,
+    /// How deep constant calls are being folded (`fold_call`), to bound recursion.
+    fold_depth: u32,
     globals: HashMap<String, usize>,
     syms: Vec<Global>,
     sigs: HashMap<usize, Signature>,
@@ -294,6 +296,7 @@ impl Checker {
         Checker {
             options,
             diags: Vec::new(),
+            fold_depth: 0,
             prelude_diags: 0,
             globals: HashMap::new(),
             syms: Vec::new(),

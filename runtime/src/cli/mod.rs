@@ -186,7 +186,7 @@ fn read_input(path: &Path, err: &mut dyn Write) -> Option<Vec<u8>> {
         let mut buf = Vec::new();
         std::io::stdin().read_to_end(&mut buf).map(|_| buf)
     } else {
-        std::fs::read(path)
+        crate::files::read_regular(path)
     };
     match result {
         Ok(b) => Some(b),

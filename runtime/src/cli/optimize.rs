@@ -28,7 +28,8 @@ pub fn optimize(
     err: &mut dyn Write,
 ) -> i32 {
     if let Some(n) = args.iterations {
-        plan.iterations = n.max(1);
+        // At least 1 (clap refuses `--iterations 0`).
+        plan.iterations = n;
     }
     let dir = args.resume.as_ref().or(args.out.as_ref()).cloned();
     // One run per folder, held for the whole run: a second one would overwrite this one's
@@ -148,7 +149,7 @@ struct Context<'a> {
 
 fn load_state(dir: &Path) -> Result<TrainState, String> {
     let path = dir.join(STATE_FILE);
-    let text = std::fs::read_to_string(&path)
+    let text = crate::files::read_regular_text(&path)
         .map_err(|e| format!("cannot read `{}`: {e}", path.display()))?;
     serde_json::from_str(&text).map_err(|e| {
         format!(
@@ -198,29 +199,75 @@ fn changed_settings(
     (!changed.is_empty()).then(|| changed.join(", "))
 }
 
-/// What a resumed run must agree with: the script, the overrides and the numerics (not the
-/// number of iterations: `--resume DIR --iterations N` extends a finished run).
-fn fingerprint(args: &RunArgs, scene: &Scene) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    let mut feed = |bytes: &[u8]| {
+/// FNV-1a over a sequence of byte strings (each followed by a separator).
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Self {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+    fn feed(&mut self, bytes: &[u8]) {
         for b in bytes {
-            h ^= *b as u64;
-            h = h.wrapping_mul(0x0100_0000_01b3);
+            self.0 ^= *b as u64;
+            self.0 = self.0.wrapping_mul(0x0100_0000_01b3);
         }
-        h ^= 0xff;
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    };
+        self.0 ^= 0xff;
+        self.0 = self.0.wrapping_mul(0x0100_0000_01b3);
+    }
+}
+
+/// The mesh as the run uses it (positions in metres, tets, tags, chambers, named sets): a
+/// resumed run must see the same mesh, whatever its file's comments or layout (issue 20 item 5:
+/// only the script was hashed, so a different mesh file was resumed silently).
+fn mesh_fingerprint(scene: &Scene) -> String {
+    let m = &scene.mesh;
+    let mut h = Fnv::new();
+    for p in &m.nodes {
+        for c in p {
+            h.feed(&c.to_bits().to_le_bytes());
+        }
+    }
+    for (t, tag) in m.tets.iter().zip(&m.tet_tags) {
+        for n in t {
+            h.feed(&n.to_le_bytes());
+        }
+        h.feed(&tag.to_le_bytes());
+    }
+    for (t, tag) in m.tris.iter().zip(&m.tri_tags) {
+        for n in t {
+            h.feed(&n.to_le_bytes());
+        }
+        h.feed(&tag.to_le_bytes());
+    }
+    for p in &m.names {
+        h.feed(format!("{} {} {}", p.dim, p.tag, p.name).as_bytes());
+    }
+    for (name, nodes) in m.node_sets.iter().chain(&m.element_sets) {
+        h.feed(name.as_bytes());
+        for n in nodes {
+            h.feed(&n.to_le_bytes());
+        }
+    }
+    format!("{:016x}", h.0)
+}
+
+/// What a resumed run must agree with: the script, the overrides and the numerics (not the
+/// number of iterations: `--resume DIR --iterations N` extends a finished run), then, after a
+/// `/`, the mesh ([`mesh_fingerprint`]).
+fn fingerprint(args: &RunArgs, scene: &Scene) -> String {
+    let mut h = Fnv::new();
+    let mut feed = |bytes: &[u8]| h.feed(bytes);
     feed(scene.source.as_bytes());
     for s in &args.set {
         feed(s.as_bytes());
     }
     if let Some(p) = &args.params {
-        feed(&std::fs::read(p).unwrap_or_default());
+        feed(&crate::files::read_regular(p).unwrap_or_default());
     }
     feed(format!("{:?}", args.dt).as_bytes());
     feed(format!("{:?}", args.steps).as_bytes());
     feed(format!("{:?} {:?}", args.backend, args.precision).as_bytes());
-    format!("{h:016x}")
+    format!("{:016x}/{}", h.0, mesh_fingerprint(scene))
 }
 
 /// A short rendering of the trained values: `p_max = 1523.4` or `w = [0.1, -0.2, … 12 values]`.

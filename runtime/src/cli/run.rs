@@ -78,8 +78,8 @@ pub struct RunArgs {
     /// Continue the optimization saved in this folder (by `--out DIR`) where it stopped.
     #[arg(long, value_name = "DIR")]
     pub resume: Option<PathBuf>,
-    /// Override the optimize block's number of iterations.
-    #[arg(long, allow_hyphen_values = true)]
+    /// Override the optimize block's number of iterations (at least 1).
+    #[arg(long, allow_hyphen_values = true, value_parser = clap::value_parser!(u64).range(1..))]
     pub iterations: Option<u64>,
     /// Run the simulation once with the params' initial values even if the script has an
     /// `optimize` block.
@@ -109,10 +109,69 @@ impl RunArgs {
     }
 }
 
+/// The warning for a run whose loss is taken `at end` while its final state still moves.
+fn steady_loss_moving(scene: &Scene, summary: &RunSummary) -> Option<String> {
+    let loss = scene.loss.as_ref()?;
+    let end = loss.window(summary.steps as f64 * summary.dt, summary.dt)
+        == softc_compiler::driver::LossWindow::End;
+    if !end {
+        return None;
+    }
+    crate::engine::Motion::of(scene, summary).still_moving(scene, summary)
+}
+
+/// The params of a `--params` file against the script (issue 20 item 9): a param given there has
+/// all of its entries (a short array was applied in part), and every value given by `--set` or
+/// `--params` lies within the param's declared bounds (they bypassed the script's check).
+fn check_overrides(
+    scene: &Scene,
+    overrides: &[(String, f64)],
+    from_file: &[(String, f64)],
+) -> Result<(), String> {
+    for slots in &scene.slots {
+        let given = from_file
+            .iter()
+            .filter(|(n, _)| {
+                n == &slots.name
+                    || n.strip_prefix(slots.name.as_str())
+                        .is_some_and(|r| r.starts_with('.'))
+            })
+            .count();
+        if given > 0 && given != slots.uniforms.len() {
+            return Err(format!(
+                "--params: `{}` has {given} value(s) in the file, the script's `{}` has {} \
+                 (shape {:?}); give all of them",
+                slots.name,
+                slots.name,
+                slots.uniforms.len(),
+                slots.shape
+            ));
+        }
+    }
+    for (name, v) in overrides {
+        let base = name.split('.').next().unwrap_or(name);
+        let Some(slots) = scene.slots.iter().find(|s| s.name == base) else {
+            continue;
+        };
+        let below = slots.lower.is_some_and(|lo| *v < lo);
+        let above = slots.upper.is_some_and(|hi| *v > hi);
+        if below || above || !v.is_finite() {
+            let bound = |b: Option<f64>| b.map_or("unbounded".to_string(), |b| format!("{b:e}"));
+            return Err(format!(
+                "--set/--params {name} = {v:e} (SI) is outside the bounds the script declares \
+                 for `{base}`: [{}, {}] (SI); give a value within them",
+                bound(slots.lower),
+                bound(slots.upper)
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// The entries of a JSON file's `params` object (or of the file's top-level object), flattened
 /// to `NAME`, `NAME.i`, `NAME.i.j` as `--set` names them.
 fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| e.to_string())?;
+    let text = crate::files::read_regular_text(path).map_err(|e| e.to_string())?;
     let json: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| format!("not JSON: {e}"))?;
     let params = json.get("params").unwrap_or(&json);
@@ -182,9 +241,13 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     let mut overrides: Vec<(String, f64)> = Vec::new();
+    let mut from_file = Vec::new();
     if let Some(path) = &args.params {
         match params_file(path) {
-            Ok(values) => overrides.extend(values),
+            Ok(values) => {
+                from_file.clone_from(&values);
+                overrides.extend(values);
+            }
             Err(e) => {
                 let _ = writeln!(err, "softc: --params {}: {e}", path.display());
                 return 2;
@@ -227,6 +290,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     if let Err(e) = check_set_dims(&scene.resolved, &sets) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
+    if let Err(e) = check_overrides(&scene, &overrides, &from_file) {
         let _ = writeln!(err, "softc: {e}");
         return 2;
     }
@@ -296,6 +363,9 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 1;
         }
     };
+    if let Some(w) = steady_loss_moving(&scene, &summary) {
+        let _ = writeln!(err, "{}: {w}", args.file.display());
+    }
     let mut json = summary_json(&scene, &summary, backend_name);
     if let Some(g) = &grad {
         json["gradients"] = gradients_json(&scene.slots, &g.gradients);

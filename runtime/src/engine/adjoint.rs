@@ -318,6 +318,12 @@ impl<B: Backend> Simulation<'_, B> {
         let prefix = schedule.forward_prefix();
         let mut slots: Vec<Option<(u64, HostState)>> = vec![None; schedule.slots + 1];
         let mut current = 0u64;
+        // A blow-up before the first state check is run again from the initial state.
+        self.last_good = Some((
+            0,
+            self.backend.get(self.ids.x),
+            self.backend.get(self.ids.v),
+        ));
         let mut loss_sum = 0.0;
         let mut direct = BTreeMap::new();
         let mut forward_steps = 0u64;

@@ -114,6 +114,88 @@ pub struct RunSummary {
     pub solver: Option<statics::SolverReport>,
 }
 
+/// How much a run's final state still moves (issue 20 item 11: a run past a limit point ended
+/// with a normal summary while its surface still moved 50 % in the last 5 ms).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Motion {
+    /// ½ Σ m v² of the simulated system (masses as simulated, `mass_scaling` included), J.
+    pub kinetic_energy: f64,
+    /// The largest node speed, m/s, and its node (index).
+    pub max_speed: f64,
+    pub fastest: usize,
+    /// The largest node displacement from the rest positions, m.
+    pub max_displacement: f64,
+}
+
+/// A loss taken `at end` stands for a steady state; the state counts as still moving when, at
+/// the final speed, the fastest node would move more than this fraction of the largest
+/// displacement over the last tenth of the simulated time (the window the settling criterion
+/// of `bench --tradeoff` averages over).
+pub const STILL_MOVING: f64 = 0.01;
+
+impl Motion {
+    pub fn of(scene: &Scene, s: &RunSummary) -> Motion {
+        let mut m = Motion {
+            kinetic_energy: 0.0,
+            max_speed: 0.0,
+            fastest: 0,
+            max_displacement: 0.0,
+        };
+        let norm = |a: [f64; 3]| (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        for (i, (v, (x, x0))) in
+            s.v.iter()
+                .zip(s.x.iter().zip(&scene.mesh.nodes))
+                .enumerate()
+        {
+            let speed = norm(*v);
+            m.kinetic_energy += 0.5 * scene.pre.mass.get(i).copied().unwrap_or(0.0) * speed * speed;
+            if speed > m.max_speed {
+                m.max_speed = speed;
+                m.fastest = i;
+            }
+            m.max_displacement =
+                m.max_displacement
+                    .max(norm([x[0] - x0[0], x[1] - x0[1], x[2] - x0[2]]));
+        }
+        m
+    }
+
+    /// The warning for a run whose loss is taken `at end` while the state still moves
+    /// ([`STILL_MOVING`]), or `None`.
+    pub fn still_moving(&self, scene: &Scene, s: &RunSummary) -> Option<String> {
+        let t = s.steps as f64 * s.dt;
+        let window = 0.1 * t;
+        let moved = self.max_speed * window;
+        // (`moved` may be NaN for a non-finite state: then nothing is claimed.)
+        if moved.is_nan() || moved <= STILL_MOVING * self.max_displacement || t <= 0.0 {
+            return None;
+        }
+        // Round-off chatter of positions at rest is not motion.
+        let extent = scene
+            .mesh
+            .nodes
+            .iter()
+            .flatten()
+            .fold(0.0f64, |a, c| a.max(c.abs()));
+        if moved <= 64.0 * f64::EPSILON * extent {
+            return None;
+        }
+        Some(format!(
+            "warning: the loss is taken `at end` (a steady state), but the final state still \
+             moves: node {} at {:.3e} m/s would move {:.3e} m over the last tenth of the run \
+             ({window:.3e} s), {:.1} % of the largest displacement {:.3e} m (kinetic energy \
+             {:.3e} J). Run longer (duration/steps), add damping, or lower the load — past a \
+             limit point nothing settles",
+            scene.mesh.node_id(self.fastest),
+            self.max_speed,
+            moved,
+            100.0 * moved / self.max_displacement.max(f64::MIN_POSITIVE),
+            self.max_displacement,
+            self.kinetic_energy
+        ))
+    }
+}
+
 /// `x` rounded down to two significant digits (a safety factor that stays on the safe side).
 fn two_digits_down(x: f64) -> f64 {
     let inverse_scale = 10f64.powf(1.0 - x.log10().floor());
@@ -141,9 +223,9 @@ pub struct Simulation<'s, B: Backend> {
     pub progress: Option<crate::outputs::progress::Progress>,
     /// The stable-step estimate, once computed (reused by `run`).
     estimate: Option<f64>,
-    /// Positions at the last state check that passed, and its step: where the stable step is
-    /// re-estimated when a run blows up.
-    last_good: Option<(u64, Vec<f64>)>,
+    /// The state (positions, velocities) at the last state check that passed, and its step:
+    /// a blow-up is run again step by step from there to find where it went wrong.
+    last_good: Option<(u64, Vec<f64>, Vec<f64>)>,
     ids: Ids,
 }
 
@@ -477,6 +559,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
             vtk.as_ref()
                 .is_some_and(|o| k.is_multiple_of(o.every.max(1)))
         };
+        // The initial state is the first good one (a blow-up before the first check is run
+        // again from here).
+        self.last_good = Some((
+            0,
+            self.backend.get(self.ids.x),
+            self.backend.get(self.ids.v),
+        ));
         let mut step = 0;
         while step < steps {
             if csv_due(&self.csv, step) {
@@ -558,6 +647,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
             std::collections::VecDeque::new();
         let mut steps = max_steps;
         let mut settled = false;
+        self.last_good = Some((
+            0,
+            self.backend.get(self.ids.x),
+            self.backend.get(self.ids.v),
+        ));
         let mut next = 0;
         while next < max_steps {
             let end = stretch_end(next, max_steps, |j| (j + 1) % CHECK_EVERY == 0);
@@ -641,9 +735,23 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 step + 1
             )));
         }
-        // An inversion is reported first: it is usually why positions went non-finite
-        // (J^(-2/3) of a negative J). Inversion-safe materials may pass through J <= 0.
         let js = self.backend.get(self.ids.elem_j);
+        let xs = self.backend.get(self.ids.x);
+        match self.first_problem(&js, &xs) {
+            None => {
+                let vs = self.backend.get(self.ids.v);
+                self.last_good = Some((step + 1, xs, vs));
+                Ok(())
+            }
+            Some(p) => Err(RunError(self.diagnose(step, dt, p))),
+        }
+    }
+
+    /// What is wrong with a state, if anything: an inverted element (J ≤ 0; inversion-safe
+    /// materials may pass through it) is named first, as it is usually why positions went
+    /// non-finite (J^(-2/3) of a negative J); then a non-finite position, then a non-finite J.
+    /// `js` are the element volume ratios of the state before the step that made `xs`.
+    fn first_problem(&self, js: &[f64], xs: &[f64]) -> Option<Problem> {
         let safe = |e: usize| {
             let lowered = &self.scene.lowered;
             self.scene
@@ -652,62 +760,211 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .position(|r| r.contains(&e))
                 .is_some_and(|m| lowered.inversion_safe.get(m).copied().unwrap_or(false))
         };
-        if let Some((e, j)) = js.iter().enumerate().find(|&(e, j)| *j <= 0.0 && !safe(e)) {
-            return Err(RunError(format!(
-                "element {e} inverted at step {} (t = {t:.6} s): J = {j:e}. \
-                 Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element; \
-                 an inversion-safe material such as `stable_neo_hookean` may pass through inversion",
-                step + 1
-            )));
+        if let Some((e, &j)) = js.iter().enumerate().find(|&(e, j)| *j <= 0.0 && !safe(e)) {
+            return Some(Problem::Inverted { element: e, j });
         }
-        let xs = self.backend.get(self.ids.x);
         if let Some(i) = xs.iter().position(|v| !v.is_finite()) {
-            return Err(RunError(format!(
-                "the simulation became unstable at step {} (t = {t:.6} s): node {} has a non-finite position. \
-                 The time step dt = {dt:e} s is too large for this mesh and material{}",
-                step + 1,
-                i / 3,
-                self.unstable_hint(dt)
-            )));
+            return Some(Problem::NonFinite { node: i / 3 });
         }
-        if let Some((e, j)) = js.iter().enumerate().find(|(_, j)| !j.is_finite()) {
-            return Err(RunError(format!(
-                "element {e} became non-finite at step {} (t = {t:.6} s): J = {j:e}. \
-                 Reduce dt (now {dt:e} s) or the load rate",
-                step + 1
-            )));
-        }
-        self.last_good = Some((step + 1, xs));
-        Ok(())
+        js.iter()
+            .enumerate()
+            .find(|(_, j)| !j.is_finite())
+            .map(|(e, &j)| Problem::NonFiniteJ { element: e, j })
     }
 
-    /// What to do about a blow-up: the stable step re-estimated at the last finite state checked
-    /// (a stiffening material under load has a smaller one than at rest, where `dt = auto`
-    /// estimates it), as a dt and as the `auto` safety factor that gives it.
-    fn unstable_hint(&mut self, dt: f64) -> String {
-        let at_rest = self.estimate;
-        let Some((step, x)) = self.last_good.take() else {
+    /// The report of a failed state check after step `step` (issue 20 item 15). The state is
+    /// checked every [`CHECK_EVERY`] steps; the stretch since the last good check is run again
+    /// step by step from its state, so the report names the step where it went wrong, the
+    /// element or node, and the state before it. Then the cause: non-physical material
+    /// constants (the stiffness at rest is not positive), mass damping too strong for the step
+    /// (β·dt > 2, measured by probing one step), a time step above the stable step estimated at
+    /// the last finite state (`dt` is blamed only then), else the load.
+    /// Runs only after a failure: runs that do not blow up are not touched.
+    fn diagnose(&mut self, step: u64, dt: f64, seen: Problem) -> String {
+        // The states of the rerun, newest last (at most three kept): (step, x, v).
+        let mut states: Vec<(u64, Vec<f64>, Vec<f64>)> = Vec::new();
+        let mut found = (step, seen);
+        let start = self.last_good.as_ref().map_or(0, |l| l.0);
+        // Where the stable step is re-estimated: the state of the last passing check, before
+        // the blow-up deformed it (a state a step before an inversion can be so crushed that
+        // any dt looks too large there, also when a load too large is the cause).
+        let checked = self.last_good.as_ref().map(|l| l.1.clone());
+        if let Some((k, x, v)) = self.last_good.take() {
+            self.backend.set(self.ids.x, &x);
+            self.backend.set(self.ids.v, &v);
+            states.push((k, x, v));
+            for s in k..=step {
+                if self.step(s, dt).is_err() {
+                    break;
+                }
+                let js = self.backend.get(self.ids.elem_j);
+                let xs = self.backend.get(self.ids.x);
+                if let Some(p) = self.first_problem(&js, &xs) {
+                    found = (s, p);
+                    break;
+                }
+                let vs = self.backend.get(self.ids.v);
+                states.push((s + 1, xs, vs));
+                if states.len() > 3 {
+                    states.remove(0);
+                }
+            }
+        }
+        let (s, problem) = found;
+        // An element found inverted (or non-finite) at state `s` makes `s` unusable: the last
+        // finite state is the one before it, where there is one.
+        if !matches!(problem, Problem::NonFinite { .. }) && states.len() > 1 {
+            states.pop();
+        }
+        let last = states.pop();
+        let mesh = &self.scene.mesh;
+        let what = match problem {
+            // J is the volume ratio of state `s`, evaluated by step `s`.
+            Problem::Inverted { element, j } => format!(
+                "element {} inverted at step {s} (t = {:.6} s): J = {j:e}",
+                mesh.tet_id(element),
+                s as f64 * dt
+            ),
+            Problem::NonFiniteJ { element, j } => format!(
+                "element {} became non-finite at step {s} (t = {:.6} s): J = {j:e}",
+                mesh.tet_id(element),
+                s as f64 * dt
+            ),
+            Problem::NonFinite { node } => format!(
+                "the simulation became unstable at step {} (t = {:.6} s): node {} has a \
+                 non-finite position",
+                s + 1,
+                (s + 1) as f64 * dt,
+                mesh.node_id(node)
+            ),
+        };
+        let (Some((good, _, _)), Some(x)) = (last, checked) else {
             return format!(
-                "; try `dt = auto` (it estimates the stable step) or a smaller dt, e.g. {:e} s",
-                at_rest.map_or(dt / 4.0, |e| 0.9 * e)
+                "{what}. Reduce dt (now {dt:e} s) or the load rate; `dt = auto` estimates the \
+                 stable step"
             );
         };
-        self.backend.set(self.ids.x, &x);
+        let cause = self.cause(dt, s, start, &x, &problem);
+        let from = if good > start {
+            format!("; the last finite state is step {good}")
+        } else {
+            String::new()
+        };
+        format!(
+            "{what} (found by running again step by step from step {start}, the last state checked{from}). {cause}"
+        )
+    }
+
+    /// β·dt of the mass damping at step `step`: one step from the rest positions with
+    /// velocity u and with 2u (the elastic forces are the same in both), the difference of the
+    /// new velocities is (1 − β·dt)·u.
+    fn damping_per_step(&mut self, step: u64, dt: f64) -> Result<f64, RunError> {
+        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        let fixed = &self.scene.fixed;
+        let u: Vec<f64> = (0..rest.len())
+            .map(|i| if fixed[i / 3] { 0.0 } else { 1e-3 })
+            .collect();
+        let mut probe = |k: f64| -> Result<Vec<f64>, RunError> {
+            self.backend.set(self.ids.x, &rest);
+            let v: Vec<f64> = u.iter().map(|c| k * c).collect();
+            self.backend.set(self.ids.v, &v);
+            self.step(step, dt)?;
+            Ok(self.backend.get(self.ids.v))
+        };
+        let (a, b) = (probe(1.0)?, probe(2.0)?);
+        let uu: f64 = u.iter().map(|c| c * c).sum();
+        if uu == 0.0 {
+            return Ok(0.0);
+        }
+        let du: f64 = (0..u.len()).map(|i| (b[i] - a[i]) * u[i]).sum();
+        Ok(1.0 - du / uu)
+    }
+
+    /// Why a run blew up, with what to do ([`Simulation::diagnose`]): it failed in step
+    /// `failed`; `x` is the state of the last passing check (step `good`).
+    fn cause(&mut self, dt: f64, failed: u64, good: u64, x: &[f64], problem: &Problem) -> String {
+        // The stiffness at rest: not positive for non-physical material constants.
+        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        self.backend.set(self.ids.x, &rest);
+        if let Ok(Some((lowest, highest, _))) = self.stiffness_extremes()
+            && (highest <= 0.0 || lowest < -1e-2 * highest.abs())
+        {
+            return format!(
+                "The material constants are not physical: the stiffness at rest is not \
+                 positive (a deformation mode with ω² = {:e} /s², against {highest:e} /s² \
+                 for the stiffest); check the moduli (E > 0, μ > 0, a bulk modulus > 0) and \
+                 Poisson's ratio (−1 < ν < 0.5). A smaller dt does not help",
+                lowest.min(highest)
+            );
+        }
+        // Mass damping: v ← (1 − β·dt)·v + …, unstable by itself for β·dt > 2 whatever the
+        // elastic step.
+        if let Ok(bdt) = self.damping_per_step(failed, dt)
+            && bdt > 2.0
+        {
+            let beta = bdt / dt;
+            return format!(
+                "The damping is too strong for this time step: β = {beta:.3e} /s at that time, \
+                 and β·dt = {bdt:.3e} > 2 makes every velocity flip sign and grow each step \
+                 (the elastic forces alone would be stable up to dt = {:e} s). Lower the damping \
+                 below {:.3e} /s, or dt below {:.3e} s",
+                self.estimate.unwrap_or(f64::NAN),
+                2.0 / dt,
+                2.0 / beta
+            );
+        }
+        // The time step against the stable step at the last finite state.
+        self.backend.set(self.ids.x, x);
         let here = match self.compute_stable_dt() {
             Ok(e) if e.is_finite() && e > 0.0 => e,
-            _ => return format!("; try a smaller dt, e.g. {:e} s", dt / 4.0),
+            _ => {
+                return format!(
+                    "The stable step could not be estimated there; try a smaller dt, e.g. {:e} s",
+                    dt / 4.0
+                );
+            }
         };
-        let suggested = 0.8 * here;
-        match at_rest {
-            Some(rest) if here < rest => format!(
-                ". The material stiffens as it deforms: the stable step is {here:e} s at step {step} \
-                 (the last finite state), against {rest:e} s at rest where `dt = auto` estimates it. \
-                 Use dt <= {suggested:e} s, e.g. `dt = auto(safety: {})`",
-                two_digits_down((suggested / rest).min(0.9))
+        // The estimate is of the undamped step and has its own error: within 0.9 of it, dt is
+        // not the cause.
+        if dt > 0.9 * here {
+            let suggested = 0.8 * here;
+            return match self.estimate {
+                Some(rest) if here < rest => format!(
+                    "The run is unstable because the time step dt = {dt:e} s is too large: the \
+                     material stiffens as it \
+                     deforms, the stable step is {here:e} s at step {good} (the last state \
+                     checked), against {rest:e} s at rest where `dt = auto` estimates it. Use dt \
+                     <= {suggested:e} s, e.g. `dt = auto(safety: {})`",
+                    two_digits_down((suggested / rest).min(0.9))
+                ),
+                _ => format!(
+                    "The run is unstable because the time step dt = {dt:e} s is too large for \
+                     this mesh and material: the \
+                     stable step at step {good} (the last state checked) is {here:e} s; use dt \
+                     <= {suggested:e} s"
+                ),
+            };
+        }
+        let load = "lower the load (pressures, gravity) or ramp it more slowly, refine the mesh \
+                    there, or use an inversion-safe material such as `stable_neo_hookean`";
+        match problem {
+            Problem::Inverted { .. } => format!(
+                "The time step is not the cause (dt = {dt:e} s is within the stable step \
+                 {here:e} s at step {good}, the last state checked): the load deforms the element past \
+                 inversion — {load}"
             ),
             _ => format!(
-                "; the stable step at step {step} (the last finite state) is {here:e} s: use dt <= {suggested:e} s"
+                "The time step is not the cause (dt = {dt:e} s is within the stable step \
+                 {here:e} s at step {good}, the last state checked): the forces grew without bound — {load}"
             ),
         }
     }
+}
+
+/// What a failed state check found.
+#[derive(Debug, Clone, Copy)]
+enum Problem {
+    Inverted { element: usize, j: f64 },
+    NonFinite { node: usize },
+    NonFiniteJ { element: usize, j: f64 },
 }

@@ -78,7 +78,7 @@ impl Scene {
         overrides: &[(String, f64)],
         variant: Option<&softc_compiler::driver::Variant>,
     ) -> Result<Scene, SceneError> {
-        let bytes = std::fs::read(path)
+        let bytes = crate::files::read_regular(path)
             .map_err(|e| SceneError(format!("cannot read `{}`: {e}", path.display())))?;
         let probe = Arc::new(crate::mesh::probe::CachingProbe::default());
         let mut options = CompileOptions::for_file(path, Some(probe.clone()));
@@ -97,7 +97,8 @@ impl Scene {
         .clone();
         let bound: Bound = resolved.bind(&lowered, &mesh).map_err(SceneError)?;
         let uniforms = resolved.initial_uniforms(&bound, overrides);
-        // The kernels' element order.
+        // The kernels' element order (the file's element numbers follow, for messages).
+        mesh.ids.tets = bound.order.iter().map(|&e| mesh.tet_id(e)).collect();
         mesh.tets = bound.order.iter().map(|&e| mesh.tets[e]).collect();
         mesh.tet_tags = bound.order.iter().map(|&e| mesh.tet_tags[e]).collect();
         let rho: Vec<f64> = bound

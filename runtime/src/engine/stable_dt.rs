@@ -79,6 +79,28 @@ impl<B: Backend> Simulation<'_, B> {
     /// limit by about √(1 − β·dt/2), and deformation may stiffen the mesh: `dt = auto` keeps
     /// a safety factor.
     pub(super) fn compute_stable_dt(&mut self) -> Result<f64, RunError> {
+        let Some((_, theta, residual)) = self.stiffness_extremes()? else {
+            return Ok(f64::INFINITY);
+        };
+        if !theta.is_finite() || !residual.is_finite() {
+            return Err(RunError(format!(
+                "the stable-step estimate failed: the stiffness probe gave ω² = {theta:e} \
+                 (residual {residual:e}); the rest state's forces are not finite — check the \
+                 material constants, or give a fixed `dt`"
+            )));
+        }
+        let omega2 = theta + residual;
+        Ok(if omega2 <= 0.0 {
+            f64::INFINITY
+        } else {
+            2.0 / omega2.sqrt()
+        })
+    }
+
+    /// The smallest and largest Ritz values of M⁻¹K at the current positions (free nodes) by
+    /// [`Self::compute_stable_dt`]'s Lanczos iteration, with the residual of the largest;
+    /// `None` when there is nothing free to move.
+    pub(super) fn stiffness_extremes(&mut self) -> Result<Option<(f64, f64, f64)>, RunError> {
         const STEPS: usize = 60;
         let n = self.scene.mesh.nodes.len();
         let x0 = self.backend.get(self.ids.x);
@@ -156,7 +178,7 @@ impl<B: Backend> Simulation<'_, B> {
         self.run_element_kernels()?;
         let k = alpha.len();
         if k == 0 {
-            return Ok(f64::INFINITY);
+            return Ok(None);
         }
         let t = nalgebra::DMatrix::from_fn(k, k, |i, j| {
             if i == j {
@@ -173,18 +195,11 @@ impl<B: Backend> Simulation<'_, B> {
             |a, (i, v)| if v > a.1 { (i, v) } else { a },
         );
         let residual = beta[k - 1] * eig.eigenvectors[(k - 1, top)].abs();
-        if !theta.is_finite() || !residual.is_finite() {
-            return Err(RunError(format!(
-                "the stable-step estimate failed: the stiffness probe gave ω² = {theta:e} \
-                 (residual {residual:e}); the rest state's forces are not finite — check the \
-                 material constants, or give a fixed `dt`"
-            )));
-        }
-        let omega2 = theta + residual;
-        Ok(if omega2 <= 0.0 {
-            f64::INFINITY
-        } else {
-            2.0 / omega2.sqrt()
-        })
+        let lowest = eig
+            .eigenvalues
+            .iter()
+            .copied()
+            .fold(f64::INFINITY, f64::min);
+        Ok(Some((lowest, theta, residual)))
     }
 }

@@ -75,14 +75,37 @@ pub struct PhysicalName {
 /// What loading or generating had to change, reported rather than silently done.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct LoadReport {
-    /// Tets whose input corner order had negative volume and were reordered (corners 2 and 3
-    /// swapped).
+    /// Tets reordered (corners 2 and 3 swapped) because the file lists the whole mesh with the
+    /// opposite orientation; 0 or the number of tets.
     pub reoriented_tets: usize,
     /// Tagged boundary triangles whose winding was flipped so their normal points into the
     /// solid.
     pub reoriented_faces: usize,
     /// Elements of other kinds (lines, points, ...) skipped, by kind.
     pub ignored_elements: BTreeMap<String, usize>,
+}
+
+/// The numbers the mesh file gives its nodes, tets and tagged triangles (gmsh, tetgen and Abaqus
+/// ids; VTK point and cell ids, from 0 as ParaView shows them). Messages name nodes and
+/// elements by these, so they can be found in the file. An empty list means "index + 1", the
+/// numbering softc's own `.msh` writer uses for nodes (and generated meshes before they are
+/// written).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FileIds {
+    pub nodes: Vec<i64>,
+    pub tets: Vec<i64>,
+    pub tris: Vec<i64>,
+}
+
+impl FileIds {
+    /// `ids`, or an empty list when they are just `1..=n` (the default numbering).
+    pub fn compact(ids: Vec<i64>) -> Vec<i64> {
+        if ids.iter().enumerate().all(|(i, &id)| id == i as i64 + 1) {
+            Vec::new()
+        } else {
+            ids
+        }
+    }
 }
 
 /// A linear tetrahedral mesh, coordinates in metres.
@@ -111,6 +134,8 @@ pub struct Mesh {
     pub element_sets: BTreeMap<String, Vec<u32>>,
     /// What loading changed.
     pub report: LoadReport,
+    /// The file's numbers of nodes, tets and triangles, for messages.
+    pub ids: FileIds,
 }
 
 /// A boundary face of the tet mesh, oriented with its normal pointing out of the solid.
@@ -174,6 +199,37 @@ impl Mesh {
         }
     }
 
+    /// The file's number of node `i` (what messages call it).
+    pub fn node_id(&self, i: usize) -> i64 {
+        self.ids.nodes.get(i).copied().unwrap_or(i as i64 + 1)
+    }
+
+    /// The file's number of tet `e` (what messages call it).
+    pub fn tet_id(&self, e: usize) -> i64 {
+        self.ids.tets.get(e).copied().unwrap_or(e as i64 + 1)
+    }
+
+    /// The file's number of tagged triangle `f`.
+    pub fn tri_id(&self, f: usize) -> i64 {
+        self.ids.tris.get(f).copied().unwrap_or(f as i64 + 1)
+    }
+
+    /// Node indices as the file numbers them, for messages: `[12, 40, 7]` (an index out of
+    /// range is shown as `index N?`).
+    pub fn node_list(&self, nodes: &[u32]) -> String {
+        let shown: Vec<String> = nodes
+            .iter()
+            .map(|&n| {
+                if (n as usize) < self.nodes.len() {
+                    self.node_id(n as usize).to_string()
+                } else {
+                    format!("index {n}?")
+                }
+            })
+            .collect();
+        format!("[{}]", shown.join(", "))
+    }
+
     pub fn num_nodes(&self) -> usize {
         self.nodes.len()
     }
@@ -227,20 +283,32 @@ impl Mesh {
         (lo, hi)
     }
 
-    /// Reorder the corners of negatively oriented tets (swap corners 2 and 3) so every tet has
-    /// positive volume. Degenerate tets (|V| below `1e-12 · h³`, h the bounding-box diagonal)
-    /// are left as they are for [`Mesh::validate`] to report. Returns the number reordered,
-    /// also added to `report.reoriented_tets`.
+    /// Undo a consistent global orientation flip: when most non-degenerate tets have negative
+    /// volume (a file written with the opposite corner-order convention), reorder the corners of
+    /// **every** tet (swap corners 2 and 3). Nothing else is reordered: a tet whose orientation
+    /// disagrees with the rest of the mesh is either out of order in the file or geometrically
+    /// inverted (a node moved past its neighbours, a tangled mesh), and [`Mesh::validate`]
+    /// refuses it by name instead of hiding it (issue 20 item 3). Degenerate tets (|V| below
+    /// `1e-12 · h³`, h the bounding-box diagonal) count for neither side. Returns the number
+    /// reordered, also added to `report.reoriented_tets`.
     pub fn orient_tets(&mut self) -> usize {
         let tol = self.degenerate_volume_tolerance();
-        let mut n = 0;
+        let (mut neg, mut pos) = (0usize, 0usize);
         for e in 0..self.tets.len() {
             let v = self.tet_volume(e);
             if v < -tol {
-                self.tets[e].swap(2, 3);
-                n += 1;
+                neg += 1;
+            } else if v > tol {
+                pos += 1;
             }
         }
+        if neg <= pos {
+            return 0;
+        }
+        for t in &mut self.tets {
+            t.swap(2, 3);
+        }
+        let n = self.tets.len();
         self.report.reoriented_tets += n;
         n
     }

@@ -99,14 +99,16 @@ impl Precomputed {
         for e in 0..ne {
             if mesh.tets[e].iter().any(|&n| n as usize >= nn) {
                 return Err(MeshError::parse(format!(
-                    "element {e} uses a node index out of range ({nn} nodes)"
+                    "element {} uses a node index out of range ({nn} nodes)",
+                    mesh.tet_id(e)
                 )));
             }
             let p = mesh.tet_points(e);
             let v = mesh.tet_volume(e);
             if v <= 0.0 || !v.is_finite() {
                 return Err(MeshError::parse(format!(
-                    "element {e} has volume {v:.3e} m³ ≤ 0; run validation and fix the mesh"
+                    "element {} has volume {v:.3e} m³ ≤ 0; run validation and fix the mesh",
+                    mesh.tet_id(e)
                 )));
             }
             let c1 = sub(p[1], p[0]);
@@ -117,8 +119,12 @@ impl Precomputed {
                 [c1[1], c2[1], c3[1]],
                 [c1[2], c2[2], c3[2]],
             ];
-            let inv = inverse3(dm)
-                .ok_or_else(|| MeshError::parse(format!("element {e} has a singular Dm matrix")))?;
+            let inv = inverse3(dm).ok_or_else(|| {
+                MeshError::parse(format!(
+                    "element {} has a singular Dm matrix",
+                    mesh.tet_id(e)
+                ))
+            })?;
             let amax = super::model::TET_FACES
                 .iter()
                 .map(|f| norm(super::model::area_vector(p[f[0]], p[f[1]], p[f[2]])))

@@ -110,4 +110,7 @@ impl softc_compiler::driver::MeshView for super::Mesh {
     fn element_set(&self, name: &str) -> Option<&[u32]> {
         self.element_sets.get(name).map(Vec::as_slice)
     }
+    fn tet_id(&self, e: usize) -> i64 {
+        super::Mesh::tet_id(self, e)
+    }
 }

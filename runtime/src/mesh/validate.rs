@@ -12,11 +12,21 @@ pub enum Severity {
     Error,
 }
 
-/// What an issue is about. Indices are 0-based (element = tet index, node = node index).
+/// What an issue is about. Indices here are 0-based (element = tet index, node = node index);
+/// the messages name nodes, elements and triangles by the file's own numbers
+/// ([`Mesh::node_id`], [`Mesh::tet_id`], [`Mesh::tri_id`]).
 #[derive(Debug, Clone, PartialEq)]
 pub enum IssueKind {
-    /// A tet with negative volume (corners in the wrong order and not reoriented).
+    /// A tet with negative volume while the rest of the mesh is positive: its corners are out
+    /// of order in the file, or the mesh is tangled (only a whole mesh wound the other way is
+    /// reordered on load).
     InvertedTet { element: usize, volume: f64 },
+    /// Two positively oriented tets on the same side of the face they share: they overlap (the
+    /// mesh is tangled, e.g. a node moved past its neighbours).
+    OverlappingTets {
+        elements: [usize; 2],
+        face: [u32; 3],
+    },
     /// A tet with (near) zero volume or repeated corners.
     DegenerateTet { element: usize, volume: f64 },
     /// A node index that does not exist.
@@ -131,8 +141,8 @@ pub fn has_errors(issues: &[MeshIssue]) -> bool {
 const MAX_PER_KIND: usize = 50;
 
 impl Mesh {
-    /// Check the mesh; returns every issue found (empty for a clean mesh). Indices in
-    /// messages are 0-based; element ids are tet indices.
+    /// Check the mesh; returns every issue found (empty for a clean mesh). Messages name
+    /// nodes, elements and triangles by the file's numbers (issue 20 item 17).
     pub fn validate(&self) -> Vec<MeshIssue> {
         let mut out = Vec::new();
         let nn = self.nodes.len();
@@ -142,7 +152,7 @@ impl Mesh {
                 out.push(issue(
                     Severity::Error,
                     IssueKind::NonFiniteNode { node: i },
-                    format!("node {i} has a non-finite coordinate {p:?}"),
+                    format!("node {} has a non-finite coordinate {p:?}", self.node_id(i)),
                 ));
             }
         }
@@ -158,7 +168,10 @@ impl Mesh {
                             element: e,
                             node: n,
                         },
-                        format!("element {e} uses node {n}, but the mesh has {nn} nodes"),
+                        format!(
+                            "element {} uses node index {n}, but the mesh has {nn} nodes",
+                            self.tet_id(e)
+                        ),
                     ));
                 }
             }
@@ -173,9 +186,11 @@ impl Mesh {
                     Severity::Error,
                     IssueKind::BadTriangle { face: i, nodes: *f },
                     format!(
-                        "surface triangle {i} (tag {}) has nodes {f:?}: repeated or out of range \
+                        "surface triangle {} (tag {}) has nodes {}: repeated or out of range \
                          ({nn} nodes)",
-                        self.tri_tags.get(i).copied().unwrap_or(0)
+                        self.tri_id(i),
+                        self.tri_tags.get(i).copied().unwrap_or(0),
+                        self.node_list(f)
                     ),
                 ));
             }
@@ -204,8 +219,10 @@ impl Mesh {
                             volume: v,
                         },
                         format!(
-                            "element {e} (nodes {t:?}) is degenerate: volume {v:.3e} m³; remove it \
-                             or re-mesh"
+                            "element {} (nodes {}) is degenerate: volume {v:.3e} m³; remove it \
+                             or re-mesh",
+                            self.tet_id(e),
+                            self.node_list(&t)
                         ),
                     ));
                 }
@@ -219,8 +236,13 @@ impl Mesh {
                             volume: v,
                         },
                         format!(
-                            "element {e} (nodes {t:?}) is inverted: volume {v:.3e} m³; swap two of \
-                             its corners"
+                            "element {} (nodes {}) is inverted: volume {v:.3e} m³ while the \
+                             rest of the mesh is positive — its corners are listed in the wrong \
+                             order, or the mesh is tangled (a node moved past its neighbours); \
+                             softc only reorders a whole mesh written with the other \
+                             orientation: re-mesh, or move the node back",
+                            self.tet_id(e),
+                            self.node_list(&t)
                         ),
                     ));
                 }
@@ -228,6 +250,7 @@ impl Mesh {
         }
         // Face manifoldness.
         let table = self.face_table();
+        out.extend(self.overlapping_tets(&table, tol));
         let mut i = 0;
         let mut n_nm = 0;
         while i < table.len() {
@@ -245,11 +268,14 @@ impl Mesh {
                             tets: j - i,
                         },
                         format!(
-                            "face {:?} is shared by {} tets (elements {:?}); a face may belong \
-                             to at most two tets — the mesh overlaps itself",
-                            table[i].0,
+                            "the face with nodes {} is shared by {} tets (elements {:?}); a face \
+                             may belong to at most two tets — the mesh overlaps itself",
+                            self.node_list(&table[i].0),
                             j - i,
-                            table[i..j].iter().map(|x| x.1).collect::<Vec<_>>()
+                            table[i..j]
+                                .iter()
+                                .map(|x| self.tet_id(x.1 as usize))
+                                .collect::<Vec<_>>()
                         ),
                     ));
                 }
@@ -283,9 +309,11 @@ impl Mesh {
                                 faces: j - i,
                             },
                             format!(
-                                "the boundary is pinched at the edge between nodes {} and {}                                  ({} boundary faces meet there): two parts of the solid touch                                  along an edge — a wall thinner than the mesh size?",
-                                be[i][0],
-                                be[i][1],
+                                "the boundary is pinched at the edge between nodes {} and {} ({} \
+                                 boundary faces meet there): two parts of the solid touch along \
+                                 an edge — a wall thinner than the mesh size?",
+                                self.node_id(be[i][0] as usize),
+                                self.node_id(be[i][1] as usize),
                                 j - i
                             ),
                         ));
@@ -325,9 +353,11 @@ impl Mesh {
                     sev,
                     kind,
                     format!(
-                        "surface triangle {fi} (tag {t}{}, nodes {f:?}) is not a boundary face of \
+                        "surface triangle {} (tag {t}{}, nodes {}) is not a boundary face of \
                          the tet mesh{}",
+                        self.tri_id(fi),
                         self.name_suffix(2, *t),
+                        self.node_list(f),
                         if is_chamber {
                             "; chamber faces must be faces of the tets around the cavity — \
                              generate them from the tet mesh, not from a separate surface mesh"
@@ -361,9 +391,10 @@ impl Mesh {
                     first,
                 },
                 format!(
-                    "{} node(s) are used by no tet (first: node {first}); they get no mass and \
+                    "{} node(s) are used by no tet (first: node {}); they get no mass and \
                      are ignored by the simulation",
-                    unused.len()
+                    unused.len(),
+                    self.node_id(first)
                 ),
             ));
         }
@@ -394,16 +425,63 @@ impl Mesh {
                     },
                     format!(
                         "the mesh has {} disconnected pieces (tets per piece: {:?}); element \
-                         {example} is in a smaller piece — merge duplicate nodes or remove the \
+                         {} is in a smaller piece — merge duplicate nodes or remove the \
                          stray piece",
                         v.len(),
-                        v.iter().map(|x| x.0).collect::<Vec<_>>()
+                        v.iter().map(|x| x.0).collect::<Vec<_>>(),
+                        self.tet_id(example)
                     ),
                 ));
             }
         }
         // Tags and names.
         out.extend(self.tag_issues());
+        out
+    }
+
+    /// Interior faces whose two (positively oriented, non-degenerate) tets lie on the same side
+    /// of the face: the tets overlap. Independent of the files' corner order, this catches a
+    /// tangled mesh whose inverted tets were listed with their corners reordered.
+    fn overlapping_tets(&self, table: &[([u32; 3], u32, u8)], tol: f64) -> Vec<MeshIssue> {
+        let mut out = Vec::new();
+        let mut count = 0;
+        for w in table.windows(2) {
+            let ((ka, ea, la), (kb, eb, lb)) = (w[0], w[1]);
+            if ka != kb || ea == eb {
+                continue;
+            }
+            let (ea, eb) = (ea as usize, eb as usize);
+            if self.tet_volume(ea) <= tol || self.tet_volume(eb) <= tol {
+                continue; // reported as inverted or degenerate
+            }
+            // The face as `ea` winds it (outward), and `eb`'s corner opposite the face: a
+            // valid neighbour lies outside `ea`, on the positive side.
+            let ta = self.tets[ea];
+            let f = super::model::TET_FACES[la as usize];
+            let opp = self.tets[eb][lb as usize];
+            let p = |n: u32| self.nodes[n as usize];
+            let side = super::model::signed_volume([p(ta[f[0]]), p(ta[f[1]]), p(ta[f[2]]), p(opp)]);
+            if side < 0.0 {
+                count += 1;
+                if count <= MAX_PER_KIND {
+                    out.push(issue(
+                        Severity::Error,
+                        IssueKind::OverlappingTets {
+                            elements: [ea, eb],
+                            face: ka,
+                        },
+                        format!(
+                            "elements {} and {} overlap: both lie on the same side of the face \
+                             they share (nodes {}), so the mesh is tangled (a node moved past \
+                             its neighbours?); re-mesh, or move the node back",
+                            self.tet_id(ea),
+                            self.tet_id(eb),
+                            self.node_list(&ka)
+                        ),
+                    ));
+                }
+            }
+        }
         out
     }
 
@@ -454,7 +532,10 @@ impl Mesh {
                         sheets: roots.len(),
                     },
                     format!(
-                        "the boundary is pinched at node {v} ({} separate surface sheets meet                          there): two parts of the solid touch at a point — a wall thinner than                          the mesh size?",
+                        "the boundary is pinched at node {} ({} separate surface sheets meet \
+                         there): two parts of the solid touch at a point — a wall thinner than \
+                         the mesh size?",
+                        self.node_id(v as usize),
                         roots.len()
                     ),
                 ));
@@ -508,8 +589,8 @@ impl Mesh {
                             "chamber surface {tag}{} is open: edge between nodes {} and {} \
                              belongs to one triangle only; close the cavity surface",
                             self.name_suffix(2, tag),
-                            e[0],
-                            e[1]
+                            self.node_id(e[0] as usize),
+                            self.node_id(e[1] as usize)
                         ),
                     ));
                 }
@@ -521,8 +602,8 @@ impl Mesh {
                         "chamber surface {tag}{} is non-manifold: edge between nodes {} and {} \
                          belongs to {uses} triangles",
                         self.name_suffix(2, tag),
-                        e[0],
-                        e[1]
+                        self.node_id(e[0] as usize),
+                        self.node_id(e[1] as usize)
                     ),
                 ));
             }
@@ -580,8 +661,9 @@ impl Mesh {
                         example_nodes: ex,
                     },
                     format!(
-                        "the solid has an internal cavity ({n} boundary faces, e.g. nodes {ex:?}) \
-                         whose wall carries no surface tag, so no pressure can act on it"
+                        "the solid has an internal cavity ({n} boundary faces, e.g. nodes {}) \
+                         whose wall carries no surface tag, so no pressure can act on it",
+                        self.node_list(&ex)
                     ),
                 )
             })
@@ -617,8 +699,10 @@ impl Mesh {
                                 second: b,
                             },
                             format!(
-                                "nodes {a} and {b} are at the same position {p:?}; the mesh is \
-                                 cut there — merge them (e.g. gmsh Coherence)"
+                                "nodes {} and {} are at the same position {p:?}; the mesh is \
+                                 cut there — merge them (e.g. gmsh Coherence)",
+                                self.node_id(a),
+                                self.node_id(b)
                             ),
                         ));
                     }

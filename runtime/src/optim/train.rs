@@ -17,10 +17,37 @@ use serde::{Deserialize, Serialize};
 use softc_compiler::ir::UniformId;
 use std::collections::BTreeMap;
 
+/// A JSON object of numbers in which no key appears twice (serde would keep the last of two
+/// values silently: issue 20 item 8).
+fn unique_keys<'de, D: serde::Deserializer<'de>>(d: D) -> Result<BTreeMap<String, f64>, D::Error> {
+    struct Unique;
+    impl<'de> serde::de::Visitor<'de> for Unique {
+        type Value = BTreeMap<String, f64>;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("an object of numbers")
+        }
+        fn visit_map<A: serde::de::MapAccess<'de>>(
+            self,
+            mut a: A,
+        ) -> Result<Self::Value, A::Error> {
+            let mut out = BTreeMap::new();
+            while let Some((k, v)) = a.next_entry::<String, f64>()? {
+                if out.contains_key(&k) {
+                    return Err(serde::de::Error::custom(format!("`{k}` is given twice")));
+                }
+                out.insert(k, v);
+            }
+            Ok(out)
+        }
+    }
+    d.deserialize_map(Unique)
+}
+
 /// The loss of one scene of an iteration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SceneRecord {
     /// The input values of the scene (`input.target.1` → metres).
+    #[serde(deserialize_with = "unique_keys")]
     pub inputs: BTreeMap<String, f64>,
     pub loss: f64,
 }
@@ -32,8 +59,10 @@ pub struct Record {
     /// The batch's mean loss at `params`.
     pub loss: f64,
     /// The trained entries' values this iteration ran with (SI).
+    #[serde(deserialize_with = "unique_keys")]
     pub params: BTreeMap<String, f64>,
     /// d loss / d param (SI), the batch mean.
+    #[serde(deserialize_with = "unique_keys")]
     pub gradient: BTreeMap<String, f64>,
     /// The step direction the optimizer received: d loss / d u after normalization and clipping.
     pub scaled_gradient: Vec<f64>,
@@ -57,7 +86,7 @@ pub enum Stopped {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrainState {
     pub format: u32,
-    /// Identifies the script and settings the state belongs to.
+    /// Identifies the script and settings the state belongs to, then (after `/`) the mesh.
     pub fingerprint: String,
     /// The trained uniforms, in order.
     pub entries: Vec<String>,
@@ -77,6 +106,115 @@ pub struct TrainState {
 }
 
 pub const STATE_FORMAT: u32 = 1;
+
+/// Check a saved state for internal consistency before a run continues from it (issue 20
+/// item 8): every vector has one value per trained entry, values are finite, second moments
+/// are not negative, the iteration count matches the history, and the time step is the one the
+/// script gives (`dt`, `steps`: what a fresh run computes). The message names the field.
+pub fn check_state(s: &TrainState, dt: f64, steps: u64) -> Result<(), String> {
+    let n = s.entries.len();
+    let mut seen = std::collections::BTreeSet::new();
+    if let Some(dup) = s.entries.iter().find(|e| !seen.insert(e.as_str())) {
+        return Err(format!("`entries` lists `{dup}` twice"));
+    }
+    let finite = |name: &str, v: &[f64]| -> Result<(), String> {
+        if v.len() != n {
+            return Err(format!(
+                "`{name}` has {} values for {n} trained entries",
+                v.len()
+            ));
+        }
+        match v.iter().position(|x| !x.is_finite()) {
+            Some(i) => Err(format!("`{name}[{i}]` is {}", v[i])),
+            None => Ok(()),
+        }
+    };
+    finite("u", &s.u)?;
+    let m = &s.method;
+    finite("method.m", &m.m)?;
+    finite("method.v", &m.v)?;
+    finite("method.mean_abs_g", &m.mean_abs_g)?;
+    if let Some(i) = m.v.iter().position(|&x| x < 0.0) {
+        return Err(format!(
+            "`method.v[{i}]` (a second moment, a mean of squares) is {} < 0",
+            m.v[i]
+        ));
+    }
+    if let Some(i) = m.mean_abs_g.iter().position(|&x| x < 0.0) {
+        return Err(format!(
+            "`method.mean_abs_g[{i}]` is {} < 0",
+            m.mean_abs_g[i]
+        ));
+    }
+    if m.z_g.len() != n {
+        return Err(format!(
+            "`method.z_g` has {} values for {n} trained entries",
+            m.z_g.len()
+        ));
+    }
+    if let Some(i) = m
+        .z_g
+        .iter()
+        .position(|z| z.is_some_and(|z| !(z.is_finite() && z > 0.0)))
+    {
+        return Err(format!(
+            "`method.z_g[{i}]` is {:?}, not a positive number",
+            m.z_g[i]
+        ));
+    }
+    if !(m.mean_weight.is_finite() && m.mean_weight >= 0.0) {
+        return Err(format!("`method.mean_weight` is {}", m.mean_weight));
+    }
+    if m.step > s.iteration {
+        return Err(format!(
+            "`method.step` ({}) counts more updates than `iteration` ({})",
+            m.step, s.iteration
+        ));
+    }
+    if s.history.len() as u64 != s.iteration {
+        return Err(format!(
+            "`iteration` is {} but `history` holds {} iterations",
+            s.iteration,
+            s.history.len()
+        ));
+    }
+    let keys: std::collections::BTreeSet<&str> = s.entries.iter().map(String::as_str).collect();
+    for (i, r) in s.history.iter().enumerate() {
+        if r.iteration != i as u64 {
+            return Err(format!("`history[{i}].iteration` is {}", r.iteration));
+        }
+        if !r.loss.is_finite() {
+            return Err(format!("`history[{i}].loss` is {}", r.loss));
+        }
+        for (what, map) in [("params", &r.params), ("gradient", &r.gradient)] {
+            let k: std::collections::BTreeSet<&str> = map.keys().map(String::as_str).collect();
+            if k != keys {
+                return Err(format!(
+                    "`history[{i}].{what}` names {k:?}, not the trained entries {keys:?}"
+                ));
+            }
+            if let Some((name, v)) = map.iter().find(|(_, v)| !v.is_finite()) {
+                return Err(format!("`history[{i}].{what}.{name}` is {v}"));
+            }
+        }
+    }
+    if let Some(Stopped::Condition { iteration }) = s.stopped
+        && iteration + 1 != s.iteration
+    {
+        return Err(format!(
+            "`stopped` names iteration {iteration}, but the history ends at {}",
+            s.iteration.saturating_sub(1)
+        ));
+    }
+    if s.dt.to_bits() != dt.to_bits() || s.steps != steps {
+        return Err(format!(
+            "`dt` = {:e} s and `steps` = {} differ from the script's {dt:e} s and {steps} (with \
+             this --dt/--steps); a saved state cannot change the time step",
+            s.dt, s.steps
+        ));
+    }
+    Ok(())
+}
 
 pub struct Trainer<'s, B: Backend> {
     pub plan: Plan,
@@ -142,6 +280,25 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                         s.format
                     )));
                 }
+                // `SCRIPT/MESH`: a changed mesh alone gets a message of its own.
+                let script_part = |f: &str| f.split('/').next().unwrap_or("").to_string();
+                if !s.fingerprint.contains('/') {
+                    return Err(RunError(
+                        "the saved state does not record its mesh (an older softc wrote it);                          run without --resume to start afresh"
+                            .into(),
+                    ));
+                }
+                if s.entries == entries
+                    && script_part(&s.fingerprint) == script_part(&fingerprint)
+                    && s.fingerprint != fingerprint
+                {
+                    return Err(RunError(format!(
+                        "the saved state was made with a different mesh: `{}` changed since \
+                         (positions, elements, tags or sets); run without --resume to start \
+                         afresh, or restore the mesh file",
+                        scene.resolved.mesh.path.display()
+                    )));
+                }
                 if s.fingerprint != fingerprint || s.entries != entries {
                     return Err(RunError(
                         "the saved state belongs to a different script or different settings \
@@ -150,6 +307,9 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                             .into(),
                     ));
                 }
+                let (dt, steps) = first.time_steps(dt_override, steps_override)?;
+                check_state(&s, dt, steps)
+                    .map_err(|e| RunError(format!("the saved state is inconsistent: {e}")))?;
                 let mut s = s;
                 // `--iterations` may extend a finished run, or end an unfinished one early.
                 if s.stopped == Some(Stopped::Iterations) && s.iteration < plan.iterations {
@@ -352,6 +512,15 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                 &scaled,
                 lr,
             );
+            // A non-finite value must not be saved over the last good state (JSON writes it
+            // as `null`): stop before the state is written.
+            if let Some(k) = self.state.u.iter().position(|u| !u.is_finite()) {
+                return Err(RunError(format!(
+                    "iteration {it}: the update made `{}` non-finite; the saved state keeps \
+                     iteration {it}'s start — lower the learning rate or clip the gradient",
+                    self.plan.entries[k].uniform.trim_start_matches("param.")
+                )));
+            }
         }
         self.state.iteration += 1;
         if !stop && self.state.iteration >= self.plan.iterations {

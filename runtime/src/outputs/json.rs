@@ -21,6 +21,7 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
             }),
         );
     }
+    let motion = crate::engine::Motion::of(scene, s);
     let mut json = serde_json::json!({
         "script": scene.script.display().to_string(),
         "backend": backend,
@@ -34,6 +35,8 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
         "nodes": scene.mesh.nodes.len(),
         "elements": scene.mesh.tets.len(),
         "sets": sets,
+        "kinetic_energy": motion.kinetic_energy,
+        "max_speed": motion.max_speed,
     });
     if let Some(solver) = &s.solver {
         json["solver"] = serde_json::to_value(solver).unwrap_or_default();

@@ -136,7 +136,7 @@ impl<'a> Reference<'a> {
         }
         ev.element = None;
         if let Some(e) = elem_material.iter().position(|&m| m == usize::MAX) {
-            return Err(format!("element {e} has no material"));
+            return Err(format!("element {} has no material", scene.mesh.tet_id(e)));
         }
         let sim = syntax.sim_block();
         let pressure_stmts: Vec<(&str, &Expr)> = sim
@@ -178,11 +178,14 @@ impl<'a> Reference<'a> {
             let dm = Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
             let v0 = dm.determinant() / 6.0;
             if !(v0 > 0.0 && v0.is_finite()) {
-                return Err(format!("element {e} has rest volume {v0:e} m³ ≤ 0"));
+                return Err(format!(
+                    "element {} has rest volume {v0:e} m³ ≤ 0",
+                    scene.mesh.tet_id(e)
+                ));
             }
-            let inv = dm
-                .try_inverse()
-                .ok_or_else(|| format!("element {e} has a singular rest shape"))?;
+            let inv = dm.try_inverse().ok_or_else(|| {
+                format!("element {} has a singular rest shape", scene.mesh.tet_id(e))
+            })?;
             let m = materials[elem_material[e]].density * v0 / 4.0 * scaling;
             for &n in tet {
                 mass[n as usize] += m;
@@ -522,8 +525,9 @@ impl<'a> Reference<'a> {
             Ok(()) => {}
             Err(InvertedOr::Inverted(e, j)) => {
                 return Err(format!(
-                    "element {e} inverted at step {step} (t = {t:.6} s): J = {j:e}. \
-                     Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element"
+                    "element {} inverted at step {step} (t = {t:.6} s): J = {j:e}. \
+                     Reduce dt (now {dt:e} s) or the load rate, or refine the mesh near that element",
+                    scene.mesh.tet_id(e)
                 ));
             }
             Err(InvertedOr::Other(m)) => return Err(m),
@@ -557,10 +561,11 @@ impl<'a> Reference<'a> {
         }
         if let Some(i) = st.x.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
             return Err(format!(
-                "the simulation became unstable at step {} (t = {:.6} s): node {i} has a non-finite position. \
+                "the simulation became unstable at step {} (t = {:.6} s): node {} has a non-finite position. \
                  The time step dt = {dt:e} s is too large for this mesh and material; try a smaller dt, e.g. {:e} s",
                 step + 1,
                 (step + 1) as f64 * dt,
+                scene.mesh.node_id(i),
                 dt / 4.0
             ));
         }

@@ -87,7 +87,10 @@ fn measure(
         last = Some((s, g));
     }
     let (summary, g) = last.expect("at least one run");
-    let report = summary.solver.clone().ok_or("the solve reported no solver")?;
+    let report = summary
+        .solver
+        .clone()
+        .ok_or("the solve reported no solver")?;
     Ok(SolverRow {
         size: size.to_string(),
         solver: solver.to_string(),

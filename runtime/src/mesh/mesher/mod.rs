@@ -141,7 +141,7 @@ impl MeshSpec {
     }
 
     pub fn from_file(path: &Path) -> Result<MeshSpec, MeshError> {
-        let text = std::fs::read_to_string(path).map_err(|e| MeshError::io(path, &e))?;
+        let text = crate::files::read_regular_text(path).map_err(|e| MeshError::io(path, &e))?;
         Self::from_toml(&text, path)
     }
 

@@ -145,6 +145,11 @@ impl RawMesh {
         let mut names = self.names;
         names.sort_by_key(|a| (a.dim, a.tag));
         names.dedup_by(|a, b| a.dim == b.dim && a.tag == b.tag);
+        let ids = super::model::FileIds {
+            nodes: super::model::FileIds::compact(self.node_ids.clone()),
+            tets: super::model::FileIds::compact(self.tets.iter().map(|t| t.id).collect()),
+            tris: super::model::FileIds::compact(self.tris.iter().map(|t| t.id).collect()),
+        };
         let mut mesh = Mesh {
             nodes,
             tets,
@@ -155,6 +160,7 @@ impl RawMesh {
             node_sets,
             element_sets,
             report: Default::default(),
+            ids,
         };
         mesh.report.ignored_elements = self.ignored;
         mesh.orient_tets();
@@ -318,8 +324,12 @@ pub(crate) fn parse_float(t: &str) -> Option<f64> {
 
 /// Read a whole file, with the error naming it.
 pub(crate) fn read_bytes(path: &Path) -> Result<Vec<u8>, MeshError> {
-    std::fs::read(path).map_err(|e| {
-        MeshError::io(path, &e).with_fix("check the path and that the file is readable")
+    crate::files::read_regular(path).map_err(|e| {
+        MeshError::io(path, &e).with_fix(if e.kind() == std::io::ErrorKind::InvalidInput {
+            "name a mesh file (.msh, .vtk, .vtu, .node/.ele, .inp), not a pipe, device or folder"
+        } else {
+            "check the path and that the file is readable"
+        })
     })
 }
 
