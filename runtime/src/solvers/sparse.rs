@@ -197,7 +197,7 @@ pub struct SparseSolver {
 
 enum Factor {
     Llt(Llt<usize, f64>),
-    Lu(Lu<usize, f64>),
+    Lu(Box<Lu<usize, f64>>),
 }
 
 impl SparseSolver {
@@ -207,8 +207,13 @@ impl SparseSolver {
         // Entry k is (row_idx[k], column j); its transpose is (j, row_idx[k]).
         let mut transpose = vec![0usize; p.row_idx.len()];
         for j in 0..p.n {
-            for k in p.col_ptr[j]..p.col_ptr[j + 1] {
-                let i = p.row_idx[k];
+            for (k, &i) in p
+                .row_idx
+                .iter()
+                .enumerate()
+                .take(p.col_ptr[j + 1])
+                .skip(p.col_ptr[j])
+            {
                 let col = &p.row_idx[p.col_ptr[i]..p.col_ptr[i + 1]];
                 let at = col
                     .binary_search(&j)
@@ -261,7 +266,7 @@ impl SparseSolver {
         }
         let symbolic = self.symbolic_lu.clone().expect("computed");
         let lu = Lu::try_new_with_symbolic(symbolic, mat).map_err(|e| format!("{e:?}"))?;
-        self.factor = Some(Factor::Lu(lu));
+        self.factor = Some(Factor::Lu(Box::new(lu)));
         Ok("lu")
     }
 
