@@ -46,6 +46,27 @@ fn static_loss(scene: &Scene, uniform: &str, value: f64) -> f64 {
     sim.run(None, None).unwrap().loss.unwrap()
 }
 
+/// The largest relative difference between `gradients` and central differences (step 1e-4
+/// of the value) of the solve's loss, over `params` (name, value).
+fn worst_against_central_differences(
+    scene: &Scene,
+    gradients: &std::collections::BTreeMap<String, f64>,
+    params: &[(&str, f64)],
+) -> f64 {
+    let mut worst: f64 = 0.0;
+    for &(name, value) in params {
+        let h = 1e-4 * f64::abs(value);
+        let fd =
+            (static_loss(scene, name, value + h) - static_loss(scene, name, value - h)) / (2.0 * h);
+        let ad = gradients[name];
+        let rel = ((ad - fd) / fd).abs();
+        eprintln!("{name}: adjoint {ad:e}, central differences {fd:e}, relative {rel:e}");
+        assert!(fd.abs() > 0.0, "{name} does not change the loss");
+        worst = worst.max(rel);
+    }
+    worst
+}
+
 fn tip_mean_z(scene: &Scene, x: &[[f64; 3]]) -> f64 {
     let (_, tip) = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap();
     tip.iter()
@@ -122,22 +143,16 @@ fn static_gradients_match_central_differences_for_every_param_kind() {
         .gradient(None, None, &GradOptions::default())
         .unwrap();
     assert!(report.summary.solver.as_ref().unwrap().converged);
-    let mut worst: f64 = 0.0;
-    for (name, value) in [
-        ("param.p0", 2e3),
-        ("param.c10", 0.1e6),
-        ("param.w.0", 200.0),
-        ("param.w.1", -100.0),
-    ] {
-        let h = 1e-4 * f64::abs(value);
-        let fd = (static_loss(&scene, name, value + h) - static_loss(&scene, name, value - h))
-            / (2.0 * h);
-        let ad = report.gradients[name];
-        let rel = ((ad - fd) / fd).abs();
-        eprintln!("{name}: adjoint {ad:e}, central differences {fd:e}, relative {rel:e}");
-        assert!(fd.abs() > 0.0, "{name} does not change the loss");
-        worst = worst.max(rel);
-    }
+    let worst = worst_against_central_differences(
+        &scene,
+        &report.gradients,
+        &[
+            ("param.p0", 2e3),
+            ("param.c10", 0.1e6),
+            ("param.w.0", 200.0),
+            ("param.w.1", -100.0),
+        ],
+    );
     assert!(worst < 1e-6, "worst relative difference {worst:e}");
 }
 
@@ -253,24 +268,18 @@ fn implicit_euler_gradients_match_central_differences_for_every_param_kind() {
         .unwrap();
     let solver = report.summary.solver.clone().unwrap();
     assert_eq!(solver.kind, "implicit_euler");
-    let mut worst: f64 = 0.0;
-    for (name, value) in [
-        ("param.p0", 2e3),
-        ("param.c10", 0.1e6),
-        ("param.w.0", 200.0),
-        ("param.w.1", -100.0),
-        ("param.beta.0", 20.0),
-        ("param.beta.3", 20.0),
-    ] {
-        let h = 1e-4 * f64::abs(value);
-        let fd = (static_loss(&scene, name, value + h) - static_loss(&scene, name, value - h))
-            / (2.0 * h);
-        let ad = report.gradients[name];
-        let rel = ((ad - fd) / fd).abs();
-        eprintln!("{name}: adjoint {ad:e}, central differences {fd:e}, relative {rel:e}");
-        assert!(fd.abs() > 0.0, "{name} does not change the loss");
-        worst = worst.max(rel);
-    }
+    let worst = worst_against_central_differences(
+        &scene,
+        &report.gradients,
+        &[
+            ("param.p0", 2e3),
+            ("param.c10", 0.1e6),
+            ("param.w.0", 200.0),
+            ("param.w.1", -100.0),
+            ("param.beta.0", 20.0),
+            ("param.beta.3", 20.0),
+        ],
+    );
     assert!(worst < 1e-6, "worst relative difference {worst:e}");
 }
 

@@ -27,42 +27,8 @@ pub fn gradient(func: Func, y: V, wrt: &[V]) -> (Func, Vec<V>) {
         match b.func.insts[i] {
             Inst::Const(_) | Inst::Arg(_) | Inst::Cmp(..) => {}
             Inst::Un(op, a) => {
-                let d = match op {
-                    UnOp::Neg => b.neg(g),
-                    UnOp::Abs => {
-                        let zero = b.constant(0.0);
-                        let negative = b.cmp(CmpOp::Lt, a, zero);
-                        let ng = b.neg(g);
-                        b.select(negative, ng, g)
-                    }
-                    UnOp::Sqrt => {
-                        let half = b.scale(0.5, g);
-                        b.div(half, yv)
-                    }
-                    UnOp::Exp => b.mul(g, yv),
-                    UnOp::Ln => b.div(g, a),
-                    UnOp::Sin => {
-                        let c = b.un(UnOp::Cos, a);
-                        b.mul(g, c)
-                    }
-                    UnOp::Cos => {
-                        let s = b.un(UnOp::Sin, a);
-                        let gs = b.mul(g, s);
-                        b.neg(gs)
-                    }
-                    UnOp::Tan => {
-                        let one = b.constant(1.0);
-                        let y2 = b.mul(yv, yv);
-                        let s = b.add(one, y2);
-                        b.mul(g, s)
-                    }
-                    UnOp::Tanh => {
-                        let one = b.constant(1.0);
-                        let y2 = b.mul(yv, yv);
-                        let s = b.sub(one, y2);
-                        b.mul(g, s)
-                    }
-                    UnOp::Floor | UnOp::Ceil => continue,
+                let Some(d) = un_chain(&mut b, op, a, yv, g) else {
+                    continue;
                 };
                 add(&mut b, &mut adj, a, d);
             }
@@ -148,6 +114,48 @@ pub fn gradient(func: Func, y: V, wrt: &[V]) -> (Func, Vec<V>) {
     (b.finish(), grads)
 }
 
+/// `g · f'(a)` for the unary operation y = f(a) (`yv` its value): the factor both sweeps apply
+/// to an incoming adjoint or tangent `g`; `None` where f is piecewise constant.
+fn un_chain(b: &mut Builder, op: UnOp, a: V, yv: V, g: V) -> Option<V> {
+    Some(match op {
+        UnOp::Neg => b.neg(g),
+        UnOp::Abs => {
+            let zero = b.constant(0.0);
+            let negative = b.cmp(CmpOp::Lt, a, zero);
+            let ng = b.neg(g);
+            b.select(negative, ng, g)
+        }
+        UnOp::Sqrt => {
+            let half = b.scale(0.5, g);
+            b.div(half, yv)
+        }
+        UnOp::Exp => b.mul(g, yv),
+        UnOp::Ln => b.div(g, a),
+        UnOp::Sin => {
+            let c = b.un(UnOp::Cos, a);
+            b.mul(g, c)
+        }
+        UnOp::Cos => {
+            let s = b.un(UnOp::Sin, a);
+            let gs = b.mul(g, s);
+            b.neg(gs)
+        }
+        UnOp::Tan => {
+            let one = b.constant(1.0);
+            let y2 = b.mul(yv, yv);
+            let s = b.add(one, y2);
+            b.mul(g, s)
+        }
+        UnOp::Tanh => {
+            let one = b.constant(1.0);
+            let y2 = b.mul(yv, yv);
+            let s = b.sub(one, y2);
+            b.mul(g, s)
+        }
+        UnOp::Floor | UnOp::Ceil => return None,
+    })
+}
+
 /// Forward-mode derivatives (tangents): given the derivative of some values along one
 /// direction (`seeds`: value, its tangent), the derivative of every value up to `upto`
 /// (exclusive) along it, appended to `b`. `None` is a structural zero: nothing it depends on
@@ -173,43 +181,7 @@ pub fn tangent(b: &mut Builder, upto: usize, seeds: &[(V, V)]) -> Vec<Option<V>>
                 let Some(ta) = tan[a.0 as usize] else {
                     continue;
                 };
-                Some(match op {
-                    UnOp::Neg => b.neg(ta),
-                    UnOp::Abs => {
-                        let zero = b.constant(0.0);
-                        let negative = b.cmp(CmpOp::Lt, a, zero);
-                        let nt = b.neg(ta);
-                        b.select(negative, nt, ta)
-                    }
-                    UnOp::Sqrt => {
-                        let half = b.scale(0.5, ta);
-                        b.div(half, yv)
-                    }
-                    UnOp::Exp => b.mul(ta, yv),
-                    UnOp::Ln => b.div(ta, a),
-                    UnOp::Sin => {
-                        let c = b.un(UnOp::Cos, a);
-                        b.mul(ta, c)
-                    }
-                    UnOp::Cos => {
-                        let s = b.un(UnOp::Sin, a);
-                        let ts = b.mul(ta, s);
-                        b.neg(ts)
-                    }
-                    UnOp::Tan => {
-                        let one = b.constant(1.0);
-                        let y2 = b.mul(yv, yv);
-                        let s = b.add(one, y2);
-                        b.mul(ta, s)
-                    }
-                    UnOp::Tanh => {
-                        let one = b.constant(1.0);
-                        let y2 = b.mul(yv, yv);
-                        let s = b.sub(one, y2);
-                        b.mul(ta, s)
-                    }
-                    UnOp::Floor | UnOp::Ceil => continue,
-                })
+                un_chain(b, op, a, yv, ta)
             }
             Inst::Bin(op, l, r) => {
                 let (tl, tr) = (tan[l.0 as usize], tan[r.0 as usize]);

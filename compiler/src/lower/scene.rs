@@ -488,21 +488,7 @@ fn node_kernel(
     let zero = k.b.constant(0.0);
     let free = k.b.cmp(CmpOp::Eq, is_fixed, zero);
     for d in 0..3u32 {
-        let mut f = k.load(ArgSource::Gather {
-            buffer: elem_force,
-            over: Domain::Element,
-            stride: 3,
-            component: d,
-        });
-        if pressure && let Some(tf) = tri_force {
-            let fp = k.load(ArgSource::Gather {
-                buffer: tf,
-                over: Domain::Triangle,
-                stride: 3,
-                component: d,
-            });
-            f = k.b.add(f, fp);
-        }
+        let f = gathered_force(&mut k, elem_force, tri_force.filter(|_| pressure), d);
         let xv = k.load(ArgSource::Own {
             buffer: x,
             component: d,
@@ -583,21 +569,7 @@ fn equilibrium_kernel(
         g.into_iter().map(|gd| k.b.mul(lm, gd)).collect::<Vec<_>>()
     });
     for d in 0..3u32 {
-        let mut f = k.load(ArgSource::Gather {
-            buffer: elem_force,
-            over: Domain::Element,
-            stride: 3,
-            component: d,
-        });
-        if pressure && let Some(tf) = tri_force {
-            let fp = k.load(ArgSource::Gather {
-                buffer: tf,
-                over: Domain::Triangle,
-                stride: 3,
-                component: d,
-            });
-            f = k.b.add(f, fp);
-        }
+        let mut f = gathered_force(&mut k, elem_force, tri_force.filter(|_| pressure), d);
         if let Some(mg) = &mg {
             f = k.b.add(f, mg[d as usize]);
         }
@@ -685,21 +657,7 @@ fn implicit_euler_kernel(
             })
         };
         let (xd, xp, vp) = (own(&mut k, x), own(&mut k, x_prev), own(&mut k, v_prev));
-        let mut f = k.load(ArgSource::Gather {
-            buffer: elem_force,
-            over: Domain::Element,
-            stride: 3,
-            component: d,
-        });
-        if pressure && let Some(tf) = tri_force {
-            let fp = k.load(ArgSource::Gather {
-                buffer: tf,
-                over: Domain::Triangle,
-                stride: 3,
-                component: d,
-            });
-            f = k.b.add(f, fp);
-        }
+        let mut f = gathered_force(&mut k, elem_force, tri_force.filter(|_| pressure), d);
         if let Some(g) = &g {
             let gs = k.b.scale(1.0 / scaling, g[d as usize]);
             let mg = k.b.mul(m, gs);
@@ -721,4 +679,32 @@ fn implicit_euler_kernel(
         k.store(residual, d, r);
     }
     Ok(k.finish())
+}
+
+/// Component `d` of the force the elements (and, with `tri_force`, the chamber triangles) put
+/// on a node, gathered over its incident entities in CSR order.
+fn gathered_force(
+    k: &mut KernelBuilder,
+    elem_force: BufferId,
+    tri_force: Option<BufferId>,
+    d: u32,
+) -> V {
+    let f = k.load(ArgSource::Gather {
+        buffer: elem_force,
+        over: Domain::Element,
+        stride: 3,
+        component: d,
+    });
+    match tri_force {
+        Some(tf) => {
+            let fp = k.load(ArgSource::Gather {
+                buffer: tf,
+                over: Domain::Triangle,
+                stride: 3,
+                component: d,
+            });
+            k.b.add(f, fp)
+        }
+        None => f,
+    }
 }

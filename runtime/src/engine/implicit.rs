@@ -16,7 +16,6 @@ use super::loss::{Loss, LossWindow};
 use super::statics::{Newton, SolverReport, StaticRun, Tangent};
 use super::{RunError, RunSummary, Simulation};
 use crate::devices::{Backend, domain_len};
-use crate::solvers::sparse::BlockPattern;
 use softc_compiler::driver::LossArg;
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -41,30 +40,11 @@ impl<B: Backend> Simulation<'_, B> {
         self.upload_fields();
         let (h, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| scene.steps_for(h));
-        self.uniforms.set(self.ids.dt, h);
         let load = self.uniforms.intern("load");
         self.uniforms.set(load, 1.0);
-        let loss = Loss::build(scene, h, steps).map_err(RunError)?;
-        if gradient && loss.is_none() {
-            return Err(RunError(
-                "the script has no `loss`: there is nothing to differentiate".into(),
-            ));
-        }
-        let pattern =
-            BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris).map_err(RunError)?;
-        let mut report = SolverReport {
-            kind: "implicit_euler",
-            states: steps,
-            dofs: pattern.n,
-            nonzeros: pattern.nnz(),
-            converged: true,
-            ..Default::default()
-        };
-        let mut tangent = Tangent::new(pattern, self.backend.precision())?;
-        self.reset();
-        if gradient {
-            self.zero_gradient_accumulators();
-        }
+        let (loss, mut tangent, mut report) =
+            self.start_solve("implicit_euler", h, steps, gradient)?;
+        report.converged = true;
         let rtol = match self.backend.precision() {
             softc_compiler::back::Precision::F64 => 1e-10,
             softc_compiler::back::Precision::F32 => 1e-5,

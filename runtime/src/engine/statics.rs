@@ -96,7 +96,7 @@ pub(super) enum Newton {
     Failed { why: String },
 }
 
-impl<B: Backend> Simulation<'_, B> {
+impl<'s, B: Backend> Simulation<'s, B> {
     pub(super) fn static_kernels(&self) -> Result<&StaticKernels, RunError> {
         self.scene.lowered.statics.as_ref().ok_or_else(|| {
             RunError("internal error: the scene was not compiled for a quasi-static solve".into())
@@ -364,6 +364,41 @@ impl<B: Backend> Simulation<'_, B> {
         Ok(())
     }
 
+    /// What a static or implicit run sets up: the spacing `h` of its states, the loss, the
+    /// tangent's pattern and solver, the report, the initial state and (for a gradient)
+    /// zeroed param accumulators.
+    pub(super) fn start_solve(
+        &mut self,
+        kind: &'static str,
+        h: f64,
+        steps: u64,
+        gradient: bool,
+    ) -> Result<(Option<Loss<'s>>, Tangent, SolverReport), RunError> {
+        let scene = self.scene;
+        self.uniforms.set(self.ids.dt, h);
+        let loss = Loss::build(scene, h, steps).map_err(RunError)?;
+        if gradient && loss.is_none() {
+            return Err(RunError(
+                "the script has no `loss`: there is nothing to differentiate".into(),
+            ));
+        }
+        let pattern =
+            BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris).map_err(RunError)?;
+        let report = SolverReport {
+            kind,
+            states: steps,
+            dofs: pattern.n,
+            nonzeros: pattern.nnz(),
+            ..Default::default()
+        };
+        let tangent = Tangent::new(pattern, self.backend.precision())?;
+        self.reset();
+        if gradient {
+            self.zero_gradient_accumulators();
+        }
+        Ok((loss, tangent, report))
+    }
+
     /// Solve the scene's equilibrium states (`steps` of them, at t_end·k/steps); with
     /// `gradient`, also d loss / d every param.
     pub fn solve_static(
@@ -398,27 +433,8 @@ impl<B: Backend> Simulation<'_, B> {
                     .into(),
             ));
         }
-        self.uniforms.set(self.ids.dt, h);
-        let loss = Loss::build(scene, h, steps).map_err(RunError)?;
-        if gradient && loss.is_none() {
-            return Err(RunError(
-                "the script has no `loss`: there is nothing to differentiate".into(),
-            ));
-        }
-        let pattern =
-            BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris).map_err(RunError)?;
-        let mut report = SolverReport {
-            kind: "quasi_static",
-            states: steps,
-            dofs: pattern.n,
-            nonzeros: pattern.nnz(),
-            ..Default::default()
-        };
-        let mut tangent = Tangent::new(pattern, self.backend.precision())?;
-        self.reset();
-        if gradient {
-            self.zero_gradient_accumulators();
-        }
+        let (loss, mut tangent, mut report) =
+            self.start_solve("quasi_static", h, steps, gradient)?;
         let mut direct = BTreeMap::new();
         let mut loss_sum = 0.0;
         let mut end_value = None;
