@@ -191,13 +191,10 @@ impl<B: Backend> Simulation<'_, B> {
         Ok(gradients)
     }
 
-    /// The adjoint of step `k`: state `k` is current, ∂L/∂(state k+1) in `adj_*_next`.
-    fn reverse_step(&mut self, k: u64, dt: f64) -> Result<(), RunError> {
+    /// The adjoint kernels of one reverse step, in order, each over its forward kernel's
+    /// entities.
+    pub(super) fn run_reverse_kernels(&mut self) -> Result<(), RunError> {
         let adj = &self.scene.lowered.adjoint;
-        self.uniforms.set(self.ids.t, k as f64 * dt);
-        if adj.needs_forward {
-            self.run_force_kernels()?;
-        }
         for rk in &adj.reverse {
             let range = match rk.range_of {
                 Some(f) => self.kernel_range(f),
@@ -207,6 +204,17 @@ impl<B: Backend> Simulation<'_, B> {
                 .run(rk.kernel, range, &self.uniforms)
                 .map_err(RunError)?;
         }
+        Ok(())
+    }
+
+    /// The adjoint of step `k`: state `k` is current, ∂L/∂(state k+1) in `adj_*_next`.
+    fn reverse_step(&mut self, k: u64, dt: f64) -> Result<(), RunError> {
+        let adj = &self.scene.lowered.adjoint;
+        self.uniforms.set(self.ids.t, k as f64 * dt);
+        if adj.needs_forward {
+            self.run_force_kernels()?;
+        }
+        self.run_reverse_kernels()?;
         for s in &adj.state {
             self.backend.swap(s.adj, s.adj_next);
         }

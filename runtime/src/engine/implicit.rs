@@ -15,7 +15,7 @@
 use super::loss::{Loss, LossWindow};
 use super::statics::{Newton, SolverReport, StaticRun, Tangent};
 use super::{RunError, RunSummary, Simulation};
-use crate::devices::{Backend, domain_len};
+use crate::devices::Backend;
 use softc_compiler::driver::LossArg;
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -209,15 +209,7 @@ impl<B: Backend> Simulation<'_, B> {
             tangent.lu.solve_transpose(&mut mu);
             self.backend
                 .set(adj.state[0].adj_next, &tangent.pattern.extend(&mu));
-            for rk in &adj.reverse {
-                let range = match rk.range_of {
-                    Some(f) => self.kernel_range(f),
-                    None => 0..domain_len(scene, adj.module.kernels[rk.kernel].domain),
-                };
-                self.backend
-                    .run(rk.kernel, range, &self.uniforms)
-                    .map_err(RunError)?;
-            }
+            self.run_reverse_kernels()?;
             let ax = self.backend.get(adj.state[1].adj);
             let av = self.backend.get(adj.state[2].adj);
             for i in 0..n {

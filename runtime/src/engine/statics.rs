@@ -20,7 +20,7 @@
 
 use super::loss::{Loss, LossWindow};
 use super::{RunError, RunSummary, Simulation};
-use crate::devices::{Backend, domain_len};
+use crate::devices::Backend;
 use crate::solvers::sparse::{BlockPattern, SparseSolver};
 use softc_compiler::back::Precision;
 use softc_compiler::driver::LossArg;
@@ -560,15 +560,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let mu = tangent.pattern.extend(&mu);
         let state = &adj.state[0];
         self.backend.set(state.adj_next, &mu);
-        for rk in &adj.reverse {
-            let range = match rk.range_of {
-                Some(f) => self.kernel_range(f),
-                None => 0..domain_len(scene, adj.module.kernels[rk.kernel].domain),
-            };
-            self.backend
-                .run(rk.kernel, range, &self.uniforms)
-                .map_err(RunError)?;
-        }
+        self.run_reverse_kernels()?;
         Ok(value)
     }
 
