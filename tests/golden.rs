@@ -92,7 +92,7 @@ fn specialization_cases_match_their_golden_wgsl() {
         ("meta_optimization-f64", ex("meta_optimization.soft"), "f64"),
         (
             "controller_synthesis-f64",
-            ex("controller_synthesis.soft"),
+            ex("controller_synthesis_explicit.soft"),
             "f64",
         ),
         ("benchmark-1k-trainable-E", trainable.clone(), "f32"),
@@ -106,7 +106,7 @@ fn specialization_cases_match_their_golden_wgsl() {
         texts.insert(*name, out);
     }
     // The controller study's four targets per iteration, as the GPU runs them: one batch.
-    let script = ex("controller_synthesis.soft");
+    let script = ex("controller_synthesis_explicit.soft");
     let (code, batched, err) = softc(&[
         "compile",
         "--emit",
@@ -129,7 +129,7 @@ fn specialization_cases_match_their_golden_wgsl() {
     // What the specializations must show.
     let bench = wgsl_of(&ex("benchmark-1k.soft"), "f32");
     let meta = wgsl_of(&ex("meta_optimization.soft"), "f32");
-    let controller = wgsl_of(&ex("controller_synthesis.soft"), "f32");
+    let controller = wgsl_of(&ex("controller_synthesis_explicit.soft"), "f32");
     // One pressure entry point per chamber: 1 in the benchmark, 3 in the controller study,
     // and the adjoint of each.
     assert_eq!(bench.matches("kernel pressure_").count(), 1);
@@ -216,7 +216,7 @@ fn specialization_is_visible_in_the_kernels() {
     };
     let bench = ir("benchmark-1k.soft");
     let meta = ir("meta_optimization.soft");
-    let controller = ir("controller_synthesis.soft");
+    let controller = ir("controller_synthesis_explicit.soft");
     // Constant damping is a literal; windowed damping selects among params.
     assert!(bench.contains("const 2e1"), "constant damping folded");
     assert!(!bench.contains("uniform param.beta"));

@@ -119,7 +119,7 @@ fn every_example_sets_up_a_scene() {
         "verification.soft",
         "pressure_optimization_explicit.soft",
         "meta_optimization.soft",
-        "controller_synthesis.soft",
+        "controller_synthesis_explicit.soft",
         "benchmark-10k.soft",
     ] {
         let scene = Scene::load(&root().join("examples").join(ex), &[])
@@ -140,7 +140,7 @@ fn cranelift_backend_is_bit_identical_to_the_interpreter_and_thread_independent(
     for example in [
         "benchmark-1k.soft",
         "meta_optimization.soft",
-        "controller_synthesis.soft",
+        "controller_synthesis_explicit.soft",
         "spring_mesh.soft",
     ] {
         let scene = Scene::load(&root().join("examples").join(example), &[]).unwrap();

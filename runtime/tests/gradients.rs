@@ -173,7 +173,7 @@ fn example_gradients_match_central_differences() {
     // Controller synthesis (the coarse endoscope, 13,998 tets) with one fixed target instead of
     // the sampled batch: the weights of the two nonzero features of that target.
     let controller = variant(
-        "controller_synthesis.soft",
+        "controller_synthesis_explicit.soft",
         "from circle_quadrants(radius: 40 um, plane: \"yz\", seed: 7)",
         "from [[0, 20, 34.64]] um",
     );

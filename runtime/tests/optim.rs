@@ -474,7 +474,7 @@ fn short_versions_of_the_studies_lower_their_loss() {
             true,
         ),
         (
-            "controller_synthesis.soft",
+            "controller_synthesis_explicit.soft",
             &controller_ramp[..],
             "120",
             "3",

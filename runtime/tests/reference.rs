@@ -132,7 +132,12 @@ fn meta_optimization_agrees_with_the_engine() {
 
 #[test]
 fn controller_synthesis_agrees_with_the_engine() {
-    agree_to(&example("controller_synthesis"), Some(55e-6), 20, 1e-5);
+    agree_to(
+        &example("controller_synthesis_explicit"),
+        Some(55e-6),
+        20,
+        1e-5,
+    );
 }
 
 /// Steps of the variants below (30 µs each: 7.5 ms, the load ramps over 4–5 ms).

@@ -327,3 +327,78 @@ fn implicit_euler_converges_at_first_order_to_the_explicit_solution() {
         "not first order: {orders:?}"
     );
 }
+
+/// A free body (no fixed node): a cube with a closed inner cavity, inflated. Its equilibrium
+/// is defined up to a rigid motion; the solver holds the mean translation and rotation, so
+/// it converges, the mean displacement is zero, the cube expands symmetrically, and the
+/// gradient still matches central differences. Gravity on a free body is refused by name.
+#[test]
+fn a_free_body_under_balanced_loads_is_solved_and_unbalanced_ones_are_refused() {
+    use softc::mesh::kuhn::{KuhnSpec, kuhn_grid};
+    let spec = KuhnSpec {
+        n: [6, 6, 6],
+        min: [0.0; 3],
+        max: [12.0; 3],
+        cavity_min: [4.0; 3],
+        cavity_max: [8.0; 3],
+    };
+    let mesh = kuhn_grid(&spec, softc::mesh::LengthUnit::Millimetre).unwrap();
+    let file = scratch("hollow_cube.msh");
+    softc::mesh::save(&mesh, &file, softc::mesh::LengthUnit::Millimetre).unwrap();
+    let script = |name: &str, extra: &str| {
+        let path = scratch(name);
+        std::fs::write(
+            &path,
+            format!(
+                "mesh body = load(\"{}\")\n\
+                 material gel = neo_hookean(mu: 20 kPa, kappa: 0.2 MPa, density: 1070 kg/m^3)\n\
+                 chamber cavity = surface(body, \"cavity\")\n\
+                 nodes corner = select(body, x > 11.9 mm and y > 11.9 mm and z > 11.9 mm)\n\
+                 param p: pressure = 4 kPa in [0 kPa, 20 kPa]\n\
+                 sim {{\n  integrator = quasi_static\n  duration = 1 s\n  use gel\n  \
+                 pressure cavity = p\n{extra}}}\n\
+                 loss = sum(n in corner) (x[n].x - x0[n].x - 0.1 mm)^2 at end\n",
+                file.display()
+            ),
+        )
+        .unwrap();
+        Scene::load(&path, &[]).unwrap()
+    };
+    let scene = script("free.soft", "");
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let report = Simulation::new(&scene, cpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    let solver = report.summary.solver.clone().unwrap();
+    assert!(solver.converged, "{solver:?}");
+    assert_eq!(solver.factorization, "lu");
+    let n = scene.mesh.nodes.len() as f64;
+    let u: Vec<[f64; 3]> = report
+        .summary
+        .x
+        .iter()
+        .zip(&scene.mesh.nodes)
+        .map(|(x, x0)| [x[0] - x0[0], x[1] - x0[1], x[2] - x0[2]])
+        .collect();
+    let largest = u.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+    let mean: Vec<f64> = (0..3)
+        .map(|d| u.iter().map(|v| v[d]).sum::<f64>() / n)
+        .collect();
+    eprintln!("free body: largest displacement {largest:e} m, mean {mean:?}, {solver:?}");
+    assert!(largest > 1e-5, "the cavity pressure moved nothing");
+    assert!(mean.iter().all(|m| m.abs() < 1e-9 * largest), "{mean:?}");
+    // The far corner moves out equally along x, y and z (the cube's symmetry).
+    let corner = scene.node_sets.iter().find(|(n, _)| n == "corner").unwrap();
+    let c = &u[corner.1[0] as usize];
+    assert!(c[0] > 0.0 && (c[0] - c[1]).abs() < 1e-6 * c[0] && (c[0] - c[2]).abs() < 1e-6 * c[0]);
+    let worst = worst_against_central_differences(&scene, &report.gradients, &[("param.p", 4e3)]);
+    assert!(worst < 1e-6, "worst relative difference {worst:e}");
+
+    let heavy = script("free_gravity.soft", "  gravity = [0, 0, -9.81] m/s^2\n");
+    let cpu = Cpu::new(&heavy.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let err = Simulation::new(&heavy, cpu).run(None, None).unwrap_err().0;
+    assert!(
+        err.contains("no fixed node") && err.contains("do not balance"),
+        "{err}"
+    );
+}

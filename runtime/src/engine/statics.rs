@@ -163,9 +163,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             None => Vec::new(),
         };
+        let x = self.backend.get(self.ids.x);
         tangent
             .pattern
-            .assemble(&elem, &tri, &node, &mut tangent.values);
+            .assemble(&elem, &tri, &node, &x, &mut tangent.values);
         if let Some(i) = tangent.values.iter().position(|v| !v.is_finite()) {
             return Err(format!(
                 "the tangent stiffness has a non-finite entry (entry {i})"
@@ -364,6 +365,34 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(())
     }
 
+    /// A body with no fixed node is in equilibrium only under loads with no net force (a
+    /// closed pressurised cavity): refuse others before Newton fails on them. The loads at
+    /// rest, where the elastic forces vanish, at the end time.
+    fn require_balanced_loads(&mut self, t_end: f64) -> Result<(), RunError> {
+        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        self.backend.set(self.ids.x, &rest);
+        let r = self.residual(t_end, 1.0)?;
+        let mut net = [0.0f64; 3];
+        let mut total = 0.0f64;
+        for f in r.chunks(3) {
+            for d in 0..3 {
+                net[d] += f[d];
+                total += f[d].abs();
+            }
+        }
+        let net_norm = (net[0] * net[0] + net[1] * net[1] + net[2] * net[2]).sqrt();
+        if net_norm > 1e-6 * total {
+            return Err(RunError(format!(
+                "this body has no fixed node, and its loads at t = {t_end} s do not balance: a \
+                 net force of [{:.3e}, {:.3e}, {:.3e}] N (gravity, or a pressure on an open \
+                 surface) has no static equilibrium. Fix a region (`fix REGION` in the sim \
+                 block), or simulate the motion with `integrator = implicit_euler`",
+                net[0], net[1], net[2]
+            )));
+        }
+        Ok(())
+    }
+
     /// What a static or implicit run sets up: the spacing `h` of its states, the loss, the
     /// tangent's pattern and solver, the report, the initial state and (for a gradient)
     /// zeroed param accumulators.
@@ -382,8 +411,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 "the script has no `loss`: there is nothing to differentiate".into(),
             ));
         }
-        let pattern =
-            BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris).map_err(RunError)?;
+        let static_solve = kind == "quasi_static";
+        let pattern = BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris, static_solve)
+            .map_err(RunError)?;
         let report = SolverReport {
             kind,
             states: steps,
@@ -409,13 +439,6 @@ impl<'s, B: Backend> Simulation<'s, B> {
     ) -> Result<StaticRun, RunError> {
         let start = Instant::now();
         let scene = self.scene;
-        if scene.fixed.iter().all(|f| !f) {
-            return Err(RunError(
-                "a quasi-static solve needs fixed nodes: this body is free, so its equilibrium \
-                 is only defined up to a rigid motion. Add `fix REGION` to the sim block"
-                    .into(),
-            ));
-        }
         self.upload_fields();
         let t_end = scene.duration.ok_or_else(|| {
             RunError("internal error: a quasi-static scene has no duration".into())
@@ -435,6 +458,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
         }
         let (loss, mut tangent, mut report) =
             self.start_solve("quasi_static", h, steps, gradient)?;
+        if tangent.pattern.rigid {
+            self.require_balanced_loads(t_end)?;
+        }
         let mut direct = BTreeMap::new();
         let mut loss_sum = 0.0;
         let mut end_value = None;

@@ -22,6 +22,17 @@ const NONE: u32 = u32::MAX;
 pub struct BlockPattern {
     /// Free degrees of freedom (3 per free node).
     pub n: usize,
+    /// A body without fixed nodes: 6 Lagrange multipliers hold its mean translation and
+    /// rotation (the matrix is n + 6 square, symmetric indefinite).
+    pub rigid: bool,
+    /// Per free dof, its node and component.
+    free: Vec<(u32, u8)>,
+    /// Per free dof j, the position of entry (n, j): the constraint rows n..n+6 follow it.
+    con_row: Vec<u32>,
+    /// The position of entry (0, n): the constraint columns, n entries each.
+    con_col: usize,
+    /// Per free dof, the position of its diagonal entry.
+    diag: Vec<u32>,
     /// `node·3 + d` → free dof index, or [`NONE`] for a fixed node.
     dof: Vec<u32>,
     col_ptr: Vec<usize>,
@@ -35,8 +46,17 @@ pub struct BlockPattern {
 }
 
 impl BlockPattern {
-    pub fn new(fixed: &[bool], tets: &[[u32; 4]], tris: &[[u32; 3]]) -> Result<Self, String> {
+    /// `hold_rigid_modes`: a static solve, where a body with no fixed node gets the 6
+    /// constraints (an implicit step's inertia already makes its matrix regular).
+    pub fn new(
+        fixed: &[bool],
+        tets: &[[u32; 4]],
+        tris: &[[u32; 3]],
+        hold_rigid_modes: bool,
+    ) -> Result<Self, String> {
         let n_nodes = fixed.len();
+        let rigid = hold_rigid_modes && fixed.iter().all(|f| !f);
+        let extra = if rigid { 6 } else { 0 };
         let mut dof = vec![NONE; 3 * n_nodes];
         let mut n = 0u32;
         for (node, &f) in fixed.iter().enumerate() {
@@ -71,20 +91,30 @@ impl BlockPattern {
         let mut col_ptr = Vec::with_capacity(n as usize + 1);
         let mut row_idx = Vec::new();
         let mut col_start = vec![0usize; n_nodes];
+        let mut free = Vec::new();
+        let mut con_row = Vec::new();
         col_ptr.push(0);
         for b in 0..n_nodes {
             if fixed[b] {
                 continue;
             }
             col_start[b] = row_idx.len();
-            for _db in 0..3 {
+            for db in 0..3 {
                 for &a in &nbrs[b] {
                     for da in 0..3 {
                         row_idx.push(dof[3 * a as usize + da] as usize);
                     }
                 }
+                free.push((b as u32, db as u8));
+                con_row.push(row_idx.len() as u32);
+                row_idx.extend((0..extra).map(|c| n as usize + c));
                 col_ptr.push(row_idx.len());
             }
+        }
+        let con_col = row_idx.len();
+        for _ in 0..extra {
+            row_idx.extend(0..n as usize);
+            col_ptr.push(row_idx.len());
         }
         if row_idx.len() >= NONE as usize {
             return Err(format!(
@@ -98,7 +128,7 @@ impl BlockPattern {
             }
             let list = &nbrs[b as usize];
             let k = list.binary_search(&a).expect("neighbours are linked");
-            (col_start[b as usize] + db * 3 * list.len() + 3 * k + da) as u32
+            (col_start[b as usize] + db * (3 * list.len() + extra) + 3 * k + da) as u32
         };
         let positions = |nodes: &[u32]| {
             let m = 3 * nodes.len();
@@ -113,8 +143,17 @@ impl BlockPattern {
         let elem_pos = tets.iter().flat_map(|t| positions(t)).collect();
         let tri_pos = tris.iter().flat_map(|t| positions(t)).collect();
         let node_pos = (0..n_nodes as u32).flat_map(|n| positions(&[n])).collect();
+        let diag = free
+            .iter()
+            .map(|&(b, d)| position(b, d as usize, b, d as usize))
+            .collect();
         Ok(BlockPattern {
             n: n as usize,
+            rigid,
+            free,
+            con_row,
+            con_col,
+            diag,
             dof,
             col_ptr,
             row_idx,
@@ -135,9 +174,14 @@ impl BlockPattern {
         (d != NONE).then_some(d as usize)
     }
 
-    /// Free-dof entries of a node-major vector (3 per node).
+    /// The matrix's order: the free dofs, and the multipliers of a free body.
+    pub fn size(&self) -> usize {
+        self.n + if self.rigid { 6 } else { 0 }
+    }
+
+    /// Free-dof entries of a node-major vector (3 per node), zeros for the multipliers.
     pub fn restrict(&self, full: &[f64]) -> Vec<f64> {
-        let mut out = vec![0.0; self.n];
+        let mut out = vec![0.0; self.size()];
         for (i, &d) in self.dof.iter().enumerate() {
             if d != NONE {
                 out[d as usize] = full[i];
@@ -157,11 +201,17 @@ impl BlockPattern {
     /// The stiffness K = −∂residual/∂x from the element Jacobians (element × 144, ∂f/∂x), the
     /// chamber triangles' (triangle × 81) and the nodes' own (node × 9: an implicit step's
     /// inertia; empty for a static solve), summed entity by entity in kernel order.
+    ///
+    /// A free body's constraint rows hold Σ Δx_i = 0 and Σ (x_i − x̄) × Δx_i = 0 at the
+    /// positions `x`: no mean translation or rotation in a Newton step. They are scaled to the
+    /// stiffness's diagonal so the factorization stays well conditioned; their right-hand side
+    /// is 0, so the scale does not change the solution.
     pub fn assemble(
         &self,
         elem_jac: &[f64],
         tri_jac: &[f64],
         node_jac: &[f64],
+        x: &[f64],
         values: &mut Vec<f64>,
     ) {
         values.clear();
@@ -175,6 +225,47 @@ impl BlockPattern {
                 if p != NONE {
                     values[p as usize] -= v;
                 }
+            }
+        }
+        if self.rigid {
+            self.fill_constraints(x, values);
+        }
+    }
+}
+
+impl BlockPattern {
+    fn fill_constraints(&self, x: &[f64], values: &mut [f64]) {
+        let m = self.free.len().max(1) as f64;
+        let scale = self
+            .diag
+            .iter()
+            .map(|&p| values[p as usize].abs())
+            .sum::<f64>()
+            / m;
+        let mut centre = [0.0; 3];
+        for &(node, d) in self.free.iter() {
+            centre[d as usize] += x[3 * node as usize + d as usize] / (m / 3.0);
+        }
+        let size = self
+            .free
+            .iter()
+            .map(|&(node, d)| (x[3 * node as usize + d as usize] - centre[d as usize]).abs())
+            .fold(0.0f64, f64::max)
+            .max(f64::MIN_POSITIVE);
+        for (j, &(node, d)) in self.free.iter().enumerate() {
+            let r = |c: usize| (x[3 * node as usize + c] - centre[c]) / size;
+            let d = d as usize;
+            // Row c < 3: translation along c. Row 3 + c: (e_c × r)·Δx, the rotation about c.
+            let mut row = [0.0; 6];
+            row[d] = 1.0;
+            let (r0, r1, r2) = (r(0), r(1), r(2));
+            let rot = [[0.0, -r2, r1], [r2, 0.0, -r0], [-r1, r0, 0.0]];
+            for c in 0..3 {
+                row[3 + c] = rot[c][d];
+            }
+            for (c, v) in row.iter().enumerate() {
+                values[self.con_row[j] as usize + c] = scale * v;
+                values[self.con_col + c * self.n + j] = scale * v;
             }
         }
     }
@@ -193,6 +284,8 @@ pub struct SparseSolver {
     symbolic_llt: Option<SymbolicLlt<usize>>,
     symbolic_lu: Option<SymbolicLu<usize>>,
     factor: Option<Factor>,
+    /// Whether the matrix can be positive definite (not with a free body's multipliers).
+    may_be_definite: bool,
 }
 
 enum Factor {
@@ -202,8 +295,13 @@ enum Factor {
 
 impl SparseSolver {
     pub fn new(p: &BlockPattern, symmetry: f64) -> Result<Self, String> {
-        let symbolic =
-            SymbolicSparseColMat::new_checked(p.n, p.n, p.col_ptr.clone(), None, p.row_idx.clone());
+        let symbolic = SymbolicSparseColMat::new_checked(
+            p.size(),
+            p.size(),
+            p.col_ptr.clone(),
+            None,
+            p.row_idx.clone(),
+        );
         // Entry k is (row_idx[k], column j); its transpose is (j, row_idx[k]).
         let mut transpose = vec![0usize; p.row_idx.len()];
         for j in 0..p.n {
@@ -228,6 +326,7 @@ impl SparseSolver {
             symbolic_llt: None,
             symbolic_lu: None,
             factor: None,
+            may_be_definite: !p.rigid,
         })
     }
 
@@ -245,7 +344,7 @@ impl SparseSolver {
     /// factorization was used (`"cholesky"` or `"lu"`).
     pub fn factor(&mut self, values: &[f64]) -> Result<&'static str, String> {
         let mat = SparseColMatRef::new(self.symbolic.as_ref(), values);
-        if self.symmetric(values) {
+        if self.may_be_definite && self.symmetric(values) {
             if self.symbolic_llt.is_none() {
                 self.symbolic_llt = Some(
                     SymbolicLlt::try_new(self.symbolic.as_ref(), Side::Lower)
