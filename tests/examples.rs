@@ -298,7 +298,8 @@ fn run_grad_reports_every_param_gradient_and_the_adjoint() {
         "--checkpoint",
         "revolve:0",
     ]);
-    assert_eq!(code, 1, "{err}");
+    // A bad flag value is a usage error, found before any work (issue 20 item 18).
+    assert_eq!(code, 2, "{err}");
     assert!(err.contains("--checkpoint revolve:0"), "{err}");
     let verification = root().join("examples/verification.soft");
     let (code, _, err) = softc(&[

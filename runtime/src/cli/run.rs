@@ -206,13 +206,11 @@ fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
 
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     // An unreadable script or a folder is a usage error (exit 2), found before anything else.
-    let readable = std::fs::metadata(&args.file).and_then(|m| {
-        if m.is_dir() {
-            Err(std::io::Error::other("it is a folder, not a script"))
-        } else if !m.is_file() {
-            Err(std::io::Error::other("not a regular file"))
-        } else {
-            std::fs::File::open(&args.file).map(|_| ())
+    let readable = std::fs::metadata(&args.file).and_then(|_| {
+        match crate::files::not_regular(&args.file) {
+            // A folder, a FIFO, a device: say which.
+            Some(why) => Err(std::io::Error::other(format!("it {why}"))),
+            None => std::fs::File::open(&args.file).map(|_| ()),
         }
     });
     if let Err(e) = readable {
