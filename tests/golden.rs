@@ -373,3 +373,48 @@ fn bench_prints_a_table_and_well_formed_json() {
     assert_eq!(code, 2);
     assert!(err.contains("1k, 10k or 50k"), "{err}");
 }
+
+/// `softc bench --solvers`: a row per solver with the solve's figures, and the static and
+/// implicit tips agree with each other to the dynamics' lag (the scene still moves at 0.16 s).
+#[test]
+fn bench_solvers_prints_a_row_per_solver_and_well_formed_json() {
+    let json =
+        std::env::temp_dir().join(format!("softc-bench-solvers-{}.json", std::process::id()));
+    let examples = root().join("examples");
+    let (code, out, err) = softc(&[
+        "bench",
+        "--solvers",
+        "--sizes",
+        "1k",
+        "--repeats",
+        "1",
+        "--examples",
+        examples.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.starts_with("size"), "{out}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let rows = v.as_array().unwrap();
+    let solvers: Vec<&str> = rows.iter().map(|r| r["solver"].as_str().unwrap()).collect();
+    assert_eq!(
+        solvers,
+        ["quasi_static", "quasi_static+grad", "implicit_euler x40"]
+    );
+    for r in rows {
+        assert!(r["newton_iterations"].as_u64().unwrap() >= 1, "{r}");
+        assert!(r["dofs"].as_u64().unwrap() > 0, "{r}");
+    }
+    assert!(rows[1]["gradient_p_peak"].as_f64().unwrap() < 0.0);
+    let (s, i) = (
+        rows[0]["tip_mean_z"].as_f64().unwrap(),
+        rows[2]["tip_mean_z"].as_f64().unwrap(),
+    );
+    assert!(
+        s < 0.0 && ((s - i) / s).abs() < 0.1,
+        "static {s}, implicit {i}"
+    );
+    std::fs::remove_file(&json).ok();
+}
