@@ -487,8 +487,9 @@ fn bench_tradeoff_measures_error_against_wall_time_and_marks_the_pareto_front() 
         "{method}"
     );
     let points = v["points"].as_array().unwrap();
-    // 2 resolutions × 2 precisions, 1 more dt, 1 more tolerance, 2 spring meshes.
-    assert_eq!(points.len(), 8, "{table}");
+    // Explicit: 2 resolutions × 2 precisions, 1 more dt, 1 more tolerance, 2 spring meshes;
+    // then a static solve per resolution and precision, and one implicit Euler run.
+    assert_eq!(points.len(), 13, "{table}");
     let get = |p: &serde_json::Value, k: &str| p[k].as_f64().unwrap();
     assert!(points.iter().all(|p| p["settled"] == true), "{table}");
     assert!(
@@ -501,7 +502,8 @@ fn bench_tradeoff_measures_error_against_wall_time_and_marks_the_pareto_front() 
         points
             .iter()
             .find(|p| {
-                get(p, "resolution") == res
+                p["solver"] == "explicit"
+                    && get(p, "resolution") == res
                     && p["precision"] == prec
                     && p["model"] == model
                     && get(p, "safety") == safety
@@ -510,6 +512,30 @@ fn bench_tradeoff_measures_error_against_wall_time_and_marks_the_pareto_front() 
             .unwrap_or_else(|| panic!("{res} {prec} {model} {safety} {settle}\n{table}"))
     };
     let base = find(1.0, "f64", "fem", 0.9, 1e-3);
+    // The static solve finds the steady state the settled explicit run approaches, on either
+    // mesh; the implicit run gets there by numerical damping.
+    let solved = |solver: &str, res: f64| {
+        points
+            .iter()
+            .find(|p| {
+                p["solver"] == solver && get(p, "resolution") == res && p["precision"] == "f64"
+            })
+            .unwrap_or_else(|| panic!("{solver} {res}\n{table}"))
+    };
+    for res in [1.0, 2.0] {
+        let explicit = find(res, "f64", "fem", 0.9, 1e-3);
+        let statics = solved("quasi_static", res);
+        let rel =
+            (get(statics, "value") - get(explicit, "value")).abs() / get(explicit, "value").abs();
+        assert!(
+            rel < 1e-2,
+            "resolution {res}: static vs settled explicit {rel:e}\n{table}"
+        );
+    }
+    let implicit = solved("implicit_euler", 1.0);
+    let rel = (get(implicit, "value") - get(solved("quasi_static", 1.0), "value")).abs()
+        / get(implicit, "value").abs();
+    assert!(rel < 5e-2, "implicit Euler vs static {rel:e}\n{table}");
     let fine = find(2.0, "f64", "fem", 0.9, 1e-3);
     assert_eq!(get(fine, "error"), 0.0);
     assert!(get(base, "error") > 0.0 && get(fine, "tets") > 7.0 * get(base, "tets"));

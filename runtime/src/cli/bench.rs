@@ -83,6 +83,11 @@ pub struct BenchArgs {
     /// displacement (the smallest is the baseline's).
     #[arg(long, default_value = "1e-2,1e-3,1e-4")]
     pub settle: String,
+    /// With --tradeoff: the integrators compared — `explicit` (settled explicit runs, every
+    /// knob above), `quasi_static` (one static solve per resolution and precision),
+    /// `implicit_euler` (the baseline mesh in 20 backward Euler steps over the duration).
+    #[arg(long, default_value = "explicit,quasi_static,implicit_euler")]
+    pub integrators: String,
     /// With --tradeoff: also spring-mesh variants with this volume stiffness (`1kPa/mm`).
     #[arg(long, value_name = "ALPHA")]
     pub springs: Option<String>,
@@ -580,6 +585,12 @@ fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<tradeoff::Sweep, 
         })?,
         safeties,
         settle: list("settle", &args.settle, positive)?,
+        integrators: list("integrators", &args.integrators, |s| match s {
+            "explicit" => Some(tradeoff::Solver::Explicit),
+            "quasi_static" => Some(tradeoff::Solver::QuasiStatic),
+            "implicit_euler" => Some(tradeoff::Solver::ImplicitEuler),
+            _ => None,
+        })?,
         springs: args.springs.clone(),
         overrides,
         sets,

@@ -40,6 +40,8 @@ pub struct Sweep {
     pub settle: Vec<f64>,
     /// Volume stiffness α of the spring-mesh variants (N/m³); none: FEM only.
     pub springs: Option<String>,
+    /// The integrators compared (the explicit runs carry every other knob).
+    pub integrators: Vec<Solver>,
     pub overrides: Vec<(String, f64)>,
     /// The `--set` flags behind `overrides`, with their units' dimensions.
     pub sets: Vec<crate::session::SetFlag>,
@@ -47,10 +49,37 @@ pub struct Sweep {
     pub out: PathBuf,
 }
 
+/// How a variant reaches its steady state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Solver {
+    /// Explicit steps until the settling criterion holds.
+    Explicit,
+    /// One static solve at the script's end time.
+    QuasiStatic,
+    /// [`IMPLICIT_STEPS`] backward Euler steps over the script's duration.
+    ImplicitEuler,
+}
+
+/// Backward Euler steps of an `implicit_euler` variant: steps 10⁴× the explicit one or more,
+/// enough to show how far numerical damping gets it towards the steady state.
+const IMPLICIT_STEPS: u32 = 20;
+
+impl Solver {
+    fn name(self) -> &'static str {
+        match self {
+            Solver::Explicit => "explicit",
+            Solver::QuasiStatic => "quasi_static",
+            Solver::ImplicitEuler => "implicit_euler",
+        }
+    }
+}
+
 /// One variant and what it measured.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Point {
     pub label: String,
+    /// `explicit`, `quasi_static` or `implicit_euler`.
+    pub solver: String,
     pub resolution: f64,
     pub tets: usize,
     pub precision: String,
@@ -73,6 +102,7 @@ pub struct Point {
 
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Config {
+    solver: Solver,
     resolution: f64,
     precision: Precision,
     springs: bool,
@@ -110,6 +140,14 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
         .position(|(n, _)| *n == sweep.set)
         .ok_or_else(|| format!("the script has no node set `{}`", sweep.set))?;
     let configs = configs(sweep);
+    let duration = base.resolved.sim.duration.unwrap_or(0.0);
+    if duration <= 0.0 && sweep.integrators.contains(&Solver::ImplicitEuler) {
+        return Err(format!(
+            "{USAGE}the implicit_euler variant divides the script's `duration` into \
+             {IMPLICIT_STEPS} steps, and this script has none; leave it out with \
+             --integrators explicit,quasi_static"
+        ));
+    }
     let mut meshes: Vec<(f64, PathBuf)> = Vec::new();
     let mut points = Vec::new();
     for (i, c) in configs.iter().enumerate() {
@@ -124,7 +162,7 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
         let label = label(c);
         let variant = Variant {
             mesh: Some(mesh),
-            sim_settings: sim_settings(c, sweep),
+            sim_settings: sim_settings(c, sweep, duration),
         };
         let scene = Scene::load_with(&sweep.script, &sweep.overrides, Some(&variant))
             .map_err(|e| format!("{label}: {e}"))?;
@@ -183,6 +221,7 @@ fn base_dir(script: &Path) -> PathBuf {
 fn configs(s: &Sweep) -> Vec<Config> {
     let tight = s.settle.iter().copied().fold(f64::INFINITY, f64::min);
     let base = Config {
+        solver: Solver::Explicit,
         resolution: 1.0,
         precision: s.precisions[0],
         springs: false,
@@ -191,7 +230,7 @@ fn configs(s: &Sweep) -> Vec<Config> {
     };
     let mut all = Vec::new();
     let mut push = |c: Config| {
-        if !all.contains(&c) {
+        if !all.contains(&c) && s.integrators.contains(&c.solver) {
             all.push(c);
         }
     };
@@ -219,10 +258,42 @@ fn configs(s: &Sweep) -> Vec<Config> {
             });
         }
     }
+    // The implicit solvers take no time-step safety or settling tolerance (0 in the table).
+    let implicit = Config {
+        safety: 0.0,
+        settle: 0.0,
+        ..base
+    };
+    for &precision in &s.precisions {
+        for &resolution in &s.resolutions {
+            push(Config {
+                solver: Solver::QuasiStatic,
+                resolution,
+                precision,
+                ..implicit
+            });
+        }
+    }
+    push(Config {
+        solver: Solver::ImplicitEuler,
+        ..implicit
+    });
     all
 }
 
 fn label(c: &Config) -> String {
+    if c.solver != Solver::Explicit {
+        return format!(
+            "res{}-{}-{}-{}",
+            c.resolution,
+            match c.precision {
+                Precision::F32 => "f32",
+                _ => "f64",
+            },
+            if c.springs { "springs" } else { "fem" },
+            c.solver.name()
+        );
+    }
     format!(
         "res{}-{}-{}-dt{}-settle{:e}",
         c.resolution,
@@ -262,10 +333,19 @@ fn refined_mesh(
     Ok(std::fs::canonicalize(&path).unwrap_or(path))
 }
 
-/// The variant's `sim` settings: its time-step safety, precision and model.
-fn sim_settings(c: &Config, sweep: &Sweep) -> Vec<(String, String)> {
+/// The variant's `sim` settings: its integrator, time step, precision and model.
+/// `duration`: the script's (the implicit steps divide it).
+fn sim_settings(c: &Config, sweep: &Sweep, duration: f64) -> Vec<(String, String)> {
+    let step = match c.solver {
+        Solver::Explicit => ("dt".to_string(), format!("auto(safety: {})", c.safety)),
+        Solver::QuasiStatic => ("integrator".to_string(), "quasi_static".to_string()),
+        Solver::ImplicitEuler => (
+            "dt".to_string(),
+            format!("{:e} s", duration / IMPLICIT_STEPS as f64),
+        ),
+    };
     let mut settings = vec![
-        ("dt".to_string(), format!("auto(safety: {})", c.safety)),
+        step,
         (
             "precision".to_string(),
             match c.precision {
@@ -274,6 +354,9 @@ fn sim_settings(c: &Config, sweep: &Sweep) -> Vec<(String, String)> {
             },
         ),
     ];
+    if c.solver == Solver::ImplicitEuler {
+        settings.push(("integrator".into(), "implicit_euler".into()));
+    }
     if c.springs {
         let alpha = sweep.springs.clone().unwrap_or_default();
         settings.push((
@@ -296,14 +379,27 @@ fn measure(
     set_index: usize,
 ) -> Result<Point, String> {
     let t0 = Instant::now();
-    let cpu = Cpu::new(&scene.lowered.module, c.precision, sweep.threads)?;
+    // The implicit solvers' tangent kernels are in the adjoint module.
+    let module = match c.solver {
+        Solver::Explicit => &scene.lowered.module,
+        _ => &scene.lowered.adjoint.module,
+    };
+    let cpu = Cpu::new(module, c.precision, sweep.threads)?;
     let compile_seconds = t0.elapsed().as_secs_f64();
     let mut sim = Simulation::new(scene, cpu);
     let t1 = Instant::now();
-    let (dt, steps) = sim.time_steps(None, None).map_err(|e| e.0)?;
-    let run = sim
-        .run_to_steady_state(Some(dt), 4 * steps, c.settle)
-        .map_err(|e| format!("{label}: {e}"))?;
+    let run = match c.solver {
+        Solver::Explicit => {
+            let (dt, steps) = sim.time_steps(None, None).map_err(|e| e.0)?;
+            sim.run_to_steady_state(Some(dt), 4 * steps, c.settle)
+        }
+        _ => sim.run(None, None).map(|summary| crate::engine::SteadyRun {
+            settled: summary.solver.as_ref().is_some_and(|s| s.converged),
+            summary,
+        }),
+    }
+    .map_err(|e| format!("{label}: {e}"))?;
+    let dt = run.summary.dt;
     let seconds = t1.elapsed().as_secs_f64();
     let (_, nodes) = &scene.node_sets[set_index];
     let [mean, _, _] =
@@ -311,6 +407,7 @@ fn measure(
     let value = mean[sweep.axis];
     Ok(Point {
         label: label.to_string(),
+        solver: c.solver.name().to_string(),
         resolution: c.resolution,
         tets: scene.mesh.tets.len(),
         precision: match c.precision {
@@ -339,7 +436,8 @@ fn reference(points: &[Point]) -> Reference {
     let mut series: Vec<&Point> = points
         .iter()
         .filter(|p| {
-            p.precision == "f64"
+            p.solver == "explicit"
+                && p.precision == "f64"
                 && p.model == "fem"
                 && p.safety == base.safety
                 && p.settle == base.settle
@@ -419,7 +517,8 @@ fn mark_pareto(points: &mut [Point]) {
 fn print_table(points: &[Point], reference: &Reference, sweep: &Sweep, out: &mut dyn Write) {
     let _ = writeln!(
         out,
-        "{:<6} {:>7} {:<4} {:<8} {:>6} {:>8} {:>10} {:>8} {:>8} {:>14} {:>10} {:>9}  pareto",
+        "{:<14} {:<6} {:>7} {:<4} {:<8} {:>6} {:>8} {:>10} {:>8} {:>8} {:>14} {:>10} {:>9}  pareto",
+        "solver",
         "res",
         "tets",
         "prec",
@@ -438,7 +537,8 @@ fn print_table(points: &[Point], reference: &Reference, sweep: &Sweep, out: &mut
     for p in sorted {
         let _ = writeln!(
             out,
-            "{:<6} {:>7} {:<4} {:<8} {:>6} {:>8.0e} {:>10.3e} {:>8} {:>8.2} {:>14.6e} {:>10.2e} {:>9}  {}",
+            "{:<14} {:<6} {:>7} {:<4} {:<8} {:>6} {:>8.0e} {:>10.3e} {:>8} {:>8.2} {:>14.6e} {:>10.2e} {:>9}  {}",
+            p.solver,
             p.resolution,
             p.tets,
             p.precision,
@@ -464,7 +564,8 @@ fn print_table(points: &[Point], reference: &Reference, sweep: &Sweep, out: &mut
     );
     let _ = writeln!(
         out,
-        "wall_s: stable-step estimate + time steps on the cpu backend (compile excluded); \
+        "wall_s: stable-step estimate + time steps, or the static / implicit solve, on the cpu \
+         backend (compile excluded); safety and settle are 0 for the implicit solvers; \
          * = Pareto front (no other run is both faster and more accurate)"
     );
 }
@@ -520,6 +621,7 @@ mod tests {
     fn point(resolution: f64, value: f64) -> Point {
         Point {
             label: String::new(),
+            solver: "explicit".into(),
             resolution,
             tets: 0,
             precision: "f64".into(),
