@@ -121,18 +121,31 @@ pub fn check_writable_dir(dir: &Path) -> Result<(), String> {
 /// Create (and remove) a file in `dir`: the one reliable test of write permission (access
 /// bits do not tell of read-only mounts, ACLs or root).
 fn probe(dir: &Path) -> Result<(), String> {
-    let tmp = dir.join(format!(".softc-write-test.{}.tmp", std::process::id()));
-    match std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .open(&tmp)
-    {
-        Ok(_) => {
-            let _ = std::fs::remove_file(&tmp);
-            Ok(())
+    // A name no other probe uses at the same time: several probes may run in one process
+    // (commands run in-process, on threads), and a killed run may have left one behind.
+    static PROBES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let mut last = None;
+    for _ in 0..8 {
+        let n = PROBES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let tmp = dir.join(format!(".softc-write-test.{}.{n}.tmp", std::process::id()));
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&tmp)
+        {
+            Ok(_) => {
+                let _ = std::fs::remove_file(&tmp);
+                return Ok(());
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => last = Some(e),
+            Err(e) => return Err(format!("cannot write into `{}`: {e}", dir.display())),
         }
-        Err(e) => Err(format!("cannot write into `{}`: {e}", dir.display())),
     }
+    Err(format!(
+        "cannot write into `{}`: {}",
+        dir.display(),
+        last.map_or_else(String::new, |e| e.to_string())
+    ))
 }
 
 #[cfg(test)]
