@@ -670,3 +670,72 @@ sim {{
     assert_eq!(code, 0, "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A static optimization warm-starts each iteration's solve from the last equilibrium, and
+/// saves it with its state: stopped after 3 iterations and resumed, it ends bit for bit where
+/// an uninterrupted run ends.
+#[test]
+fn a_static_optimization_resumes_bit_for_bit_with_its_warm_starts() {
+    let dir = std::env::temp_dir().join(format!("softc-static-resume-{}", std::process::id()));
+    let script = bench_variant(
+        &dir,
+        "static_opt.soft",
+        &[
+            (
+                "  dt = 40 us\n  steps = 4000\n  damping = 20 /s\n",
+                "  integrator = quasi_static\n  duration = 0.5 s\n",
+            ),
+            (
+                "+ 10 mm)^2 at end",
+                "+ 0.1 mm)^2 at end\n\noptimize p_peak with nadam(lr: 0.2) for 6 iterations {}",
+            ),
+        ],
+    );
+    let run = |out: &std::path::Path, extra: &[&str]| {
+        let json = out.join("summary.json");
+        let mut args = vec!["run", script.to_str().unwrap()];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["--json", json.to_str().unwrap()]);
+        let (code, _, err) = softc(&args);
+        assert_eq!(code, 0, "{err}");
+    };
+    let (whole, split) = (dir.join("whole"), dir.join("split"));
+    std::fs::create_dir_all(&whole).unwrap();
+    std::fs::create_dir_all(&split).unwrap();
+    run(&whole, &["--out", whole.to_str().unwrap()]);
+    run(
+        &split,
+        &["--out", split.to_str().unwrap(), "--iterations", "3"],
+    );
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(split.join("state.json")).unwrap()).unwrap();
+    assert!(
+        !state["warm_starts"].as_array().unwrap()[0]
+            .as_array()
+            .unwrap()
+            .is_empty(),
+        "the state keeps the warm start"
+    );
+    run(
+        &split,
+        &["--resume", split.to_str().unwrap(), "--iterations", "6"],
+    );
+    let read = |d: &std::path::Path| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(d.join("result.json")).unwrap()).unwrap()
+    };
+    let (a, b) = (read(&whole), read(&split));
+    let bits = |v: &serde_json::Value| v.as_f64().unwrap().to_bits();
+    assert_eq!(bits(&a["params"]["p_peak"]), bits(&b["params"]["p_peak"]));
+    assert_eq!(bits(&a["loss"]), bits(&b["loss"]));
+    let losses = |v: &serde_json::Value| -> Vec<u64> {
+        v["history"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|h| bits(&h["loss"]))
+            .collect()
+    };
+    assert_eq!(losses(&a), losses(&b));
+    assert_eq!(a["solver"]["kind"], "quasi_static");
+    std::fs::remove_dir_all(&dir).ok();
+}

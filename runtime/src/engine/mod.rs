@@ -223,6 +223,11 @@ pub struct Simulation<'s, B: Backend> {
     pub progress: Option<crate::outputs::progress::Progress>,
     /// The stable-step estimate, once computed (reused by `run`).
     estimate: Option<f64>,
+    /// A quasi-static scene's first equilibrium from the previous solve: the next solve (an
+    /// optimization's next iteration, params a step away) starts Newton from it instead of
+    /// from rest. An optimization saves it with its state, so a resumed run starts where an
+    /// uninterrupted one would.
+    pub warm_start: Option<Vec<f64>>,
     /// The state (positions, velocities) at the last state check that passed, and its step:
     /// a blow-up is run again step by step from there to find where it went wrong.
     last_good: Option<(u64, Vec<f64>, Vec<f64>)>,
@@ -326,6 +331,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             csv: Vec::new(),
             progress: None,
             estimate: None,
+            warm_start: None,
             last_good: None,
             ids,
         };

@@ -300,6 +300,56 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(r.iter().map(|v| v * v).sum::<f64>().sqrt())
     }
 
+    /// Newton at `to` straight from the positions `warm` (the last solve's equilibrium); if it
+    /// does not converge there, from rest by continuation as without a warm start.
+    fn solve_from(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        warm: &[f64],
+        from: (f64, f64),
+        to: (f64, f64),
+    ) -> Result<(), RunError> {
+        let tolerance = self.tolerance_at(to)?;
+        self.backend.set(self.ids.x, warm);
+        if let Newton::Converged { .. } =
+            self.newton(tangent, report, to.0, to.1, tolerance, tolerance)?
+        {
+            report.load_steps += 1;
+            return self.finish_state(report, to);
+        }
+        report.rejected_load_steps += 1;
+        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        self.backend.set(self.ids.x, &rest);
+        self.continue_to(tangent, report, from, to)
+    }
+
+    /// The residual a state must reach at (t, load): a fraction of the norm of its loads.
+    fn tolerance_at(&mut self, (t, load): (f64, f64)) -> Result<f64, RunError> {
+        let rtol = match self.backend.precision() {
+            Precision::F64 => 1e-10,
+            Precision::F32 => 1e-5,
+        };
+        Ok(rtol * self.load_norm(t, load)?.max(f64::MIN_POSITIVE))
+    }
+
+    /// Record the converged state's residual (left in place for outputs).
+    fn finish_state(
+        &mut self,
+        report: &mut SolverReport,
+        (t, load): (f64, f64),
+    ) -> Result<(), RunError> {
+        let r = self.residual(t, load)?;
+        let r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let scale = self.load_norm(t, load)?;
+        report.residual_norm = r_norm;
+        report.relative_residual = if scale > 0.0 { r_norm / scale } else { 0.0 };
+        // Newton converged (by the residual, or by steps at the round-off of positions: in f32
+        // the net force of large element forces cancels only to ~1e-4 of the load).
+        report.converged = true;
+        Ok(())
+    }
+
     /// Move the equilibrium from (t0, load0), where the current positions are one, to
     /// (t1, load1) by continuation.
     fn continue_to(
@@ -309,12 +359,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         from: (f64, f64),
         to: (f64, f64),
     ) -> Result<(), RunError> {
-        let rtol = match self.backend.precision() {
-            Precision::F64 => 1e-10,
-            Precision::F32 => 1e-5,
-        };
-        let scale = self.load_norm(to.0, to.1)?;
-        let tolerance = rtol * scale.max(f64::MIN_POSITIVE);
+        let tolerance = self.tolerance_at(to)?;
         let at = |s: f64| (from.0 + s * (to.0 - from.0), from.1 + s * (to.1 - from.1));
         let (mut s, mut ds) = (0.0f64, 1.0f64);
         let mut good = self.backend.get(self.ids.x);
@@ -355,14 +400,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 }
             }
         }
-        let r = self.residual(to.0, to.1)?;
-        let r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
-        report.residual_norm = r_norm;
-        report.relative_residual = if scale > 0.0 { r_norm / scale } else { 0.0 };
-        // Newton converged (by the residual, or by steps at the round-off of positions: in f32
-        // the net force of large element forces cancels only to ~1e-4 of the load).
-        report.converged = true;
-        Ok(())
+        self.finish_state(report, to)
     }
 
     /// A body with no fixed node is in equilibrium only under loads with no net force (a
@@ -465,10 +503,20 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let mut loss_sum = 0.0;
         let mut end_value = None;
         let rest = &scene.mesh.nodes;
+        let warm = self.warm_start.take();
         for k in 1..=steps {
             let t = k as f64 * h;
             let from = if k == 1 { (t, 0.0) } else { (t - h, 1.0) };
-            let solved = self.continue_to(&mut tangent, &mut report, from, (t, 1.0));
+            let solved = match warm
+                .as_ref()
+                .filter(|w| k == 1 && w.len() == 3 * scene.mesh.nodes.len())
+            {
+                Some(w) => self.solve_from(&mut tangent, &mut report, w, from, (t, 1.0)),
+                None => self.continue_to(&mut tangent, &mut report, from, (t, 1.0)),
+            };
+            if k == 1 && solved.is_ok() {
+                self.warm_start = Some(self.backend.get(self.ids.x));
+            }
             if let Err(e) = solved {
                 // The last equilibrium is an answer too: write it where outputs were asked.
                 if self.vtk.is_some() {

@@ -103,6 +103,10 @@ pub struct TrainState {
     /// with other settings is told which one differs (absent from older states).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub settings: BTreeMap<String, String>,
+    /// Quasi-static scenes: each simulation's last equilibrium (node positions, m), where its
+    /// next solve starts; a resumed run restores them to continue bit for bit.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warm_starts: Vec<Vec<f64>>,
 }
 
 pub const STATE_FORMAT: u32 = 1;
@@ -337,9 +341,26 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                     history: Vec::new(),
                     stopped: None,
                     settings: BTreeMap::new(),
+                    warm_starts: Vec::new(),
                 }
             }
         };
+        for (i, (sim, w)) in sims.iter_mut().zip(&state.warm_starts).enumerate() {
+            if w.is_empty() {
+                continue;
+            }
+            let want = 3 * sim.scene.mesh.nodes.len();
+            if w.len() != want || w.iter().any(|v| !v.is_finite()) {
+                return Err(RunError(format!(
+                    "the saved state is inconsistent: `warm_starts[{i}]` holds {} values (finite: \
+                     {}), not the {want} positions of the mesh's nodes; run without --resume to \
+                     start afresh",
+                    w.len(),
+                    w.iter().all(|v| v.is_finite())
+                )));
+            }
+            sim.warm_start = Some(w.clone());
+        }
         let entry_ids = sims
             .iter_mut()
             .map(|sim| {
@@ -436,6 +457,14 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
             sim.reset();
             sim.gradient(Some(dt), Some(steps), grad)
         });
+        // Where each simulation's next static solve starts, saved with the state.
+        if self.sims.iter().any(|s| s.warm_start.is_some()) {
+            self.state.warm_starts = self
+                .sims
+                .iter()
+                .map(|s| s.warm_start.clone().unwrap_or_default())
+                .collect();
+        }
         let n = results.len() as f64;
         let mut loss = 0.0;
         let mut gradient: BTreeMap<String, f64> = self
