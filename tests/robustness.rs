@@ -1409,3 +1409,25 @@ fn issue20_item15_a_blow_up_names_its_step_and_cause() {
     assert!(!err.contains("dt <="), "{err}");
     std::fs::remove_dir_all(&d).ok();
 }
+
+/// The reference oracle computes in f64 only: asking it for f32 is a usage error, not a
+/// silently ignored flag.
+#[test]
+fn the_reference_backend_refuses_f32() {
+    let script = softc_tests::root().join("examples/benchmark-1k.soft");
+    let (code, _, err) = softc_tests::softc(&[
+        "run",
+        script.to_str().unwrap(),
+        "--backend",
+        "reference",
+        "--precision",
+        "f32",
+        "--steps",
+        "2",
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--precision") && err.contains("f64 only"),
+        "{err}"
+    );
+}

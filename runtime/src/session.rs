@@ -261,3 +261,17 @@ pub fn csv_outputs(
 pub fn vtk_every(scene: &Scene) -> Option<u64> {
     scene.resolved.sim.vtk_every
 }
+
+/// The warning for a run whose loss is taken `at end` while its final state still moves.
+pub fn steady_loss_moving(
+    scene: &crate::engine::scene::Scene,
+    summary: &crate::engine::RunSummary,
+) -> Option<String> {
+    let loss = scene.loss.as_ref()?;
+    let end = loss.window(summary.steps as f64 * summary.dt, summary.dt)
+        == softc_compiler::driver::LossWindow::End;
+    if !end {
+        return None;
+    }
+    crate::engine::Motion::of(scene, summary).still_moving(scene, summary)
+}

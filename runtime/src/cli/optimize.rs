@@ -444,6 +444,9 @@ fn train<B: Backend + Send>(
     }
     let csv = crate::session::csv_outputs(csv_args.csv.as_deref(), scene, trainer.state.dt, err)?;
     let summary = trainer.forward(&first_inputs, vtk, csv).map_err(|e| e.0)?;
+    if let Some(w) = crate::session::steady_loss_moving(scene, &summary) {
+        let _ = writeln!(err, "the optimized run: {w}");
+    }
     let validation = trainer.validate().map_err(|e| e.0)?;
     for v in &validation {
         let _ = writeln!(

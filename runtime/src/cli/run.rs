@@ -109,17 +109,6 @@ impl RunArgs {
     }
 }
 
-/// The warning for a run whose loss is taken `at end` while its final state still moves.
-fn steady_loss_moving(scene: &Scene, summary: &RunSummary) -> Option<String> {
-    let loss = scene.loss.as_ref()?;
-    let end = loss.window(summary.steps as f64 * summary.dt, summary.dt)
-        == softc_compiler::driver::LossWindow::End;
-    if !end {
-        return None;
-    }
-    crate::engine::Motion::of(scene, summary).still_moving(scene, summary)
-}
-
 /// The params of a `--params` file against the script (issue 20 item 9): a param given there has
 /// all of its entries (a short array was applied in part), and every value given by `--set` or
 /// `--params` lies within the param's declared bounds (they bypassed the script's check).
@@ -226,6 +215,16 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     );
     if let Err(e) = checked {
         let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
+    if args.backend == BackendChoice::Reference
+        && args.precision.is_some_and(|p| p != PrecisionChoice::F64)
+    {
+        let _ = writeln!(
+            err,
+            "softc: --precision: the reference oracle computes in f64 only; leave --precision \
+             out, or use `--backend cpu --precision f32`"
+        );
         return 2;
     }
     let mut sets = Vec::new();
@@ -361,7 +360,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 1;
         }
     };
-    if let Some(w) = steady_loss_moving(&scene, &summary) {
+    if let Some(w) = crate::session::steady_loss_moving(&scene, &summary) {
         let _ = writeln!(err, "{}: {w}", args.file.display());
     }
     let mut json = summary_json(&scene, &summary, backend_name);
@@ -551,6 +550,9 @@ fn run_scenes(
                     summary.dt,
                     summary.wall_seconds
                 );
+                if let Some(w) = crate::session::steady_loss_moving(&scene, &summary) {
+                    let _ = writeln!(err, "{}: scene {k}: {w}", args.file.display());
+                }
                 let mut json = summary_json(&scene, &summary, backend);
                 if let Some(g) = &grad {
                     json["gradients"] = gradients_json(&scene.slots, &g.gradients);

@@ -286,7 +286,12 @@ impl<'a> Reference<'a> {
         }
         let finv_t = f
             .try_inverse()
-            .ok_or_else(|| format!("element {e}: singular deformation gradient (J = {j:e})"))?
+            .ok_or_else(|| {
+                format!(
+                    "element {}: singular deformation gradient (J = {j:e})",
+                    self.scene.mesh.tet_id(e)
+                )
+            })?
             .transpose();
         let c = f.transpose() * f;
         let i1 = c.trace();
@@ -463,12 +468,12 @@ impl<'a> Reference<'a> {
                 xs[i] = x0[i] + u[i] * eps;
             }
             self.internal_forces(&xs, &mut fp)
-                .map_err(|e| e.message())?;
+                .map_err(|e| e.message(&self.scene.mesh))?;
             for i in 0..n {
                 xs[i] = x0[i] - u[i] * eps;
             }
             self.internal_forces(&xs, &mut fm)
-                .map_err(|e| e.message())?;
+                .map_err(|e| e.message(&self.scene.mesh))?;
             let (mut num, mut den) = (0.0, 0.0);
             for i in 0..n {
                 if !free[i] {
@@ -630,9 +635,11 @@ enum InvertedOr {
 }
 
 impl InvertedOr {
-    fn message(self) -> String {
+    fn message(self, mesh: &crate::mesh::Mesh) -> String {
         match self {
-            InvertedOr::Inverted(e, j) => format!("element {e} is inverted (J = {j:e})"),
+            InvertedOr::Inverted(e, j) => {
+                format!("element {} is inverted (J = {j:e})", mesh.tet_id(e))
+            }
             InvertedOr::Other(m) => m,
         }
     }
