@@ -29,7 +29,11 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 /// Newton iterations per load increment before it counts as failed.
-const MAX_NEWTON: u64 = 25;
+const MAX_NEWTON: u64 = 40;
+/// A step that shrinks the residual by less than this factor asks for a fresh factorization
+/// (below it, the last one is reused: a chord step costs a solve, not an assembly and a
+/// factorization).
+const REFRESH_CONTRACTION: f64 = 0.25;
 /// Continuation increments (as a fraction of a state's load path) below which the solve gives
 /// up: no equilibrium beyond.
 const MIN_INCREMENT: f64 = 1.0 / 4096.0;
@@ -72,6 +76,8 @@ pub(super) struct Tangent {
     pub(super) pattern: BlockPattern,
     pub(super) lu: SparseSolver,
     values: Vec<f64>,
+    /// Whether `lu` holds a factorization (of some earlier state of this solve).
+    factored: bool,
 }
 
 impl Tangent {
@@ -86,6 +92,7 @@ impl Tangent {
             pattern,
             lu,
             values: Vec::new(),
+            factored: false,
         })
     }
 }
@@ -174,10 +181,12 @@ impl<'s, B: Backend> Simulation<'s, B> {
         }
         let factor_start = Instant::now();
         report.assembly_seconds += (factor_start - start).as_secs_f64();
+        tangent.factored = false;
         let kind = tangent
             .lu
             .factor(&tangent.values)
             .map_err(|e| format!("the tangent stiffness is singular ({e})"))?;
+        tangent.factored = true;
         report.factorization = kind;
         report.factor_seconds += factor_start.elapsed().as_secs_f64();
         report.factorizations += 1;
@@ -207,22 +216,34 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 why: "the forces are not finite".into(),
             });
         }
+        // Whether the factorization is of the current positions; a stale one (an earlier
+        // iterate's, or the previous load step's) serves while it still contracts fast.
+        let mut fresh = false;
+        let mut refresh = false;
         for it in 0..MAX_NEWTON {
             if r_norm <= tolerance {
                 return Ok(Newton::Converged { iterations: it });
             }
             report.newton_iterations += 1;
-            if let Err(why) = self.factor_tangent(tangent, report) {
-                return Ok(Newton::Failed { why });
+            if !tangent.factored || refresh {
+                if let Err(why) = self.factor_tangent(tangent, report) {
+                    return Ok(Newton::Failed { why });
+                }
+                fresh = true;
             }
             let mut dx = tangent.pattern.restrict(&r);
             tangent.lu.solve(&mut dx);
             let dx = tangent.pattern.extend(&dx);
             // A Newton step that moves no node by more than round-off of the body's size:
             // converged, whatever the residual's round-off floor is (the net force of large
-            // element forces cancels only to their round-off).
+            // element forces cancels only to their round-off). A stale tangent's step cannot
+            // tell: refresh it first.
             if dx.iter().fold(0.0f64, |m, d| m.max(d.abs())) <= self.round_off_length() {
-                return Ok(Newton::Converged { iterations: it + 1 });
+                if fresh {
+                    return Ok(Newton::Converged { iterations: it + 1 });
+                }
+                refresh = true;
+                continue;
             }
             let x0 = self.backend.get(self.ids.x);
             // Backtracking on ‖r‖; steps that invert an element or make a force non-finite
@@ -247,8 +268,16 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             match accepted {
                 Some((r_new, n_new)) => {
+                    refresh = n_new > REFRESH_CONTRACTION * r_norm;
                     r = r_new;
                     r_norm = n_new;
+                    fresh = false;
+                }
+                None if !fresh => {
+                    // The stale tangent's direction does not descend: refresh and retry.
+                    self.backend.set(self.ids.x, &x0);
+                    self.residual(t, load)?;
+                    refresh = true;
                 }
                 None => {
                     self.backend.set(self.ids.x, &x0);
