@@ -33,8 +33,7 @@ impl<B: Backend> Simulation<'_, B> {
     ) -> Result<StaticRun, RunError> {
         let start = Instant::now();
         let scene = self.scene;
-        let statics = self.static_kernels()?.clone();
-        let step_bufs = statics.implicit.clone().ok_or_else(|| {
+        let step_bufs = self.static_kernels()?.implicit.as_ref().ok_or_else(|| {
             RunError("internal error: the scene was not compiled for implicit steps".into())
         })?;
         self.upload_fields();
@@ -146,9 +145,8 @@ impl<B: Backend> Simulation<'_, B> {
                 wall_seconds: start.elapsed().as_secs_f64(),
                 x: x.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
                 v: v.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
-                solver: Some(report.clone()),
+                solver: Some(report),
             },
-            solver: report,
             gradients,
         })
     }
@@ -164,7 +162,7 @@ impl<B: Backend> Simulation<'_, B> {
     ) -> Result<BTreeMap<String, f64>, RunError> {
         let scene = self.scene;
         let adj = &scene.lowered.adjoint;
-        let step_bufs = self.static_kernels()?.implicit.clone().expect("implicit");
+        let step_bufs = self.static_kernels()?.implicit.as_ref().expect("implicit");
         let steps = states.len() - 1;
         let n = states[0].0.len();
         let (mut lx, mut lv) = (vec![0.0; n], vec![0.0; n]);

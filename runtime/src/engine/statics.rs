@@ -65,8 +65,8 @@ pub struct SolverReport {
 /// A finished quasi-static run.
 #[derive(Clone, Debug)]
 pub struct StaticRun {
+    /// Its `solver` field holds what the solver did.
     pub summary: RunSummary,
-    pub solver: SolverReport,
     /// d loss / d param (SI) when a gradient was asked for.
     pub gradients: Option<BTreeMap<String, f64>>,
 }
@@ -97,6 +97,14 @@ impl Tangent {
     }
 }
 
+/// The residual a state must reach, and the norm of its loads it is relative to (computed
+/// once per state: each is a force evaluation at the rest positions).
+#[derive(Clone, Copy)]
+struct Goal {
+    scale: f64,
+    tolerance: f64,
+}
+
 /// How one Newton solve ended.
 pub(super) enum Newton {
     Converged { iterations: u64 },
@@ -104,8 +112,10 @@ pub(super) enum Newton {
 }
 
 impl<'s, B: Backend> Simulation<'s, B> {
-    pub(super) fn static_kernels(&self) -> Result<&StaticKernels, RunError> {
-        self.scene.lowered.statics.as_ref().ok_or_else(|| {
+    /// The scene's solver kernels (borrowed from the scene, not the simulation).
+    pub(super) fn static_kernels(&self) -> Result<&'s StaticKernels, RunError> {
+        let scene: &'s super::scene::Scene = self.scene;
+        scene.lowered.statics.as_ref().ok_or_else(|| {
             RunError("internal error: the scene was not compiled for a quasi-static solve".into())
         })
     }
@@ -147,7 +157,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         report: &mut SolverReport,
     ) -> Result<(), String> {
         let start = Instant::now();
-        let statics = self.static_kernels().map_err(|e| e.0)?.clone();
+        let statics = self.static_kernels().map_err(|e| e.0)?;
         for (k, &kernel) in statics.element_jacobians.iter().enumerate() {
             let range = self.scene.material_ranges[k].clone();
             self.backend.run(kernel, range, &self.uniforms)?;
@@ -339,27 +349,31 @@ impl<'s, B: Backend> Simulation<'s, B> {
         from: (f64, f64),
         to: (f64, f64),
     ) -> Result<(), RunError> {
-        let tolerance = self.tolerance_at(to)?;
+        let goal = self.goal_at(to)?;
         self.backend.set(self.ids.x, warm);
         if let Newton::Converged { .. } =
-            self.newton(tangent, report, to.0, to.1, tolerance, tolerance)?
+            self.newton(tangent, report, to.0, to.1, goal.tolerance, goal.tolerance)?
         {
             report.load_steps += 1;
-            return self.finish_state(report, to);
+            return self.finish_state(report, to, goal);
         }
         report.rejected_load_steps += 1;
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
         self.backend.set(self.ids.x, &rest);
-        self.continue_to(tangent, report, from, to)
+        self.continue_to(tangent, report, from, to, goal)
     }
 
-    /// The residual a state must reach at (t, load): a fraction of the norm of its loads.
-    fn tolerance_at(&mut self, (t, load): (f64, f64)) -> Result<f64, RunError> {
+    /// What a state at (t, load) must reach: a fraction of the norm of its loads.
+    fn goal_at(&mut self, (t, load): (f64, f64)) -> Result<Goal, RunError> {
         let rtol = match self.backend.precision() {
             Precision::F64 => 1e-10,
             Precision::F32 => 1e-5,
         };
-        Ok(rtol * self.load_norm(t, load)?.max(f64::MIN_POSITIVE))
+        let scale = self.load_norm(t, load)?;
+        Ok(Goal {
+            scale,
+            tolerance: rtol * scale.max(f64::MIN_POSITIVE),
+        })
     }
 
     /// Record the converged state's residual (left in place for outputs).
@@ -367,10 +381,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         &mut self,
         report: &mut SolverReport,
         (t, load): (f64, f64),
+        Goal { scale, .. }: Goal,
     ) -> Result<(), RunError> {
         let r = self.residual(t, load)?;
         let r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let scale = self.load_norm(t, load)?;
         report.residual_norm = r_norm;
         report.relative_residual = if scale > 0.0 { r_norm / scale } else { 0.0 };
         // Newton converged (by the residual, or by steps at the round-off of positions: in f32
@@ -387,8 +401,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
         report: &mut SolverReport,
         from: (f64, f64),
         to: (f64, f64),
+        goal: Goal,
     ) -> Result<(), RunError> {
-        let tolerance = self.tolerance_at(to)?;
+        let tolerance = goal.tolerance;
         let at = |s: f64| (from.0 + s * (to.0 - from.0), from.1 + s * (to.1 - from.1));
         let (mut s, mut ds) = (0.0f64, 1.0f64);
         let mut good = self.backend.get(self.ids.x);
@@ -429,7 +444,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 }
             }
         }
-        self.finish_state(report, to)
+        self.finish_state(report, to, goal)
     }
 
     /// A body with no fixed node is in equilibrium only under loads with no net force (a
@@ -541,7 +556,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .filter(|w| k == 1 && w.len() == 3 * scene.mesh.nodes.len())
             {
                 Some(w) => self.solve_from(&mut tangent, &mut report, w, from, (t, 1.0)),
-                None => self.continue_to(&mut tangent, &mut report, from, (t, 1.0)),
+                None => self.goal_at((t, 1.0)).and_then(|goal| {
+                    self.continue_to(&mut tangent, &mut report, from, (t, 1.0), goal)
+                }),
             };
             if k == 1 && solved.is_ok() {
                 self.warm_start = Some(self.backend.get(self.ids.x));
@@ -618,9 +635,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 wall_seconds: start.elapsed().as_secs_f64(),
                 x: x.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
                 v: vec![[0.0; 3]; x.len() / 3],
-                solver: Some(report.clone()),
+                solver: Some(report),
             },
-            solver: report,
             gradients,
         })
     }
