@@ -869,7 +869,61 @@ fn the_optimization_studies_run_end_to_end_on_the_gpu() {
 #[test]
 fn quasi_static_solves_and_gradients_on_the_gpu_match_the_cpu() {
     use softc::engine::adjoint::GradOptions;
+    use softc::engine::statics::LinearSolver;
     let scene = Scene::load(&root().join("runtime/tests/fixtures/grad/static.soft"), &[]).unwrap();
+    let module = &scene.lowered.adjoint.module;
+    let cpu = Cpu::new(module, Precision::F64, Some(1)).unwrap();
+    let on_cpu = Simulation::new(&scene, cpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    // The GPU's default is matrix-free (GMRES on tangent products run as WGSL kernels); the
+    // direct solver (Jacobians from the GPU, factored on the host) is the alternative.
+    for (linear, name) in [
+        (LinearSolver::Auto, "krylov"),
+        (LinearSolver::Direct, "direct"),
+    ] {
+        let Some(gpu) = gpu(module, Precision::F32) else {
+            return;
+        };
+        let mut sim = Simulation::new(&scene, gpu);
+        sim.linear_solver = linear;
+        let on_gpu = sim.gradient(None, None, &GradOptions::default()).unwrap();
+        let solver = on_gpu.summary.solver.clone().unwrap();
+        assert!(solver.converged, "{solver:?}");
+        assert_eq!(solver.linear_solver, name);
+        let state = mean_rel_diff(&scene, &on_gpu.summary, &on_cpu.summary);
+        let (g, c) = (on_gpu.gradients["param.p0"], on_cpu.gradients["param.p0"]);
+        let grad = ((g - c) / c).abs();
+        eprintln!(
+            "quasi-static on the GPU ({name}, {} GMRES iterations): state {state:e}, d loss/d p0 \
+             {grad:e} from the CPU",
+            solver.krylov_iterations
+        );
+        assert!(state < 1e-4, "{state:e}");
+        assert!(grad < 1e-3, "{g} vs {c}");
+    }
+}
+
+/// Backward Euler on the GPU, matrix-free: the states and gradients of the CPU's direct solve.
+#[test]
+fn implicit_euler_on_the_gpu_matrix_free_matches_the_cpu() {
+    use softc::engine::adjoint::GradOptions;
+    let text = std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
+        .unwrap()
+        .replace(
+            "  dt = 20 us\n  steps = 200\n",
+            "  dt = 0.5 ms\n  steps = 8\n  integrator = implicit_euler\n",
+        )
+        .replace(
+            "\"../../../../meshes/",
+            &format!("\"{}/meshes/", root().display()),
+        );
+    assert!(text.contains("implicit_euler"));
+    let dir = std::env::temp_dir().join(format!("softc-gpu-implicit-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("implicit.soft");
+    std::fs::write(&path, text).unwrap();
+    let scene = Scene::load(&path, &[]).unwrap();
     let module = &scene.lowered.adjoint.module;
     let Some(gpu) = gpu(module, Precision::F32) else {
         return;
@@ -882,11 +936,16 @@ fn quasi_static_solves_and_gradients_on_the_gpu_match_the_cpu() {
         .gradient(None, None, &GradOptions::default())
         .unwrap();
     let solver = on_gpu.summary.solver.clone().unwrap();
+    assert_eq!(solver.linear_solver, "krylov");
     assert!(solver.converged, "{solver:?}");
     let state = mean_rel_diff(&scene, &on_gpu.summary, &on_cpu.summary);
-    let (g, c) = (on_gpu.gradients["param.p0"], on_cpu.gradients["param.p0"]);
-    let grad = ((g - c) / c).abs();
-    eprintln!("quasi-static on the GPU: state {state:e}, d loss/d p0 {grad:e} from the CPU");
+    eprintln!("implicit Euler on the GPU: state {state:e} from the CPU; {solver:?}");
     assert!(state < 1e-4, "{state:e}");
-    assert!(grad < 1e-3, "{g} vs {c}");
+    for (name, c) in &on_cpu.gradients {
+        let g = on_gpu.gradients[name];
+        let rel = ((g - c) / c).abs();
+        eprintln!("{name}: gpu {g:e}, cpu {c:e}, relative {rel:e}");
+        // f32 kernels: the direct solver on the GPU is 1.3e-3 from the CPU on c10 as well.
+        assert!(rel < 5e-3, "{name}: {g} vs {c}");
+    }
 }

@@ -10,7 +10,7 @@ use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, BufferId, CmpOp, Domain, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
-use crate::passes::tangent::force_jacobian;
+use crate::passes::tangent::{JacobianPart, directional_derivative, force_jacobian};
 
 /// The module of a scene plus what the host needs to run it.
 #[derive(Debug, Clone)]
@@ -232,6 +232,29 @@ pub struct StaticKernels {
     /// `integrator = implicit_euler`: the residual's own dependence on each node's position
     /// (inertia and damping, node × 9), and the state a step starts from (node × 3 each).
     pub implicit: Option<ImplicitStep>,
+    /// What a matrix-free (Krylov) solve runs instead of assembling the tangent.
+    pub matrix_free: MatrixFree,
+}
+
+/// The kernels of a matrix-free Newton–Krylov solve: the product of ∂r/∂x with a vector (a
+/// directional derivative of the force and residual kernels, never the matrix) and the 3×3
+/// diagonal blocks of ∂r/∂x for a block-Jacobi preconditioner.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MatrixFree {
+    /// The vector v (node × 3) the product is taken with.
+    pub direction: BufferId,
+    /// (∂r/∂x)·v (node × 3), 0 at fixed nodes.
+    pub product: BufferId,
+    /// Per material, then per chamber (kernel order): J_e·v of each entity's forces.
+    pub element_products: Vec<usize>,
+    pub chamber_products: Vec<usize>,
+    /// Gathers those into `product`.
+    pub node_product: usize,
+    /// Per material, then per chamber: each corner's 3×3 block ∂f_c/∂x_c.
+    pub element_blocks: Vec<usize>,
+    pub elem_dblock: BufferId,
+    pub chamber_blocks: Vec<usize>,
+    pub tri_dblock: Option<BufferId>,
 }
 
 /// What a backward Euler step adds to the equilibrium machinery.
@@ -258,16 +281,23 @@ impl StaticKernels {
         let (x, residual, elem_force) = (id(m, "x")?, id(m, "residual")?, id(m, "elem_force")?);
         let mut element_jacobians = Vec::new();
         for k in 0..materials {
-            let built =
-                force_jacobian(m, k, elem_force, x, "elem_dforce").map_err(LowerError::new)?;
+            let built = force_jacobian(m, k, elem_force, x, "elem_dforce", JacobianPart::Full)
+                .map_err(LowerError::new)?;
             element_jacobians.push(m.push_kernel(built));
         }
         let mut chamber_jacobians = Vec::new();
         let tri_dforce = if chambers > 0 {
             let tri_force = id(m, "tri_force")?;
             for c in 0..chambers {
-                let built = force_jacobian(m, materials + c, tri_force, x, "tri_dforce")
-                    .map_err(LowerError::new)?;
+                let built = force_jacobian(
+                    m,
+                    materials + c,
+                    tri_force,
+                    x,
+                    "tri_dforce",
+                    JacobianPart::Full,
+                )
+                .map_err(LowerError::new)?;
                 chamber_jacobians.push(m.push_kernel(built));
             }
             m.buffer_named("tri_dforce")
@@ -276,8 +306,8 @@ impl StaticKernels {
         };
         let implicit = if implicit {
             let node = materials + chambers;
-            let built =
-                force_jacobian(m, node, residual, x, "node_dforce").map_err(LowerError::new)?;
+            let built = force_jacobian(m, node, residual, x, "node_dforce", JacobianPart::Full)
+                .map_err(LowerError::new)?;
             Some(ImplicitStep {
                 node_jacobian: m.push_kernel(built),
                 node_dforce: id(m, "node_dforce")?,
@@ -287,6 +317,7 @@ impl StaticKernels {
         } else {
             None
         };
+        let matrix_free = MatrixFree::add(m, materials, chambers)?;
         Ok(StaticKernels {
             residual,
             element_jacobians,
@@ -294,6 +325,80 @@ impl StaticKernels {
             chamber_jacobians,
             tri_dforce,
             implicit,
+            matrix_free,
+        })
+    }
+}
+
+impl MatrixFree {
+    fn add(m: &mut Module, materials: usize, chambers: usize) -> Result<Self, LowerError> {
+        let id = |m: &Module, n: &str| {
+            m.buffer_named(n)
+                .ok_or_else(|| LowerError::new(format!("the solve has no buffer `{n}`")))
+        };
+        let (x, residual, elem_force) = (id(m, "x")?, id(m, "residual")?, id(m, "elem_force")?);
+        let tri_force = m.buffer_named("tri_force").filter(|_| chambers > 0);
+        let direction = m.buffer(
+            "dir",
+            Domain::Node,
+            3,
+            "a vector v the tangent is multiplied with (Newton–Krylov), m",
+        );
+        let product = m.buffer("residual_dir", Domain::Node, 3, "(∂residual/∂x)·v, N");
+        let elem_dir = m.buffer(
+            "elem_force_dir",
+            Domain::Element,
+            12,
+            "(∂elem_force/∂x)·v per element, N",
+        );
+        let tri_dir = tri_force.map(|_| {
+            m.buffer(
+                "tri_force_dir",
+                Domain::Triangle,
+                9,
+                "(∂tri_force/∂x)·v per chamber triangle, N",
+            )
+        });
+        let mut products = Vec::new();
+        for k in 0..materials + chambers {
+            let (force, out) = match (k < materials, tri_force.zip(tri_dir)) {
+                (true, _) => (elem_force, elem_dir),
+                (false, Some(pair)) => pair,
+                (false, None) => return Err(LowerError::new("a chamber kernel without tri_force")),
+            };
+            let built = directional_derivative(m, k, &[(x, direction)], &[(force, out)])
+                .map_err(LowerError::new)?;
+            products.push(m.push_kernel(built));
+        }
+        let mut directions = vec![(x, direction), (elem_force, elem_dir)];
+        directions.extend(tri_force.zip(tri_dir));
+        let node = materials + chambers;
+        let built = directional_derivative(m, node, &directions, &[(residual, product)])
+            .map_err(LowerError::new)?;
+        let node_product = m.push_kernel(built);
+        let mut blocks = Vec::new();
+        for k in 0..materials + chambers {
+            let (force, out) = match (k < materials, tri_force) {
+                (true, _) => (elem_force, "elem_dblock"),
+                (false, Some(f)) => (f, "tri_dblock"),
+                (false, None) => return Err(LowerError::new("a chamber kernel without tri_force")),
+            };
+            let built = force_jacobian(m, k, force, x, out, JacobianPart::DiagonalBlocks)
+                .map_err(LowerError::new)?;
+            blocks.push(m.push_kernel(built));
+        }
+        let chamber_products = products.split_off(materials);
+        let chamber_blocks = blocks.split_off(materials);
+        Ok(MatrixFree {
+            direction,
+            product,
+            element_products: products,
+            chamber_products,
+            node_product,
+            element_blocks: blocks,
+            elem_dblock: id(m, "elem_dblock")?,
+            chamber_blocks,
+            tri_dblock: m.buffer_named("tri_dblock"),
         })
     }
 }

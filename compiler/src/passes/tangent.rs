@@ -10,6 +10,11 @@
 //! prelude or user-written W, the spring mesh, follower pressure (whose per-triangle Jacobian
 //! is not symmetric) — gets its tangent from the one definition of its forces, and the
 //! tangents share the force body's code. What a force does not depend on generates no code.
+//!
+//! A matrix-free solve (the GPU's Newton–Krylov) needs less: [`JacobianPart::DiagonalBlocks`]
+//! keeps only each corner's 3×3 block (its preconditioner), and [`directional_derivative`]
+//! gives the product of the Jacobian with a vector — one forward-mode sweep whose direction is
+//! read from a buffer, so the tangent stiffness is never formed.
 
 use crate::ir::{ArgSource, BufferId, BuiltKernel, Domain, KernelBuilder, Module, ad};
 
@@ -22,16 +27,37 @@ fn corners(d: Domain) -> u32 {
     }
 }
 
+/// Which entries of a force Jacobian a kernel stores.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum JacobianPart {
+    /// Every ∂f_i/∂x_j: entity × (3·corners)², row-major (`i·n + j`).
+    Full,
+    /// Only the derivative of each corner's force with respect to that corner's position:
+    /// entity × corners × 9, corner-major, each block row-major (force component, coordinate).
+    /// Summed per node they are the diagonal blocks of the tangent (block-Jacobi).
+    DiagonalBlocks,
+}
+
+/// What an entity of `d` is called in buffer docs.
+fn entity(d: Domain) -> &'static str {
+    match d {
+        Domain::Triangle => "chamber triangle",
+        Domain::Node => "node",
+        _ => "element",
+    }
+}
+
 /// The Jacobian kernel of forward kernel `kernel` of `module`: the forces it stores in `force`
 /// (entity × 3·corners) differentiated with respect to the positions it reads from `x` (node ×
 /// 3) at its corners (a node kernel: its own position; the implicit integrator's inertia and
-/// damping terms). Declares the output buffer `out` (entity × (3·corners)²) in `module`.
+/// damping terms). Declares the output buffer `out` (its width as `part` says) in `module`.
 pub fn force_jacobian(
     module: &mut Module,
     kernel: usize,
     force: BufferId,
     x: BufferId,
     out: &str,
+    part: JacobianPart,
 ) -> Result<BuiltKernel, String> {
     let k = module.kernels[kernel].clone();
     let n = 3 * corners(k.domain);
@@ -41,24 +67,33 @@ pub fn force_jacobian(
             k.name, module.buffers[force.0 as usize].width
         ));
     }
-    let jac = module.buffer(
-        out,
-        k.domain,
-        n * n,
-        &format!(
-            "∂f_i/∂x_j per {}: force component i, corner coordinate j (row-major), N/m",
-            match k.domain {
-                Domain::Triangle => "chamber triangle",
-                Domain::Node => "node",
-                _ => "element",
-            }
+    let (width, doc, prefix, what) = match part {
+        JacobianPart::Full => (
+            n * n,
+            format!(
+                "∂f_i/∂x_j per {}: force component i, corner coordinate j (row-major), N/m",
+                entity(k.domain)
+            ),
+            "jac",
+            "force Jacobian",
         ),
-    );
+        JacobianPart::DiagonalBlocks => (
+            3 * n,
+            format!(
+                "∂f/∂x of each corner's force by its own position, per {} (corner-major 3×3 \
+                 blocks, row-major), N/m",
+                entity(k.domain)
+            ),
+            "jacdiag",
+            "diagonal blocks of the force Jacobian",
+        ),
+    };
+    let jac = module.buffer(out, k.domain, width, &doc);
     let mut kb = KernelBuilder::in_module(
         module,
-        &format!("jac_{}", k.name),
+        &format!("{prefix}_{}", k.name),
         k.domain,
-        &format!("force Jacobian of {}", k.origin),
+        &format!("{what} of {}", k.origin),
     );
     let args: Vec<_> = k.args.iter().map(|a| kb.load(a.clone())).collect();
     let outputs = kb.inline_sources(&k.args, &module.uniforms, &k.body, &args);
@@ -94,7 +129,97 @@ pub fn force_jacobian(
         };
         for s in &force_stores {
             let d = tan[outputs[s.output].0 as usize].unwrap_or(zero);
-            kb.store(jac, s.component * n + j, d);
+            match part {
+                JacobianPart::Full => kb.store(jac, s.component * n + j, d),
+                JacobianPart::DiagonalBlocks if s.component / 3 == corner => {
+                    kb.store(jac, corner * 9 + (s.component % 3) * 3 + component, d)
+                }
+                JacobianPart::DiagonalBlocks => {}
+            }
+        }
+    }
+    let mut built = kb.finish();
+    built.kernel.drop_unused_args();
+    Ok(built)
+}
+
+/// The derivative of forward kernel `kernel` of `module` along a direction: every value it
+/// reads from buffer `b` varies as the same entry of `d`, for each `(b, d)` of `directions`,
+/// and the kernel stores the derivative of what it stores in `s` into `t` (same entity and
+/// component), for each `(s, t)` of `outputs` (declared by the caller, as wide as `s`). With
+/// `x` ↦ a direction, an element kernel's forces give J_e·v; a node kernel that gathers
+/// forces, with the forces ↦ those products, gives the assembled product — the tangent
+/// stiffness times a vector without the matrix.
+pub fn directional_derivative(
+    module: &mut Module,
+    kernel: usize,
+    directions: &[(BufferId, BufferId)],
+    outputs: &[(BufferId, BufferId)],
+) -> Result<BuiltKernel, String> {
+    let k = module.kernels[kernel].clone();
+    for &(s, t) in outputs {
+        let (ws, wt) = (
+            module.buffers[s.0 as usize].width,
+            module.buffers[t.0 as usize].width,
+        );
+        if ws != wt {
+            return Err(format!(
+                "kernel `{}`: the derivative's buffer has {wt} components, the value's {ws}",
+                k.name
+            ));
+        }
+    }
+    let mut kb = KernelBuilder::in_module(
+        module,
+        &format!("dir_{}", k.name),
+        k.domain,
+        &format!("Jacobian-vector product of {}", k.origin),
+    );
+    let args: Vec<_> = k.args.iter().map(|a| kb.load(a.clone())).collect();
+    let values = kb.inline_sources(&k.args, &module.uniforms, &k.body, &args);
+    let upto = kb.b.func.insts.len();
+    let direction_of = |a: &ArgSource| -> Option<ArgSource> {
+        let to = |b: BufferId| directions.iter().find(|(from, _)| *from == b).map(|p| p.1);
+        Some(match *a {
+            ArgSource::Own { buffer, component } => ArgSource::Own {
+                buffer: to(buffer)?,
+                component,
+            },
+            ArgSource::Corner {
+                buffer,
+                corner,
+                component,
+            } => ArgSource::Corner {
+                buffer: to(buffer)?,
+                corner,
+                component,
+            },
+            ArgSource::Gather {
+                buffer,
+                over,
+                stride,
+                component,
+            } => ArgSource::Gather {
+                buffer: to(buffer)?,
+                over,
+                stride,
+                component,
+            },
+            ArgSource::Uniform(_) => return None,
+        })
+    };
+    let seeds: Vec<_> = k
+        .args
+        .iter()
+        .zip(&args)
+        .filter_map(|(a, &v)| direction_of(a).map(|d| (v, kb.load(d))))
+        .collect();
+    let tan = ad::tangent(&mut kb.b, upto, &seeds);
+    let zero = kb.b.constant(0.0);
+    for s in &k.stores {
+        if let Some(&(_, t)) = outputs.iter().find(|(from, _)| *from == s.buffer) {
+            let d = tan[values[s.output].0 as usize].unwrap_or(zero);
+            kb.store(t, s.component, d);
         }
     }
     let mut built = kb.finish();

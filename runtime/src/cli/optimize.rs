@@ -171,6 +171,10 @@ fn run_settings(args: &RunArgs) -> BTreeMap<String, String> {
         "--precision".into(),
         default(args.precision.map(|p| format!("{p:?}").to_lowercase())),
     );
+    m.insert(
+        "--linear-solver".into(),
+        format!("{:?}", args.linear_solver).to_lowercase(),
+    );
     m.insert("--dt".into(), default(args.dt.clone()));
     m.insert("--steps".into(), default(args.steps.map(|s| s.to_string())));
     m.insert(
@@ -322,7 +326,9 @@ fn train<B: Backend + Send>(
     let (args, scene) = (ctx.args, ctx.scene);
     let mut sims = Vec::new();
     for _ in 0..members {
-        sims.push(Simulation::new(scene, make()?));
+        let mut sim = Simulation::new(scene, make()?);
+        sim.linear_solver = args.linear_solver;
+        sims.push(sim);
     }
     let iterations = plan.iterations;
     let script_name = scene

@@ -3,6 +3,7 @@
 use crate::devices::{Backend, BackendChoice, DeviceChoice, PrecisionChoice};
 use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
+use crate::engine::statics::LinearSolver;
 use crate::engine::{RunSummary, Simulation};
 use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
 use crate::session::{
@@ -28,6 +29,12 @@ pub struct RunArgs {
     /// name such as `vulkan`); default: a discrete GPU, else integrated, else software.
     #[arg(long, value_name = "NAME")]
     pub adapter: Option<String>,
+    /// How static and implicit solves solve Newton's linear systems: `direct` assembles the
+    /// sparse tangent and factors it on the host; `krylov` runs matrix-free GMRES on tangent
+    /// products computed by the backend's kernels (block-Jacobi preconditioned); `auto`:
+    /// krylov on the gpu backend, direct on the others and for bodies with no fixed node.
+    #[arg(long, value_enum, default_value_t = LinearSolver::Auto)]
+    pub linear_solver: LinearSolver,
     /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
     #[arg(long, allow_hyphen_values = true)]
     pub threads: Option<usize>,
@@ -660,6 +667,7 @@ fn prepare<'s, B: Backend>(
     err: &mut dyn Write,
 ) -> Result<Simulation<'s, B>, String> {
     let mut sim = Simulation::new(scene, backend);
+    sim.linear_solver = args.linear_solver;
     for (name, value) in inputs {
         sim.uniforms.set_named(name, *value);
     }

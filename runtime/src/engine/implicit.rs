@@ -200,13 +200,11 @@ impl<B: Backend> Simulation<'_, B> {
             self.backend.set(step_bufs.x_prev, &states[k].0);
             self.backend.set(step_bufs.v_prev, &states[k].1);
             self.residual(t, 1.0)?;
-            self.factor_tangent(tangent, report)
-                .map_err(|e| RunError(format!("the backward pass at step {}: {e}", k + 1)))?;
             let g: Vec<f64> = lx.iter().zip(&lv).map(|(a, b)| a + b / h).collect();
-            let mut mu = tangent.pattern.restrict(&g);
-            tangent.lu.solve_transpose(&mut mu);
-            self.backend
-                .set(adj.state[0].adj_next, &tangent.pattern.extend(&mu));
+            let mu = self
+                .transposed_solve(tangent, report, &g)
+                .map_err(|e| RunError(format!("the backward pass at step {}: {e}", k + 1)))?;
+            self.backend.set(adj.state[0].adj_next, &mu);
             self.run_reverse_kernels()?;
             let ax = self.backend.get(adj.state[1].adj);
             let av = self.backend.get(adj.state[2].adj);

@@ -10,6 +10,7 @@ pub mod adjoint;
 pub mod checkpoint;
 pub mod implicit;
 pub mod loss;
+mod matrix_free;
 pub mod profile;
 pub mod scene;
 mod stable_dt;
@@ -228,6 +229,8 @@ pub struct Simulation<'s, B: Backend> {
     /// from rest. An optimization saves it with its state, so a resumed run starts where an
     /// uninterrupted one would.
     pub warm_start: Option<Vec<f64>>,
+    /// How static and implicit solves solve their linear systems.
+    pub linear_solver: statics::LinearSolver,
     /// The state (positions, velocities) at the last state check that passed, and its step:
     /// a blow-up is run again step by step from there to find where it went wrong.
     last_good: Option<(u64, Vec<f64>, Vec<f64>)>,
@@ -332,6 +335,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             progress: None,
             estimate: None,
             warm_start: None,
+            linear_solver: statics::LinearSolver::Auto,
             last_good: None,
             ids,
         };

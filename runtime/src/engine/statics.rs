@@ -60,6 +60,27 @@ pub struct SolverReport {
     pub nonzeros: usize,
     pub assembly_seconds: f64,
     pub factor_seconds: f64,
+    /// How Newton's linear systems were solved: `direct` (assembled, factored) or `krylov`
+    /// (matrix-free GMRES on the device's tangent products).
+    pub linear_solver: &'static str,
+    /// GMRES iterations and tangent products, over all solves (`krylov` only).
+    pub krylov_iterations: u64,
+    pub krylov_products: u64,
+    /// The last linear solve's relative residual (`krylov` only).
+    pub linear_relative_residual: f64,
+}
+
+/// How a static or implicit solve solves its linear systems ([`Simulation::linear_solver`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum LinearSolver {
+    /// Krylov on a backend whose products are cheap and whose readbacks are not (the GPU),
+    /// direct elsewhere, and always direct for a body with no fixed node (its rigid modes).
+    #[default]
+    Auto,
+    /// Assemble the sparse tangent and factor it (faer).
+    Direct,
+    /// Matrix-free GMRES with a block-Jacobi preconditioner.
+    Krylov,
 }
 
 /// A finished quasi-static run.
@@ -71,17 +92,36 @@ pub struct StaticRun {
     pub gradients: Option<BTreeMap<String, f64>>,
 }
 
-/// The assembled tangent and its factorization.
+/// How Newton's linear systems are solved, and the state of that solver.
 pub(super) struct Tangent {
     pub(super) pattern: BlockPattern,
-    pub(super) lu: SparseSolver,
-    values: Vec<f64>,
-    /// Whether `lu` holds a factorization (of some earlier state of this solve).
-    factored: bool,
+    linear: Linear,
+}
+
+enum Linear {
+    /// The assembled tangent and its factorization.
+    Direct {
+        lu: SparseSolver,
+        values: Vec<f64>,
+        /// Whether `lu` holds a factorization (of some earlier state of this solve).
+        factored: bool,
+    },
+    /// Matrix-free ([`super::matrix_free`]).
+    Krylov,
 }
 
 impl Tangent {
-    pub(super) fn new(pattern: BlockPattern, precision: Precision) -> Result<Self, RunError> {
+    pub(super) fn new(
+        pattern: BlockPattern,
+        precision: Precision,
+        krylov: bool,
+    ) -> Result<Self, RunError> {
+        if krylov {
+            return Ok(Tangent {
+                pattern,
+                linear: Linear::Krylov,
+            });
+        }
         // Entries computed in f32 are symmetric only to f32 round-off.
         let symmetry = match precision {
             Precision::F64 => 1e-10,
@@ -90,9 +130,11 @@ impl Tangent {
         let lu = SparseSolver::new(&pattern, symmetry).map_err(RunError)?;
         Ok(Tangent {
             pattern,
-            lu,
-            values: Vec::new(),
-            factored: false,
+            linear: Linear::Direct {
+                lu,
+                values: Vec::new(),
+                factored: false,
+            },
         })
     }
 }
@@ -181,22 +223,27 @@ impl<'s, B: Backend> Simulation<'s, B> {
             None => Vec::new(),
         };
         let x = self.backend.get(self.ids.x);
-        tangent
-            .pattern
-            .assemble(&elem, &tri, &node, &x, &mut tangent.values);
-        if let Some(i) = tangent.values.iter().position(|v| !v.is_finite()) {
+        let Linear::Direct {
+            lu,
+            values,
+            factored,
+        } = &mut tangent.linear
+        else {
+            return Err("internal error: a matrix-free solve has no tangent to factor".into());
+        };
+        tangent.pattern.assemble(&elem, &tri, &node, &x, values);
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
             return Err(format!(
                 "the tangent stiffness has a non-finite entry (entry {i})"
             ));
         }
         let factor_start = Instant::now();
         report.assembly_seconds += (factor_start - start).as_secs_f64();
-        tangent.factored = false;
-        let kind = tangent
-            .lu
-            .factor(&tangent.values)
+        *factored = false;
+        let kind = lu
+            .factor(values)
             .map_err(|e| format!("the tangent stiffness is singular ({e})"))?;
-        tangent.factored = true;
+        *factored = true;
         report.factorization = kind;
         report.factor_seconds += factor_start.elapsed().as_secs_f64();
         report.factorizations += 1;
@@ -235,15 +282,18 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 return Ok(Newton::Converged { iterations: it });
             }
             report.newton_iterations += 1;
-            if !tangent.factored || refresh {
-                if let Err(why) = self.factor_tangent(tangent, report) {
-                    return Ok(Newton::Failed { why });
+            // Inexact Newton: a matrix-free solve need only be as accurate as the step can
+            // use, a fraction of the way from here to the tolerance — but no looser than
+            // 1e-4, so the state Newton stops at is as close to the equilibrium as a direct
+            // solve's (it stops at the first iterate within the tolerance).
+            let rtol = (0.01 * tolerance / r_norm).clamp(1e-6, 1e-4);
+            let dx = match self.newton_direction(tangent, report, &r, refresh, rtol) {
+                Ok((dx, is_fresh)) => {
+                    fresh |= is_fresh;
+                    dx
                 }
-                fresh = true;
-            }
-            let mut dx = tangent.pattern.restrict(&r);
-            tangent.lu.solve(&mut dx);
-            let dx = tangent.pattern.extend(&dx);
+                Err(why) => return Ok(Newton::Failed { why }),
+            };
             // A Newton step that moves no node by more than round-off of the body's size:
             // converged, whatever the residual's round-off floor is (the net force of large
             // element forces cancels only to their round-off). A stale tangent's step cannot
@@ -308,6 +358,77 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(Newton::Failed {
             why: format!("no convergence in {MAX_NEWTON} Newton iterations"),
         })
+    }
+
+    /// The Newton step dx with K dx = r at the current positions: from the last factorization
+    /// when it may serve (`refresh` false), else from a fresh one (then `true`); matrix-free,
+    /// by GMRES to `rtol` (always fresh).
+    fn newton_direction(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        r: &[f64],
+        refresh: bool,
+        rtol: f64,
+    ) -> Result<(Vec<f64>, bool), String> {
+        if let Linear::Krylov = tangent.linear {
+            let (dx, stats) = self.krylov_solve(report, r, false, rtol)?;
+            // A direction that reduces the linearized residual is worth a line search.
+            if !(stats.relative_residual < 0.5) {
+                return Err(format!(
+                    "the linear solver (GMRES, block-Jacobi) did not converge: relative \
+                     residual {:.2e} after {} iterations",
+                    stats.relative_residual, stats.iterations
+                ));
+            }
+            return Ok((dx, true));
+        }
+        let mut fresh = false;
+        if refresh || !matches!(tangent.linear, Linear::Direct { factored: true, .. }) {
+            self.factor_tangent(tangent, report)?;
+            fresh = true;
+        }
+        let Linear::Direct { lu, .. } = &tangent.linear else {
+            unreachable!("checked above");
+        };
+        let mut dx = tangent.pattern.restrict(r);
+        lu.solve(&mut dx);
+        Ok((tangent.pattern.extend(&dx), fresh))
+    }
+
+    /// μ with Kᵀ μ = g at the current state (the converged one: exact gradients need the
+    /// tangent where the equilibrium is, not Newton's last factorization).
+    pub(super) fn transposed_solve(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        g: &[f64],
+    ) -> Result<Vec<f64>, String> {
+        if let Linear::Krylov = tangent.linear {
+            // f32 products carry round-off of the order of f32's epsilon times the
+            // tangent's condition: GMRES stalls there, and a gradient that accurate is
+            // still a descent direction. Accept what it reaches within `usable`.
+            let (rtol, usable) = match self.backend.precision() {
+                Precision::F64 => (1e-11, 1e-6),
+                Precision::F32 => (1e-6, 1e-2),
+            };
+            let (mu, stats) = self.krylov_solve(report, g, true, rtol)?;
+            if !stats.converged && !(stats.relative_residual < usable) {
+                return Err(format!(
+                    "the transposed linear solve (GMRES, block-Jacobi) did not converge: \
+                     relative residual {:.2e} after {} iterations",
+                    stats.relative_residual, stats.iterations
+                ));
+            }
+            return Ok(mu);
+        }
+        self.factor_tangent(tangent, report)?;
+        let Linear::Direct { lu, .. } = &tangent.linear else {
+            unreachable!("a direct solver");
+        };
+        let mut mu = tangent.pattern.restrict(g);
+        lu.solve_transpose(&mut mu);
+        Ok(tangent.pattern.extend(&mu))
     }
 
     /// A displacement at the round-off level of the positions: the body's size times a few
@@ -496,14 +617,27 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let static_solve = kind == "quasi_static";
         let pattern = BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris, static_solve)
             .map_err(RunError)?;
+        let krylov = match self.linear_solver {
+            LinearSolver::Direct => false,
+            LinearSolver::Auto => self.backend.matrix_free() && !pattern.rigid,
+            LinearSolver::Krylov if pattern.rigid => {
+                return Err(RunError(
+                    "the matrix-free linear solver cannot hold a free body's rigid modes (this \
+                     body has no fixed node): use the direct solver (`--linear-solver direct`)"
+                        .into(),
+                ));
+            }
+            LinearSolver::Krylov => true,
+        };
         let report = SolverReport {
             kind,
             states: steps,
             dofs: pattern.n,
-            nonzeros: pattern.nnz(),
+            nonzeros: if krylov { 0 } else { pattern.nnz() },
+            linear_solver: if krylov { "krylov" } else { "direct" },
             ..Default::default()
         };
-        let tangent = Tangent::new(pattern, self.backend.precision())?;
+        let tangent = Tangent::new(pattern, self.backend.precision(), krylov)?;
         self.reset();
         if gradient {
             self.zero_gradient_accumulators();
@@ -666,17 +800,12 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 _ => {}
             }
         }
-        // The factorization at the converged state (Newton's last one was at the iterate
-        // before it): exact gradients need the tangent where the equilibrium is.
         self.residual(t, 1.0)?;
-        self.factor_tangent(tangent, report).map_err(|e| {
+        let mu = self.transposed_solve(tangent, report, &g).map_err(|e| {
             RunError(format!(
                 "the gradient needs the tangent at the equilibrium at t = {t} s: {e}"
             ))
         })?;
-        let mut mu = tangent.pattern.restrict(&g);
-        tangent.lu.solve_transpose(&mut mu);
-        let mu = tangent.pattern.extend(&mu);
         let state = &adj.state[0];
         self.backend.set(state.adj_next, &mu);
         self.run_reverse_kernels()?;

@@ -1,4 +1,5 @@
 //! Linear algebra for the implicit solvers: the assembled tangent's sparsity pattern and its
-//! sparse direct factorization.
+//! sparse direct factorization, and restarted GMRES for matrix-free solves.
 
+pub mod krylov;
 pub mod sparse;
