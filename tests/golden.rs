@@ -401,7 +401,13 @@ fn bench_solvers_prints_a_row_per_solver_and_well_formed_json() {
     let solvers: Vec<&str> = rows.iter().map(|r| r["solver"].as_str().unwrap()).collect();
     assert_eq!(
         solvers,
-        ["quasi_static", "quasi_static+grad", "implicit_euler x40"]
+        [
+            "quasi_static",
+            "quasi_static+grad",
+            "implicit_euler x40",
+            "quasi_static krylov",
+            "implicit x40 krylov"
+        ]
     );
     for r in rows {
         assert!(r["newton_iterations"].as_u64().unwrap() >= 1, "{r}");
@@ -416,5 +422,15 @@ fn bench_solvers_prints_a_row_per_solver_and_well_formed_json() {
         s < 0.0 && ((s - i) / s).abs() < 0.1,
         "static {s}, implicit {i}"
     );
+    // The matrix-free rows solve the same equations: the same tips, by GMRES, nothing factored.
+    for (direct, krylov) in [(0, 3), (2, 4)] {
+        let (d, k) = (
+            rows[direct]["tip_mean_z"].as_f64().unwrap(),
+            rows[krylov]["tip_mean_z"].as_f64().unwrap(),
+        );
+        assert!(((d - k) / d).abs() < 1e-6, "direct {d}, krylov {k}");
+        assert!(rows[krylov]["krylov_iterations"].as_u64().unwrap() > 0);
+        assert_eq!(rows[krylov]["factorizations"].as_u64().unwrap(), 0);
+    }
     std::fs::remove_file(&json).ok();
 }

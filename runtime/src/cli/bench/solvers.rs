@@ -3,14 +3,18 @@
 //! For each size the scene's loads at its end time (4000 steps of 40 µs: t = 0.16 s) are
 //! solved three ways on the cpu backend in f64: one static equilibrium (`quasi_static`), its
 //! gradient (d loss / d p_peak by one transposed solve), and the same 0.16 s of dynamics by 40
-//! backward Euler steps of 4 ms (100× the scene's explicit step). A row reports the wall time
-//! (median of `--repeats` after a warm-up), Newton iterations, factorizations and where their
-//! time goes, the tangent's size, and the growth of peak resident memory during one solve.
+//! backward Euler steps of 4 ms (100× the scene's explicit step). The static solve and the
+//! implicit steps run again matrix-free (`krylov`: GMRES on the kernels' tangent products, what
+//! the GPU backend runs by default), on the cpu backend so the two linear solvers compare on one
+//! device. A row reports the wall time (median of `--repeats` after a warm-up), Newton
+//! iterations, factorizations or GMRES iterations and where the time goes, the tangent's size,
+//! and the growth of peak resident memory during one solve.
 
 use super::{BenchArgs, median, peak_rss, reset_peak_rss, tip_mean_z};
 use crate::devices::cpu::Cpu;
 use crate::engine::Simulation;
 use crate::engine::scene::Scene;
+use crate::engine::statics::LinearSolver;
 use softc_compiler::back::Precision;
 use softc_compiler::driver::Variant;
 use std::io::Write;
@@ -29,6 +33,8 @@ pub struct SolverRow {
     pub newton_iterations: u64,
     pub factorizations: u64,
     pub factorization: String,
+    /// GMRES iterations (matrix-free rows).
+    pub krylov_iterations: u64,
     pub assembly_seconds: f64,
     pub factor_seconds: f64,
     pub tip_mean_z: f64,
@@ -56,6 +62,7 @@ fn measure(
     solver: &str,
     scene: &Scene,
     gradient: bool,
+    linear: LinearSolver,
 ) -> Result<SolverRow, String> {
     let module = &scene.lowered.adjoint.module;
     let start = Instant::now();
@@ -64,6 +71,7 @@ fn measure(
     let once = || -> Result<(f64, crate::engine::RunSummary, Option<f64>), String> {
         let cpu = Cpu::new(module, Precision::F64, args.threads)?;
         let mut sim = Simulation::new(scene, cpu);
+        sim.linear_solver = linear;
         let start = Instant::now();
         let (summary, g) = if gradient {
             let r = sim
@@ -102,6 +110,7 @@ fn measure(
         newton_iterations: report.newton_iterations,
         factorizations: report.factorizations,
         factorization: report.factorization.to_string(),
+        krylov_iterations: report.krylov_iterations,
         assembly_seconds: report.assembly_seconds,
         factor_seconds: report.factor_seconds,
         tip_mean_z: tip_mean_z(scene, &summary.x)?,
@@ -130,10 +139,14 @@ pub fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<SolverRow>, String
             ("steps", "40"),
         ],
     )?;
+    let direct = LinearSolver::Direct;
+    let krylov = LinearSolver::Krylov;
     Ok(vec![
-        measure(args, size, "quasi_static", &statics, false)?,
-        measure(args, size, "quasi_static+grad", &statics, true)?,
-        measure(args, size, "implicit_euler x40", &implicit, false)?,
+        measure(args, size, "quasi_static", &statics, false, direct)?,
+        measure(args, size, "quasi_static+grad", &statics, true, direct)?,
+        measure(args, size, "implicit_euler x40", &implicit, false, direct)?,
+        measure(args, size, "quasi_static krylov", &statics, false, krylov)?,
+        measure(args, size, "implicit x40 krylov", &implicit, false, krylov)?,
     ])
 }
 
@@ -144,7 +157,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
     }
     let _ = writeln!(
         out,
-        "{:<5} {:<19} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>9} {:>9} {:>9} {:>14} {:>10}",
+        "{:<5} {:<19} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>7} {:>9} {:>9} {:>9} {:>14} {:>10}",
         "size",
         "solver",
         "tets",
@@ -153,6 +166,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
         "wall_s",
         "newton",
         "factor",
+        "gmres",
         "assemb_s",
         "factor_s",
         "compile_s",
@@ -162,7 +176,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
     for r in &rows {
         let _ = writeln!(
             out,
-            "{:<5} {:<19} {:>7} {:>7} {:>9} {:>9.3} {:>7} {:>7} {:>9.3} {:>9.3} {:>9.3} {:>14.6e} {:>10}",
+            "{:<5} {:<19} {:>7} {:>7} {:>9} {:>9.3} {:>7} {:>7} {:>7} {:>9.3} {:>9.3} {:>9.3} {:>14.6e} {:>10}",
             r.size,
             r.solver,
             r.elements,
@@ -171,6 +185,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
             r.wall_seconds,
             r.newton_iterations,
             r.factorizations,
+            r.krylov_iterations,
             r.assembly_seconds,
             r.factor_seconds,
             r.compile_seconds,
