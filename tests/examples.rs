@@ -739,3 +739,44 @@ fn a_static_optimization_resumes_bit_for_bit_with_its_warm_starts() {
     assert_eq!(a["solver"]["kind"], "quasi_static");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `--linear-solver krylov` solves a static path of states and its gradient matrix-free, to
+/// what the default direct solver finds; the JSON names the solver and its GMRES iterations.
+#[test]
+fn the_linear_solver_flag_selects_the_matrix_free_solve() {
+    let dir = std::env::temp_dir().join(format!("softc-linear-solver-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let script = root().join("runtime/tests/fixtures/grad/static.soft");
+    let solve = |linear: &str| -> serde_json::Value {
+        let json = dir.join(format!("{linear}.json"));
+        let (code, _, err) = softc(&[
+            "run",
+            script.to_str().unwrap(),
+            "--grad",
+            "--linear-solver",
+            linear,
+            "--json",
+            json.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 0, "{err}");
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap()
+    };
+    let (direct, krylov) = (solve("direct"), solve("krylov"));
+    assert_eq!(direct["solver"]["linear_solver"], "direct");
+    assert_eq!(krylov["solver"]["linear_solver"], "krylov");
+    assert!(krylov["solver"]["krylov_iterations"].as_u64().unwrap() > 0);
+    assert_eq!(krylov["solver"]["factorizations"].as_u64().unwrap(), 0);
+    let (a, b) = (
+        direct["loss"].as_f64().unwrap(),
+        krylov["loss"].as_f64().unwrap(),
+    );
+    assert!(((a - b) / a).abs() < 1e-8, "direct {a}, krylov {b}");
+    let (ga, gb) = (
+        direct["gradients"]["p0"].as_f64().unwrap(),
+        krylov["gradients"]["p0"].as_f64().unwrap(),
+    );
+    assert!(((ga - gb) / ga).abs() < 1e-6, "direct {ga}, krylov {gb}");
+    let (code, _, err) = softc(&["run", script.to_str().unwrap(), "--linear-solver", "lu"]);
+    assert_eq!(code, 2, "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -384,6 +384,7 @@ fn bench_solvers_prints_a_row_per_solver_and_well_formed_json() {
     let (code, out, err) = softc(&[
         "bench",
         "--solvers",
+        "--krylov",
         "--sizes",
         "1k",
         "--repeats",

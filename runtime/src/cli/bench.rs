@@ -67,6 +67,10 @@ pub struct BenchArgs {
     /// with Newton iterations, assembly and factorization time, tangent size and memory.
     #[arg(long, conflicts_with_all = ["tradeoff", "profile"])]
     pub solvers: bool,
+    /// With --solvers: also the static solve and the implicit steps by the matrix-free linear
+    /// solver (GMRES on the kernels' tangent products, `--linear-solver krylov`).
+    #[arg(long, requires = "solvers")]
+    pub krylov: bool,
     /// With --tradeoff: the output, a node set and an axis (mean displacement).
     #[arg(long, value_name = "SET.AXIS", default_value = "tip.z")]
     pub output: String,

@@ -29,11 +29,11 @@ pub struct RunArgs {
     /// name such as `vulkan`); default: a discrete GPU, else integrated, else software.
     #[arg(long, value_name = "NAME")]
     pub adapter: Option<String>,
-    /// How static and implicit solves solve Newton's linear systems: `direct` assembles the
-    /// sparse tangent and factors it on the host; `krylov` runs matrix-free GMRES on tangent
-    /// products computed by the backend's kernels (block-Jacobi preconditioned); `auto`:
-    /// krylov on the gpu backend, direct on the others and for bodies with no fixed node.
-    #[arg(long, value_enum, default_value_t = LinearSolver::Auto)]
+    /// How static and implicit solves solve Newton's linear systems: `direct` (default)
+    /// assembles the sparse tangent and factors it on the host; `krylov` runs matrix-free GMRES
+    /// on tangent products computed by the backend's kernels (block-Jacobi preconditioned; far
+    /// slower on the shipped scenes, but no matrix in memory).
+    #[arg(long, value_enum, default_value_t = LinearSolver::Direct)]
     pub linear_solver: LinearSolver,
     /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
     #[arg(long, allow_hyphen_values = true)]

@@ -233,10 +233,6 @@ impl Backend for Device {
         self.inner().device_error()
     }
 
-    fn matrix_free(&self) -> bool {
-        self.inner().matrix_free()
-    }
-
     fn lockstep(&self) -> Lockstep {
         self.inner().lockstep()
     }

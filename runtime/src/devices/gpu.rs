@@ -1016,10 +1016,6 @@ impl Backend for Gpu {
         self.core.borrow().device_error()
     }
 
-    fn matrix_free(&self) -> bool {
-        true
-    }
-
     fn swap(&mut self, a: BufferId, b: BufferId) {
         self.slot.swap(a.0 as usize, b.0 as usize);
     }
@@ -1177,10 +1173,6 @@ impl Backend for GpuScene {
 
     fn device_error(&self) -> Option<String> {
         self.shared.lock().device_error()
-    }
-
-    fn matrix_free(&self) -> bool {
-        true
     }
 
     fn swap(&mut self, a: BufferId, b: BufferId) {

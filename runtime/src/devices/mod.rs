@@ -31,12 +31,6 @@ pub trait Backend {
     fn precision(&self) -> Precision {
         Precision::F64
     }
-    /// Whether static and implicit solves should run matrix-free here (products as kernels,
-    /// few readbacks of small vectors) rather than read every element's Jacobian back to
-    /// assemble and factor on the host.
-    fn matrix_free(&self) -> bool {
-        false
-    }
     /// A failure of the device that `get` or `set` could not return (a lost GPU, a failed
     /// readback): the time loop reports it at its next state check instead of reading garbage.
     fn device_error(&self) -> Option<String> {

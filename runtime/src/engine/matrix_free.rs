@@ -17,7 +17,8 @@ use softc_compiler::back::Precision;
 
 /// Basis vectors of GMRES before a restart.
 const RESTART: usize = 200;
-/// Products per linear solve before it gives up.
+/// Products per linear solve before it gives up (and the solve falls back to the direct
+/// solver).
 const MAX_KRYLOV_ITERATIONS: usize = 3000;
 
 impl<'s, B: Backend> Simulation<'s, B> {

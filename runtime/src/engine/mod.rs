@@ -335,7 +335,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             progress: None,
             estimate: None,
             warm_start: None,
-            linear_solver: statics::LinearSolver::Auto,
+            linear_solver: statics::LinearSolver::Direct,
             last_good: None,
             ids,
         };

@@ -3,10 +3,9 @@
 //! For each size the scene's loads at its end time (4000 steps of 40 µs: t = 0.16 s) are
 //! solved three ways on the cpu backend in f64: one static equilibrium (`quasi_static`), its
 //! gradient (d loss / d p_peak by one transposed solve), and the same 0.16 s of dynamics by 40
-//! backward Euler steps of 4 ms (100× the scene's explicit step). The static solve and the
-//! implicit steps run again matrix-free (`krylov`: GMRES on the kernels' tangent products, what
-//! the GPU backend runs by default), on the cpu backend so the two linear solvers compare on one
-//! device. A row reports the wall time (median of `--repeats` after a warm-up), Newton
+//! backward Euler steps of 4 ms (100× the scene's explicit step). With `--krylov` the static
+//! solve and the implicit steps run again matrix-free (GMRES on the kernels' tangent products),
+//! on the cpu backend so the two linear solvers compare on one device. A row reports the wall time (median of `--repeats` after a warm-up), Newton
 //! iterations, factorizations or GMRES iterations and where the time goes, the tangent's size,
 //! and the growth of peak resident memory during one solve.
 
@@ -140,14 +139,31 @@ pub fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<SolverRow>, String
         ],
     )?;
     let direct = LinearSolver::Direct;
-    let krylov = LinearSolver::Krylov;
-    Ok(vec![
+    let mut rows = vec![
         measure(args, size, "quasi_static", &statics, false, direct)?,
         measure(args, size, "quasi_static+grad", &statics, true, direct)?,
         measure(args, size, "implicit_euler x40", &implicit, false, direct)?,
-        measure(args, size, "quasi_static krylov", &statics, false, krylov)?,
-        measure(args, size, "implicit x40 krylov", &implicit, false, krylov)?,
-    ])
+    ];
+    if args.krylov {
+        let krylov = LinearSolver::Krylov;
+        rows.push(measure(
+            args,
+            size,
+            "quasi_static krylov",
+            &statics,
+            false,
+            krylov,
+        )?);
+        rows.push(measure(
+            args,
+            size,
+            "implicit x40 krylov",
+            &implicit,
+            false,
+            krylov,
+        )?);
+    }
+    Ok(rows)
 }
 
 pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), String> {
