@@ -104,7 +104,7 @@ pub(super) struct Tangent {
 enum Linear {
     /// The assembled tangent and its factorization.
     Direct {
-        lu: SparseSolver,
+        lu: Box<SparseSolver>,
         values: Vec<f64>,
         /// Whether `lu` holds a factorization (of some earlier state of this solve).
         factored: bool,
@@ -136,7 +136,7 @@ impl Linear {
             Precision::F32 => 1e-5,
         };
         Ok(Linear::Direct {
-            lu: SparseSolver::new(pattern, symmetry)?,
+            lu: Box::new(SparseSolver::new(pattern, symmetry)?),
             values: Vec::new(),
             factored: false,
         })
