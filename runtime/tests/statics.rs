@@ -67,6 +67,24 @@ fn worst_against_central_differences(
     worst
 }
 
+/// The gradient tests' every-param-kind scene as 8 backward Euler steps of 0.5 ms.
+fn all_kinds_implicit(name: &str) -> PathBuf {
+    let text = std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
+        .unwrap()
+        .replace(
+            "  dt = 20 us\n  steps = 200\n",
+            "  dt = 0.5 ms\n  steps = 8\n  integrator = implicit_euler\n",
+        )
+        .replace(
+            "\"../../../../meshes/",
+            &format!("\"{}/meshes/", root().display()),
+        );
+    assert!(text.contains("implicit_euler"));
+    let path = scratch(name);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
 fn tip_mean_z(scene: &Scene, x: &[[f64; 3]]) -> f64 {
     let (_, tip) = scene.node_sets.iter().find(|(n, _)| n == "tip").unwrap();
     tip.iter()
@@ -248,19 +266,7 @@ fn a_static_script_needs_no_time_step_and_is_warned_about_dynamic_settings() {
 /// at 25× the explicit step: every derivative against central differences of implicit runs.
 #[test]
 fn implicit_euler_gradients_match_central_differences_for_every_param_kind() {
-    let text = std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
-        .unwrap()
-        .replace(
-            "  dt = 20 us\n  steps = 200\n",
-            "  dt = 0.5 ms\n  steps = 8\n  integrator = implicit_euler\n",
-        )
-        .replace(
-            "\"../../../../meshes/",
-            &format!("\"{}/meshes/", root().display()),
-        );
-    assert!(text.contains("implicit_euler"));
-    let path = scratch("all_kinds_implicit.soft");
-    std::fs::write(&path, text).unwrap();
+    let path = all_kinds_implicit("all_kinds_implicit.soft");
     let scene = Scene::load(&path, &[]).unwrap();
     let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
     let report = Simulation::new(&scene, cpu)
@@ -409,22 +415,9 @@ fn a_free_body_under_balanced_loads_is_solved_and_unbalanced_ones_are_refused() 
 #[test]
 fn the_matrix_free_solver_agrees_with_the_direct_one() {
     use softc::engine::statics::LinearSolver;
-    let implicit =
-        std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
-            .unwrap()
-            .replace(
-                "  dt = 20 us\n  steps = 200\n",
-                "  dt = 0.5 ms\n  steps = 8\n  integrator = implicit_euler\n",
-            )
-            .replace(
-                "\"../../../../meshes/",
-                &format!("\"{}/meshes/", root().display()),
-            );
-    let implicit_path = scratch("all_kinds_implicit_krylov.soft");
-    std::fs::write(&implicit_path, implicit).unwrap();
     for path in [
         root().join("runtime/tests/fixtures/grad/static.soft"),
-        implicit_path,
+        all_kinds_implicit("all_kinds_implicit_krylov.soft"),
     ] {
         let scene = Scene::load(&path, &[]).unwrap();
         let solve = |linear: LinearSolver| {

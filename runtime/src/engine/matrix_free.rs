@@ -35,14 +35,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     fn tangent_product(&mut self, v: &[f64]) -> Result<Vec<f64>, String> {
         let mf = &self.static_kernels().map_err(|e| e.0)?.matrix_free;
         self.backend.set(mf.direction, v);
-        for (k, &kernel) in mf.element_products.iter().enumerate() {
-            let range = self.scene.material_ranges[k].clone();
-            self.backend.run(kernel, range, &self.uniforms)?;
-        }
-        for (c, &kernel) in mf.chamber_products.iter().enumerate() {
-            let range = self.scene.chamber_ranges[c].clone();
-            self.backend.run(kernel, range, &self.uniforms)?;
-        }
+        self.run_per_force_kernel(&mf.element_products, &mf.chamber_products)?;
         let nodes = 0..self.scene.mesh.nodes.len();
         self.backend.run(mf.node_product, nodes, &self.uniforms)?;
         let mut kv = self.backend.get(mf.product);
@@ -87,14 +80,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     fn block_jacobi(&mut self, transpose: bool) -> Result<Vec<[f64; 9]>, String> {
         let statics = self.static_kernels().map_err(|e| e.0)?;
         let mf = &statics.matrix_free;
-        for (k, &kernel) in mf.element_blocks.iter().enumerate() {
-            let range = self.scene.material_ranges[k].clone();
-            self.backend.run(kernel, range, &self.uniforms)?;
-        }
-        for (c, &kernel) in mf.chamber_blocks.iter().enumerate() {
-            let range = self.scene.chamber_ranges[c].clone();
-            self.backend.run(kernel, range, &self.uniforms)?;
-        }
+        self.run_per_force_kernel(&mf.element_blocks, &mf.chamber_blocks)?;
         let nodes = self.scene.mesh.nodes.len();
         let mut blocks = vec![[0.0f64; 9]; nodes];
         let elem = self.backend.get(mf.elem_dblock);

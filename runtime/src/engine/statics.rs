@@ -181,6 +181,24 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(self.backend.get(residual))
     }
 
+    /// Run one kernel per material over its elements (`elements`, kernel order) and one per
+    /// chamber over its triangles (`chambers`): the kernels derived from the force kernels.
+    pub(super) fn run_per_force_kernel(
+        &mut self,
+        elements: &[usize],
+        chambers: &[usize],
+    ) -> Result<(), String> {
+        for (k, &kernel) in elements.iter().enumerate() {
+            let range = self.scene.material_ranges[k].clone();
+            self.backend.run(kernel, range, &self.uniforms)?;
+        }
+        for (c, &kernel) in chambers.iter().enumerate() {
+            let range = self.scene.chamber_ranges[c].clone();
+            self.backend.run(kernel, range, &self.uniforms)?;
+        }
+        Ok(())
+    }
+
     /// The first element (kernel order) whose material cannot pass through inversion and
     /// whose volume ratio is not positive, after the force kernels ran.
     fn inverted_element(&self) -> Option<usize> {
@@ -204,14 +222,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     ) -> Result<(), String> {
         let start = Instant::now();
         let statics = self.static_kernels().map_err(|e| e.0)?;
-        for (k, &kernel) in statics.element_jacobians.iter().enumerate() {
-            let range = self.scene.material_ranges[k].clone();
-            self.backend.run(kernel, range, &self.uniforms)?;
-        }
-        for (c, &kernel) in statics.chamber_jacobians.iter().enumerate() {
-            let range = self.scene.chamber_ranges[c].clone();
-            self.backend.run(kernel, range, &self.uniforms)?;
-        }
+        self.run_per_force_kernel(&statics.element_jacobians, &statics.chamber_jacobians)?;
         let elem = self.backend.get(statics.elem_dforce);
         let tri = statics
             .tri_dforce
