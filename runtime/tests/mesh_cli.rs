@@ -63,6 +63,9 @@ fn shipped_meshes_are_reproducible_and_valid() {
     for name in [
         "cuboid",
         "endoscope_coarse",
+        // The soft endoscope at both lattices: generating the 93k-tet one takes ~0.5 s.
+        "endoscope_soft",
+        "endoscope_soft_coarse",
         "bench_1k",
         "bench_10k",
         "bench_50k",
