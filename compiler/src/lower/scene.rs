@@ -173,7 +173,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     // The diagnostics kernels follow the node kernel: not part of a step, and writing no buffer
     // a step reads, so the adjoint pass copies them (same indices) and derives nothing from them.
     let diagnostics;
-    let (adjoint, statics) = if quasi_static {
+    let (mut adjoint, statics) = if quasi_static {
         let node = equilibrium_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
@@ -225,8 +225,6 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     // Algebraic simplification and strength reduction of every kernel, once all are built
     // (the adjoint and the Jacobians differentiate the unsimplified bodies). The forward
     // kernels at the head of the adjoint module are simplified exactly as the forward module's.
-    let mut module = module;
-    let mut adjoint = adjoint;
     crate::passes::simplify::simplify_module(&mut module);
     crate::passes::simplify::simplify_module(&mut adjoint.module);
     Ok(SceneModule {

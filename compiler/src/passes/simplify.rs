@@ -197,7 +197,10 @@ impl Rewriter {
                     fractional.push(false);
                 }
             }
-            let i = combined.iter().position(|g| g.base == f.base).expect("pushed");
+            let i = combined
+                .iter()
+                .position(|g| g.base == f.base)
+                .expect("pushed");
             fractional[i] |= f.sixths % SIXTHS != 0;
         }
         // Worth it only where a root disappears: a base with a fractional power ends whole.

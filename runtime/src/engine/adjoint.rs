@@ -346,7 +346,7 @@ impl<B: Backend> Simulation<'_, B> {
                         self.advance(current, end - 1, dt)?;
                         forward_steps += end - 1 - current;
                         current = end - 1;
-                        if current % CHECK_EVERY == 0 {
+                        if current.is_multiple_of(CHECK_EVERY) {
                             // The check below reads the J of this step's start state.
                             self.run_diagnostics()?;
                         }
