@@ -32,9 +32,14 @@
 //! reciprocals (two roundings instead of one), and `ln`/`exp` pairs (exact in real
 //! arithmetic, so the new value is the more accurate one). A power cancelled to 1 also drops
 //! the NaN a non-positive base gave (`J^a·J^−a` at J = 0 was NaN, is 1 now); states where
-//! that matters are already reported by the runtime's inversion check on J. End to end, f64
-//! runs of the benchmark and verification scenes stay within 1e-12 relative of the unsimplified
-//! kernels (see the tests and the pass's report in issue 18).
+//! that matters are already reported by the runtime's inversion check on J.
+//!
+//! End to end (f64, against the unsimplified kernels): the benchmark-10k run's tip mean z after
+//! 4000 steps moves by 5e-13 relative and its loss by 2e-15; the static verification scenes'
+//! tip z by 1e-14. Ill-conditioned outputs move more: components ten times smaller than the
+//! displacement by 1–3e-12, the largest node speed by 5e-9 — the stress at these small strains
+//! is a difference of O(μ) terms, so any change of rounding shows there, and the unsimplified
+//! kernels differ from the independent reference oracle by the same order (7e-10 on that speed).
 
 use crate::ir::{BinOp, Builder, CmpOp, Func, Inst, Kernel, Module, UnOp, V};
 use std::collections::HashMap;
