@@ -268,8 +268,10 @@ impl Rewriter {
             return Some(());
         }
         match self.b.func.inst(v) {
+            // A zero factor is left alone, as the Builder leaves `x * 0` (NaN for infinite x).
+            Inst::Const(c) if c == 0.0 || !c.is_finite() => return None,
             Inst::Const(c) if sign > 0 => *coef *= c,
-            Inst::Const(c) if c != 0.0 => *coef /= c,
+            Inst::Const(c) => *coef /= c,
             Inst::Un(UnOp::Neg, x) => {
                 *coef = -*coef;
                 self.factors(x, sign, coef, out, depth + 1)?;
