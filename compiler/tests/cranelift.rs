@@ -45,10 +45,11 @@ fn buffer(name: &str, domain: Domain, width: u32) -> Buffer {
     }
 }
 
-const UN: [UnOp; 11] = [
+const UN: [UnOp; 12] = [
     UnOp::Neg,
     UnOp::Abs,
     UnOp::Sqrt,
+    UnOp::Cbrt,
     UnOp::Exp,
     UnOp::Ln,
     UnOp::Sin,
@@ -196,6 +197,7 @@ fn eval_f32(func: &Func, args: &[f32]) -> Vec<f32> {
                     UnOp::Neg => -x,
                     UnOp::Abs => x.abs(),
                     UnOp::Sqrt => x.sqrt(),
+                    UnOp::Cbrt => x.cbrt(),
                     UnOp::Exp => x.exp(),
                     UnOp::Ln => x.ln(),
                     UnOp::Sin => x.sin(),

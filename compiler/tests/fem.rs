@@ -7,7 +7,10 @@
 use softc_compiler::front::parse;
 use softc_compiler::ir::{ArgSource, Kernel, Module, interp};
 use softc_compiler::lower::expr::Program;
-use softc_compiler::lower::fem::{element_force_kernel, material_density};
+use softc_compiler::lower::fem::{
+    element_diagnostics_kernel, element_force_kernel, material_density,
+};
+use softc_compiler::passes::simplify::simplify_module;
 use softc_compiler::sema;
 
 mod common;
@@ -27,8 +30,15 @@ impl Tet {
     }
 }
 
-/// Run an element kernel on one tet: (forces [corner][dim], energy).
+/// Run an element force kernel and the diagnostics kernel of `module` on one tet: (forces
+/// [corner][dim], energy).
 fn run(module: &Module, k: &Kernel, tet: &Tet) -> ([[f64; 3]; 4], f64) {
+    let (f, _) = run_one(module, k, tet);
+    let (_, e) = run_one(module, module.kernels.last().expect("diagnostics"), tet);
+    (f, e)
+}
+
+fn run_one(module: &Module, k: &Kernel, tet: &Tet) -> ([[f64; 3]; 4], f64) {
     let dmi = tet.dm_inv();
     let args: Vec<f64> = k
         .args
@@ -78,6 +88,10 @@ fn kernels() -> Vec<(String, Module, Kernel)> {
             let mut m = Module::default();
             let k = element_force_kernel(&program, &mut m, n).unwrap();
             let i = m.push_kernel(k);
+            let d = element_diagnostics_kernel(&program, &mut m, n).unwrap();
+            m.push_kernel(d);
+            // As the backends get them: simplified (the checks hold for the rewritten bodies).
+            simplify_module(&mut m);
             let k = m.kernels[i].clone();
             (n.to_string(), m, k)
         })

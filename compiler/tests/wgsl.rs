@@ -36,6 +36,7 @@ fn everything() -> Module {
         UnOp::Neg,
         UnOp::Abs,
         UnOp::Sqrt,
+        UnOp::Cbrt,
         UnOp::Exp,
         UnOp::Ln,
         UnOp::Sin,

@@ -129,6 +129,12 @@ fn un_chain(b: &mut Builder, op: UnOp, a: V, yv: V, g: V) -> Option<V> {
             let half = b.scale(0.5, g);
             b.div(half, yv)
         }
+        UnOp::Cbrt => {
+            // d cbrt(a)/da = 1 / (3 cbrt(a)²)
+            let y2 = b.mul(yv, yv);
+            let d = b.scale(3.0, y2);
+            b.div(g, d)
+        }
         UnOp::Exp => b.mul(g, yv),
         UnOp::Ln => b.div(g, a),
         UnOp::Sin => {

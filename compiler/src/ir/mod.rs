@@ -32,6 +32,8 @@ pub enum UnOp {
     Neg,
     Abs,
     Sqrt,
+    /// The real cube root (defined for negative arguments: `cbrt(-8) = -2`), as C's `cbrt`.
+    Cbrt,
     Exp,
     Ln,
     Sin,
@@ -333,6 +335,7 @@ pub fn eval_un(op: UnOp, x: f64) -> f64 {
         UnOp::Neg => -x,
         UnOp::Abs => x.abs(),
         UnOp::Sqrt => x.sqrt(),
+        UnOp::Cbrt => x.cbrt(),
         UnOp::Exp => x.exp(),
         UnOp::Ln => x.ln(),
         UnOp::Sin => x.sin(),

@@ -101,6 +101,7 @@ fn un(op: UnOp) -> &'static str {
         UnOp::Neg => "neg",
         UnOp::Abs => "abs",
         UnOp::Sqrt => "sqrt",
+        UnOp::Cbrt => "cbrt",
         UnOp::Exp => "exp",
         UnOp::Ln => "ln",
         UnOp::Sin => "sin",

@@ -144,19 +144,46 @@ impl FemBuffers {
     }
 }
 
-/// Build the element force kernel of one material.
+/// Build the element force kernel of one material: the forces on its corners, nothing else
+/// (the step runs it every step; see [`element_diagnostics_kernel`] for W and J).
 pub fn element_force_kernel(
     program: &Program,
     module: &mut Module,
     material: &str,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
+    element_kernel(program, module, material, false)
+}
+
+/// Build the element diagnostics kernel of one material: the strain energy V₀·W
+/// (`elem_energy`) and the volume ratio J (`elem_j`) of each element at the current positions.
+/// Not part of a step: the runtime runs it only where something reads them (a state check's
+/// inversion test, a VTK frame), so the step's force kernel neither computes W nor stores
+/// either (model only what is used).
+pub fn element_diagnostics_kernel(
+    program: &Program,
+    module: &mut Module,
+    material: &str,
+) -> Result<crate::ir::BuiltKernel, LowerError> {
+    element_kernel(program, module, material, true)
+}
+
+fn element_kernel(
+    program: &Program,
+    module: &mut Module,
+    material: &str,
+    diagnostics: bool,
+) -> Result<crate::ir::BuiltKernel, LowerError> {
     let bufs = FemBuffers::declare(module);
     let fields = declare_fields(program, module, material)?;
-    let mut k = KernelBuilder::new(
-        &format!("fem_{material}"),
-        Domain::Element,
-        &format!("material {material}"),
-    );
+    let (name, origin) = if diagnostics {
+        (
+            format!("fem_{material}_diagnostics"),
+            format!("material {material} (energy and J)"),
+        )
+    } else {
+        (format!("fem_{material}"), format!("material {material}"))
+    };
+    let mut k = KernelBuilder::new(&name, Domain::Element, &origin);
     let xs: Vec<[V; 3]> = (0..4)
         .map(|c| {
             [0, 1, 2].map(|d| {
@@ -184,6 +211,13 @@ pub fn element_force_kernel(
     let ds: [[V; 3]; 3] = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k.b.sub(xs[c + 1][r], xs[0][r])));
     let f = matmul(&mut k.b, &ds, &dmi);
     let (w, p, j) = energy_and_stress(program, &mut k, material, &f, &fields)?;
+    if diagnostics {
+        // The stress is dead code here: pruned when the kernel is finished.
+        let e = k.b.mul(vol0, w);
+        k.store(bufs.energy, 0, e);
+        k.store(bufs.j, 0, j);
+        return Ok(k.finish());
+    }
     // H = −V0 · P · Dm⁻ᵀ: H[r][c] = −V0 Σ_k P[r][k] Dm⁻¹[c][k]
     let nv0 = k.b.neg(vol0);
     let mut h = [[V(0); 3]; 3];
@@ -205,9 +239,6 @@ pub fn element_force_kernel(
             k.store(bufs.force, 3 * (c + 1) + d as u32, row[c as usize]);
         }
     }
-    let e = k.b.mul(vol0, w);
-    k.store(bufs.energy, 0, e);
-    k.store(bufs.j, 0, j);
     Ok(k.finish())
 }
 

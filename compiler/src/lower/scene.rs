@@ -5,7 +5,10 @@
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, Program};
-use super::fem::{FemBuffers, element_force_kernel, material_fields, material_is_isochoric};
+use super::fem::{
+    FemBuffers, element_diagnostics_kernel, element_force_kernel, material_fields,
+    material_is_isochoric,
+};
 use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, BufferId, CmpOp, Domain, KernelBuilder, Module, V};
@@ -33,6 +36,12 @@ pub struct SceneModule {
     /// from the element buffer `param.NAME`. The runtime applies such a material only to
     /// elements of the field's set.
     pub material_fields: Vec<Vec<String>>,
+    /// Per material (kernel order), FEM only: the kernel that writes `elem_energy` and `elem_j`
+    /// at the current positions (after the step's kernels; the same index in `module` and in
+    /// `adjoint.module`). The step's element kernels write forces only, so whatever reads
+    /// energy or J (a state check, a VTK frame) runs these first. Empty for the spring mesh,
+    /// whose step kernels write `elem_j` themselves.
+    pub diagnostics: Vec<usize>,
     /// The buffers the host fills or reads, by role.
     pub buffers: SceneBuffers,
     /// `integrator = quasi_static`: the equilibrium solve's kernels.
@@ -120,10 +129,14 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     };
     let mut inversion_safe = Vec::new();
     let mut fields_of = Vec::new();
+    let mut diagnostic_kernels = Vec::new();
     for m in &materials {
         fields_of.push(material_fields(program, m)?);
         let k = match model {
-            ForceModel::Fem => element_force_kernel(program, &mut module, m)?,
+            ForceModel::Fem => {
+                diagnostic_kernels.push(element_diagnostics_kernel(program, &mut module, m)?);
+                element_force_kernel(program, &mut module, m)?
+            }
             ForceModel::Springs { volume_stiffness } => {
                 spring_force_kernel(program, &mut module, m, volume_stiffness)?
             }
@@ -157,9 +170,13 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     if chambers.is_empty() {
         module.buffers.retain(|b| b.name != "tri_force");
     }
-    let (adjoint, statics) = if quasi_static {
+    // The diagnostics kernels follow the node kernel: not part of a step, and writing no buffer
+    // a step reads, so the adjoint pass copies them (same indices) and derives nothing from them.
+    let diagnostics;
+    let (mut adjoint, statics) = if quasi_static {
         let node = equilibrium_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
+        diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         let mut adjoint = adjoint(&module, &[("x", "residual")], &[]).map_err(LowerError::new)?;
         let statics =
             StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), false)?;
@@ -167,6 +184,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     } else if integrator == "implicit_euler" {
         let node = implicit_euler_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
+        diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         // The step's inputs besides the iterate x: the state it starts from. Their adjoints
         // (∂residual/∂x_prev, ∂residual/∂v_prev transposed) carry the gradient back a step;
         // the "next" buffers only pair them for the pass and are never written.
@@ -194,6 +212,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     } else {
         let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
+        diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         let mut scale = Vec::new();
         if let Some(e) = script.optimize_setting("gradient_scale") {
             scale.push(("v", constant(program, e, "gradient_scale")?));
@@ -203,6 +222,11 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         (adjoint, None)
     };
     let buffers = SceneBuffers::of(&module)?;
+    // Algebraic simplification and strength reduction of every kernel, once all are built
+    // (the adjoint and the Jacobians differentiate the unsimplified bodies). The forward
+    // kernels at the head of the adjoint module are simplified exactly as the forward module's.
+    crate::passes::simplify::simplify_module(&mut module);
+    crate::passes::simplify::simplify_module(&mut adjoint.module);
     Ok(SceneModule {
         buffers,
         module,
@@ -212,8 +236,14 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         springs: !matches!(model, ForceModel::Fem),
         inversion_safe,
         material_fields: fields_of,
+        diagnostics,
         statics,
     })
+}
+
+/// Push `kernels` (emptied) onto `module`; their indices.
+fn push_all(module: &mut Module, kernels: &mut Vec<crate::ir::BuiltKernel>) -> Vec<usize> {
+    kernels.drain(..).map(|k| module.push_kernel(k)).collect()
 }
 
 /// What a quasi-static scene adds to its adjoint module: the force Jacobians a Newton solve

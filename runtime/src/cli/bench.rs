@@ -49,6 +49,10 @@ pub struct BenchArgs {
     /// Also write the results as JSON to this file (written atomically).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Comma-separated rows to measure: cpu-f64, cpu-f32, gpu, interp, reference (default:
+    /// all that this machine has). Leaving out the reference leaves `x_reference` empty.
+    #[arg(long, default_value = "cpu-f64,cpu-f32,gpu,interp,reference")]
+    pub backends: String,
     /// Instead of the benchmark table: where the time of a step goes on the cpu backend (f64
     /// and f32) — per kernel its share of the time, the bytes it moves and the bandwidth that
     /// achieves — against this machine's memory bandwidth measured by a streaming triad.
@@ -358,7 +362,11 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         forward_backward_peak_rss_bytes: None,
     };
     let adjoint = &scene.lowered.adjoint.module;
+    let wanted = |b: &str| args.backends.split(',').any(|w| w.trim() == b);
     for (name, precision) in [("cpu-f64", Precision::F64), ("cpu-f32", Precision::F32)] {
+        if !wanted(name) {
+            continue;
+        }
         let forward = device(&scene, module, BackendChoice::Cpu, precision, 1, args)?;
         let backward = device(&scene, adjoint, BackendChoice::Cpu, precision, 1, args)?;
         let start = Instant::now();
@@ -370,6 +378,9 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
     }
     // The GPU rows, when this machine has an adapter (lavapipe counts: it is one).
     for (name, precision) in [("gpu-f32", Precision::F32), ("gpu-f64", Precision::F64)] {
+        if !wanted("gpu") {
+            continue;
+        }
         let forward = device(&scene, module, BackendChoice::Gpu, precision, 1, args)?;
         let backward = device(&scene, adjoint, BackendChoice::Gpu, precision, 1, args)?;
         let start = Instant::now();
@@ -387,7 +398,7 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         }
     }
     // The IR interpreter is the semantics, not a fast path: only on the smallest scene.
-    if size == "1k" {
+    if size == "1k" && wanted("interp") {
         let interp = device(
             &scene,
             module,
@@ -399,11 +410,13 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         let timed = time_engine(&scene, &|| interp.make(), args)?;
         rows.push(row("interp", 0.0, timed));
     }
-    let (setup, sps, z) = time_reference(&scene, args)?;
-    rows.push(row("reference", setup, (sps, z)));
-    let reference = sps;
-    for r in &mut rows {
-        r.forward_speedup_vs_reference = Some(r.forward_steps_per_second / reference);
+    if wanted("reference") {
+        let (setup, sps, z) = time_reference(&scene, args)?;
+        rows.push(row("reference", setup, (sps, z)));
+        let reference = sps;
+        for r in &mut rows {
+            r.forward_speedup_vs_reference = Some(r.forward_steps_per_second / reference);
+        }
     }
     Ok(rows)
 }

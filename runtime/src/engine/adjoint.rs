@@ -346,6 +346,10 @@ impl<B: Backend> Simulation<'_, B> {
                         self.advance(current, end - 1, dt)?;
                         forward_steps += end - 1 - current;
                         current = end - 1;
+                        if current.is_multiple_of(CHECK_EVERY) {
+                            // The check below reads the J of this step's start state.
+                            self.run_diagnostics()?;
+                        }
                         self.step(current, dt)?;
                         current += 1;
                         forward_steps += 1;
@@ -373,6 +377,7 @@ impl<B: Backend> Simulation<'_, B> {
                 )));
             }
             let before_last = self.save_state();
+            self.run_diagnostics()?;
             self.step(current, dt)?;
             forward_steps += 1;
             self.check_state(current, dt)?;

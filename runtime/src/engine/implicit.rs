@@ -65,7 +65,6 @@ impl<B: Backend> Simulation<'_, B> {
                 && k % vtk.every.max(1) == 0
             {
                 self.uniforms.set(self.ids.t, k as f64 * h);
-                self.run_element_kernels()?;
                 self.write_vtk(k as f64 * h)?;
             }
             self.backend.set(step_bufs.x_prev, &x);
@@ -116,7 +115,6 @@ impl<B: Backend> Simulation<'_, B> {
             c.finish().map_err(RunError)?;
         }
         if self.vtk.is_some() {
-            self.run_element_kernels()?;
             self.write_vtk(t_end)?;
         }
         let loss_value = loss

@@ -379,6 +379,22 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(())
     }
 
+    /// Element energy and J (`elem_energy`, `elem_j`) at the current positions: the FEM
+    /// diagnostics kernels, which no step runs (a step computes forces only). Run before
+    /// whatever reads them — a state check (on the state a checked step starts from), a VTK
+    /// frame, an inversion test of a static solve. The spring mesh has none: its step writes J.
+    pub(crate) fn run_diagnostics(&mut self) -> Result<(), RunError> {
+        let diagnostics = &self.scene.lowered.diagnostics;
+        for (k, range) in self.scene.material_ranges.iter().enumerate() {
+            if let Some(&d) = diagnostics.get(k) {
+                self.backend
+                    .run(d, range.clone(), &self.uniforms)
+                    .map_err(RunError)?;
+            }
+        }
+        Ok(())
+    }
+
     /// The step size of a run and the stable-step estimate it used (if any).
     fn resolve_dt(&mut self, dt_override: Option<f64>) -> Result<(f64, Option<f64>), RunError> {
         let estimate = match (self.scene.dt, dt_override, self.estimate) {
@@ -511,8 +527,6 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let loss_sum = stepped?;
         written?;
         if self.vtk.is_some() {
-            // Element fields of the final state, then the final frame.
-            self.run_element_kernels()?;
             self.write_vtk(steps as f64 * dt)?;
         }
         let mut summary = self.summary(steps, dt, estimate, start);
@@ -598,11 +612,16 @@ impl<'s, B: Backend> Simulation<'s, B> {
             });
             self.advance(step, end - 1, dt)?;
             let last = end - 1;
+            let check = last % CHECK_EVERY == 0 || last + 1 == steps;
+            if check {
+                // The check reads the J of the state this step starts from.
+                self.run_diagnostics()?;
+            }
             self.step(last, dt)?;
             if let Some(l) = loss_fn {
                 loss_sum += self.loss_term(l, last + 1, dt);
             }
-            if last % CHECK_EVERY == 0 || last + 1 == steps {
+            if check {
                 self.check_state(last, dt)?;
             }
             if let Some(p) = &mut self.progress {
@@ -667,6 +686,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             let end = stretch_end(next, max_steps, |j| (j + 1) % CHECK_EVERY == 0);
             self.advance(next, end - 1, dt)?;
             let step = end - 1;
+            self.run_diagnostics()?;
             self.step(step, dt)?;
             next = end;
             self.check_state(step, dt)?;
@@ -715,7 +735,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
         l.eval(self.scene, &x, &v, t, &self.uniforms)
     }
 
+    /// A VTK frame of the current state, its element fields (energy, J) computed for it.
     fn write_vtk(&mut self, t: f64) -> Result<(), RunError> {
+        self.run_diagnostics()?;
         let scene = self.scene;
         let x = self.backend.get(self.ids.x);
         let v = self.backend.get(self.ids.v);
@@ -804,7 +826,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.backend.set(self.ids.v, &v);
             states.push((k, x, v));
             for s in k..=step {
-                if self.step(s, dt).is_err() {
+                if self.run_diagnostics().is_err() || self.step(s, dt).is_err() {
                     break;
                 }
                 let js = self.backend.get(self.ids.elem_j);

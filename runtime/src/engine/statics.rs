@@ -167,7 +167,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     }
 
     /// The residual (node-major, 0 at fixed nodes) at the current positions, time `t` and
-    /// load factor `load`; leaves the element forces and `elem_j` of this state in place.
+    /// load factor `load`; leaves the element forces of this state in place.
     pub(super) fn residual(&mut self, t: f64, load: f64) -> Result<Vec<f64>, RunError> {
         let residual = self.static_kernels()?.residual;
         self.uniforms.set(self.ids.t, t);
@@ -200,18 +200,19 @@ impl<'s, B: Backend> Simulation<'s, B> {
     }
 
     /// The first element (kernel order) whose material cannot pass through inversion and
-    /// whose volume ratio is not positive, after the force kernels ran.
-    fn inverted_element(&self) -> Option<usize> {
+    /// whose volume ratio is not positive, at the current positions.
+    fn inverted_element(&mut self) -> Result<Option<usize>, RunError> {
+        self.run_diagnostics()?;
         let j = self.backend.get(self.ids.elem_j);
         for (k, range) in self.scene.material_ranges.iter().enumerate() {
             if self.scene.lowered.inversion_safe[k] {
                 continue;
             }
             if let Some(e) = range.clone().find(|&e| j[e].is_nan() || j[e] <= 0.0) {
-                return Some(e);
+                return Ok(Some(e));
             }
         }
-        None
+        Ok(None)
     }
 
     /// Assemble K = −∂r/∂x at the current positions (uniforms as set) and factor it.
@@ -277,7 +278,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     ) -> Result<Newton, RunError> {
         let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
         let mut r = self.residual(t, load)?;
-        if let Some(e) = self.inverted_element() {
+        if let Some(e) = self.inverted_element()? {
             return Ok(Newton::Failed {
                 why: format!("element {} is inverted", e),
             });
@@ -331,7 +332,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 self.backend.set(self.ids.x, &x);
                 let r_new = self.residual(t, load)?;
                 let n_new = norm(&r_new);
-                if let Some(e) = self.inverted_element() {
+                if let Some(e) = self.inverted_element()? {
                     why = format!("every step towards equilibrium inverts element {}", e);
                 } else if n_new.is_finite()
                     && (n_new <= (1.0 - 1e-4 * alpha) * r_norm || n_new <= tolerance)
@@ -721,7 +722,6 @@ impl<'s, B: Backend> Simulation<'s, B> {
             if let Err(e) = solved {
                 // The last equilibrium is an answer too: write it where outputs were asked.
                 if self.vtk.is_some() {
-                    self.run_element_kernels()?;
                     self.write_vtk(t)?;
                 }
                 for c in &self.csv {
@@ -738,7 +738,6 @@ impl<'s, B: Backend> Simulation<'s, B> {
             if let Some(vtk) = &self.vtk
                 && (k % vtk.every.max(1) == 0 || k == steps)
             {
-                self.run_element_kernels()?;
                 self.write_vtk(t)?;
             }
             let Some(l) = &loss else { continue };

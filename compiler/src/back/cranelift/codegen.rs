@@ -506,7 +506,13 @@ impl Translator<'_> {
                         UnOp::Sqrt => b.ins().sqrt(x),
                         UnOp::Floor => per_lane(b, &|b, a| b.ins().floor(a[0]), &[x]),
                         UnOp::Ceil => per_lane(b, &|b, a| b.ins().ceil(a[0]), &[x]),
-                        UnOp::Exp | UnOp::Ln | UnOp::Sin | UnOp::Cos | UnOp::Tan | UnOp::Tanh => {
+                        UnOp::Cbrt
+                        | UnOp::Exp
+                        | UnOp::Ln
+                        | UnOp::Sin
+                        | UnOp::Cos
+                        | UnOp::Tan
+                        | UnOp::Tanh => {
                             let f = h.fref[&Lib::Un(op)];
                             per_lane(
                                 b,

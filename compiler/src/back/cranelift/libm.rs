@@ -23,12 +23,14 @@ macro_rules! binary {
 }
 
 unary! {
+    softc_cbrt_f64: f64 => cbrt;
     softc_exp_f64: f64 => exp;
     softc_ln_f64: f64 => ln;
     softc_sin_f64: f64 => sin;
     softc_cos_f64: f64 => cos;
     softc_tan_f64: f64 => tan;
     softc_tanh_f64: f64 => tanh;
+    softc_cbrt_f32: f32 => cbrt;
     softc_exp_f32: f32 => exp;
     softc_ln_f32: f32 => ln;
     softc_sin_f32: f32 => sin;
@@ -58,6 +60,7 @@ impl Lib {
     pub(super) fn symbol(self, p: Precision) -> Option<&'static str> {
         let f64 = p == Precision::F64;
         Some(match (self, f64) {
+            (Lib::Un(UnOp::Cbrt), true) => "softc_cbrt_f64",
             (Lib::Un(UnOp::Exp), true) => "softc_exp_f64",
             (Lib::Un(UnOp::Ln), true) => "softc_ln_f64",
             (Lib::Un(UnOp::Sin), true) => "softc_sin_f64",
@@ -67,6 +70,7 @@ impl Lib {
             (Lib::Bin(BinOp::Pow), true) => "softc_pow_f64",
             (Lib::Bin(BinOp::Min), true) => "softc_min_f64",
             (Lib::Bin(BinOp::Max), true) => "softc_max_f64",
+            (Lib::Un(UnOp::Cbrt), false) => "softc_cbrt_f32",
             (Lib::Un(UnOp::Exp), false) => "softc_exp_f32",
             (Lib::Un(UnOp::Ln), false) => "softc_ln_f32",
             (Lib::Un(UnOp::Sin), false) => "softc_sin_f32",
@@ -91,6 +95,7 @@ impl Lib {
 /// Every wrapper, for `JITBuilder::symbols`.
 pub(super) fn symbols() -> Vec<(&'static str, *const u8)> {
     vec![
+        ("softc_cbrt_f64", softc_cbrt_f64 as *const u8),
         ("softc_exp_f64", softc_exp_f64 as *const u8),
         ("softc_ln_f64", softc_ln_f64 as *const u8),
         ("softc_sin_f64", softc_sin_f64 as *const u8),
@@ -100,6 +105,7 @@ pub(super) fn symbols() -> Vec<(&'static str, *const u8)> {
         ("softc_pow_f64", softc_pow_f64 as *const u8),
         ("softc_min_f64", softc_min_f64 as *const u8),
         ("softc_max_f64", softc_max_f64 as *const u8),
+        ("softc_cbrt_f32", softc_cbrt_f32 as *const u8),
         ("softc_exp_f32", softc_exp_f32 as *const u8),
         ("softc_ln_f32", softc_ln_f32 as *const u8),
         ("softc_sin_f32", softc_sin_f32 as *const u8),

@@ -28,6 +28,7 @@ pub(super) enum Fun {
     Tan,
     Tanh,
     Pow,
+    Cbrt,
 }
 
 #[derive(Default)]
@@ -78,6 +79,7 @@ impl Helpers {
                     Fun::Tan => "softc_tan",
                     Fun::Tanh => "softc_tanh",
                     Fun::Pow => "softc_pow",
+                    Fun::Cbrt => "softc_cbrt",
                 }
             }
         }
@@ -102,8 +104,8 @@ impl Helpers {
         let _ = writeln!(w, "}}");
         let u = |f: Fun| self.used.contains(&f);
         let f64_mode = p == Precision::F64;
-        let need_exp = f64_mode && (u(Fun::Exp) || u(Fun::Pow) || u(Fun::Tanh));
-        let need_ln = f64_mode && (u(Fun::Ln) || u(Fun::Pow));
+        let need_exp = f64_mode && (u(Fun::Exp) || u(Fun::Pow) || u(Fun::Tanh) || u(Fun::Cbrt));
+        let need_ln = f64_mode && (u(Fun::Ln) || u(Fun::Pow) || u(Fun::Cbrt));
         let need_trig = f64_mode && (u(Fun::Sin) || u(Fun::Cos) || u(Fun::Tan));
         if need_exp {
             let c = inv_factorials(13);
@@ -267,6 +269,31 @@ impl Helpers {
             let _ = writeln!(w, "        if (fract(b * {half}) != {zero}) {{ r = -r; }}");
             let _ = writeln!(w, "    }}");
             let _ = writeln!(w, "    return r;");
+            let _ = writeln!(w, "}}");
+        }
+        if u(Fun::Cbrt) {
+            let (zero, third) = if f64_mode {
+                ("0.0lf", "0.3333333333333333lf")
+            } else {
+                ("0.0f", "0.33333334f")
+            };
+            let _ = writeln!(
+                w,
+                "// The real cube root: |x|^(1/3) with x's sign, refined by one Newton step."
+            );
+            let _ = writeln!(w, "fn softc_cbrt(x: real) -> real {{");
+            let _ = writeln!(w, "    let m = abs(x);");
+            let _ = writeln!(
+                w,
+                "    if (m == {zero} || x != x || m == softc_inf()) {{ return x; }}"
+            );
+            if f64_mode {
+                let _ = writeln!(w, "    var r = softc_exp({third} * softc_ln(m));");
+            } else {
+                let _ = writeln!(w, "    var r = pow(m, {third});");
+            }
+            let _ = writeln!(w, "    r = r - (r * r * r - m) / (real(3) * r * r);");
+            let _ = writeln!(w, "    return select(r, -r, x < {zero});");
             let _ = writeln!(w, "}}");
         }
         s

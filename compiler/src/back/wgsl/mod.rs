@@ -915,6 +915,7 @@ fn emit_body(
                     UnOp::Neg => format!("-{a}"),
                     UnOp::Abs => format!("abs({a})"),
                     UnOp::Sqrt => format!("sqrt({a})"),
+                    UnOp::Cbrt => format!("{}({a})", helpers.use_fn(math::Fun::Cbrt, p)),
                     UnOp::Floor => format!("floor({a})"),
                     UnOp::Ceil => format!("ceil({a})"),
                     UnOp::Exp => format!("{}({a})", helpers.use_fn(math::Fun::Exp, p)),
