@@ -92,7 +92,11 @@ fn mean_rel_diff(scene: &Scene, a: &RunSummary, b: &RunSummary) -> f64 {
 /// Runnable examples with the steps of a short rollout and the time step (a fixed, stable
 /// one, so every backend takes the same steps; `None` keeps the script's).
 const ROLLOUTS: &[(&str, u64, Option<f64>)] = &[
-    ("benchmark-1k.soft", 100, None),
+    // 400 steps, not 100: after 100 the tip has moved ~40 nm, 10x f32's resolution of its
+    // 60 mm positions, so f32 (either backend) is 2-11 % off f64 by rounding alone, and a
+    // change of rounding (the simplification pass) moved the Cranelift f32 error past what
+    // separates rounding from a bug.
+    ("benchmark-1k.soft", 400, None),
     // dt = auto scripts get a fixed step: the stable-step estimate perturbs positions by
     // 1e-6 of an element size, below f32 resolution, so in f32 it is not meaningful.
     // The four studies scale masses by 100 (their targets are steady states), which allows
