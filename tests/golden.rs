@@ -301,6 +301,11 @@ fn bench_prints_a_table_and_well_formed_json() {
         "20",
         "--examples",
         examples.to_str().unwrap(),
+        "--baseline",
+        root()
+            .join("runtime/benches/baseline.json")
+            .to_str()
+            .unwrap(),
         "--json",
         json.to_str().unwrap(),
     ]);
@@ -309,6 +314,17 @@ fn bench_prints_a_table_and_well_formed_json() {
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let rows = v["rows"].as_array().unwrap();
+    // Every row names the element kernel's size and its adjoint's; the cpu rows compare
+    // with the committed baseline's rows of the same size and backend.
+    for r in rows {
+        let (fwd, adj) = (
+            r["element_ops"].as_u64().unwrap(),
+            r["adjoint_element_ops"].as_u64().unwrap(),
+        );
+        assert!(fwd > 50 && adj > fwd, "{r}");
+    }
+    let cpu64 = rows.iter().find(|r| r["backend"] == "cpu-f64").unwrap();
+    assert!(cpu64["vs_baseline"][0].as_f64().unwrap() > 0.0, "{cpu64}");
     let backends: Vec<&str> = rows
         .iter()
         .map(|r| r["backend"].as_str().unwrap())

@@ -36,6 +36,11 @@ pub struct BenchArgs {
     /// Steps of each timed forward+backward pass.
     #[arg(long, default_value_t = 1000)]
     pub grad_steps: u64,
+    /// A previous run's `--json` (e.g. `runtime/benches/baseline.json`, kept in the
+    /// repository): each row's speed over the same size and backend there is printed and put
+    /// in the JSON (`vs_baseline`), so a slowdown shows.
+    #[arg(long, value_name = "JSON")]
+    pub baseline: Option<PathBuf>,
     /// Threads of the cpu backend (default: its own choice).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -129,6 +134,43 @@ pub struct Row {
     pub gradient_p_peak: Option<f64>,
     /// Growth of peak resident memory during one forward+backward pass (Linux), bytes.
     pub forward_backward_peak_rss_bytes: Option<u64>,
+    /// Operations (instructions other than arguments and constants) of the element kernel
+    /// and of its adjoint, as the backends receive them.
+    pub element_ops: usize,
+    pub adjoint_element_ops: usize,
+    /// Forward and forward+backward speed over the `--baseline` row of the same size and
+    /// backend.
+    pub vs_baseline: Option<[Option<f64>; 2]>,
+}
+
+/// Instructions of a kernel body that compute (not arguments or constants).
+fn operations(k: &softc_compiler::ir::Kernel) -> usize {
+    use softc_compiler::ir::Inst;
+    k.body
+        .insts
+        .iter()
+        .filter(|i| !matches!(i, Inst::Arg(_) | Inst::Const(_)))
+        .count()
+}
+
+/// Forward and forward+backward speed of `row` over the baseline's row of the same size and
+/// backend (a previous `bench --json`).
+fn against_baseline(baseline: &serde_json::Value, row: &Row) -> Option<[Option<f64>; 2]> {
+    let old = baseline["rows"]
+        .as_array()?
+        .iter()
+        .find(|r| r["size"] == row.size.as_str() && r["backend"] == row.backend.as_str())?;
+    let ratio = |new: Option<f64>, key: &str| Some(new? / old[key].as_f64().filter(|v| *v > 0.0)?);
+    Some([
+        ratio(
+            Some(row.forward_steps_per_second),
+            "forward_steps_per_second",
+        ),
+        ratio(
+            row.forward_backward_steps_per_second,
+            "forward_backward_steps_per_second",
+        ),
+    ])
 }
 
 /// What one timed forward+backward configuration measured.
@@ -346,6 +388,16 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
     let path = args.examples.join(format!("benchmark-{size}.soft"));
     let scene = Scene::load(&path, &[]).map_err(|e| e.0)?;
     let module = &scene.lowered.module;
+    let element = &module.kernels[0];
+    let element_ops = operations(element);
+    let adjoint_element_ops = scene
+        .lowered
+        .adjoint
+        .module
+        .kernels
+        .iter()
+        .find(|k| k.name == format!("adj_{}", element.name))
+        .map_or(0, operations);
     let mut rows = Vec::new();
     let row = |backend: &str, compile: f64, (sps, z): (f64, f64)| Row {
         size: size.to_string(),
@@ -360,6 +412,9 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         recompute_ratio: None,
         gradient_p_peak: None,
         forward_backward_peak_rss_bytes: None,
+        element_ops,
+        adjoint_element_ops,
+        vs_baseline: None,
     };
     let adjoint = &scene.lowered.adjoint.module;
     let wanted = |b: &str| args.backends.split(',').any(|w| w.trim() == b);
@@ -482,6 +537,19 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             }
         };
     }
+    let baseline = match &args.baseline {
+        Some(p) => match std::fs::read_to_string(p)
+            .map_err(|e| e.to_string())
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).map_err(|e| e.to_string()))
+        {
+            Ok(v) => Some(v),
+            Err(e) => {
+                let _ = writeln!(err, "error: --baseline {}: {e}", p.display());
+                return 2;
+            }
+        },
+        None => None,
+    };
     let mut rows = Vec::new();
     for size in &sizes {
         match bench_size(size, &args) {
@@ -492,9 +560,14 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             }
         }
     }
+    if let Some(b) = &baseline {
+        for r in &mut rows {
+            r.vs_baseline = against_baseline(b, r);
+        }
+    }
     let _ = writeln!(
         out,
-        "{:<5} {:<10} {:>10} {:>14} {:>12} {:>16} {:>16} {:>12} {:>12} {:>10} {:>14}",
+        "{:<5} {:<10} {:>10} {:>14} {:>12} {:>16} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
         "size",
         "backend",
         "compile_s",
@@ -505,12 +578,15 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         "adj_bytes",
         "peak_rss_MB",
         "recompute",
-        "dloss/dp_peak"
+        "dloss/dp_peak",
+        "elem_ops",
+        "adj_ops",
+        "vs_baseline"
     );
     for r in &rows {
         let _ = writeln!(
             out,
-            "{:<5} {:<10} {:>10.3} {:>14.1} {:>12.2} {:>16.6e} {:>16} {:>12} {:>12} {:>10} {:>14}",
+            "{:<5} {:<10} {:>10.3} {:>14.1} {:>12.2} {:>16.6e} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
             r.size,
             r.backend,
             r.compile_seconds,
@@ -524,6 +600,16 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 .map_or("-".into(), |v| format!("{:.1}", v as f64 / 1e6)),
             r.recompute_ratio.map_or("-".into(), |v| format!("{v:.2}")),
             r.gradient_p_peak.map_or("-".into(), |v| format!("{v:.6e}")),
+            r.element_ops,
+            r.adjoint_element_ops,
+            match r.vs_baseline {
+                Some([f, b]) => format!(
+                    "{}/{}",
+                    f.map_or("-".into(), |v| format!("{v:.2}")),
+                    b.map_or("-".into(), |v| format!("{v:.2}"))
+                ),
+                None => "-".into(),
+            },
         );
     }
     let _ = writeln!(
@@ -531,7 +617,9 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         "median of {} timed runs of {} steps (forward+backward: {} steps) after a warm-up; \
          tip_mean_z after those steps; x_reference = speed over the reference in this run; \
          peak_rss_MB = growth of the process's peak resident memory during one forward+backward pass; \
-         xN rows: N copies of the scene in one GPU batch, fwd_steps/s counting each scene's steps",
+         xN rows: N copies of the scene in one GPU batch, fwd_steps/s counting each scene's steps; \
+         elem_ops/adj_ops = operations of the element kernel and its adjoint; \
+         vs_baseline = forward/forward+backward speed over --baseline's row",
         args.repeats.max(1),
         args.steps,
         args.grad_steps
