@@ -127,17 +127,20 @@ impl<B: Backend> Simulation<'_, B> {
         value
     }
 
-    /// Zero the accumulators of the param derivatives (`grad@…`, `grad_param.…`).
+    /// The buffers where the param derivatives accumulate (`grad@…`, `grad_param.…`).
+    pub(super) fn gradient_accumulators(&self) -> Vec<softc_compiler::ir::BufferId> {
+        let adj = &self.scene.lowered.adjoint;
+        let mut b: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
+        b.extend(adj.fields.iter().map(|f| f.buffer));
+        b.sort();
+        b.dedup();
+        b
+    }
+
+    /// Zero the accumulators of the param derivatives.
     pub(super) fn zero_gradient_accumulators(&mut self) {
         let adj = &self.scene.lowered.adjoint;
-        let grad_buffers: Vec<_> = {
-            let mut b: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
-            b.extend(adj.fields.iter().map(|f| f.buffer));
-            b.sort();
-            b.dedup();
-            b
-        };
-        for &b in &grad_buffers {
+        for b in self.gradient_accumulators() {
             let buf = &adj.module.buffers[b.0 as usize];
             let len = domain_len(self.scene, buf.domain) * buf.width as usize;
             self.backend.set(b, &vec![0.0; len]);

@@ -11,7 +11,7 @@
 
 use super::Simulation;
 use super::statics::SolverReport;
-use crate::devices::{Backend, domain_len};
+use crate::devices::Backend;
 use crate::solvers::krylov::{KrylovLimits, KrylovStats, gmres};
 use softc_compiler::back::Precision;
 
@@ -24,7 +24,7 @@ const MAX_KRYLOV_ITERATIONS: usize = 3000;
 impl<'s, B: Backend> Simulation<'s, B> {
     /// The finest relative residual a linear solve asks for: products computed in f32 carry
     /// ~1e-7 of round-off, so asking for less than ~1e-6 stalls.
-    pub(super) fn krylov_floor(&self) -> f64 {
+    fn krylov_floor(&self) -> f64 {
         match self.backend.precision() {
             Precision::F64 => 1e-12,
             Precision::F32 => 1e-6,
@@ -193,22 +193,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
 
     /// The param accumulators' contents (to restore after products by the adjoint kernels).
     fn param_accumulators(&self) -> Vec<(softc_compiler::ir::BufferId, Vec<f64>)> {
-        let adj = &self.scene.lowered.adjoint;
-        let mut buffers: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
-        buffers.extend(adj.fields.iter().map(|f| f.buffer));
-        buffers.sort();
-        buffers.dedup();
-        buffers
+        self.gradient_accumulators()
             .into_iter()
-            .map(|b| {
-                let data = self.backend.get(b);
-                let buf = &adj.module.buffers[b.0 as usize];
-                debug_assert_eq!(
-                    data.len(),
-                    domain_len(self.scene, buf.domain) * buf.width as usize
-                );
-                (b, data)
-            })
+            .map(|b| (b, self.backend.get(b)))
             .collect()
     }
 }
