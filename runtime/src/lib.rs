@@ -3,6 +3,7 @@
 
 pub mod cli;
 pub mod devices;
+pub mod embed;
 pub mod engine;
 pub mod files;
 pub mod lsp;

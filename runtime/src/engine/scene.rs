@@ -24,6 +24,19 @@ impl std::fmt::Display for SceneError {
     }
 }
 
+/// Why a scene could not be built: the script's errors as diagnostics, or anything else.
+#[derive(Debug)]
+pub enum LoadFailure {
+    Compile(softc_compiler::CompileFailure),
+    Other(SceneError),
+}
+
+impl From<SceneError> for LoadFailure {
+    fn from(e: SceneError) -> Self {
+        LoadFailure::Other(e)
+    }
+}
+
 /// Node → incident entity adjacency in CSR form (the compiler's one connectivity type).
 pub use softc_compiler::back::NodeCsr as Csr;
 
@@ -78,8 +91,26 @@ impl Scene {
         overrides: &[(String, f64)],
         variant: Option<&softc_compiler::driver::Variant>,
     ) -> Result<Scene, SceneError> {
-        let bytes = crate::files::read_regular(path)
-            .map_err(|e| SceneError(format!("cannot read `{}`: {e}", path.display())))?;
+        Scene::load_inner(path, overrides, variant).map_err(|e| match e {
+            LoadFailure::Compile(f) => SceneError(f.render()),
+            LoadFailure::Other(e) => e,
+        })
+    }
+
+    /// As [`Scene::load`], keeping a compile failure's diagnostics (for callers that report
+    /// them as data, such as the Python package).
+    pub fn load_checked(path: &Path, overrides: &[(String, f64)]) -> Result<Scene, LoadFailure> {
+        Scene::load_inner(path, overrides, None)
+    }
+
+    fn load_inner(
+        path: &Path,
+        overrides: &[(String, f64)],
+        variant: Option<&softc_compiler::driver::Variant>,
+    ) -> Result<Scene, LoadFailure> {
+        let bytes = crate::files::read_regular(path).map_err(|e| {
+            LoadFailure::Other(SceneError(format!("cannot read `{}`: {e}", path.display())))
+        })?;
         let probe = Arc::new(crate::mesh::probe::CachingProbe::default());
         let mut options = CompileOptions::for_file(path, Some(probe.clone()));
         if let Some(v) = variant {
@@ -87,7 +118,7 @@ impl Scene {
         }
         let name = path.display().to_string();
         let compiled =
-            softc_compiler::compile(&name, &bytes, &options).map_err(|f| SceneError(f.render()))?;
+            softc_compiler::compile(&name, &bytes, &options).map_err(LoadFailure::Compile)?;
         let resolved = compiled.program;
         let lowered = compiled.kernels;
         // The mesh the checks read (one read and validation per run).

@@ -1,0 +1,280 @@
+"""softc from Python: differentiable simulation and optimization of pressure-driven soft actuators.
+
+A ``.soft`` script is compiled once by softc's compiler (the same driver as the ``softc``
+command line) and then run with any values of its params and inputs; runs and gradients are
+computed by softc's own kernels and adjoints, and their numbers are bit-identical to
+``softc run --set ...`` (and ``--grad``) with the same settings.
+
+    import softc
+    scene = softc.compile("examples/pressure_optimization.soft")
+    loss, grads = scene.loss_and_grad({"p_max": 12e3})   # SI units: Pa
+    summary = scene.run({"p_max": 12e3}, return_state=True)
+    summary["x"].shape                                     # (nodes, 3), metres
+
+``softc.torch.SceneLoss`` makes a scene a differentiable loss inside a PyTorch model, and
+``softc.ray.map`` evaluates many param sets as Ray tasks.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from typing import Any, Dict, Mapping, Optional, Tuple
+
+import numpy as np
+
+from . import _softc
+from ._softc import CompileError, SimulationError
+
+__version__ = _softc.__version__
+__all__ = [
+    "compile",
+    "Scene",
+    "Slot",
+    "Mesh",
+    "CompileError",
+    "SimulationError",
+    "__version__",
+]
+
+
+@dataclass(frozen=True)
+class Slot:
+    """A param or input of a script. Values are in SI units (``unit``), row-major ``shape``."""
+
+    name: str
+    #: ``"param"``, ``"field"`` (one entry per element of ``set``) or ``"input"``.
+    kind: str
+    shape: Tuple[int, ...]
+    unit: str
+    lower: Optional[float]
+    upper: Optional[float]
+    #: The script's value: a float for a scalar, else an array of ``shape``.
+    initial: Any
+    set: Optional[str] = None
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64)) if self.shape else 1
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """The scene's mesh: nodes in metres, tets in the kernels' order (grouped by material)."""
+
+    nodes: np.ndarray  # (n_nodes, 3) float64
+    tets: np.ndarray  # (n_tets, 4) uint32
+    node_sets: Dict[str, np.ndarray]
+    element_sets: Dict[str, np.ndarray]
+    fixed_nodes: np.ndarray
+
+
+def _shaped(values, shape):
+    if not shape:
+        return float(values[0])
+    return np.asarray(values, dtype=np.float64).reshape(shape)
+
+
+def compile(
+    path,
+    *,
+    backend: str = "cpu",
+    precision: Optional[str] = None,
+    threads: Optional[int] = None,
+    adapter: Optional[str] = None,
+    linear_solver: str = "direct",
+) -> "Scene":
+    """Compile a ``.soft`` script for a device.
+
+    ``backend``: ``"cpu"`` (Cranelift, default), ``"gpu"`` (WGSL through wgpu) or ``"interp"``
+    (the kernel-IR interpreter). ``precision``: ``"f32"`` or ``"f64"`` (default: the script's
+    ``precision``, else f64 on the cpu and f32 on the gpu). ``threads``: worker threads of the
+    cpu backend. ``adapter``: part of a GPU adapter's name. ``linear_solver``: ``"direct"`` or
+    ``"krylov"`` for static and implicit solves. Raises :class:`CompileError` with
+    ``.diagnostics`` when the script has errors.
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"no script at `{path}`")
+    native = _softc.compile(
+        path,
+        backend=backend,
+        precision=precision,
+        threads=threads,
+        adapter=adapter,
+        linear_solver=linear_solver,
+    )
+    return Scene(native, path)
+
+
+class Scene:
+    """A compiled script bound to its mesh and a device, ready to run with any param values.
+
+    Use :func:`compile` to make one. A scene runs one simulation at a time (calls from several
+    threads wait for each other); the GIL is released while it simulates.
+    """
+
+    def __init__(self, native, path: str):
+        self._native = native
+        self.path = path
+        self._describe = native.describe()
+        slots = [
+            Slot(
+                name=s["name"],
+                kind=s["kind"],
+                shape=tuple(s["shape"]),
+                unit=s["unit"],
+                lower=s["lower"],
+                upper=s["upper"],
+                initial=_shaped(s["initial"], s["shape"]),
+                set=s["set"],
+            )
+            for s in native.slots()
+        ]
+        #: The params in source order, by name.
+        self.params: Dict[str, Slot] = {s.name: s for s in slots if s.kind != "input"}
+        #: The inputs, by name.
+        self.inputs: Dict[str, Slot] = {s.name: s for s in slots if s.kind == "input"}
+        self._mesh: Optional[Mesh] = None
+        self._state: Optional[Tuple[np.ndarray, np.ndarray]] = None
+
+    def __repr__(self) -> str:
+        d = self._describe
+        return (
+            f"softc.Scene({d['path']!r}, backend={d['backend']!r}, "
+            f"integrator={d['integrator']!r}, params={list(self.params)}, "
+            f"inputs={list(self.inputs)})"
+        )
+
+    @property
+    def backend(self) -> str:
+        return self._describe["backend"]
+
+    @property
+    def integrator(self) -> str:
+        """``"explicit"``, ``"quasi_static"`` or ``"implicit_euler"``."""
+        return self._describe["integrator"]
+
+    @property
+    def has_loss(self) -> bool:
+        return self._describe["has_loss"]
+
+    @property
+    def mesh(self) -> Mesh:
+        if self._mesh is None:
+            m = self._native.mesh()
+            self._mesh = Mesh(
+                nodes=np.asarray(m["nodes"], dtype=np.float64).reshape(-1, 3),
+                tets=np.asarray(m["tets"], dtype=np.uint32).reshape(-1, 4),
+                node_sets={k: np.asarray(v, dtype=np.uint32) for k, v in m["node_sets"].items()},
+                element_sets={
+                    k: np.asarray(v, dtype=np.uint32) for k, v in m["element_sets"].items()
+                },
+                fixed_nodes=np.asarray(m["fixed_nodes"], dtype=np.uint32),
+            )
+        return self._mesh
+
+    def _values(self, params: Optional[Mapping], inputs: Optional[Mapping]):
+        out = []
+        for group, given, what in ((self.params, params, "param"), (self.inputs, inputs, "input")):
+            for name, value in (given or {}).items():
+                slot = group.get(name)
+                if slot is None:
+                    known = ", ".join(group) or "none"
+                    other = self.inputs if what == "param" else self.params
+                    hint = (
+                        f" (`{name}` is {'an input' if what == 'param' else 'a param'}: pass it "
+                        f"in {'inputs' if what == 'param' else 'params'}=)"
+                        if name in other
+                        else ""
+                    )
+                    raise KeyError(f"the script has no {what} `{name}`{hint}; its {what}s: {known}")
+                if hasattr(value, "detach"):  # a torch tensor
+                    value = value.detach().cpu().numpy()
+                array = np.asarray(value, dtype=np.float64)
+                if array.size != 1 and array.shape != slot.shape:
+                    raise ValueError(
+                        f"`{name}` has shape {slot.shape}; a value of shape {array.shape} was "
+                        f"given (give one value for every entry, or an array of shape {slot.shape})"
+                    )
+                out.append((name, array.ravel().tolist()))
+        return out
+
+    def _call(self, params, inputs, *, steps, dt, grad, checkpoint=None, memory_budget=None):
+        text, loss, grads, state = self._native.run(
+            self._values(params, inputs),
+            steps=steps,
+            dt=dt,
+            grad=grad,
+            checkpoint=checkpoint,
+            memory_budget=memory_budget,
+            keep_state=True,
+        )
+        if state is not None:
+            x, v = state
+            self._state = (
+                np.asarray(x, dtype=np.float64).reshape(-1, 3),
+                np.asarray(v, dtype=np.float64).reshape(-1, 3),
+            )
+        gradients = {name: _shaped(values, shape) for name, shape, values in grads}
+        return json.loads(text), loss, gradients
+
+    def run(
+        self,
+        params: Optional[Mapping[str, Any]] = None,
+        *,
+        steps: Optional[int] = None,
+        dt: Optional[float] = None,
+        inputs: Optional[Mapping[str, Any]] = None,
+        return_state: bool = False,
+    ) -> dict:
+        """Run the simulation with ``params`` (SI values by name; the others at the script's).
+
+        Returns the summary ``softc run`` prints as JSON (loss, steps, dt, each node set's
+        displacement, solver report…), bit-identical to ``softc run --no-optimize --set …``.
+        ``steps`` and ``dt`` (seconds) override the script's. ``inputs`` sets the script's
+        inputs (one scene); without it a script that lists several scenes runs each, and
+        ``loss`` is their mean. ``return_state=True`` adds the final positions ``x`` and
+        velocities ``v`` as ``(nodes, 3)`` arrays. Raises :class:`SimulationError`.
+        """
+        summary, _, _ = self._call(params, inputs, steps=steps, dt=dt, grad=False)
+        if return_state:
+            summary["x"], summary["v"] = self._state
+        return summary
+
+    def loss_and_grad(
+        self,
+        params: Optional[Mapping[str, Any]] = None,
+        *,
+        steps: Optional[int] = None,
+        dt: Optional[float] = None,
+        inputs: Optional[Mapping[str, Any]] = None,
+        checkpoint: Optional[str] = None,
+        memory_budget: Optional[str] = None,
+    ) -> Tuple[float, Dict[str, Any]]:
+        """The loss and d loss / d param for every param (a float, or an array of the param's
+        shape), bit-identical to ``softc run --grad``.
+
+        ``checkpoint``: ``"auto"``, ``"store_all"``, ``"periodic:K"`` or ``"revolve:N"``;
+        ``memory_budget``: e.g. ``"512MB"`` (both override the script's optimize block). A script
+        that lists several scenes of its inputs gives the mean loss and gradient over them.
+        """
+        summary, loss, gradients = self._call(
+            params,
+            inputs,
+            steps=steps,
+            dt=dt,
+            grad=True,
+            checkpoint=checkpoint,
+            memory_budget=memory_budget,
+        )
+        self.last_summary = summary
+        return loss, gradients
+
+    def state(self) -> Tuple[np.ndarray, np.ndarray]:
+        """The final positions and velocities ``(x, v)``, ``(nodes, 3)`` arrays in SI units, of
+        the last run (its last scene)."""
+        if self._state is None:
+            raise RuntimeError("no run yet: call run() or loss_and_grad() first")
+        return self._state
