@@ -186,6 +186,25 @@ fn the_runtime_does_not_import_the_front_end_sema_or_lowering() {
     );
 }
 
+/// The Python package is a front end like the CLI: it calls the runtime's embedding API and
+/// never re-does the compiler's work (nor goes through the CLI).
+#[test]
+fn the_python_package_uses_the_embedding_api_only() {
+    let mut found = uses_of_layers("python/src", &[], &["front", "sema", "lower"]);
+    for file in rust_files("python/src") {
+        for (n, l) in code_lines(&file) {
+            if l.contains("softc::cli") {
+                found.push(format!("{}:{n}: {}", rel(&file), l.trim()));
+            }
+        }
+    }
+    assert!(
+        !rust_files("python/src").is_empty(),
+        "python/src has no Rust files"
+    );
+    assert!(found.is_empty(), "{}", found.join("\n"));
+}
+
 /// The check itself finds both spellings (it must be able to fail).
 #[test]
 fn the_layer_check_sees_direct_and_grouped_imports() {

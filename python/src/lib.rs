@@ -15,13 +15,13 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 create_exception!(
-    _softc,
+    softc,
     CompileError,
     PyException,
     "A script that does not compile; `.diagnostics` lists its errors and warnings."
 );
 create_exception!(
-    _softc,
+    softc,
     SimulationError,
     PyException,
     "A run that failed (instability, no equilibrium, a device error), with the CLI's message."

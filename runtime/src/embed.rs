@@ -303,18 +303,9 @@ impl Model {
             results.push(json);
             outcomes.push(o);
         }
-        let mut json = results[0].clone();
-        if let Some(obj) = json.as_object_mut() {
-            obj.remove("inputs");
-        }
+        let json = crate::outputs::json::scenes_json(results);
         let mut first = outcomes[0].clone();
-        let losses: Vec<f64> = results.iter().filter_map(|r| r["loss"].as_f64()).collect();
-        if losses.len() == results.len() {
-            let mean = losses.iter().sum::<f64>() / losses.len() as f64;
-            json["loss"] = mean.into();
-            first.loss = Some(mean);
-        }
-        json["scenes"] = serde_json::Value::Array(results);
+        first.loss = json["loss"].as_f64();
         let n = outcomes.len() as f64;
         for (k, (_, _, g)) in first.gradients.iter_mut().enumerate() {
             for (i, gi) in g.iter_mut().enumerate() {

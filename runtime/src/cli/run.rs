@@ -574,15 +574,7 @@ fn run_scenes(
             }
         }
     }
-    let mut json = results[0].clone();
-    if let Some(obj) = json.as_object_mut() {
-        obj.remove("inputs");
-    }
-    let losses: Vec<f64> = results.iter().filter_map(|r| r["loss"].as_f64()).collect();
-    if losses.len() == results.len() {
-        json["loss"] = (losses.iter().sum::<f64>() / losses.len() as f64).into();
-    }
-    json["scenes"] = serde_json::Value::Array(results);
+    let json = crate::outputs::json::scenes_json(results);
     let text = serde_json::to_string_pretty(&json).unwrap_or_default();
     emit_json(args.json.as_deref(), &text, out, err)
 }

@@ -44,6 +44,22 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
     json
 }
 
+/// The summary of a run over several scenes of the script's inputs: the first scene's summary
+/// (without its `inputs`), `loss` the mean of the scenes' losses, and `scenes` each one's
+/// summary (with its `inputs`).
+pub fn scenes_json(scenes: Vec<serde_json::Value>) -> serde_json::Value {
+    let mut json = scenes.first().cloned().unwrap_or_default();
+    if let Some(obj) = json.as_object_mut() {
+        obj.remove("inputs");
+    }
+    let losses: Vec<f64> = scenes.iter().filter_map(|r| r["loss"].as_f64()).collect();
+    if !losses.is_empty() && losses.len() == scenes.len() {
+        json["loss"] = (losses.iter().sum::<f64>() / losses.len() as f64).into();
+    }
+    json["scenes"] = serde_json::Value::Array(scenes);
+    json
+}
+
 /// `param.NAME[.i…]` derivatives as `{NAME: number or nested array}`.
 pub fn gradients_json(
     slots: &[ParamSlots],

@@ -1,0 +1,210 @@
+"""softc.compile and Scene: what the script declares, runs and gradients bit-identical to the
+command line, gradients against central differences, errors as exceptions."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import softc
+from conftest import EXAMPLES, ROOT, SCENES, cli_json, without_timing
+
+
+def test_params_inputs_and_units_come_from_the_script(endoscope, static_pressure, beam):
+    p = static_pressure.params["p_max"]
+    assert (p.kind, p.shape, p.unit, p.lower, p.upper) == ("param", (), "Pa", 0.0, None)
+    assert p.initial == 10e3
+    pressures = endoscope.params["p"]
+    assert pressures.shape == (3,) and pressures.unit == "Pa"
+    assert pressures.upper == 20e3
+    np.testing.assert_array_equal(pressures.initial, [10e3, 10e3, 10e3])
+    target = endoscope.inputs["target"]
+    assert (target.kind, target.shape, target.unit) == ("input", (3,), "m")
+    mu = beam.params["mu"]
+    assert mu.kind == "field" and mu.set == "near" and mu.unit == "Pa"
+    assert mu.shape == (len(beam.mesh.element_sets["near"]),) and mu.size > 100
+    assert list(beam.params) == ["mu", "p0"]
+    assert static_pressure.integrator == "quasi_static" and beam.integrator == "explicit"
+
+
+def test_mesh_arrays(beam):
+    m = beam.mesh
+    assert m.nodes.shape[1] == 3 and m.tets.shape[1] == 4
+    assert m.tets.max() < len(m.nodes)
+    assert set(m.node_sets) >= {"base", "tip"}
+    # The clamped nodes are the base's.
+    np.testing.assert_array_equal(np.sort(m.fixed_nodes), np.sort(m.node_sets["base"]))
+    # Metres: the beam is 60 mm long.
+    assert 0.05 < np.ptp(m.nodes[:, 0]) < 0.07
+
+
+def test_run_is_bit_identical_to_the_command_line(beam, tmp_path):
+    summary = beam.run({"p0": 12e3}, steps=150)
+    cli = cli_json(tmp_path, SCENES / "beam.soft", "--set", "p0=12kPa", "--steps", "150")
+    assert without_timing(summary) == without_timing(cli)
+    assert summary["steps"] == 150 and summary["loss"] > 0
+
+
+def test_static_run_and_gradient_are_bit_identical_to_the_command_line(static_pressure, tmp_path):
+    loss, grads = static_pressure.loss_and_grad({"p_max": 12e3})
+    cli = cli_json(
+        tmp_path, EXAMPLES / "pressure_optimization.soft", "--set", "p_max=12kPa", "--grad"
+    )
+    assert loss == cli["loss"]
+    assert grads["p_max"] == cli["gradients"]["p_max"]
+    summary = static_pressure.run({"p_max": 12e3})
+    plain = cli_json(
+        tmp_path, EXAMPLES / "pressure_optimization.soft", "--set", "p_max=12kPa", "--no-optimize"
+    )
+    assert without_timing(summary) == without_timing(plain)
+
+
+def test_field_gradient_is_bit_identical_to_the_command_line(beam, tmp_path):
+    loss, grads = beam.loss_and_grad({"p0": 12e3}, checkpoint="revolve:5")
+    cli = cli_json(
+        tmp_path, SCENES / "beam.soft", "--set", "p0=12kPa", "--grad", "--checkpoint", "revolve:5"
+    )
+    assert loss == cli["loss"]
+    assert grads["p0"] == cli["gradients"]["p0"]
+    np.testing.assert_array_equal(grads["mu"], np.asarray(cli["gradients"]["mu"]))
+    assert grads["mu"].shape == beam.params["mu"].shape
+
+
+def test_listed_inputs_run_every_scene_with_the_mean_loss(tmp_path):
+    scene = softc.compile(SCENES / "listed_inputs.soft")
+    loss, grads = scene.loss_and_grad({"gain": 0.8})
+    cli = cli_json(tmp_path, SCENES / "listed_inputs.soft", "--set", "gain=0.8", "--grad")
+    assert loss == cli["loss"]
+    per_scene = [s["gradients"]["gain"] for s in cli["scenes"]]
+    assert grads["gain"] == pytest.approx(sum(per_scene) / 3, rel=1e-15)
+    # One input given: that scene only, as `--set p=10kPa`.
+    one = scene.run({"gain": 0.8}, inputs={"p": 10e3})
+    assert one["loss"] == cli["scenes"][1]["loss"]
+    assert "scenes" not in one
+
+
+def test_gradients_match_central_differences(beam):
+    """d loss / d p0 and d loss / d mu at one element against central differences of runs (f64)."""
+    p0 = 12e3
+    loss, grads = beam.loss_and_grad({"p0": p0})
+    h = 1.0
+    up = beam.run({"p0": p0 + h})["loss"]
+    down = beam.run({"p0": p0 - h})["loss"]
+    fd = (up - down) / (2 * h)
+    assert grads["p0"] == pytest.approx(fd, rel=1e-6)
+    assert loss == beam.run({"p0": p0})["loss"]
+    # The element with the largest sensitivity.
+    mu0 = np.array(beam.params["mu"].initial)
+    k = int(np.argmax(np.abs(grads["mu"])))
+    h_mu = 1.0
+    bumped = [mu0.copy(), mu0.copy()]
+    bumped[0][k] += h_mu
+    bumped[1][k] -= h_mu
+    fd_mu = (
+        beam.run({"p0": p0, "mu": bumped[0]})["loss"] - beam.run({"p0": p0, "mu": bumped[1]})["loss"]
+    ) / (2 * h_mu)
+    assert grads["mu"][k] == pytest.approx(fd_mu, rel=1e-5)
+
+
+def test_static_gradient_matches_central_differences(endoscope):
+    p = np.array([12e3, 6e3, 3e3])
+    target = {"target": [0.0, 20e-6, 30e-6]}
+    _, grads = endoscope.loss_and_grad({"p": p}, inputs=target)
+    for i in range(3):
+        h = 5.0
+        up, down = p.copy(), p.copy()
+        up[i] += h
+        down[i] -= h
+        fd = (
+            endoscope.run({"p": up}, inputs=target)["loss"]
+            - endoscope.run({"p": down}, inputs=target)["loss"]
+        ) / (2 * h)
+        assert grads["p"][i] == pytest.approx(fd, rel=1e-5, abs=1e-22)
+
+
+def test_return_state_and_state(beam):
+    summary = beam.run({"p0": 12e3}, steps=100, return_state=True)
+    x, v = summary["x"], summary["v"]
+    assert x.shape == beam.mesh.nodes.shape == v.shape
+    x2, v2 = beam.state()
+    np.testing.assert_array_equal(x, x2)
+    tip = beam.mesh.node_sets["tip"]
+    mean = (x[tip] - beam.mesh.nodes[tip]).mean(axis=0)
+    np.testing.assert_allclose(mean, summary["sets"]["tip"]["mean_displacement"], rtol=1e-12)
+    # The clamped nodes did not move.
+    base = beam.mesh.fixed_nodes
+    np.testing.assert_array_equal(x[base], beam.mesh.nodes[base])
+
+
+def test_repeated_runs_are_identical(beam):
+    a = beam.loss_and_grad({"p0": 7e3})
+    b = beam.loss_and_grad({"p0": 7e3})
+    assert a[0] == b[0]
+    np.testing.assert_array_equal(a[1]["mu"], b[1]["mu"])
+
+
+def test_a_script_with_errors_raises_compile_error_with_diagnostics(tmp_path):
+    bad = tmp_path / "bad.soft"
+    text = (SCENES / "beam.soft").read_text().replace('"../../../meshes/', f'"{ROOT}/meshes/')
+    bad.write_text(text.replace("param p0: pressure = 10 kPa", "param p0: pressure = 10 kPa + 2 mm"))
+    with pytest.raises(softc.CompileError) as e:
+        softc.compile(bad)
+    errors = [d for d in e.value.diagnostics if d["severity"] == "error"]
+    assert errors, e.value.diagnostics
+    d = errors[0]
+    assert d["code"] == "E0201"
+    assert d["file"] == str(bad)
+    line = bad.read_text().splitlines().index("param p0: pressure = 10 kPa + 2 mm in [0 kPa, 50 kPa]")
+    assert (d["line"], d["column"]) == (line + 1, 22)
+    assert "cannot add pressure (kPa) and length (mm)" in d["message"]
+    # str() is the rendered diagnostic, as `softc check` prints it.
+    assert f"{bad}:{line + 1}:22: error[E0201]" in str(e.value)
+    assert isinstance(e.value, Exception)
+
+
+def test_a_missing_script_is_file_not_found():
+    with pytest.raises(FileNotFoundError):
+        softc.compile(SCENES / "nope.soft")
+
+
+def test_an_unstable_run_raises_simulation_error(beam):
+    with pytest.raises(softc.SimulationError) as e:
+        beam.run({"p0": 40e3}, dt=2e-3, steps=400)
+    message = str(e.value)
+    assert "beam.soft" in message
+    assert "step" in message and "dt" in message
+    # The scene still works afterwards.
+    assert beam.run({"p0": 10e3}, steps=10)["steps"] == 10
+
+
+def test_bad_params_are_reported(beam):
+    with pytest.raises(KeyError, match="no param `q`"):
+        beam.run({"q": 1.0})
+    with pytest.raises(KeyError, match="is a param"):
+        beam.run(inputs={"p0": 1.0})
+    with pytest.raises(ValueError, match="shape"):
+        beam.run({"mu": [1e3, 2e3]})
+    with pytest.raises(softc.SimulationError, match="outside the bounds"):
+        beam.run({"p0": 60e3})
+    with pytest.raises(softc.SimulationError, match="finite"):
+        beam.run({"p0": float("nan")})
+    with pytest.raises(ValueError, match="checkpoint"):
+        beam.loss_and_grad(checkpoint="sometimes")
+
+
+def test_the_gil_is_released_while_simulating(static_pressure):
+    ticks = 0
+    done = threading.Event()
+
+    def work():
+        static_pressure.run({"p_max": 11e3})
+        done.set()
+
+    t = threading.Thread(target=work)
+    t.start()
+    while not done.is_set():
+        ticks += 1
+        time.sleep(0.001)
+    t.join()
+    assert ticks > 10
