@@ -26,15 +26,15 @@ RADIUS = 40e-6  # m: the targets' circle, as in controller_synthesis.soft
 
 
 def features(target):
-    """Thesis eq. 6.1: each target component (y, z) split at zero; metres."""
-    y, z = target[..., 1], target[..., 2]
+    """Thesis eq. 6.1: each target component (y, z) split at zero; in mm."""
+    y, z = target[..., 1] * 1e3, target[..., 2] * 1e3
     zero = torch.zeros_like(y)
     return torch.stack([torch.maximum(zero, y), torch.minimum(zero, y),
                         torch.maximum(zero, z), torch.minimum(zero, z)], dim=-1)
 
 
 class Controller(torch.nn.Module):
-    """20 kPa · sigmoid(w · features(target)); w in 1/m, initialised at zero (the thesis')."""
+    """20 kPa · sigmoid(w · features(target)); w in 1/mm, initialised at zero (the thesis')."""
 
     def __init__(self):
         super().__init__()
@@ -58,22 +58,24 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--iterations", type=int, default=30)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--lr", type=float, default=5.0)
     args = ap.parse_args()
 
     scene = softc.compile(HERE / "controller_scene.soft")
     loss_fn = softc.torch.SceneLoss(scene)
     controller = Controller()
-    # The weights in 1/mm for the optimizer (its steps are ~lr in these units).
-    opt = torch.optim.Adam(controller.parameters(), lr=50.0)
+    # Adam's steps are ~lr in the weights' units (1/mm); the script's bounds are ±1250 /mm.
+    opt = torch.optim.Adam(controller.parameters(), lr=args.lr)
     generator = torch.Generator().manual_seed(args.seed)
     for it in range(args.iterations):
         targets = quadrant_targets(generator)
         opt.zero_grad()
         losses = loss_fn(p=controller(targets), inputs={"target": targets})
-        loss = losses.mean()
+        # In um^2: Adam's epsilon (1e-8) would swamp gradients of a loss in m^2 (~1e-11).
+        loss = losses.mean() * 1e12
         loss.backward()
         opt.step()
-        print(f"iteration {it:2d}: batch loss {loss.item() * 1e12:10.3f} um^2")
+        print(f"iteration {it:2d}: batch loss {loss.item():10.3f} um^2")
 
     # Held out: the script's four validation targets.
     held_out = torch.tensor([[0, 20, 34.64], [0, -34.64, 20], [0, -20, -34.64],
@@ -83,7 +85,7 @@ def main():
     for t, e in zip(held_out, errors):
         print(f"held-out target ({t[1] * 1e6:6.2f}, {t[2] * 1e6:6.2f}) um: miss {e.item() * 1e6:.2f} um")
     print("weights (1/mm):")
-    print(controller.layer.weight.detach() / 1e3)
+    print(controller.layer.weight.detach())
 
 
 if __name__ == "__main__":

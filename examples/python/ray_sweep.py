@@ -1,5 +1,5 @@
 """A sweep of the cavity pressure of the cuboid actuator as Ray tasks: the tip's steady
-displacement from 0 to 30 kPa, written to a CSV and a plot.
+displacement from 0 to 300 kPa (the pressure study's optimum is ~275 kPa), written to a CSV and a plot.
 
     python examples/python/ray_sweep.py [--points N] [--out DIR] [--address ADDRESS]
 
@@ -27,7 +27,7 @@ def main():
     args = ap.parse_args()
 
     ray.init(address=args.address, include_dashboard=False, log_to_driver=False)
-    pressures = [30e3 * i / (args.points - 1) for i in range(args.points)]
+    pressures = [300e3 * i / (args.points - 1) for i in range(args.points)]
     results = softc.ray.map(HERE.parent / "pressure_optimization.soft",
                             [{"p_max": p} for p in pressures])
     ray.shutdown()

@@ -62,7 +62,7 @@ def test_the_torch_controller_is_the_scripts_controller(endoscope):
     targets = torch.tensor([[0, 20e-6, 30e-6], [0, -30e-6, 10e-6]], dtype=torch.float64)
     net = controller_torch.Controller()
     with torch.no_grad():
-        net.layer.weight.copy_(torch.as_tensor(w * 1e3))
+        net.layer.weight.copy_(torch.as_tensor(w))
     loss_fn = softc.torch.SceneLoss(endoscope)
     losses = loss_fn(p=net(targets), inputs={"target": targets})
     losses.mean().backward()
@@ -71,7 +71,8 @@ def test_the_torch_controller_is_the_scripts_controller(endoscope):
     for t in targets:
         loss, g = script.loss_and_grad({"w": w * 1e3}, inputs={"target": t.numpy()})
         expected_losses.append(loss)
-        expected_grad += g["w"] / len(targets)
+        # The script's w is in 1/m: d/d(w in 1/mm) = 1e3 d/d(w in 1/m).
+        expected_grad += 1e3 * g["w"] / len(targets)
     np.testing.assert_allclose(losses.detach().numpy(), expected_losses, rtol=1e-9)
     np.testing.assert_allclose(net.layer.weight.grad.numpy(), expected_grad, rtol=1e-7,
                                atol=1e-9 * np.abs(expected_grad).max())
