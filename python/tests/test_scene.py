@@ -208,3 +208,43 @@ def test_the_gil_is_released_while_simulating(static_pressure):
         time.sleep(0.001)
     t.join()
     assert ticks > 10
+
+
+GPU_CHECK = """
+import json, sys, softc
+gpu = softc.compile(sys.argv[1], backend="gpu")
+try:
+    loss, grads = gpu.loss_and_grad({"p0": 12e3}, steps=150)
+except softc.SimulationError as e:
+    print(json.dumps({"error": str(e)}))
+    raise SystemExit(0)
+summary = gpu.run({"p0": 12e3}, steps=150)
+print(json.dumps({"loss": loss, "p0": grads["p0"], "backend": summary["backend"]}))
+"""
+
+
+def test_the_gpu_backend_agrees_with_the_cpu(beam):
+    """WGSL kernels through wgpu (lavapipe in CI, where this must run): f32 loss and gradient
+    against the cpu's f64. In a process of its own: Mesa's lavapipe loads its LLVM into the
+    process, and torch.optim's later import of triton (another LLVM) crashes such a process."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", GPU_CHECK, str(SCENES / "beam.soft")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    if "error" in result:
+        if "no GPU adapter" in result["error"] and os.environ.get("CI") != "true":
+            pytest.skip(result["error"])
+        pytest.fail(result["error"])
+    assert result["backend"] == "gpu"
+    expected_loss, expected = beam.loss_and_grad({"p0": 12e3}, steps=150)
+    assert result["loss"] == pytest.approx(expected_loss, rel=2e-3)
+    assert result["p0"] == pytest.approx(expected["p0"], rel=2e-3)
