@@ -95,6 +95,11 @@ def compile(
     ``.diagnostics`` when the script has errors.
     """
     path = os.fspath(path)
+    if backend not in ("cpu", "gpu", "interp"):
+        raise ValueError(
+            f'backend = {backend!r}: expected "cpu", "gpu" or "interp" (the reference oracle '
+            "is a test oracle, run by `softc run --backend reference`)"
+        )
     if not os.path.exists(path):
         raise FileNotFoundError(f"no script at `{path}`")
     native = _softc.compile(

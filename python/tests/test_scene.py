@@ -248,3 +248,17 @@ def test_the_gpu_backend_agrees_with_the_cpu(beam):
     expected_loss, expected = beam.loss_and_grad({"p0": 12e3}, steps=150)
     assert result["loss"] == pytest.approx(expected_loss, rel=2e-3)
     assert result["p0"] == pytest.approx(expected["p0"], rel=2e-3)
+
+
+def test_backends_and_threads_agree(beam):
+    """The interpreter (the IR's reference semantics) and two cpu threads give the cpu's f64
+    numbers bit for bit; f32 is close."""
+    expected = beam.loss_and_grad({"p0": 12e3}, steps=40)
+    for options in ({"backend": "interp"}, {"threads": 2}):
+        other = softc.compile(SCENES / "beam.soft", **options).loss_and_grad({"p0": 12e3}, steps=40)
+        assert other[0] == expected[0], options
+        np.testing.assert_array_equal(other[1]["mu"], expected[1]["mu"])
+    f32 = softc.compile(SCENES / "beam.soft", precision="f32").loss_and_grad({"p0": 12e3}, steps=40)
+    assert f32[0] == pytest.approx(expected[0], rel=1e-3)
+    with pytest.raises(ValueError, match="backend"):
+        softc.compile(SCENES / "beam.soft", backend="tpu")
