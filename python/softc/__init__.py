@@ -30,6 +30,7 @@ from ._softc import CompileError, SimulationError
 __version__ = _softc.__version__
 __all__ = [
     "compile",
+    "quantity",
     "Scene",
     "Slot",
     "Mesh",
@@ -68,6 +69,18 @@ class Mesh:
     node_sets: Dict[str, np.ndarray]
     element_sets: Dict[str, np.ndarray]
     fixed_nodes: np.ndarray
+
+
+def quantity(text: str, unit: Optional[str] = None, name: str = "value") -> float:
+    """A value written with its unit, in SI: ``quantity("12 kPa") == 12000.0``. With ``unit``
+    (an SI unit such as ``"Pa"``), the value must have that dimension."""
+    value, si = _softc.quantity(text)
+    if unit is not None and si != unit:
+        raise ValueError(
+            f"{name} = {text!r} is in {si}, but `{name}` is in {unit}: give a value in a unit of "
+            f"the same dimension (or a float in {unit})"
+        )
+    return value
 
 
 def _shaped(values, shape):
@@ -197,6 +210,8 @@ class Scene:
                     raise KeyError(f"the script has no {what} `{name}`{hint}; its {what}s: {known}")
                 if hasattr(value, "detach"):  # a torch tensor
                     value = value.detach().cpu().numpy()
+                if isinstance(value, str):
+                    value = quantity(value, slot.unit, name)
                 array = np.asarray(value, dtype=np.float64)
                 if array.size != 1 and array.shape != slot.shape:
                     raise ValueError(
@@ -234,7 +249,8 @@ class Scene:
         inputs: Optional[Mapping[str, Any]] = None,
         return_state: bool = False,
     ) -> dict:
-        """Run the simulation with ``params`` (SI values by name; the others at the script's).
+        """Run the simulation with ``params`` (SI values by name, or strings with a unit such as
+        ``"12 kPa"``; the others at the script's).
 
         Returns the summary ``softc run`` prints as JSON (loss, steps, dt, each node set's
         displacement, solver report…), bit-identical to ``softc run --no-optimize --set …``.

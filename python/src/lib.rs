@@ -298,9 +298,19 @@ fn compile(
     })
 }
 
+/// A value with its unit (`"12 kPa"`, `"20 us"`), read by the language's own front end: the
+/// value in SI units and the SI unit of its dimension (`"Pa"`, `"s"`, `"1"` for none).
+#[pyfunction]
+fn quantity(text: &str) -> PyResult<(f64, String)> {
+    let (value, dim) = softc::session::parse_quantity(text)
+        .map_err(|e| PyValueError::new_err(format!("{text:?}: {e}")))?;
+    Ok((value, dim.si_unit()))
+}
+
 #[pymodule]
 fn _softc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(compile, m)?)?;
+    m.add_function(wrap_pyfunction!(quantity, m)?)?;
     m.add_class::<NativeScene>()?;
     m.add("CompileError", m.py().get_type::<CompileError>())?;
     m.add("SimulationError", m.py().get_type::<SimulationError>())?;

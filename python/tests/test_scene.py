@@ -262,3 +262,13 @@ def test_backends_and_threads_agree(beam):
     assert f32[0] == pytest.approx(expected[0], rel=1e-3)
     with pytest.raises(ValueError, match="backend"):
         softc.compile(SCENES / "beam.soft", backend="tpu")
+
+
+def test_values_with_units(beam):
+    assert softc.quantity("12 kPa") == 12e3
+    assert softc.quantity("20 us") == pytest.approx(20e-6, rel=1e-15)
+    assert beam.run({"p0": "12 kPa"}, steps=30)["loss"] == beam.run({"p0": 12e3}, steps=30)["loss"]
+    with pytest.raises(ValueError, match="is in m, but `p0` is in Pa"):
+        beam.run({"p0": "3 mm"}, steps=30)
+    with pytest.raises(ValueError):
+        softc.quantity("12 parsecs per fortnight")
