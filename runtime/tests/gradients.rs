@@ -106,7 +106,12 @@ fn every_parameter_kind_matches_central_differences() {
 fn benchmark_gradient_over_4000_steps_matches_central_differences() {
     // The canonical scene's full horizon (BENCHMARK.md): 4000 steps of 40 µs, d loss/d p_peak.
     let scene = load("examples/benchmark-1k.soft");
-    let g = gradient(&scene, 4000, &GradOptions::default());
+    // A budget of 40 states: `auto` checkpoints (without one it stores all 4000 states).
+    let options = GradOptions {
+        memory_budget: Some(40 * 48 * scene.mesh.nodes.len() as u64),
+        ..GradOptions::default()
+    };
+    let g = gradient(&scene, 4000, &options);
     let adj = g.gradients["param.p_peak"];
     let fd = central(&scene, 4000, "param.p_peak", 1.0);
     assert!(
