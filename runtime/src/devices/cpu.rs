@@ -22,6 +22,47 @@ pub struct Cpu {
     /// The time loop compiled for the launches of a step (single-threaded steps only).
     step_loop: Option<softc_compiler::back::cranelift::StepLoop>,
     use_step_loop: bool,
+    /// How fast the time loop ran on one thread and on several (the automatic choice).
+    loop_speed: LoopSpeed,
+}
+
+/// The automatic thread count of the compiled time loop: measured, not guessed. Whether a
+/// second thread pays depends on the mesh, the machine and what else runs on it (on a 2-core
+/// machine busy with a build, threads that wait for each other after every launch run slower
+/// than one), and the results are the same bits either way. So stretches of steps run on one
+/// thread and on all, each stretch's time per step is kept (a moving average), the faster
+/// choice runs, and every `PROBE_EVERY`-th stretch tries the other one again.
+#[derive(Default)]
+struct LoopSpeed {
+    /// Seconds per step on one thread, on several.
+    per_step: [Option<f64>; 2],
+    stretches: u64,
+}
+
+impl LoopSpeed {
+    const PROBE_EVERY: u64 = 16;
+
+    /// Whether the next stretch runs on several threads.
+    fn pick(&mut self) -> bool {
+        self.stretches += 1;
+        match self.per_step {
+            [_, None] => true,
+            [None, _] => false,
+            [Some(one), Some(many)] => {
+                let faster = many < one;
+                if self.stretches.is_multiple_of(Self::PROBE_EVERY) {
+                    !faster
+                } else {
+                    faster
+                }
+            }
+        }
+    }
+
+    fn record(&mut self, many: bool, seconds_per_step: f64) {
+        let s = &mut self.per_step[many as usize];
+        *s = Some(s.map_or(seconds_per_step, |old| 0.7 * old + 0.3 * seconds_per_step));
+    }
 }
 
 impl Cpu {
@@ -39,6 +80,7 @@ impl Cpu {
             scratch: Vec::new(),
             step_loop: None,
             use_step_loop: true,
+            loop_speed: LoopSpeed::default(),
         })
     }
 
@@ -131,9 +173,20 @@ impl Backend for Cpu {
         dt: f64,
         u: &Uniforms,
     ) -> Result<bool, String> {
-        if !self.use_step_loop || launches.iter().any(|(_, r)| self.threads_for(r.len()) > 1) {
+        if !self.use_step_loop {
             return Ok(false);
         }
+        let largest = launches.iter().map(|(_, r)| r.len()).max().unwrap_or(0);
+        // With no thread count given, steps of 1,000+ entities measure one thread against all
+        // (at most 8, see `threads_for`) and run the faster (`LoopSpeed`).
+        let all = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
+        let auto = self.threads.is_none() && largest >= 1_000 && all > 1 && n >= 8;
+        let many = auto && self.loop_speed.pick();
+        let threads = match (self.threads, many) {
+            (Some(t), _) => t,
+            (None, true) => all,
+            (None, false) => 1,
+        };
         let kernels: Vec<usize> = launches.iter().map(|(k, _)| *k).collect();
         if self
             .step_loop
@@ -150,6 +203,7 @@ impl Backend for Cpu {
             })
             .collect();
         let ranges: Vec<Range<usize>> = launches.iter().map(|(_, r)| r.clone()).collect();
+        let start = std::time::Instant::now();
         let (Some(bufs), Some(topo), Some(lp)) = (
             self.buffers.as_mut(),
             self.topology.as_ref(),
@@ -158,7 +212,11 @@ impl Backend for Cpu {
             return Err("the backend is not prepared".into());
         };
         self.module
-            .run_loop(lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n)?;
+            .run_loop_threads(lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n, threads)?;
+        if auto {
+            self.loop_speed
+                .record(many, start.elapsed().as_secs_f64() / n as f64);
+        }
         Ok(true)
     }
 }
