@@ -428,6 +428,16 @@ impl Translator<'_> {
             pack(b, &outs)
         };
 
+        // Loads of buffers the kernel does not store to are pure (read only during the call,
+        // in bounds): Cranelift may place them next to their first use, which shortens what is
+        // live at once in the large element kernels.
+        let load_flags = |buffer: u32| {
+            if k.stores.iter().any(|s| s.buffer.0 == buffer) {
+                trusted()
+            } else {
+                readonly().with_can_move()
+            }
+        };
         let mut rows: HashMap<(u32, Option<u32>), Value> = HashMap::new();
         let mut nodes: HashMap<(u32, u32), Value> = HashMap::new();
         let nc = corners(k.domain).unwrap_or(1) as usize;
@@ -449,7 +459,7 @@ impl Translator<'_> {
                             let xs: Vec<Value> = (0..lanes as usize)
                                 .map(|l| {
                                     let o = (l * width + *component as usize) * size;
-                                    b.ins().load(fty, trusted(), row, off(o))
+                                    b.ins().load(fty, load_flags(buffer.0), row, off(o))
                                 })
                                 .collect();
                             pack(b, &xs)
@@ -478,7 +488,7 @@ impl Translator<'_> {
                                         });
                                     b.ins().load(
                                         fty,
-                                        trusted(),
+                                        load_flags(buffer.0),
                                         row,
                                         off(*component as usize * size),
                                     )
