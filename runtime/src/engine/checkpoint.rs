@@ -402,8 +402,12 @@ impl StateStore {
         let range = slot * 2 * n..(slot + 1) * 2 * n;
         match &mut self.data {
             StoreData::F32(d) => {
-                let s = &mut d[range];
-                for (o, &i) in s.iter_mut().zip(x.iter().chain(v)) {
+                let (sx, sv) = d[range].split_at_mut(n);
+                // Two plain loops (they vectorize; a chained iterator does not).
+                for (o, &i) in sx.iter_mut().zip(x) {
+                    *o = i as f32;
+                }
+                for (o, &i) in sv.iter_mut().zip(v) {
                     *o = i as f32;
                 }
             }
