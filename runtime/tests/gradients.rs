@@ -212,7 +212,10 @@ fn checkpoint_schedules_give_bit_identical_gradients() {
     assert_eq!(all.recompute_ratio, 1.0);
     // Without a budget `auto` stores every state that fits in 1 GiB: all 200 here.
     let auto = with(Checkpointing::Auto, None);
-    assert_eq!((auto.recompute_ratio, auto.stored_states), (1.0, all.stored_states));
+    assert_eq!(
+        (auto.recompute_ratio, auto.stored_states),
+        (1.0, all.stored_states)
+    );
     // A budget of 10 states makes it checkpoint.
     let ten = Some(10 * all.state_bytes as u64);
     for (c, budget) in [

@@ -211,8 +211,9 @@ impl Backend for Cpu {
         ) else {
             return Err("the backend is not prepared".into());
         };
-        self.module
-            .run_loop_threads(lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n, threads)?;
+        self.module.run_loop_threads(
+            lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n, threads,
+        )?;
         if auto {
             self.loop_speed
                 .record(many, start.elapsed().as_secs_f64() / n as f64);

@@ -456,7 +456,9 @@ impl<B: Backend> Simulation<'_, B> {
                     slots.put(slot, current, &x, &v);
                 }
                 Action::Restore { slot } => {
-                    let (k, x, v) = slots.get(slot).expect("the schedule restores a stored slot");
+                    let (k, x, v) = slots
+                        .get(slot)
+                        .expect("the schedule restores a stored slot");
                     self.backend.set(self.ids.x, &x);
                     self.backend.set(self.ids.v, &v);
                     current = k;

@@ -252,97 +252,6 @@ impl Schedule {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Execute a schedule symbolically: every reverse sees its own state, steps are reversed
-    /// exactly once in decreasing order, restores find what was stored.
-    fn replay(s: &Schedule) -> u64 {
-        let mut current: Option<u64> = Some(0);
-        let mut slots: Vec<Option<u64>> = vec![None; s.slots.max(1) * 4 + 8];
-        let mut next_reverse = s.steps;
-        let mut live = 0usize;
-        let mut max_live = 0usize;
-        for a in &s.actions {
-            match *a {
-                Action::Advance { to } => {
-                    let c = current.expect("advance from a known state");
-                    assert!(to > c, "advance backwards {c} -> {to}");
-                    current = Some(to);
-                }
-                Action::Store { slot } => {
-                    assert!(slots[slot].is_none(), "slot {slot} overwritten");
-                    slots[slot] = current;
-                    live += 1;
-                    max_live = max_live.max(live);
-                }
-                Action::Restore { slot } => current = Some(slots[slot].expect("stored")),
-                Action::Free { slot } => {
-                    assert!(slots[slot].take().is_some());
-                    live -= 1;
-                }
-                Action::Reverse { step } => {
-                    assert_eq!(current, Some(step));
-                    assert_eq!(step + 1, next_reverse, "steps reversed in order");
-                    next_reverse = step;
-                }
-            }
-        }
-        assert_eq!(next_reverse, 0, "every step reversed");
-        assert_eq!(live, 0, "every slot freed");
-        assert!(max_live <= s.slots);
-        s.forward_steps()
-    }
-
-    #[test]
-    fn schedules_reverse_every_step_once_in_order() {
-        for steps in [1u64, 2, 3, 7, 50, 333] {
-            replay(&Schedule::store_all(steps));
-            for k in [1, 2, 5, 64] {
-                replay(&Schedule::periodic(steps, k));
-            }
-            for s in [1, 2, 3, 5, 20, 400] {
-                replay(&Schedule::revolve(steps, s));
-            }
-            replay(&Schedule::auto(steps, 1000));
-        }
-    }
-
-    #[test]
-    fn binomial_schedule_bounds_memory_and_recomputation() {
-        // State 0's snapshot plus 27 free ones: r = 3 sweeps at most (C(30, 3) = 4060 ≥ 4000).
-        let s = Schedule::revolve(4000, 28);
-        let forward = replay(&s);
-        assert!(s.slots <= 28);
-        assert!(forward <= 3 * 4000, "{forward}");
-        let all = Schedule::store_all(4000);
-        assert_eq!(replay(&all), 3999, "store_all never recomputes");
-        let p = Schedule::periodic(4000, 64);
-        assert!(replay(&p) < 2 * 4000);
-        assert!(p.slots <= 63 + 64);
-        let auto = Schedule::auto(4000, 1000);
-        assert!(auto.slots < 40 && replay(&auto) <= 3 * 4000);
-    }
-
-    #[test]
-    fn the_forward_run_is_the_prefix() {
-        let s = Schedule::revolve(100, 5);
-        let p = s.forward_prefix();
-        assert!(
-            s.actions[..p]
-                .iter()
-                .all(|a| matches!(a, Action::Advance { .. } | Action::Store { .. }))
-        );
-        // The prefix reaches the last step's state.
-        let last_advance = s.actions[..p].iter().rev().find_map(|a| match a {
-            Action::Advance { to } => Some(*to),
-            _ => None,
-        });
-        assert_eq!(last_advance, Some(99));
-    }
-}
-
 /// The states a schedule stores, in one allocation: slot `i` holds the positions and then the
 /// velocities of one state (`len` values each) and the step it belongs to, in the device's
 /// precision (f32 states are stored as f32: exact, and half the memory).
@@ -365,7 +274,8 @@ enum StoreData {
 }
 
 /// The largest store of each precision a finished backward pass left, for the next one.
-static SPARE: std::sync::Mutex<(Vec<f32>, Vec<f64>)> = std::sync::Mutex::new((Vec::new(), Vec::new()));
+static SPARE: std::sync::Mutex<(Vec<f32>, Vec<f64>)> =
+    std::sync::Mutex::new((Vec::new(), Vec::new()));
 
 /// A vector of at least `n` values: the spare one if it is large enough, else a fresh one.
 fn take_spare<T: Copy + Default>(spare: &mut Vec<T>, n: usize) -> Vec<T> {
@@ -474,4 +384,95 @@ fn advise_huge_pages<T>(data: &[T]) {
     }
     #[cfg(not(target_os = "linux"))]
     let _ = data;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Execute a schedule symbolically: every reverse sees its own state, steps are reversed
+    /// exactly once in decreasing order, restores find what was stored.
+    fn replay(s: &Schedule) -> u64 {
+        let mut current: Option<u64> = Some(0);
+        let mut slots: Vec<Option<u64>> = vec![None; s.slots.max(1) * 4 + 8];
+        let mut next_reverse = s.steps;
+        let mut live = 0usize;
+        let mut max_live = 0usize;
+        for a in &s.actions {
+            match *a {
+                Action::Advance { to } => {
+                    let c = current.expect("advance from a known state");
+                    assert!(to > c, "advance backwards {c} -> {to}");
+                    current = Some(to);
+                }
+                Action::Store { slot } => {
+                    assert!(slots[slot].is_none(), "slot {slot} overwritten");
+                    slots[slot] = current;
+                    live += 1;
+                    max_live = max_live.max(live);
+                }
+                Action::Restore { slot } => current = Some(slots[slot].expect("stored")),
+                Action::Free { slot } => {
+                    assert!(slots[slot].take().is_some());
+                    live -= 1;
+                }
+                Action::Reverse { step } => {
+                    assert_eq!(current, Some(step));
+                    assert_eq!(step + 1, next_reverse, "steps reversed in order");
+                    next_reverse = step;
+                }
+            }
+        }
+        assert_eq!(next_reverse, 0, "every step reversed");
+        assert_eq!(live, 0, "every slot freed");
+        assert!(max_live <= s.slots);
+        s.forward_steps()
+    }
+
+    #[test]
+    fn schedules_reverse_every_step_once_in_order() {
+        for steps in [1u64, 2, 3, 7, 50, 333] {
+            replay(&Schedule::store_all(steps));
+            for k in [1, 2, 5, 64] {
+                replay(&Schedule::periodic(steps, k));
+            }
+            for s in [1, 2, 3, 5, 20, 400] {
+                replay(&Schedule::revolve(steps, s));
+            }
+            replay(&Schedule::auto(steps, 1000));
+        }
+    }
+
+    #[test]
+    fn binomial_schedule_bounds_memory_and_recomputation() {
+        // State 0's snapshot plus 27 free ones: r = 3 sweeps at most (C(30, 3) = 4060 ≥ 4000).
+        let s = Schedule::revolve(4000, 28);
+        let forward = replay(&s);
+        assert!(s.slots <= 28);
+        assert!(forward <= 3 * 4000, "{forward}");
+        let all = Schedule::store_all(4000);
+        assert_eq!(replay(&all), 3999, "store_all never recomputes");
+        let p = Schedule::periodic(4000, 64);
+        assert!(replay(&p) < 2 * 4000);
+        assert!(p.slots <= 63 + 64);
+        let auto = Schedule::auto(4000, 1000);
+        assert!(auto.slots < 40 && replay(&auto) <= 3 * 4000);
+    }
+
+    #[test]
+    fn the_forward_run_is_the_prefix() {
+        let s = Schedule::revolve(100, 5);
+        let p = s.forward_prefix();
+        assert!(
+            s.actions[..p]
+                .iter()
+                .all(|a| matches!(a, Action::Advance { .. } | Action::Store { .. }))
+        );
+        // The prefix reaches the last step's state.
+        let last_advance = s.actions[..p].iter().rev().find_map(|a| match a {
+            Action::Advance { to } => Some(*to),
+            _ => None,
+        });
+        assert_eq!(last_advance, Some(99));
+    }
 }

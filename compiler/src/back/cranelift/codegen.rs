@@ -511,17 +511,16 @@ impl Translator<'_> {
                             if nl > 1 && c0 + nl <= width {
                                 // Components c0.. of each lane's row as one vector, transposed.
                                 let key = (buffer.0, c0);
-                                if !own_groups.contains_key(&key) {
+                                let group = own_groups.entry(key).or_insert_with(|| {
                                     let rowv: Vec<Value> = (0..nl)
                                         .map(|l| {
                                             let o = (l * width + c0) * size;
                                             b.ins().load(vty, vector_flags(buffer.0), row, off(o))
                                         })
                                         .collect();
-                                    let t = transpose(b, &rowv);
-                                    own_groups.insert(key, t);
-                                }
-                                vals.push(own_groups[&key][c - c0]);
+                                    transpose(b, &rowv)
+                                });
+                                vals.push(group[c - c0]);
                                 continue;
                             }
                             let xs: Vec<Value> = (0..lanes as usize)
@@ -678,7 +677,7 @@ impl Translator<'_> {
                 let s = &k.stores[si];
                 let width = m.buffers[s.buffer.0 as usize].width as usize;
                 let c0 = s.component as usize;
-                if stored[si] || c0 % nl != 0 || c0 + nl > width {
+                if stored[si] || !c0.is_multiple_of(nl) || c0 + nl > width {
                     continue;
                 }
                 let once = |c: usize| {
