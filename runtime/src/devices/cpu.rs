@@ -177,10 +177,11 @@ impl Backend for Cpu {
             return Ok(false);
         }
         let largest = launches.iter().map(|(_, r)| r.len()).max().unwrap_or(0);
-        // With no thread count given, steps of 1,000+ entities measure one thread against all
-        // (at most 8, see `threads_for`) and run the faster (`LoopSpeed`).
+        // With no thread count given, steps of 8,000+ entities measure one thread against all
+        // (at most 8, see `threads_for`) and run the faster (`LoopSpeed`); smaller steps (~30 µs
+        // at 1k tets) stay on one thread, where a probe's waits would cost more than it wins.
         let all = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
-        let auto = self.threads.is_none() && largest >= 1_000 && all > 1 && n >= 8;
+        let auto = self.threads.is_none() && largest >= 8_000 && all > 1 && n >= 8;
         let many = auto && self.loop_speed.pick();
         let threads = match (self.threads, many) {
             (Some(t), _) => t,
