@@ -22,17 +22,23 @@ pub struct Cpu {
     /// The time loop compiled for the launches of a step (single-threaded steps only).
     step_loop: Option<softc_compiler::back::cranelift::StepLoop>,
     use_step_loop: bool,
-    /// How fast the time loop ran on one thread and on several (the automatic choice).
-    loop_speed: LoopSpeed,
 }
+
+/// How fast time loops ran on one thread and on several, per kind of step (its largest
+/// launch, all its entities, the precision): kept for the process, so that every simulation
+/// of a scene (an optimization's iterations, a benchmark's repeats) starts from what earlier
+/// ones measured.
+static LOOP_SPEEDS: std::sync::Mutex<Vec<((usize, usize, usize), LoopSpeed)>> =
+    std::sync::Mutex::new(Vec::new());
 
 /// The automatic thread count of the compiled time loop: measured, not guessed. Whether a
 /// second thread pays depends on the mesh, the machine and what else runs on it (on a 2-core
 /// machine busy with a build, threads that wait for each other after every launch run slower
 /// than one), and the results are the same bits either way. So stretches of steps run on one
 /// thread and on all, each stretch's time per step is kept (a moving average), the faster
-/// choice runs, and every `PROBE_EVERY`-th stretch tries the other one again.
-#[derive(Default)]
+/// choice runs, and every `PROBE_EVERY`-th stretch tries the other one again (the first four
+/// alternate, so that neither is judged by one cold stretch).
+#[derive(Default, Clone, Copy)]
 struct LoopSpeed {
     /// Seconds per step on one thread, on several.
     per_step: [Option<f64>; 2],
@@ -45,6 +51,9 @@ impl LoopSpeed {
     /// Whether the next stretch runs on several threads.
     fn pick(&mut self) -> bool {
         self.stretches += 1;
+        if self.stretches <= 4 {
+            return self.stretches % 2 == 1;
+        }
         match self.per_step {
             [_, None] => true,
             [None, _] => false,
@@ -80,7 +89,6 @@ impl Cpu {
             scratch: Vec::new(),
             step_loop: None,
             use_step_loop: true,
-            loop_speed: LoopSpeed::default(),
         })
     }
 
@@ -182,7 +190,23 @@ impl Backend for Cpu {
         // at 1k tets) stay on one thread, where a probe's waits would cost more than it wins.
         let all = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
         let auto = self.threads.is_none() && largest >= 8_000 && all > 1 && n >= 8;
-        let many = auto && self.loop_speed.pick();
+        let key = (
+            largest,
+            launches.iter().map(|(_, r)| r.len()).sum::<usize>(),
+            self.module.precision().size(),
+        );
+        let speeds = || LOOP_SPEEDS.lock().unwrap_or_else(|e| e.into_inner());
+        let many = auto && {
+            let mut all_speeds = speeds();
+            let at = match all_speeds.iter().position(|(k, _)| *k == key) {
+                Some(at) => at,
+                None => {
+                    all_speeds.push((key, LoopSpeed::default()));
+                    all_speeds.len() - 1
+                }
+            };
+            all_speeds[at].1.pick()
+        };
         let threads = match (self.threads, many) {
             (Some(t), _) => t,
             (None, true) => all,
@@ -216,8 +240,10 @@ impl Backend for Cpu {
             lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n, threads,
         )?;
         if auto {
-            self.loop_speed
-                .record(many, start.elapsed().as_secs_f64() / n as f64);
+            let per_step = start.elapsed().as_secs_f64() / n as f64;
+            if let Some((_, s)) = speeds().iter_mut().find(|(k, _)| *k == key) {
+                s.record(many, per_step);
+            }
         }
         Ok(true)
     }
