@@ -28,8 +28,11 @@ pub struct Cpu {
 /// launch, all its entities, the precision): kept for the process, so that every simulation
 /// of a scene (an optimization's iterations, a benchmark's repeats) starts from what earlier
 /// ones measured.
-static LOOP_SPEEDS: std::sync::Mutex<Vec<((usize, usize, usize), LoopSpeed)>> =
+static LOOP_SPEEDS: std::sync::Mutex<Vec<(StepKind, LoopSpeed)>> =
     std::sync::Mutex::new(Vec::new());
+
+/// A step's largest launch, all its entities, and the precision's bytes.
+type StepKind = (usize, usize, usize);
 
 /// The automatic thread count of the compiled time loop: measured, not guessed. Whether a
 /// second thread pays depends on the mesh, the machine and what else runs on it (on a 2-core
