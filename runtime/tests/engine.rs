@@ -573,6 +573,20 @@ fn the_compiled_time_loop_gives_the_bits_of_launch_by_launch_stepping() {
     let (a, b) = (steady(true), steady(false));
     assert_eq!(a.summary.steps, b.summary.steps);
     assert_eq!(a.summary.x, b.summary.x);
+    // The loop on several threads (each launch in chunks claimed by whichever thread is free,
+    // a chunk starting when the launches before it are done) equals one thread to the bit.
+    for precision in [Precision::F64, Precision::F32] {
+        let run = |threads| {
+            let c = Cpu::new(module, precision, Some(threads)).unwrap();
+            Simulation::new(&scene, c).run(None, Some(230)).unwrap()
+        };
+        let one = run(1);
+        for threads in [2, 3] {
+            let r = run(threads);
+            assert_eq!(r.x, one.x, "{precision}, {threads} threads: positions");
+            assert_eq!(r.v, one.v, "{precision}, {threads} threads: velocities");
+        }
+    }
 }
 
 /// Forward speed with and without the compiled time loop (a measurement, not a check):

@@ -589,8 +589,10 @@ fn long_horizon_gradient(steps: u64) {
     let scene = load(&write(&dir, "beam.soft", &text));
     let t0 = std::time::Instant::now();
     let adj = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    // A budget of 100 states: `auto` checkpoints (without one it would store every state).
     let options = GradOptions {
         checkpoint: Checkpointing::Auto,
+        memory_budget: Some(100 * 48 * scene.mesh.nodes.len() as u64),
         ..GradOptions::default()
     };
     let g = Simulation::new(&scene, adj)

@@ -106,7 +106,12 @@ fn every_parameter_kind_matches_central_differences() {
 fn benchmark_gradient_over_4000_steps_matches_central_differences() {
     // The canonical scene's full horizon (BENCHMARK.md): 4000 steps of 40 µs, d loss/d p_peak.
     let scene = load("examples/benchmark-1k.soft");
-    let g = gradient(&scene, 4000, &GradOptions::default());
+    // A budget of 40 states: `auto` checkpoints (without one it stores all 4000 states).
+    let options = GradOptions {
+        memory_budget: Some(40 * 48 * scene.mesh.nodes.len() as u64),
+        ..GradOptions::default()
+    };
+    let g = gradient(&scene, 4000, &options);
     let adj = g.gradients["param.p_peak"];
     let fd = central(&scene, 4000, "param.p_peak", 1.0);
     assert!(
@@ -192,25 +197,34 @@ fn example_gradients_match_central_differences() {
 #[test]
 fn checkpoint_schedules_give_bit_identical_gradients() {
     let scene = load("runtime/tests/fixtures/grad/all_kinds.soft");
-    let with = |c| {
+    let with = |c, memory_budget| {
         gradient(
             &scene,
             200,
             &GradOptions {
                 checkpoint: c,
+                memory_budget,
                 ..GradOptions::default()
             },
         )
     };
-    let all = with(Checkpointing::StoreAll);
+    let all = with(Checkpointing::StoreAll, None);
     assert_eq!(all.recompute_ratio, 1.0);
-    for c in [
-        Checkpointing::Revolve(1),
-        Checkpointing::Revolve(4),
-        Checkpointing::Periodic(7),
-        Checkpointing::Auto,
+    // Without a budget `auto` stores every state that fits in 1 GiB: all 200 here.
+    let auto = with(Checkpointing::Auto, None);
+    assert_eq!(
+        (auto.recompute_ratio, auto.stored_states),
+        (1.0, all.stored_states)
+    );
+    // A budget of 10 states makes it checkpoint.
+    let ten = Some(10 * all.state_bytes as u64);
+    for (c, budget) in [
+        (Checkpointing::Revolve(1), None),
+        (Checkpointing::Revolve(4), None),
+        (Checkpointing::Periodic(7), None),
+        (Checkpointing::Auto, ten),
     ] {
-        let other = with(c);
+        let other = with(c, budget);
         assert!(other.stored_states < all.stored_states);
         assert_eq!(
             other.summary.loss.unwrap().to_bits(),

@@ -35,7 +35,9 @@ pub struct RunArgs {
     /// slower on the shipped scenes, but no matrix in memory).
     #[arg(long, value_enum, default_value_t = LinearSolver::Direct)]
     pub linear_solver: LinearSolver,
-    /// Worker threads of the cpu backend (default: all cores for launches of 8,000+ entities, else 1).
+    /// Worker threads of the cpu backend (default: stretches of steps of 8,000+ entities are
+    /// timed on one thread and on all cores and run on the faster; single launches of 8,000+
+    /// entities use all cores). Results are the same bits for any count.
     #[arg(long, allow_hyphen_values = true)]
     pub threads: Option<usize>,
     /// Override a param's value, with its unit: `--set p_max=2.5kPa`.

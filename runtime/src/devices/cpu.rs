@@ -24,6 +24,59 @@ pub struct Cpu {
     use_step_loop: bool,
 }
 
+/// How fast time loops ran on one thread and on several, per kind of step (its largest
+/// launch, all its entities, the precision): kept for the process, so that every simulation
+/// of a scene (an optimization's iterations, a benchmark's repeats) starts from what earlier
+/// ones measured.
+static LOOP_SPEEDS: std::sync::Mutex<Vec<(StepKind, LoopSpeed)>> =
+    std::sync::Mutex::new(Vec::new());
+
+/// A step's largest launch, all its entities, and the precision's bytes.
+type StepKind = (usize, usize, usize);
+
+/// The automatic thread count of the compiled time loop: measured, not guessed. Whether a
+/// second thread pays depends on the mesh, the machine and what else runs on it (on a 2-core
+/// machine busy with a build, threads that wait for each other after every launch run slower
+/// than one), and the results are the same bits either way. So stretches of steps run on one
+/// thread and on all, each stretch's time per step is kept (a moving average), the faster
+/// choice runs, and every `PROBE_EVERY`-th stretch tries the other one again (the first four
+/// alternate, so that neither is judged by one cold stretch).
+#[derive(Default, Clone, Copy)]
+struct LoopSpeed {
+    /// Seconds per step on one thread, on several.
+    per_step: [Option<f64>; 2],
+    stretches: u64,
+}
+
+impl LoopSpeed {
+    const PROBE_EVERY: u64 = 16;
+
+    /// Whether the next stretch runs on several threads.
+    fn pick(&mut self) -> bool {
+        self.stretches += 1;
+        if self.stretches <= 4 {
+            return self.stretches % 2 == 1;
+        }
+        match self.per_step {
+            [_, None] => true,
+            [None, _] => false,
+            [Some(one), Some(many)] => {
+                let faster = many < one;
+                if self.stretches.is_multiple_of(Self::PROBE_EVERY) {
+                    !faster
+                } else {
+                    faster
+                }
+            }
+        }
+    }
+
+    fn record(&mut self, many: bool, seconds_per_step: f64) {
+        let s = &mut self.per_step[many as usize];
+        *s = Some(s.map_or(seconds_per_step, |old| 0.7 * old + 0.3 * seconds_per_step));
+    }
+}
+
 impl Cpu {
     pub fn new(
         module: &Module,
@@ -131,9 +184,37 @@ impl Backend for Cpu {
         dt: f64,
         u: &Uniforms,
     ) -> Result<bool, String> {
-        if !self.use_step_loop || launches.iter().any(|(_, r)| self.threads_for(r.len()) > 1) {
+        if !self.use_step_loop {
             return Ok(false);
         }
+        let largest = launches.iter().map(|(_, r)| r.len()).max().unwrap_or(0);
+        // With no thread count given, steps of 8,000+ entities measure one thread against all
+        // (at most 8, see `threads_for`) and run the faster (`LoopSpeed`); smaller steps (~30 µs
+        // at 1k tets) stay on one thread, where a probe's waits would cost more than it wins.
+        let all = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
+        let auto = self.threads.is_none() && largest >= 8_000 && all > 1 && n >= 8;
+        let key = (
+            largest,
+            launches.iter().map(|(_, r)| r.len()).sum::<usize>(),
+            self.module.precision().size(),
+        );
+        let speeds = || LOOP_SPEEDS.lock().unwrap_or_else(|e| e.into_inner());
+        let many = auto && {
+            let mut all_speeds = speeds();
+            let at = match all_speeds.iter().position(|(k, _)| *k == key) {
+                Some(at) => at,
+                None => {
+                    all_speeds.push((key, LoopSpeed::default()));
+                    all_speeds.len() - 1
+                }
+            };
+            all_speeds[at].1.pick()
+        };
+        let threads = match (self.threads, many) {
+            (Some(t), _) => t,
+            (None, true) => all,
+            (None, false) => 1,
+        };
         let kernels: Vec<usize> = launches.iter().map(|(k, _)| *k).collect();
         if self
             .step_loop
@@ -150,6 +231,7 @@ impl Backend for Cpu {
             })
             .collect();
         let ranges: Vec<Range<usize>> = launches.iter().map(|(_, r)| r.clone()).collect();
+        let start = std::time::Instant::now();
         let (Some(bufs), Some(topo), Some(lp)) = (
             self.buffers.as_mut(),
             self.topology.as_ref(),
@@ -157,8 +239,15 @@ impl Backend for Cpu {
         ) else {
             return Err("the backend is not prepared".into());
         };
-        self.module
-            .run_loop(lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n)?;
+        self.module.run_loop_threads(
+            lp, bufs, topo, &uniforms, &ranges, swaps, first, dt, n, threads,
+        )?;
+        if auto {
+            let per_step = start.elapsed().as_secs_f64() / n as f64;
+            if let Some((_, s)) = speeds().iter_mut().find(|(k, _)| *k == key) {
+                s.record(many, per_step);
+            }
+        }
         Ok(true)
     }
 }

@@ -10,17 +10,24 @@
 //! A per-element param's derivatives accumulate in `grad_param.NAME`, one entry per element,
 //! which is reported as is: `param.NAME.i` for the set's `i`-th element.
 
-use super::checkpoint::{Action, Schedule};
+use super::checkpoint::{Action, Schedule, StateStore};
 use super::loss::{Loss, LossWindow};
 use super::{CHECK_EVERY, RunError, RunSummary, Simulation};
 use crate::devices::{Backend, domain_len};
+use softc_compiler::back::Precision;
 use softc_compiler::driver::LossArg;
 use std::collections::BTreeMap;
+
+/// What `Checkpointing::Auto` may store without a memory budget: every state when they fit in
+/// 1 GiB (10k tets: 126 kB a state, 8,500 steps), which recomputes nothing; the checkpointed
+/// schedules cost 1.8-2.8 extra forward steps per reversed step (issue 18).
+pub const AUTO_STORE_ALL_BYTES: u64 = 1 << 30;
 
 /// Which states the backward pass keeps.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Checkpointing {
-    /// The fewest snapshots that keep recomputation within 3 forward runs, within the budget.
+    /// Every state when they fit in the budget (without one, [`AUTO_STORE_ALL_BYTES`]); else
+    /// the fewest snapshots that keep recomputation within 3 forward runs, within the budget.
     Auto,
     StoreAll,
     Periodic(u64),
@@ -278,7 +285,10 @@ impl<B: Backend> Simulation<'_, B> {
             })?;
         let adj = &self.scene.lowered.adjoint;
         let n_nodes = self.scene.mesh.nodes.len();
-        let state_bytes = 2 * 3 * n_nodes * std::mem::size_of::<f64>();
+        // An f32 device's states are kept as f32 (exact).
+        let single = self.backend.precision() == Precision::F32;
+        let value_bytes = if single { 4 } else { 8 };
+        let state_bytes = 2 * 3 * n_nodes * value_bytes;
         let reversed = options.truncate.map_or(steps, |t| t.min(steps));
         let schedule = {
             // The current state is held besides the stored ones: a budget that holds fewer than
@@ -303,7 +313,20 @@ impl<B: Backend> Simulation<'_, B> {
                 Checkpointing::StoreAll => Schedule::store_all(steps),
                 Checkpointing::Periodic(k) => Schedule::periodic(steps, k),
                 Checkpointing::Revolve(n) => Schedule::revolve(steps, n),
-                Checkpointing::Auto => Schedule::auto(steps, budget_states.unwrap_or(usize::MAX)),
+                Checkpointing::Auto => {
+                    // Every state when they fit (the budget, else AUTO_STORE_ALL_BYTES): no
+                    // step is recomputed. Otherwise the fewest snapshots within three forward
+                    // runs.
+                    let cap = budget_states
+                        .unwrap_or((AUTO_STORE_ALL_BYTES / state_bytes.max(1) as u64) as usize);
+                    if steps < cap as u64 {
+                        let mut s = Schedule::store_all(steps);
+                        s.kind = "auto: store_all".into();
+                        s
+                    } else {
+                        Schedule::auto(steps, budget_states.unwrap_or(usize::MAX))
+                    }
+                }
             };
             if let Some(max) = budget_states
                 && s.slots > max
@@ -327,7 +350,7 @@ impl<B: Backend> Simulation<'_, B> {
 
         // The forward run: the schedule's prefix, then the last step.
         let prefix = schedule.forward_prefix();
-        let mut slots: Vec<Option<(u64, HostState)>> = vec![None; schedule.slots + 1];
+        let mut slots = StateStore::new(schedule.slots + 1, 3 * n_nodes, single);
         let mut current = 0u64;
         // A blow-up before the first state check is run again from the initial state.
         self.last_good = Some((
@@ -365,7 +388,10 @@ impl<B: Backend> Simulation<'_, B> {
                         }
                     }
                 }
-                Action::Store { slot } => slots[slot] = Some((current, self.save_state())),
+                Action::Store { slot } => {
+                    let (x, v) = self.save_state();
+                    slots.put(slot, current, &x, &v);
+                }
                 _ => unreachable!("the prefix only advances and stores"),
             }
         }
@@ -425,16 +451,19 @@ impl<B: Backend> Simulation<'_, B> {
                         current = to;
                     }
                 }
-                Action::Store { slot } => slots[slot] = Some((current, self.save_state())),
+                Action::Store { slot } => {
+                    let (x, v) = self.save_state();
+                    slots.put(slot, current, &x, &v);
+                }
                 Action::Restore { slot } => {
-                    let (k, s) = slots[slot]
-                        .take()
+                    let (k, x, v) = slots
+                        .get(slot)
                         .expect("the schedule restores a stored slot");
-                    self.load_state(&s);
-                    slots[slot] = Some((k, s));
+                    self.backend.set(self.ids.x, &x);
+                    self.backend.set(self.ids.v, &v);
                     current = k;
                 }
-                Action::Free { slot } => slots[slot] = None,
+                Action::Free { slot } => slots.free(slot),
                 Action::Reverse { step } => {
                     debug_assert_eq!(current, step);
                     self.reverse_step(step, dt)?;

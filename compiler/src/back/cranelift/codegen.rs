@@ -22,7 +22,8 @@ use crate::ir::valid::{corners, validate_kernel};
 use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp, UniformId};
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{
-    AbiParam, FuncRef, Function, InstBuilder, MemFlagsData, Type, UserFuncName, Value, types,
+    AbiParam, ConstantData, Endianness, FuncRef, Function, InstBuilder, MemFlagsData, Type,
+    UserFuncName, Value, types,
 };
 use cranelift_frontend::{FunctionBuilder, FunctionBuilderContext, Variable};
 use cranelift_jit::JITModule;
@@ -428,6 +429,59 @@ impl Translator<'_> {
             pack(b, &outs)
         };
 
+        // Loads of buffers the kernel does not store to are pure (read only during the call,
+        // in bounds): Cranelift may place them next to their first use, which shortens what is
+        // live at once in the large element kernels.
+        let load_flags = |buffer: u32| {
+            if k.stores.iter().any(|s| s.buffer.0 == buffer) {
+                trusted()
+            } else {
+                readonly().with_can_move()
+            }
+        };
+        // Whole rows as vectors: flags without `aligned` (a row of an entity is aligned to its
+        // values, not to 16 bytes).
+        let vector_flags = |buffer: u32| {
+            let f = MemFlagsData::new().with_notrap();
+            if k.stores.iter().any(|s| s.buffer.0 == buffer) {
+                f
+            } else {
+                f.with_readonly().with_can_move()
+            }
+        };
+        let le = MemFlagsData::new().with_endianness(Endianness::Little);
+        // Lanes of two vectors picked from their concatenation (`sel[j] < 2 · lanes`).
+        let pick = |b: &mut FunctionBuilder, x: Value, y: Value, sel: &[u8]| {
+            let xi = b.ins().bitcast(types::I8X16, le, x);
+            let yi = b.ins().bitcast(types::I8X16, le, y);
+            let mask: Vec<u8> = sel
+                .iter()
+                .flat_map(|&s| (0..size as u8).map(move |q| s * size as u8 + q))
+                .collect();
+            let imm = b.func.dfg.immediates.push(ConstantData::from(mask));
+            let r = b.ins().shuffle(xi, yi, imm);
+            b.ins().bitcast(vty, le, r)
+        };
+        // `lanes` vectors of `lanes` values transposed (rows of entities <-> components): only
+        // moves bits.
+        let transpose = |b: &mut FunctionBuilder, v: &[Value]| -> Vec<Value> {
+            if lanes == 2 {
+                vec![pick(b, v[0], v[1], &[0, 2]), pick(b, v[0], v[1], &[1, 3])]
+            } else {
+                let t0 = pick(b, v[0], v[1], &[0, 4, 1, 5]);
+                let t1 = pick(b, v[0], v[1], &[2, 6, 3, 7]);
+                let t2 = pick(b, v[2], v[3], &[0, 4, 1, 5]);
+                let t3 = pick(b, v[2], v[3], &[2, 6, 3, 7]);
+                vec![
+                    pick(b, t0, t2, &[0, 1, 4, 5]),
+                    pick(b, t0, t2, &[2, 3, 6, 7]),
+                    pick(b, t1, t3, &[0, 1, 4, 5]),
+                    pick(b, t1, t3, &[2, 3, 6, 7]),
+                ]
+            }
+        };
+        // Own components loaded `lanes` at a time: (buffer, first component) -> components.
+        let mut own_groups: HashMap<(u32, usize), Vec<Value>> = HashMap::new();
         let mut rows: HashMap<(u32, Option<u32>), Value> = HashMap::new();
         let mut nodes: HashMap<(u32, u32), Value> = HashMap::new();
         let nc = corners(k.domain).unwrap_or(1) as usize;
@@ -446,10 +500,33 @@ impl Translator<'_> {
                                 let o = b.ins().imul_imm_s(i, (width * size) as i64);
                                 b.ins().iadd(base, o)
                             });
+                            let nl = lanes as usize;
+                            let c = *component as usize;
+                            let c0 = c / nl * nl;
+                            if nl > 1 && width == 1 {
+                                // The lanes' values are adjacent: one vector load.
+                                vals.push(b.ins().load(vty, vector_flags(buffer.0), row, 0));
+                                continue;
+                            }
+                            if nl > 1 && c0 + nl <= width {
+                                // Components c0.. of each lane's row as one vector, transposed.
+                                let key = (buffer.0, c0);
+                                let group = own_groups.entry(key).or_insert_with(|| {
+                                    let rowv: Vec<Value> = (0..nl)
+                                        .map(|l| {
+                                            let o = (l * width + c0) * size;
+                                            b.ins().load(vty, vector_flags(buffer.0), row, off(o))
+                                        })
+                                        .collect();
+                                    transpose(b, &rowv)
+                                });
+                                vals.push(group[c - c0]);
+                                continue;
+                            }
                             let xs: Vec<Value> = (0..lanes as usize)
                                 .map(|l| {
                                     let o = (l * width + *component as usize) * size;
-                                    b.ins().load(fty, trusted(), row, off(o))
+                                    b.ins().load(fty, load_flags(buffer.0), row, off(o))
                                 })
                                 .collect();
                             pack(b, &xs)
@@ -478,7 +555,7 @@ impl Translator<'_> {
                                         });
                                     b.ins().load(
                                         fty,
-                                        trusted(),
+                                        load_flags(buffer.0),
                                         row,
                                         off(*component as usize * size),
                                     )
@@ -591,8 +668,62 @@ impl Translator<'_> {
             vals.push(r);
         }
 
-        // Stores.
-        for (s, &base) in k.stores.iter().zip(&h.store_ptrs) {
+        // Stores: `lanes` consecutive components of a buffer stored once each go as one
+        // transpose and one vector store per lane; the others lane by lane.
+        let nl = lanes as usize;
+        let mut stored = vec![false; k.stores.len()];
+        if nl > 1 {
+            for si in 0..k.stores.len() {
+                let s = &k.stores[si];
+                let width = m.buffers[s.buffer.0 as usize].width as usize;
+                let c0 = s.component as usize;
+                if stored[si] || !c0.is_multiple_of(nl) || c0 + nl > width {
+                    continue;
+                }
+                let once = |c: usize| {
+                    let mut at = k
+                        .stores
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, t)| t.buffer == s.buffer && t.component as usize == c);
+                    match (at.next(), at.next()) {
+                        (Some((j, _)), None) => Some(j),
+                        _ => None,
+                    }
+                };
+                let Some(group) = (c0..c0 + nl).map(once).collect::<Option<Vec<usize>>>() else {
+                    continue;
+                };
+                if group.iter().any(|&j| stored[j]) {
+                    continue;
+                }
+                let base = h.store_ptrs[si];
+                let row = *rows.entry((s.buffer.0, None)).or_insert_with(|| {
+                    let o = b.ins().imul_imm_s(i, (width * size) as i64);
+                    b.ins().iadd(base, o)
+                });
+                let xs: Vec<Value> = group
+                    .iter()
+                    .map(|&j| vals[k.body.outputs[k.stores[j].output].0 as usize])
+                    .collect();
+                let per_lane = transpose(b, &xs);
+                for (l, &v) in per_lane.iter().enumerate() {
+                    let o = (l * width + c0) * size;
+                    b.ins()
+                        .store(MemFlagsData::new().with_notrap(), v, row, off(o));
+                }
+                for &j in &group {
+                    stored[j] = true;
+                }
+            }
+        }
+        for ((s, &base), _) in k
+            .stores
+            .iter()
+            .zip(&h.store_ptrs)
+            .zip(&stored)
+            .filter(|(_, done)| !**done)
+        {
             let width = m.buffers[s.buffer.0 as usize].width as usize;
             let row = *rows.entry((s.buffer.0, None)).or_insert_with(|| {
                 let o = b.ins().imul_imm_s(i, (width * size) as i64);

@@ -562,6 +562,30 @@ impl CpuModule {
         dt: f64,
         n: u64,
     ) -> Result<(), String> {
+        self.run_loop_threads(
+            lp, buffers, topology, uniforms, ranges, swaps, first, dt, n, 1,
+        )
+    }
+
+    /// [`CpuModule::run_loop`] on `threads` threads: each launch's entities are split into
+    /// `threads` contiguous chunks as [`CpuModule::run_parallel`] splits them, every thread
+    /// runs its chunk of every launch of every step, and all wait for each other after each
+    /// launch (a spinning barrier, see [`step_loop::run_threads`]). Bit-identical to one
+    /// thread.
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_loop_threads(
+        &self,
+        lp: &StepLoop,
+        buffers: &mut Buffers,
+        topology: &Topology,
+        uniforms: &[Vec<f64>],
+        ranges: &[Range<usize>],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        dt: f64,
+        n: u64,
+        threads: usize,
+    ) -> Result<(), String> {
         let l = lp.kernels.len();
         if uniforms.len() != l || ranges.len() != l {
             return Err(format!(
@@ -625,6 +649,51 @@ impl CpuModule {
             .iter()
             .flat_map(|r| [r.start as u64, r.end as u64])
             .collect();
+        let largest = ranges.iter().map(|r| r.end - r.start).max().unwrap_or(0);
+        let threads = threads.clamp(1, largest.max(1));
+        if threads > 1 {
+            let t = self
+                .uniform_names
+                .iter()
+                .position(|u| u == "t")
+                .map(|i| UniformId(i as u32));
+            let launches: Vec<step_loop::ThreadLaunch> = lp
+                .kernels
+                .iter()
+                .zip(ranges)
+                .map(|(&k, r)| {
+                    let ck = &self.kernels[k];
+                    step_loop::ThreadLaunch {
+                        func: ck.func,
+                        t_index: t.and_then(|t| ck.uniforms.iter().position(|&u| u == t)),
+                        range: r.clone(),
+                    }
+                })
+                .collect();
+            // SAFETY: as for the single-threaded loop below; in addition the threads run
+            // disjoint chunks of each launch (which `run_parallel` shows safe to run at once)
+            // and wait for each other between launches, and each thread writes `t` into a
+            // copy of the uniforms of its own.
+            unsafe {
+                step_loop::run_threads(
+                    &launches,
+                    &ctxs,
+                    uniforms,
+                    self.precision,
+                    first,
+                    dt,
+                    n,
+                    threads,
+                )
+            };
+            drop((uni64, uni32));
+            if n % 2 == 1 {
+                for &(a, b) in swaps {
+                    buffers.swap(a, b);
+                }
+            }
+            return Ok(());
+        }
         // SAFETY: every launch passed the checks of `run_parallel` (buffer lengths for the
         // topology, uniforms, ranges inside the domains) for the buffers as they are; the
         // swapped pairs have equal layouts, so the same holds after any number of swaps. The
