@@ -28,6 +28,14 @@ from . import _softc
 from ._softc import CompileError, SimulationError
 
 __version__ = _softc.__version__
+
+
+class ParamError(SimulationError, ValueError):
+    """Values a run cannot take: a name the script does not declare, a wrong shape, a value in
+    the wrong unit. The run does not start; catch it as a :class:`SimulationError` or a
+    ``ValueError``. (A value outside a param's bounds is a :class:`SimulationError` with the
+    command line's message.)"""
+
 __all__ = [
     "compile",
     "quantity",
@@ -36,6 +44,7 @@ __all__ = [
     "Mesh",
     "CompileError",
     "SimulationError",
+    "ParamError",
     "__version__",
 ]
 
@@ -76,7 +85,7 @@ def quantity(text: str, unit: Optional[str] = None, name: str = "value") -> floa
     (an SI unit such as ``"Pa"``), the value must have that dimension."""
     value, si = _softc.quantity(text)
     if unit is not None and si != unit:
-        raise ValueError(
+        raise ParamError(
             f"{name} = {text!r} is in {si}, but `{name}` is in {unit}: give a value in a unit of "
             f"the same dimension (or a float in {unit})"
         )
@@ -207,14 +216,16 @@ class Scene:
                         if name in other
                         else ""
                     )
-                    raise KeyError(f"the script has no {what} `{name}`{hint}; its {what}s: {known}")
+                    raise ParamError(
+                        f"the script has no {what} `{name}`{hint}; its {what}s: {known}"
+                    )
                 if hasattr(value, "detach"):  # a torch tensor
                     value = value.detach().cpu().numpy()
                 if isinstance(value, str):
                     value = quantity(value, slot.unit, name)
                 array = np.asarray(value, dtype=np.float64)
                 if array.size != 1 and array.shape != slot.shape:
-                    raise ValueError(
+                    raise ParamError(
                         f"`{name}` has shape {slot.shape}; a value of shape {array.shape} was "
                         f"given (give one value for every entry, or an array of shape {slot.shape})"
                     )

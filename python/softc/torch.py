@@ -23,7 +23,7 @@ from typing import Any, Dict, Mapping, Optional
 import numpy as np
 import torch
 
-from . import Scene
+from . import ParamError, Scene
 
 __all__ = ["SceneLoss"]
 
@@ -132,7 +132,7 @@ class SceneLoss(torch.nn.Module):
         for n in names:
             if n not in self.scene.params:
                 hint = " (it is an input: pass it in inputs=)" if n in self.scene.inputs else ""
-                raise KeyError(
+                raise ParamError(
                     f"the script has no param `{n}`{hint}; its params: {list(self.scene.params)}"
                 )
             v = params[n]
@@ -145,13 +145,13 @@ class SceneLoss(torch.nn.Module):
             batch_inputs = {}
             for n, a in inputs.items():
                 if n not in self.scene.inputs:
-                    raise KeyError(
+                    raise ParamError(
                         f"the script has no input `{n}`; its inputs: {list(self.scene.inputs)}"
                     )
                 arr = _as_numpy(a)
                 shape = self.scene.inputs[n].shape
                 if arr.shape[1:] != shape:
-                    raise ValueError(
+                    raise ParamError(
                         f"input `{n}`: expected a batch of shape (B, {', '.join(map(str, shape))})"
                         f", got {tuple(arr.shape)}"
                     )
@@ -172,7 +172,7 @@ class SceneLoss(torch.nn.Module):
                 batch = t.shape[0]
                 batched.append(True)
             else:
-                raise ValueError(
+                raise ParamError(
                     f"param `{n}` has shape {shape}; got a tensor of shape {tuple(t.shape)} "
                     f"(give shape {shape}, or (B, *{shape}) for one value per scene of a batch)"
                 )

@@ -179,9 +179,10 @@ def test_an_unstable_run_raises_simulation_error(beam):
 
 
 def test_bad_params_are_reported(beam):
-    with pytest.raises(KeyError, match="no param `q`"):
+    # Names and shapes: ParamError, both a SimulationError and a ValueError.
+    with pytest.raises(softc.ParamError, match="no param `q`"):
         beam.run({"q": 1.0})
-    with pytest.raises(KeyError, match="is a param"):
+    with pytest.raises(softc.SimulationError, match="is a param"):
         beam.run(inputs={"p0": 1.0})
     with pytest.raises(ValueError, match="shape"):
         beam.run({"mu": [1e3, 2e3]})
@@ -268,7 +269,7 @@ def test_values_with_units(beam):
     assert softc.quantity("12 kPa") == 12e3
     assert softc.quantity("20 us") == pytest.approx(20e-6, rel=1e-15)
     assert beam.run({"p0": "12 kPa"}, steps=30)["loss"] == beam.run({"p0": 12e3}, steps=30)["loss"]
-    with pytest.raises(ValueError, match="is in m, but `p0` is in Pa"):
+    with pytest.raises(softc.ParamError, match="is in m, but `p0` is in Pa"):
         beam.run({"p0": "3 mm"}, steps=30)
     with pytest.raises(ValueError):
         softc.quantity("12 parsecs per fortnight")

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
+import softc  # noqa: E402
 import softc.torch  # noqa: E402
 
 
@@ -75,7 +76,7 @@ def test_a_shared_param_sums_over_the_batch(endoscope):
 
 def test_wrong_names_and_shapes(beam):
     loss_fn = softc.torch.SceneLoss(beam)
-    with pytest.raises(KeyError):
+    with pytest.raises(softc.ParamError):
         loss_fn(q=torch.tensor(1.0))
     with pytest.raises(ValueError, match="shape"):
         loss_fn(p0=torch.zeros(2, 3))
