@@ -826,7 +826,11 @@ fn vector_gathers_equal_scalar_gathers_and_a_plain_loop_bit_for_bit() {
         while v.len() < k {
             let r = rng.next();
             // Skewed towards low node numbers.
-            let n = if r % 3 == 0 { r % 5 } else { (r >> 8) % 22 } as u32;
+            let n = if r.is_multiple_of(3) {
+                r % 5
+            } else {
+                (r >> 8) % 22
+            } as u32;
             if n != 7 && !v.contains(&n) {
                 v.push(n);
             }
