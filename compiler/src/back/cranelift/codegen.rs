@@ -53,26 +53,26 @@ pub(super) struct Translator<'a> {
     pub min_max: MinMax,
 }
 
-const PTR: Type = types::I64;
+pub(super) const PTR: Type = types::I64;
 
-fn trusted() -> MemFlagsData {
+pub(super) fn trusted() -> MemFlagsData {
     MemFlagsData::trusted()
 }
 
 /// Read-only data for the whole call (the context, the connectivity, the uniforms).
-fn readonly() -> MemFlagsData {
+pub(super) fn readonly() -> MemFlagsData {
     MemFlagsData::trusted().with_readonly()
 }
 
 /// A 32-bit immediate offset: at most 4 lanes × 2^24 components × 8 bytes (`validate_kernel`).
-fn off(bytes: usize) -> i32 {
+pub(super) fn off(bytes: usize) -> i32 {
     i32::try_from(bytes).expect("offsets inside validated buffers fit in 32 bits")
 }
 
 /// What the entity loops share: values loaded once in the entry block.
-struct Hoisted {
+pub(super) struct Hoisted {
     /// Base pointer of the buffer each used argument reads.
-    arg_buf: HashMap<usize, Value>,
+    pub arg_buf: HashMap<usize, Value>,
     /// Base pointer of each store's buffer.
     store_ptrs: Vec<Value>,
     /// The connectivity of the kernel's domain, if corners are read.
@@ -85,7 +85,7 @@ struct Hoisted {
 }
 
 impl Translator<'_> {
-    fn fty(&self) -> Type {
+    pub(super) fn fty(&self) -> Type {
         match self.precision {
             Precision::F32 => types::F32,
             Precision::F64 => types::F64,
@@ -95,7 +95,7 @@ impl Translator<'_> {
     /// Build the Cranelift function of kernel `k`. With `simd`, entities go `lanes` at a
     /// time through vector code (one entity per lane: every lane performs exactly the scalar
     /// operation sequence, so results are the same bits), and the remainder through scalar
-    /// code; kernels with gathers are scalar only.
+    /// code (a node kernel's gathers too, see `gather.rs`).
     pub fn translate(
         &mut self,
         m: &Module,
@@ -260,7 +260,7 @@ impl Translator<'_> {
             Precision::F64 => 2,
             Precision::F32 => 4,
         };
-        let simd = simd && gathers.is_empty() && k.domain != Domain::Single;
+        let simd = simd && k.domain != Domain::Single;
         let iv: Variable = b.declare_var(types::I64);
         b.def_var(iv, begin);
         let sheader = b.create_block();
@@ -277,7 +277,8 @@ impl Translator<'_> {
             let fits = b.ins().icmp(IntCC::UnsignedLessThanOrEqual, next, end);
             b.ins().brif(fits, vbody, &[], sheader, &[]);
             b.switch_to_block(vbody);
-            self.emit_body(&mut b, m, k, &h, i, lanes, &HashMap::new());
+            let gathered = self.emit_gathers(&mut b, m, k, &h, &gathers, &csr, i, lanes);
+            self.emit_body(&mut b, m, k, &h, i, lanes, &gathered);
             b.def_var(iv, next);
             b.ins().jump(vheader, &[]);
         } else {
@@ -290,68 +291,7 @@ impl Translator<'_> {
         b.ins().brif(more, sbody, &[], exit, &[]);
 
         b.switch_to_block(sbody);
-        let size = self.precision.size();
-        // Gather loops.
-        let mut gathered: HashMap<usize, Value> = HashMap::new();
-        for ((_, args), &(offsets, entries)) in gathers.iter().zip(&csr) {
-            let o = b.ins().imul_imm_s(i, 4);
-            let oa = b.ins().iadd(offsets, o);
-            let start = b.ins().uload32(readonly(), oa, 0);
-            let stop = b.ins().uload32(readonly(), oa, 4);
-            let jv = b.declare_var(types::I64);
-            b.def_var(jv, start);
-            let zero = self.fconst(&mut b, 0.0);
-            let accs: Vec<Variable> = args
-                .iter()
-                .map(|_| {
-                    let v = b.declare_var(fty);
-                    b.def_var(v, zero);
-                    v
-                })
-                .collect();
-            let gh = b.create_block();
-            let gb = b.create_block();
-            let gx = b.create_block();
-            b.ins().jump(gh, &[]);
-            b.switch_to_block(gh);
-            let j = b.use_var(jv);
-            let more = b.ins().icmp(IntCC::UnsignedLessThan, j, stop);
-            b.ins().brif(more, gb, &[], gx, &[]);
-            b.switch_to_block(gb);
-            let eo = b.ins().imul_imm_s(j, 8);
-            let ea = b.ins().iadd(entries, eo);
-            let ent = b.ins().uload32(readonly(), ea, 0);
-            let cor = b.ins().uload32(readonly(), ea, 4);
-            for (&a, &acc) in args.iter().zip(&accs) {
-                let ArgSource::Gather {
-                    buffer,
-                    stride,
-                    component,
-                    ..
-                } = &k.args[a]
-                else {
-                    unreachable!("grouped gathers are gathers")
-                };
-                let width = m.buffers[buffer.0 as usize].width as i64;
-                let row = b.ins().imul_imm_s(ent, width * size as i64);
-                let col = b.ins().imul_imm_s(cor, *stride as i64 * size as i64);
-                let p = b.ins().iadd(h.arg_buf[&a], row);
-                let p = b.ins().iadd(p, col);
-                let x = b
-                    .ins()
-                    .load(fty, trusted(), p, off(*component as usize * size));
-                let s = b.use_var(acc);
-                let s = b.ins().fadd(s, x);
-                b.def_var(acc, s);
-            }
-            let j1 = b.ins().iadd_imm_s(j, 1);
-            b.def_var(jv, j1);
-            b.ins().jump(gh, &[]);
-            b.switch_to_block(gx);
-            for (&a, &acc) in args.iter().zip(&accs) {
-                gathered.insert(a, b.use_var(acc));
-            }
-        }
+        let gathered = self.emit_gathers(&mut b, m, k, &h, &gathers, &csr, i, 1);
         self.emit_body(&mut b, m, k, &h, i, 1, &gathered);
         let i1 = b.ins().iadd_imm_s(i, 1);
         b.def_var(iv, i1);
@@ -738,7 +678,7 @@ impl Translator<'_> {
         }
     }
 
-    fn fconst(&self, b: &mut FunctionBuilder, c: f64) -> Value {
+    pub(super) fn fconst(&self, b: &mut FunctionBuilder, c: f64) -> Value {
         match self.precision {
             Precision::F64 => b.ins().f64const(c),
             Precision::F32 => b.ins().f32const(c as f32),

@@ -19,10 +19,11 @@
 //! ([`CpuModule::run_parallel`]) over contiguous chunks of the range. Entities write only
 //! their own outputs, so results do not depend on the thread count.
 //!
-//! Element, triangle and node kernels without gathers run 2 (f64) or 4 (f32) entities per
-//! iteration in 128-bit vector code, one entity per lane (each lane performs exactly the
-//! scalar operation sequence; transcendental calls go lane by lane), and the rest of the
-//! range in scalar code; [`Options::simd`] turns this off.
+//! Element, triangle and node kernels run 2 (f64) or 4 (f32) entities per iteration in
+//! 128-bit vector code, one entity per lane (each lane performs exactly the scalar operation
+//! sequence; transcendental calls go lane by lane; a node kernel's gathers walk the lanes' CSR
+//! lists side by side, each lane adding its own incidences in list order, see `gather.rs`),
+//! and the rest of the range in scalar code; [`Options::simd`] turns this off.
 //!
 //! ```
 //! use softc_compiler::back::{Precision, cranelift::{Buffers, CpuModule, Topology}};
@@ -52,6 +53,7 @@
 //! ```
 
 mod codegen;
+mod gather;
 mod libm;
 mod step_loop;
 
@@ -120,7 +122,7 @@ pub struct CompiledKernel {
     /// Wall time spent translating, verifying and compiling this kernel.
     pub compile_time: Duration,
     /// Entities per iteration of the main loop: 2 (f64) or 4 (f32) in vector code, 1 in
-    /// scalar code (kernels with gathers, single kernels, or `Options::simd` off).
+    /// scalar code (single kernels, or `Options::simd` off).
     pub lanes: u32,
     func: KernelFn,
     /// Buffers the kernel reads or writes (for the length checks).
