@@ -353,15 +353,7 @@ impl Model {
             if self.scene.lowered.statics.is_none() {
                 sim.stable_dt_estimate().map_err(|e| e.0)?;
             }
-            let (step, n) = sim.time_steps(request.dt, request.steps).map_err(|e| e.0)?;
-            let estimate = sim.stable_dt_estimate().ok();
-            crate::session::check_step_count(
-                &self.scene,
-                step,
-                n,
-                request.steps.is_some(),
-                estimate,
-            )?;
+            crate::session::checked_time_steps(&mut sim, request.dt, request.steps)?;
             match &request.grad {
                 Some(options) => {
                     let g = sim

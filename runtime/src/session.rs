@@ -150,6 +150,19 @@ pub fn check_step_count(
     ))
 }
 
+/// The step size and step count a run of `sim` will take, refused as [`check_step_count`]
+/// says when the count is too large and was not asked for (`steps`).
+pub fn checked_time_steps<B: crate::devices::Backend>(
+    sim: &mut crate::engine::Simulation<B>,
+    dt: Option<f64>,
+    steps: Option<u64>,
+) -> Result<(f64, u64), String> {
+    let (step, n) = sim.time_steps(dt, steps).map_err(|e| e.0)?;
+    let estimate = sim.stable_dt_estimate().ok();
+    check_step_count(sim.scene, step, n, steps.is_some(), estimate)?;
+    Ok((step, n))
+}
+
 /// The backward pass's settings: the optimize block's `checkpoint`, `memory_budget` and
 /// `truncate`, overridden by `checkpoint` (`--checkpoint`) and `memory_budget`
 /// (`--memory-budget`).

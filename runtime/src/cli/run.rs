@@ -670,9 +670,7 @@ fn prepare<'s, B: Backend>(
         Err(_) => return Err(String::new()),
     };
     announce_dt(&mut sim, dt, err)?;
-    let (step, n) = sim.time_steps(dt, args.steps).map_err(|e| e.0)?;
-    let estimate = sim.stable_dt_estimate().ok();
-    crate::session::check_step_count(scene, step, n, args.steps.is_some(), estimate)?;
+    let (step, _) = crate::session::checked_time_steps(&mut sim, dt, args.steps)?;
     sim.progress = Some(crate::outputs::progress::Progress::new(
         args.file.display().to_string(),
     ));
