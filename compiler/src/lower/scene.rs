@@ -13,6 +13,7 @@ use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
 use crate::ir::{ArgSource, BufferId, CmpOp, Domain, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
+use crate::passes::simplify::simplify_module;
 use crate::passes::tangent::{JacobianPart, directional_derivative, force_jacobian};
 
 /// The module of a scene plus what the host needs to run it.
@@ -177,6 +178,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         let node = equilibrium_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
+        simplify_module(&mut module);
         let mut adjoint = adjoint(&module, &[("x", "residual")], &[]).map_err(LowerError::new)?;
         let statics =
             StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), false)?;
@@ -185,6 +187,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         let node = implicit_euler_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
+        simplify_module(&mut module);
         // The step's inputs besides the iterate x: the state it starts from. Their adjoints
         // (∂residual/∂x_prev, ∂residual/∂v_prev transposed) carry the gradient back a step;
         // the "next" buffers only pair them for the pass and are never written.
@@ -213,6 +216,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
+        simplify_module(&mut module);
         let mut scale = Vec::new();
         if let Some(e) = script.optimize_setting("gradient_scale") {
             scale.push(("v", constant(program, e, "gradient_scale")?));
@@ -222,11 +226,13 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         (adjoint, None)
     };
     let buffers = SceneBuffers::of(&module)?;
-    // Algebraic simplification and strength reduction of every kernel, once all are built
-    // (the adjoint and the Jacobians differentiate the unsimplified bodies). The forward
-    // kernels at the head of the adjoint module are simplified exactly as the forward module's.
-    crate::passes::simplify::simplify_module(&mut module);
-    crate::passes::simplify::simplify_module(&mut adjoint.module);
+    // Algebraic simplification and strength reduction: the forward kernels above were
+    // simplified before the adjoint and the Jacobians differentiate them (so the coupled
+    // neo-Hookean's J^(2/3)·Ī1 is I1 there too, and its adjoint needs no cube root); once more
+    // now, the forward module and the adjoint module alike, so that the forward kernels at the
+    // head of the adjoint module stay exactly the forward module's.
+    simplify_module(&mut module);
+    simplify_module(&mut adjoint.module);
     Ok(SceneModule {
         buffers,
         module,
