@@ -183,7 +183,7 @@ fn all_ops_module() -> (Module, BufferId, BufferId) {
     (module, input, out)
 }
 
-/// The interpreter's semantics in f32, with the same std functions.
+/// The interpreter's semantics in f32, with the same std functions (and the IR's own `ln`).
 fn eval_f32(func: &Func, args: &[f32]) -> Vec<f32> {
     let mut vals: Vec<f32> = Vec::new();
     for inst in &func.insts {
@@ -199,7 +199,7 @@ fn eval_f32(func: &Func, args: &[f32]) -> Vec<f32> {
                     UnOp::Sqrt => x.sqrt(),
                     UnOp::Cbrt => x.cbrt(),
                     UnOp::Exp => x.exp(),
-                    UnOp::Ln => x.ln(),
+                    UnOp::Ln => softc_compiler::ir::math::ln_f32(x),
                     UnOp::Sin => x.sin(),
                     UnOp::Cos => x.cos(),
                     UnOp::Tan => x.tan(),
@@ -365,6 +365,98 @@ fn the_clif_text_shows_calls_for_transcendentals_and_no_fused_ops() {
     assert!(!clif.contains("fma"), "{clif}");
     assert_eq!(cpu.kernel(0).name, "all_ops");
     assert!(cpu.clif_all().contains("; kernel all_ops over Node"));
+}
+
+/// A node kernel `out = ln(x)`.
+fn ln_module() -> (Module, BufferId, BufferId) {
+    let (input, out) = (BufferId(0), BufferId(1));
+    let kernel = Kernel {
+        name: "ln".into(),
+        domain: Domain::Node,
+        origin: "test".into(),
+        args: vec![ArgSource::Own {
+            buffer: input,
+            component: 0,
+        }],
+        stores: vec![Store {
+            buffer: out,
+            component: 0,
+            output: 0,
+        }],
+        body: Func {
+            insts: vec![Inst::Arg(0), Inst::Un(UnOp::Ln, V(0))],
+            n_args: 1,
+            outputs: vec![V(1)],
+        },
+    };
+    let module = Module {
+        buffers: vec![buffer("x", Domain::Node, 1), buffer("out", Domain::Node, 1)],
+        kernels: vec![kernel],
+        uniforms: vec![],
+    };
+    (module, input, out)
+}
+
+/// Arguments for `ln`: every binade (subnormals too), arguments within a few ulps of 1 and
+/// within 1e-3 of it (small strains: J = 1 + d), and the special values.
+fn ln_arguments(rng: &mut Rng, tiny: f64, huge: f64, eps: f64) -> Vec<f64> {
+    let mut xs = special_values();
+    let mut x = tiny;
+    while x < huge {
+        for _ in 0..8 {
+            xs.push(x * (1.5 + 0.5 * rng.sym()));
+        }
+        x *= 2.0;
+    }
+    for k in 1..400 {
+        xs.push(1.0 + f64::from(k) * eps);
+        xs.push(1.0 - f64::from(k) * eps / 2.0);
+        xs.push(1.0 + 1e-3 * rng.sym());
+    }
+    xs
+}
+
+#[test]
+fn inline_ln_is_the_irs_ln_bit_for_bit_in_vector_and_scalar_code() {
+    // The backend compiles `ln` inline (no library call); its vector lanes and its scalar
+    // code must give exactly `ir::math`'s values, the interpreter's, at every argument.
+    use softc_compiler::ir::math::{ln_f32, ln_f64};
+    let (module, input, out) = ln_module();
+    let mut rng = Rng(0x5eed_1234_abcd_0001);
+    let xs = ln_arguments(&mut rng, 5e-324, f64::MAX / 2.0, f64::EPSILON);
+    let topo = Topology::new(xs.len(), vec![], vec![]).unwrap();
+    for cpu in both_ways(&module, Precision::F64) {
+        assert!(!cpu.clif(0).contains("call fn"), "ln is inline: {}", cpu.clif(0));
+        let mut bufs = Buffers::new(&module, &topo, Precision::F64);
+        bufs.set(input, &xs).unwrap();
+        cpu.run(0, &mut bufs, &topo, &[], 0..xs.len()).unwrap();
+        let got = bufs.f64(out).unwrap();
+        for (&x, &g) in xs.iter().zip(got) {
+            let want = ln_f64(x);
+            assert!(
+                same_bits(g, want) || (g.is_nan() && want.is_nan()),
+                "ln({x:e}): jit {g:e}, ir::math {want:e}"
+            );
+        }
+    }
+    let xs32: Vec<f32> = ln_arguments(&mut rng, 1e-45, 1.7e38, f64::from(f32::EPSILON))
+        .into_iter()
+        .map(|x| x as f32)
+        .collect();
+    let topo = Topology::new(xs32.len(), vec![], vec![]).unwrap();
+    for cpu in both_ways(&module, Precision::F32) {
+        let mut bufs = Buffers::new(&module, &topo, Precision::F32);
+        bufs.f32_mut(input).unwrap().copy_from_slice(&xs32);
+        cpu.run(0, &mut bufs, &topo, &[], 0..xs32.len()).unwrap();
+        let got = bufs.f32(out).unwrap();
+        for (&x, &g) in xs32.iter().zip(got) {
+            let want = ln_f32(x);
+            assert!(
+                g.to_bits() == want.to_bits() || (g.is_nan() && want.is_nan()),
+                "ln({x:e}): jit {g:e}, ir::math {want:e}"
+            );
+        }
+    }
 }
 
 // ------------------------------------------------------------------ FEM over a mesh

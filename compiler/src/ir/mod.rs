@@ -18,6 +18,7 @@
 
 pub mod ad;
 pub mod interp;
+pub mod math;
 mod print;
 pub mod valid;
 
@@ -337,7 +338,7 @@ pub fn eval_un(op: UnOp, x: f64) -> f64 {
         UnOp::Sqrt => x.sqrt(),
         UnOp::Cbrt => x.cbrt(),
         UnOp::Exp => x.exp(),
-        UnOp::Ln => x.ln(),
+        UnOp::Ln => math::ln_f64(x),
         UnOp::Sin => x.sin(),
         UnOp::Cos => x.cos(),
         UnOp::Tan => x.tan(),

@@ -523,9 +523,9 @@ impl Translator<'_> {
                         UnOp::Sqrt => b.ins().sqrt(x),
                         UnOp::Floor => per_lane(b, &|b, a| b.ins().floor(a[0]), &[x]),
                         UnOp::Ceil => per_lane(b, &|b, a| b.ins().ceil(a[0]), &[x]),
+                        UnOp::Ln => super::vmath::emit_ln(b, x, self.precision, lanes),
                         UnOp::Cbrt
                         | UnOp::Exp
-                        | UnOp::Ln
                         | UnOp::Sin
                         | UnOp::Cos
                         | UnOp::Tan

@@ -1,6 +1,7 @@
 //! The functions JIT code calls for transcendental operations: thin `extern "C"` wrappers
 //! around the very std functions the interpreter ([`crate::ir::eval_un`], [`crate::ir::eval_bin`])
-//! uses, so CPU results are bit-identical to it in f64.
+//! uses, so CPU results are bit-identical to it in f64. `ln` is not among them: it is compiled
+//! inline (`vmath.rs`), as the interpreter's [`crate::ir::math`] computes it.
 
 use crate::back::Precision;
 use crate::ir::{BinOp, UnOp};
@@ -25,14 +26,12 @@ macro_rules! binary {
 unary! {
     softc_cbrt_f64: f64 => cbrt;
     softc_exp_f64: f64 => exp;
-    softc_ln_f64: f64 => ln;
     softc_sin_f64: f64 => sin;
     softc_cos_f64: f64 => cos;
     softc_tan_f64: f64 => tan;
     softc_tanh_f64: f64 => tanh;
     softc_cbrt_f32: f32 => cbrt;
     softc_exp_f32: f32 => exp;
-    softc_ln_f32: f32 => ln;
     softc_sin_f32: f32 => sin;
     softc_cos_f32: f32 => cos;
     softc_tan_f32: f32 => tan;
@@ -62,7 +61,6 @@ impl Lib {
         Some(match (self, f64) {
             (Lib::Un(UnOp::Cbrt), true) => "softc_cbrt_f64",
             (Lib::Un(UnOp::Exp), true) => "softc_exp_f64",
-            (Lib::Un(UnOp::Ln), true) => "softc_ln_f64",
             (Lib::Un(UnOp::Sin), true) => "softc_sin_f64",
             (Lib::Un(UnOp::Cos), true) => "softc_cos_f64",
             (Lib::Un(UnOp::Tan), true) => "softc_tan_f64",
@@ -72,7 +70,6 @@ impl Lib {
             (Lib::Bin(BinOp::Max), true) => "softc_max_f64",
             (Lib::Un(UnOp::Cbrt), false) => "softc_cbrt_f32",
             (Lib::Un(UnOp::Exp), false) => "softc_exp_f32",
-            (Lib::Un(UnOp::Ln), false) => "softc_ln_f32",
             (Lib::Un(UnOp::Sin), false) => "softc_sin_f32",
             (Lib::Un(UnOp::Cos), false) => "softc_cos_f32",
             (Lib::Un(UnOp::Tan), false) => "softc_tan_f32",
@@ -97,7 +94,6 @@ pub(super) fn symbols() -> Vec<(&'static str, *const u8)> {
     vec![
         ("softc_cbrt_f64", softc_cbrt_f64 as *const u8),
         ("softc_exp_f64", softc_exp_f64 as *const u8),
-        ("softc_ln_f64", softc_ln_f64 as *const u8),
         ("softc_sin_f64", softc_sin_f64 as *const u8),
         ("softc_cos_f64", softc_cos_f64 as *const u8),
         ("softc_tan_f64", softc_tan_f64 as *const u8),
@@ -107,7 +103,6 @@ pub(super) fn symbols() -> Vec<(&'static str, *const u8)> {
         ("softc_max_f64", softc_max_f64 as *const u8),
         ("softc_cbrt_f32", softc_cbrt_f32 as *const u8),
         ("softc_exp_f32", softc_exp_f32 as *const u8),
-        ("softc_ln_f32", softc_ln_f32 as *const u8),
         ("softc_sin_f32", softc_sin_f32 as *const u8),
         ("softc_cos_f32", softc_cos_f32 as *const u8),
         ("softc_tan_f32", softc_tan_f32 as *const u8),

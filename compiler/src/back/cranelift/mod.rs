@@ -56,6 +56,7 @@ mod codegen;
 mod gather;
 mod libm;
 mod step_loop;
+mod vmath;
 
 pub use step_loop::StepLoop;
 
