@@ -3,12 +3,16 @@
 //! For a linear tet with rest edge matrix Dm (columns x1−x0, x2−x0, x3−x0 at rest) and current
 //! edge matrix Ds, the deformation gradient is F = Ds·Dm⁻¹ (thesis eq. 2.9), J = det F,
 //! C = FᵀF, I1 = tr C, I2 = ½(I1² − tr C²), Ī1 = J^(−2/3)·I1, Ī2 = J^(−4/3)·I2 (eq. 2.10–2.13).
-//! The compiler differentiates W (reverse mode on the IR) to W₁ = ∂W/∂Ī1, W₂ = ∂W/∂Ī2,
-//! W_J = ∂W/∂J and assembles the first Piola–Kirchhoff stress from the chain rule
+//! The compiler writes Ī1 and Ī2 into W as those powers of J times I1 and I2, simplifies the
+//! result (a coupled law's J^(2/3)·Ī1 is I1 again), differentiates it (reverse mode on the
+//! IR) to W_I1 = ∂W/∂I1, W_I2 = ∂W/∂I2, W_J = ∂W/∂J at fixed I1, I2, and assembles the first
+//! Piola–Kirchhoff stress from the chain rule
 //!
-//!   P = W₁·J^(−2/3)·(2F − ⅔·I1·F⁻ᵀ) + W₂·J^(−4/3)·(2(I1·F − F·C) − ⁴⁄₃·I2·F⁻ᵀ) + W_J·J·F⁻ᵀ,
+//!   P = 2·W_I1·F + 2·W_I2·(I1·F − F·C) + W_J·cof F,
 //!
 //! (the thesis' eq. 2.14 states the Cauchy form with typos; this is derived directly from W).
+//! The isochoric terms a coupled law's Ī1-form would carry (−⅔·I1·F⁻ᵀ against J-derivative
+//! terms) cancel symbolically this way instead of in floating point.
 //! The nodal forces are f = −∂(V₀·W)/∂x: the columns of H = −V₀·P·Dm⁻ᵀ act on nodes 1–3 and
 //! node 0 takes minus their sum. Terms of W that a material does not have (no Ī2 in Yeoh) are
 //! not generated. A W written in I1 = tr C and J (an inversion-safe law such as the prelude's
@@ -277,8 +281,6 @@ fn energy_and_stress(
     }
     let jt: Vec<V> = (0..3).map(|c| b.mul(f[0][c], cof[0][c])).collect();
     let j = b.sum(&jt);
-    // F⁻ᵀ = cof(F) / J
-    let finv_t = cof.map(|row| row.map(|x| b.div(x, j)));
     let c = matmul(b, &transpose(f), f);
     let i1 = b.sum(&[c[0][0], c[1][1], c[2][2]]);
     let cc = matmul(b, &c, &c);
@@ -286,82 +288,75 @@ fn energy_and_stress(
     // Isochoric invariants only for a W written in them: a W of I1 = tr C and J (an
     // inversion-safe law) gets no J^(-2/3) factor, so it stays finite for J <= 0.
     let isochoric = material_is_isochoric(program, material)?;
-    let (mut i2, mut j23, mut j43) = (V(0), V(0), V(0));
-    let (i1b, i2b) = if isochoric {
+    let i2 = if isochoric {
         let i1sq = b.mul(i1, i1);
         let diff = b.sub(i1sq, tr_cc);
-        i2 = b.scale(0.5, diff);
-        j23 = b.powf(j, -2.0 / 3.0);
-        // One cube root serves both isochoric factors: J^(-4/3) = (J^(-2/3))².
-        j43 = b.mul(j23, j23);
-        (b.mul(j23, i1), b.mul(j43, i2))
+        b.scale(0.5, diff)
     } else {
-        let zero = b.constant(0.0);
-        (zero, zero)
+        b.constant(0.0)
     };
 
-    // W and its partial derivatives in the invariants, built as a function of independent
-    // arguments (differentiating inside the kernel would give total derivatives: Ī1 and Ī2
-    // depend on J), then inlined at this element's invariants.
+    // W as a function of independent I1, I2 and J (Ī1 = J^(−2/3)·I1 and Ī2 = J^(−4/3)·I2
+    // written into it), simplified before it is differentiated: a coupled law's J^(2/3)·Ī1
+    // is I1 there, so its stress is 2·W_I1·F + W_J·cof(F) with no isochoric terms that
+    // cancel only in exact arithmetic. Then inlined at this element's invariants.
     let mut sub = KernelBuilder::new("W", Domain::Element, material);
-    let inv = [
-        sub.uniform("I1bar"),
-        sub.uniform("I2bar"),
-        sub.uniform("J"),
-        sub.uniform("I1"),
-    ];
+    let inv = [sub.uniform("I1"), sub.uniform("I2"), sub.uniform("J")];
+    let (i1b, i2b) = if isochoric {
+        let j23 = sub.b.powf(inv[2], -2.0 / 3.0);
+        let j43 = sub.b.powf(inv[2], -4.0 / 3.0);
+        (sub.b.mul(j23, inv[0]), sub.b.mul(j43, inv[1]))
+    } else {
+        let zero = sub.b.constant(0.0);
+        (zero, zero)
+    };
     let w = material_energy(
         program,
         &mut sub,
         material,
         Invariants {
-            i1: inv[3],
-            i1b: inv[0],
-            i2b: inv[1],
+            i1: inv[0],
+            i1b,
+            i2b,
             j: inv[2],
         },
         fields,
     )?;
-    let (sub_args, func) = sub.into_parts();
-    let (mut func, g) = ad::gradient(func, w, &inv);
-    func.outputs = vec![w, g[0], g[1], g[2], g[3]];
-    let outs = k.inline(&sub_args, &func, &[i1b, i2b, j, i1]);
-    let (w, w1, w2, wj, wi1) = (outs[0], outs[1], outs[2], outs[3], outs[4]);
+    let (sub_args, mut func) = sub.into_parts();
+    func.outputs = vec![w];
+    let func = crate::passes::simplify::simplify(&func);
+    let w = func.outputs[0];
+    // The invariants' values in the simplified body (an argument W does not read is added
+    // back, and its derivative is zero).
+    let mut sb = Builder::extend(func);
+    let wrt = [0, 1, 2].map(|a| sb.arg(a));
+    let (mut func, g) = ad::gradient(sb.finish(), w, &wrt);
+    func.outputs = vec![w, g[0], g[1], g[2]];
+    let outs = k.inline(&sub_args, &func, &[i1, i2, j]);
+    let (w, wi1, wi2, wj) = (outs[0], outs[1], outs[2], outs[3]);
     let b = &mut k.b;
 
     let mut p = [[V(0); 3]; 3];
     let used = |b: &Builder, v: V| b.func.constant(v) != Some(0.0);
+    // The factors 2 of ∂I1/∂F and ∂I2/∂F go on the scalar derivatives (exact: a power of two),
+    // so a constant W_I1 folds with them into one constant.
+    let (two_wi1, two_wi2) = (b.scale(2.0, wi1), b.scale(2.0, wi2));
     let fc = matmul(b, f, &c);
     for r in 0..3 {
         for col in 0..3 {
             let mut terms = Vec::new();
-            if isochoric && used(b, w1) {
-                // W1 J^(-2/3) (2F − ⅔ I1 F⁻ᵀ)
-                let two_f = b.scale(2.0, f[r][col]);
-                let t = b.mul(i1, finv_t[r][col]);
-                let t = b.scale(2.0 / 3.0, t);
-                let d = b.sub(two_f, t);
-                let d = b.mul(j23, d);
-                terms.push(b.mul(w1, d));
+            if used(b, wi1) {
+                // W_I1 ∂I1/∂F = 2·W_I1·F
+                terms.push(b.mul(two_wi1, f[r][col]));
             }
-            if isochoric && used(b, w2) {
-                // W2 J^(-4/3) (2(I1 F − F C) − ⁴⁄₃ I2 F⁻ᵀ)
+            if used(b, wi2) {
+                // W_I2 ∂I2/∂F = 2·W_I2·(I1 F − F C)
                 let i1f = b.mul(i1, f[r][col]);
                 let s = b.sub(i1f, fc[r][col]);
-                let s = b.scale(2.0, s);
-                let t = b.mul(i2, finv_t[r][col]);
-                let t = b.scale(4.0 / 3.0, t);
-                let d = b.sub(s, t);
-                let d = b.mul(j43, d);
-                terms.push(b.mul(w2, d));
-            }
-            if used(b, wi1) {
-                // W_I1 ∂I1/∂F = W_I1 2F
-                let two_f = b.scale(2.0, f[r][col]);
-                terms.push(b.mul(wi1, two_f));
+                terms.push(b.mul(two_wi2, s));
             }
             if used(b, wj) {
-                // WJ J F⁻ᵀ = WJ cof(F)
+                // W_J ∂J/∂F = W_J cof(F)
                 terms.push(b.mul(wj, cof[r][col]));
             }
             p[r][col] = b.sum(&terms);
