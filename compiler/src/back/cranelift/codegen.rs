@@ -329,7 +329,9 @@ impl Translator<'_> {
             if lanes == 1 {
                 return xs[0];
             }
-            let mut v = b.ins().scalar_to_vector(vty, xs[0]);
+            // A splat rather than `scalar_to_vector`: a loaded scalar becomes one broadcast
+            // load instead of a load, a zeroed register and a merge; lanes 1.. are replaced.
+            let mut v = b.ins().splat(vty, xs[0]);
             for (l, &x) in xs.iter().enumerate().skip(1) {
                 v = b.ins().insertlane(v, x, l as u8);
             }
@@ -518,6 +520,17 @@ impl Translator<'_> {
                 Inst::Un(op, a) => {
                     let x = v(a);
                     match op {
+                        UnOp::Neg if lanes > 1 => {
+                            // x XOR the sign bits, the mask a constant-pool operand of one
+                            // `xorps` (Cranelift's vector `fneg` rebuilds the mask in registers
+                            // at each use: three instructions). The same bits as `fneg`.
+                            let mut sign = vec![0u8; size];
+                            sign[size - 1] = 0x80;
+                            let bits: Vec<u8> = (0..lanes).flat_map(|_| sign.clone()).collect();
+                            let c = b.func.dfg.constants.insert(ConstantData::from(bits));
+                            let mask = b.ins().vconst(vty, c);
+                            b.ins().bxor(x, mask)
+                        }
                         UnOp::Neg => b.ins().fneg(x),
                         UnOp::Abs => b.ins().fabs(x),
                         UnOp::Sqrt => b.ins().sqrt(x),
