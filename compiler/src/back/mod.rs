@@ -48,6 +48,18 @@ pub struct Topology {
     node_elem_entries: Vec<u32>,
     node_tri_offsets: Vec<u32>,
     node_tri_entries: Vec<u32>,
+    /// Each entry of `node_elem_entries` as one index `element · 4 + corner`: the row of a
+    /// per-corner buffer (element × 4·stride) the incidence reads, one load for the CPU's
+    /// gather loops instead of two and a multiply.
+    node_elem_slots: Vec<u32>,
+    /// Likewise `triangle · 3 + corner` for `node_tri_entries`.
+    node_tri_slots: Vec<u32>,
+}
+
+/// `(entity, corner)` pairs as `entity · nc + corner` (below `u32::MAX`: the connectivity's
+/// length is, see `check_conn`).
+fn slots(entries: &[u32], nc: u32) -> Vec<u32> {
+    entries.chunks_exact(2).map(|p| p[0] * nc + p[1]).collect()
 }
 
 /// Node → entity incidences in CSR form, softc's one connectivity list: the incidences of node
@@ -129,6 +141,8 @@ impl Topology {
             n_nodes,
             elem_conn,
             tri_conn,
+            node_elem_slots: slots(&node_elem_entries, 4),
+            node_tri_slots: slots(&node_tri_entries, 3),
             node_elem_offsets,
             node_elem_entries,
             node_tri_offsets,
@@ -160,6 +174,8 @@ impl Topology {
             n_nodes,
             elem_conn,
             tri_conn,
+            node_elem_slots: slots(&node_elem.1, 4),
+            node_tri_slots: slots(&node_tri.1, 3),
             node_elem_offsets: node_elem.0,
             node_elem_entries: node_elem.1,
             node_tri_offsets: node_tri.0,
@@ -193,6 +209,16 @@ impl Topology {
     /// The node→triangle CSR: `(offsets, entries)`, entries as `(triangle, corner)` pairs.
     pub fn node_tri(&self) -> (&[u32], &[u32]) {
         (&self.node_tri_offsets, &self.node_tri_entries)
+    }
+
+    /// The node→element entries as `element · 4 + corner`.
+    pub fn node_elem_slots(&self) -> &[u32] {
+        &self.node_elem_slots
+    }
+
+    /// The node→triangle entries as `triangle · 3 + corner`.
+    pub fn node_tri_slots(&self) -> &[u32] {
+        &self.node_tri_slots
     }
 }
 

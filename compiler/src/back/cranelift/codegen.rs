@@ -231,20 +231,26 @@ impl Translator<'_> {
                 }
             }
         }
-        let csr: Vec<(Value, Value)> = gathers
+        let csr: Vec<(Value, Value, Value)> = gathers
             .iter()
             .map(|(d, _)| {
-                let (o, e) = match d {
+                let (o, e, s) = match d {
                     Domain::Element => (
                         offset_of!(KernelCtx, node_elem_offsets),
                         offset_of!(KernelCtx, node_elem_entries),
+                        offset_of!(KernelCtx, node_elem_slots),
                     ),
                     _ => (
                         offset_of!(KernelCtx, node_tri_offsets),
                         offset_of!(KernelCtx, node_tri_entries),
+                        offset_of!(KernelCtx, node_tri_slots),
                     ),
                 };
-                (ctx_load(&mut b, o), ctx_load(&mut b, e))
+                (
+                    ctx_load(&mut b, o),
+                    ctx_load(&mut b, e),
+                    ctx_load(&mut b, s),
+                )
             })
             .collect();
         let h = Hoisted {

@@ -8,6 +8,11 @@
 //! acc = 0.0; for j in offsets[i]..offsets[i+1] { acc = acc + x[entries[j]] }
 //! ```
 //!
+//! A buffer of per-corner rows (element × 4·stride, triangle × 3·stride: the force buffers)
+//! is addressed through the topology's slot list, `entity · corners + corner` per incidence,
+//! so the loop loads one index and forms the row with one multiply, instead of loading the
+//! `(entity, corner)` pair and combining two products.
+//!
 //! Vector code (2 × f64 or 4 × f32 nodes per iteration) runs that same scalar loop for each
 //! lane's node in turn, stores each lane's sums into a stack slot and loads them as vectors for
 //! the vectorized rest of the body. Every node's sums are therefore exactly the scalar code's,
@@ -27,6 +32,15 @@ use cranelift_codegen::ir::{InstBuilder, StackSlotData, StackSlotKind, Value, ty
 use cranelift_frontend::{FunctionBuilder, Variable};
 use std::collections::HashMap;
 
+/// Where a gather loop reads its incidences.
+#[derive(Clone, Copy)]
+pub(super) enum Incidences {
+    /// `(entity, corner)` pairs (two `u32` per incidence).
+    Pairs(Value),
+    /// `entity · corners + corner` (one `u32` per incidence).
+    Slots(Value),
+}
+
 impl Translator<'_> {
     /// The gathered arguments of the nodes `i .. i + lanes` (scalars for `lanes` = 1, else
     /// vectors with one node per lane), one CSR walk per incident domain of `gathers` (whose
@@ -39,24 +53,39 @@ impl Translator<'_> {
         k: &Kernel,
         h: &Hoisted,
         gathers: &[(Domain, Vec<usize>)],
-        csr: &[(Value, Value)],
+        csr: &[(Value, Value, Value)],
         i: Value,
         lanes: u32,
     ) -> HashMap<usize, Value> {
         let mut gathered = HashMap::new();
-        for ((_, args), &(offsets, entries)) in gathers.iter().zip(csr) {
-            let sums = if lanes == 1 {
-                self.scalar_gather(b, m, k, h, args, offsets, entries, i)
+        for ((over, args), &(offsets, entries, slots)) in gathers.iter().zip(csr) {
+            // Per-corner rows (width = corners × stride, every gather of the domain's
+            // buffers): the incidence's slot `entity · corners + corner` times the stride is
+            // the row, one load per incidence. Otherwise the `(entity, corner)` pair.
+            let corners = if *over == Domain::Element { 4 } else { 3 };
+            let per_corner = args.iter().all(|&a| match &k.args[a] {
+                ArgSource::Gather { buffer, stride, .. } => {
+                    m.buffers[buffer.0 as usize].width == corners * stride
+                }
+                _ => false,
+            });
+            let list = if per_corner {
+                Incidences::Slots(slots)
             } else {
-                self.lane_by_lane_gather(b, m, k, h, args, offsets, entries, i, lanes)
+                Incidences::Pairs(entries)
+            };
+            let sums = if lanes == 1 {
+                self.scalar_gather(b, m, k, h, args, offsets, list, i)
+            } else {
+                self.lane_by_lane_gather(b, m, k, h, args, offsets, list, i, lanes)
             };
             gathered.extend(args.iter().copied().zip(sums));
         }
         gathered
     }
 
-    /// The value of each argument of `args` at the incidence whose `(entity, corner)` pair is
-    /// at `at`.
+    /// The value of each argument of `args` at incidence `j` of `list`.
+    #[allow(clippy::too_many_arguments)]
     fn incidence_loads(
         &self,
         b: &mut FunctionBuilder,
@@ -64,12 +93,26 @@ impl Translator<'_> {
         k: &Kernel,
         h: &Hoisted,
         args: &[usize],
-        at: Value,
+        list: Incidences,
+        j: Value,
     ) -> Vec<Value> {
         let fty = self.fty();
         let size = self.precision.size();
-        let ent = b.ins().uload32(readonly(), at, 0);
-        let cor = b.ins().uload32(readonly(), at, 4);
+        let (ent, cor) = match list {
+            Incidences::Pairs(entries) => {
+                let eo = b.ins().imul_imm_s(j, 8);
+                let at = b.ins().iadd(entries, eo);
+                (
+                    b.ins().uload32(readonly(), at, 0),
+                    Some(b.ins().uload32(readonly(), at, 4)),
+                )
+            }
+            Incidences::Slots(slots) => {
+                let so = b.ins().imul_imm_s(j, 4);
+                let at = b.ins().iadd(slots, so);
+                (b.ins().uload32(readonly(), at, 0), None)
+            }
+        };
         args.iter()
             .map(|&a| {
                 let ArgSource::Gather {
@@ -81,11 +124,19 @@ impl Translator<'_> {
                 else {
                     unreachable!("grouped gathers are gathers")
                 };
-                let width = m.buffers[buffer.0 as usize].width as i64;
-                let row = b.ins().imul_imm_s(ent, width * size as i64);
-                let col = b.ins().imul_imm_s(cor, *stride as i64 * size as i64);
-                let p = b.ins().iadd(h.arg_buf[&a], row);
-                let p = b.ins().iadd(p, col);
+                let p = match cor {
+                    Some(cor) => {
+                        let width = m.buffers[buffer.0 as usize].width as i64;
+                        let row = b.ins().imul_imm_s(ent, width * size as i64);
+                        let col = b.ins().imul_imm_s(cor, *stride as i64 * size as i64);
+                        let p = b.ins().iadd(h.arg_buf[&a], row);
+                        b.ins().iadd(p, col)
+                    }
+                    None => {
+                        let row = b.ins().imul_imm_s(ent, *stride as i64 * size as i64);
+                        b.ins().iadd(h.arg_buf[&a], row)
+                    }
+                };
                 b.ins()
                     .load(fty, trusted(), p, off(*component as usize * size))
             })
@@ -101,7 +152,7 @@ impl Translator<'_> {
         h: &Hoisted,
         args: &[usize],
         offsets: Value,
-        entries: Value,
+        list: Incidences,
         i: Value,
     ) -> Vec<Value> {
         let fty = self.fty();
@@ -129,9 +180,7 @@ impl Translator<'_> {
         let more = b.ins().icmp(IntCC::UnsignedLessThan, j, stop);
         b.ins().brif(more, gb, &[], gx, &[]);
         b.switch_to_block(gb);
-        let eo = b.ins().imul_imm_s(j, 8);
-        let ea = b.ins().iadd(entries, eo);
-        let xs = self.incidence_loads(b, m, k, h, args, ea);
+        let xs = self.incidence_loads(b, m, k, h, args, list, j);
         for (&x, &acc) in xs.iter().zip(&accs) {
             let s = b.use_var(acc);
             let s = b.ins().fadd(s, x);
@@ -154,7 +203,7 @@ impl Translator<'_> {
         h: &Hoisted,
         args: &[usize],
         offsets: Value,
-        entries: Value,
+        list: Incidences,
         i: Value,
         lanes: u32,
     ) -> Vec<Value> {
@@ -175,7 +224,7 @@ impl Translator<'_> {
         let base = b.ins().stack_addr(PTR, slot, 0);
         for l in 0..lanes as usize {
             let il = b.ins().iadd_imm_s(i, l as i64);
-            let xs = self.scalar_gather(b, m, k, h, args, offsets, entries, il);
+            let xs = self.scalar_gather(b, m, k, h, args, offsets, list, il);
             for (a, &x) in xs.iter().enumerate() {
                 b.ins().store(trusted(), x, base, off(a * 16 + l * size));
             }

@@ -90,6 +90,8 @@ pub struct KernelCtx {
     pub node_elem_entries: *const u32,
     pub node_tri_offsets: *const u32,
     pub node_tri_entries: *const u32,
+    pub node_elem_slots: *const u32,
+    pub node_tri_slots: *const u32,
 }
 
 impl KernelCtx {
@@ -104,6 +106,8 @@ impl KernelCtx {
             node_elem_entries: topology.node_elem_entries.as_ptr(),
             node_tri_offsets: topology.node_tri_offsets.as_ptr(),
             node_tri_entries: topology.node_tri_entries.as_ptr(),
+            node_elem_slots: topology.node_elem_slots().as_ptr(),
+            node_tri_slots: topology.node_tri_slots().as_ptr(),
         }
     }
 }
