@@ -1,7 +1,7 @@
 //! The CPU device: kernels compiled to native code by Cranelift (f64 or f32), multi-threaded
 //! on large meshes, with whole stretches of steps run by a compiled time loop.
 
-use super::{Backend, Launch, Uniforms};
+use super::{Backend, HostSlice, HostSliceMut, Launch, Uniforms};
 use crate::engine::scene::Scene;
 use softc_compiler::back::Precision;
 use softc_compiler::back::cranelift::{Buffers, CpuModule, Topology};
@@ -107,10 +107,11 @@ impl Cpu {
     }
 
     fn threads_for(&self, entities: usize) -> usize {
-        // Spawning threads costs ~0.2 ms a launch: only worth it for large launches (measured:
-        // 10k tets 695 -> 918 steps/s with 2 threads; 1k tets are faster on one).
+        // A launch on the worker pool costs a wake-up and a join (some µs): worth it from a few
+        // thousand entities (the 10k scene's 2,620 nodes, whose gathers cost ~300 instructions
+        // each, in the backward pass's per-launch steps); the 1k scene stays on one thread.
         self.threads.unwrap_or_else(|| {
-            if entities >= 8_000 {
+            if entities >= 2_000 {
                 // Capped at 8: each launch spawns its threads, and on a 16-core machine
                 // 16 threads ran 2.6x slower than 8 (benchmark-50k: 420 vs 162 steps/s).
                 std::thread::available_parallelism().map_or(1, |n| n.get().min(8))
@@ -154,6 +155,41 @@ impl Backend for Cpu {
 
     fn get(&self, b: BufferId) -> Vec<f64> {
         self.buffers.as_ref().expect("prepared").get(b)
+    }
+
+    fn get_into(&self, b: BufferId, out: HostSliceMut<'_>) {
+        let bufs = self.buffers.as_ref().expect("prepared");
+        match (out, bufs.f32(b), bufs.f64(b)) {
+            (HostSliceMut::F32(o), Some(d), _) => o.copy_from_slice(d),
+            (HostSliceMut::F64(o), _, Some(d)) => o.copy_from_slice(d),
+            (HostSliceMut::F32(o), None, Some(d)) => {
+                for (o, &x) in o.iter_mut().zip(d) {
+                    *o = x as f32;
+                }
+            }
+            (HostSliceMut::F64(o), Some(d), None) => {
+                for (o, &x) in o.iter_mut().zip(d) {
+                    *o = f64::from(x);
+                }
+            }
+            (_, None, None) => unreachable!("a buffer is f32 or f64"),
+        }
+    }
+
+    fn set_from(&mut self, b: BufferId, src: HostSlice<'_>) {
+        let bufs = self.buffers.as_mut().expect("prepared");
+        match src {
+            HostSlice::F32(s) => match bufs.f32_mut(b) {
+                Some(d) => d.copy_from_slice(s),
+                None => {
+                    let d = bufs.f64_mut(b).expect("a buffer is f32 or f64");
+                    for (d, &x) in d.iter_mut().zip(s) {
+                        *d = f64::from(x);
+                    }
+                }
+            },
+            HostSlice::F64(s) => bufs.set(b, s).unwrap_or_else(|e| panic!("{e}")),
+        }
     }
 
     fn swap(&mut self, a: BufferId, b: BufferId) {

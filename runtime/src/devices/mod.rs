@@ -24,6 +24,29 @@ pub trait Backend {
     fn prepare(&mut self, scene: &Scene) -> Result<(), String>;
     fn set(&mut self, b: BufferId, data: &[f64]);
     fn get(&self, b: BufferId) -> Vec<f64>;
+    /// Copy buffer `b` into `out` (a checkpoint slot, in the store's precision): exact when
+    /// that is the device's. Backends that hold the buffer on the host copy it directly.
+    fn get_into(&self, b: BufferId, out: HostSliceMut<'_>) {
+        let v = self.get(b);
+        match out {
+            HostSliceMut::F64(o) => o.copy_from_slice(&v),
+            HostSliceMut::F32(o) => {
+                for (o, &x) in o.iter_mut().zip(&v) {
+                    *o = x as f32;
+                }
+            }
+        }
+    }
+    /// Set buffer `b` from `src` (a checkpoint slot).
+    fn set_from(&mut self, b: BufferId, src: HostSlice<'_>) {
+        match src {
+            HostSlice::F64(s) => self.set(b, s),
+            HostSlice::F32(s) => {
+                let v: Vec<f64> = s.iter().map(|&x| f64::from(x)).collect();
+                self.set(b, &v);
+            }
+        }
+    }
     fn swap(&mut self, a: BufferId, b: BufferId);
     /// Run kernel `k` of the module over the entities in `range`.
     fn run(&mut self, k: usize, range: Range<usize>, uniforms: &Uniforms) -> Result<(), String>;
@@ -60,6 +83,19 @@ pub trait Backend {
         let _ = (launches, swaps, first, n, dt, uniforms);
         Ok(false)
     }
+}
+
+/// Values kept on the host (a checkpoint slot), in their stored precision.
+#[derive(Clone, Copy)]
+pub enum HostSlice<'a> {
+    F32(&'a [f32]),
+    F64(&'a [f64]),
+}
+
+/// Room for values on the host (a checkpoint slot), in its precision.
+pub enum HostSliceMut<'a> {
+    F32(&'a mut [f32]),
+    F64(&'a mut [f64]),
 }
 
 /// A kernel over a range of its entities.

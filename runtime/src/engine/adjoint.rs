@@ -389,8 +389,9 @@ impl<B: Backend> Simulation<'_, B> {
                     }
                 }
                 Action::Store { slot } => {
-                    let (x, v) = self.save_state();
-                    slots.put(slot, current, &x, &v);
+                    let (x, v) = slots.slot_mut(slot, current);
+                    self.backend.get_into(self.ids.x, x);
+                    self.backend.get_into(self.ids.v, v);
                 }
                 _ => unreachable!("the prefix only advances and stores"),
             }
@@ -452,15 +453,16 @@ impl<B: Backend> Simulation<'_, B> {
                     }
                 }
                 Action::Store { slot } => {
-                    let (x, v) = self.save_state();
-                    slots.put(slot, current, &x, &v);
+                    let (x, v) = slots.slot_mut(slot, current);
+                    self.backend.get_into(self.ids.x, x);
+                    self.backend.get_into(self.ids.v, v);
                 }
                 Action::Restore { slot } => {
                     let (k, x, v) = slots
-                        .get(slot)
+                        .slot(slot)
                         .expect("the schedule restores a stored slot");
-                    self.backend.set(self.ids.x, &x);
-                    self.backend.set(self.ids.v, &v);
+                    self.backend.set_from(self.ids.x, x);
+                    self.backend.set_from(self.ids.v, v);
                     current = k;
                 }
                 Action::Free { slot } => slots.free(slot),

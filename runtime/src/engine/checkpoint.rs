@@ -14,6 +14,8 @@
 //!   with C(s + r, s) ≥ steps, no step is recomputed more than r times. 4000 steps with 27
 //!   snapshots (plus state 0's) cost 2.9 forward runs.
 
+use crate::devices::{HostSlice, HostSliceMut};
+
 /// One action of a schedule. "The current state" is the state in the simulation's buffers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Action {
@@ -305,48 +307,38 @@ impl StateStore {
         }
     }
 
-    /// Keep state `step` (`x`, `v`) in `slot`.
-    pub fn put(&mut self, slot: usize, step: u64, x: &[f64], v: &[f64]) {
+    /// Room for state `step` in `slot` (positions, velocities), to be filled by the caller.
+    pub fn slot_mut(&mut self, slot: usize, step: u64) -> (HostSliceMut<'_>, HostSliceMut<'_>) {
         let n = self.len;
-        assert!(x.len() == n && v.len() == n, "a state of {n} values");
         let range = slot * 2 * n..(slot + 1) * 2 * n;
+        self.step[slot] = Some(step);
         match &mut self.data {
             StoreData::F32(d) => {
-                let (sx, sv) = d[range].split_at_mut(n);
-                // Two plain loops (they vectorize; a chained iterator does not).
-                for (o, &i) in sx.iter_mut().zip(x) {
-                    *o = i as f32;
-                }
-                for (o, &i) in sv.iter_mut().zip(v) {
-                    *o = i as f32;
-                }
+                let (x, v) = d[range].split_at_mut(n);
+                (HostSliceMut::F32(x), HostSliceMut::F32(v))
             }
             StoreData::F64(d) => {
-                let s = &mut d[range];
-                s[..n].copy_from_slice(x);
-                s[n..].copy_from_slice(v);
+                let (x, v) = d[range].split_at_mut(n);
+                (HostSliceMut::F64(x), HostSliceMut::F64(v))
             }
         }
-        self.step[slot] = Some(step);
     }
 
-    /// The step, positions and velocities kept in `slot`, if any.
-    pub fn get(&self, slot: usize) -> Option<(u64, Vec<f64>, Vec<f64>)> {
+    /// The step, positions and velocities kept in `slot`, if any, in place.
+    pub fn slot(&self, slot: usize) -> Option<(u64, HostSlice<'_>, HostSlice<'_>)> {
         let n = self.len;
         let step = self.step[slot]?;
         let range = slot * 2 * n..(slot + 1) * 2 * n;
-        let (x, v) = match &self.data {
+        Some(match &self.data {
             StoreData::F32(d) => {
-                let s = &d[range];
-                let f = |s: &[f32]| s.iter().map(|&a| f64::from(a)).collect();
-                (f(&s[..n]), f(&s[n..]))
+                let (x, v) = d[range].split_at(n);
+                (step, HostSlice::F32(x), HostSlice::F32(v))
             }
             StoreData::F64(d) => {
-                let s = &d[range];
-                (s[..n].to_vec(), s[n..].to_vec())
+                let (x, v) = d[range].split_at(n);
+                (step, HostSlice::F64(x), HostSlice::F64(v))
             }
-        };
-        Some((step, x, v))
+        })
     }
 
     pub fn free(&mut self, slot: usize) {
