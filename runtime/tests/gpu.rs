@@ -658,8 +658,8 @@ fn the_devices_arithmetic_is_reported() {
             xs.push([a, b, round(a * b)]);
         }
         let ordinary = xs.len();
-        // The window boundary of the implicit-Euler test, a subnormal times one (a·c), 0/0, 1/0,
-        // sqrt(-1).
+        // The window boundary of the implicit-Euler test, a subnormal times one (a·c), 0/0 and
+        // sqrt(0), 1/0, sqrt(-1).
         let tiny = match p {
             Precision::F32 => f64::from(f32::MIN_POSITIVE) / 4.0,
             Precision::F64 => f64::MIN_POSITIVE / 4.0,
@@ -730,10 +730,11 @@ fn the_devices_arithmetic_is_reported() {
             if s(2, 3) == 0.0 { "flushed" } else { "kept" }
         );
         eprintln!(
-            "  0/0 = {:?}, 1/0 = {:?}, sqrt(-1) = {:?}",
+            "  0/0 = {:?}, 1/0 = {:?}, sqrt(-1) = {:?}, sqrt(0) = {:?}",
             s(3, 0),
             s(4, 0),
-            s(5, 1)
+            s(5, 1),
+            s(3, 1)
         );
         assert!(
             div_worst < 4.0 && sqrt_worst < 4.0,
