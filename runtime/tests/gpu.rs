@@ -629,6 +629,7 @@ fn arithmetic_module() -> Module {
 #[test]
 fn the_devices_arithmetic_is_reported() {
     let m = arithmetic_module();
+    let mut far_off = Vec::new();
     for p in [Precision::F32, Precision::F64] {
         let Some(mut g) = gpu(&m, p) else {
             continue;
@@ -736,11 +737,11 @@ fn the_devices_arithmetic_is_reported() {
             s(5, 1),
             s(3, 1)
         );
-        assert!(
-            div_worst < 4.0 && sqrt_worst < 4.0,
-            "{p}: division or sqrt far off"
-        );
+        if !(below(div_worst, 4.0) && below(sqrt_worst, 4.0)) {
+            far_off.push(format!("{p}: division or sqrt far off"));
+        }
     }
+    assert!(far_off.is_empty(), "{far_off:?}");
 }
 
 #[test]
