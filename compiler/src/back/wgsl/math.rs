@@ -233,15 +233,18 @@ impl Helpers {
             let _ = writeln!(w, "    if (x == softc_inf()) {{ return x; }}");
             // No frexp: naga's f64 frexp result has an i64 exponent (SHADER_INT64). Scale by
             // exact powers of two into f32's range, take the exponent from an f32 log2, correct.
+            // The scaling loops are bounded (10 steps span f64's range): a driver may fold the
+            // `x == inf` test above away (Vulkan lets it assume no infinities), and an
+            // unbounded loop would then hang the GPU on an infinite argument.
             let _ = writeln!(w, "    var y = x;");
             let _ = writeln!(w, "    var ex = 0.0lf;");
             let _ = writeln!(
                 w,
-                "    while (y > 1e30lf) {{ y = ldexp(y, -100); ex += 100.0lf; }}"
+                "    for (var i = 0; i < 11 && y > 1e30lf; i++) {{ y = ldexp(y, -100); ex += 100.0lf; }}"
             );
             let _ = writeln!(
                 w,
-                "    while (y < 1e-30lf) {{ y = ldexp(y, 100); ex -= 100.0lf; }}"
+                "    for (var i = 0; i < 11 && y < 1e-30lf; i++) {{ y = ldexp(y, 100); ex -= 100.0lf; }}"
             );
             let _ = writeln!(w, "    let k = floor(log2(f32(y)));");
             let _ = writeln!(w, "    var m = ldexp(y, -i32(k));");
