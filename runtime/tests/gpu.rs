@@ -1,7 +1,13 @@
 //! The GPU backend (WGSL on wgpu) against the Cranelift backend and the IR interpreter: short
 //! rollouts of every runnable example agree, f64 on the GPU matches f64 on the CPU to ~1e-9,
-//! the f64 software functions are accurate, runs are deterministic, and bad choices are
-//! reported, not panicked on.
+//! the f64 and f32 software functions are accurate, runs are deterministic, and bad choices
+//! are reported, not panicked on.
+//!
+//! Vulkan promises less than IEEE arithmetic (2.5-ulp division, absolute-error `log`, fused
+//! multiply-adds, flushed subnormals), so a real GPU can fail where lavapipe passes: tests
+//! that compare numbers print all of them (every example, every function's worst argument,
+//! both gradients) before their verdict, and `the_devices_arithmetic_is_reported` says what
+//! the device does. Run them with `--nocapture` on new hardware.
 //!
 //! Without an adapter these tests print a note and pass, except with `CI=true`, where they
 //! fail: CI installs Mesa's lavapipe (`mesa-vulkan-drivers`) so they always run there.
@@ -122,6 +128,7 @@ fn f32_tol(cpu32_vs_cpu64: f64) -> f64 {
 
 #[test]
 fn wgsl_cranelift_and_interpreter_agree_on_short_rollouts_of_every_example() {
+    let mut failures = Vec::new();
     for &(example, steps, dt) in ROLLOUTS {
         let scene = Scene::load(&root().join("examples").join(example), &[])
             .unwrap_or_else(|e| panic!("{example}: {e}"));
@@ -156,18 +163,22 @@ fn wgsl_cranelift_and_interpreter_agree_on_short_rollouts_of_every_example() {
             // compared for it (f64_on_the_gpu_matches_f64_on_the_cpu).
             continue;
         }
-        assert!(
-            tol < 0.2,
-            "{example}: cpu f32 vs f64 {c32:e}: the rollout moved too little"
-        );
-        assert!(
-            d64 < tol,
-            "{example}: gpu f32 vs cpu f64: {d64:e} (tolerance {tol:e})"
-        );
-        assert!(
-            d32 < tol,
-            "{example}: gpu f32 vs cpu f32: {d32:e} (tolerance {tol:e})"
-        );
+        // Every example is run and reported before the verdict.
+        if !below(tol, 0.2) {
+            failures.push(format!(
+                "{example}: cpu f32 vs f64 {c32:e}: the rollout moved too little"
+            ));
+        }
+        if !below(d64, tol) {
+            failures.push(format!(
+                "{example}: gpu f32 vs cpu f64: {d64:e} (tolerance {tol:e})"
+            ));
+        }
+        if !below(d32, tol) {
+            failures.push(format!(
+                "{example}: gpu f32 vs cpu f32: {d32:e} (tolerance {tol:e})"
+            ));
+        }
         // The interpreter (the reference semantics) on the small scenes; Cranelift f64 is
         // bit-identical to it (runtime/tests/engine.rs), checked again here on one.
         if example == "benchmark-1k.soft" || example == "verification.soft" {
@@ -175,9 +186,15 @@ fn wgsl_cranelift_and_interpreter_agree_on_short_rollouts_of_every_example() {
                 .run(dt, Some(steps))
                 .unwrap();
             assert_eq!(interp.x, cpu64.x, "{example}: interp vs cpu f64");
-            assert!(mean_rel_diff(&scene, &gpu32, &interp) < tol);
+            let di = mean_rel_diff(&scene, &gpu32, &interp);
+            if !below(di, tol) {
+                failures.push(format!(
+                    "{example}: gpu f32 vs interpreter: {di:e} (tolerance {tol:e})"
+                ));
+            }
         }
     }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
 
 #[test]
@@ -222,11 +239,16 @@ fn gpu_runs_are_bit_identical() {
     assert!(a.x != scene.mesh.nodes, "the beam moved");
 }
 
-/// One node kernel computing every transcendental function of its input.
+/// The outputs of [`math_module`], in order.
+const MATH_FUNCTIONS: [&str; 9] = [
+    "exp", "ln", "sin", "cos", "tan", "tanh", "sqrt", "pow", "cbrt",
+];
+
+/// One node kernel computing every transcendental function of its input `a` (and `a^b`).
 fn math_module() -> Module {
     let mut m = Module::default();
     let x = m.buffer("x", Domain::Node, 2, "");
-    let y = m.buffer("y", Domain::Node, 8, "");
+    let y = m.buffer("y", Domain::Node, MATH_FUNCTIONS.len() as u32, "");
     let mut k = KernelBuilder::new("math", Domain::Node, "test");
     let a = k.load(ArgSource::Own {
         buffer: x,
@@ -251,8 +273,60 @@ fn math_module() -> Module {
     }
     let p = k.b.bin(BinOp::Pow, a, b);
     k.store(y, 7, p);
+    let c = k.b.un(UnOp::Cbrt, a);
+    k.store(y, 8, c);
     m.push_kernel(k.finish());
     m
+}
+
+/// Run [`math_module`] on the GPU at the pairs `(a, b)`: the outputs, 9 per pair.
+fn run_math(g: &mut Gpu, xs: &[(f64, f64)]) -> Vec<f64> {
+    let n = xs.len();
+    g.prepare_mesh(n, &[], &[]).unwrap();
+    let flat: Vec<f64> = xs.iter().flat_map(|&(a, b)| [a, b]).collect();
+    g.set(softc_compiler::ir::BufferId(0), &flat);
+    g.run(0, 0..n, &Uniforms::default()).unwrap();
+    g.get(softc_compiler::ir::BufferId(1))
+}
+
+/// `x < limit`, false for NaN.
+fn below(x: f64, limit: f64) -> bool {
+    x < limit
+}
+
+/// The worst error of one function over a test, with the argument that gave it.
+#[derive(Clone, Copy, Default)]
+struct Worst {
+    err: f64,
+    a: f64,
+    b: f64,
+    got: f64,
+    want: f64,
+}
+
+impl Worst {
+    fn add(&mut self, err: f64, a: f64, b: f64, got: f64, want: f64) {
+        // A NaN error (a NaN result where a number was due) is the worst there is.
+        if err > self.err || (err.is_nan() && !self.err.is_nan()) {
+            *self = Worst {
+                err,
+                a,
+                b,
+                got,
+                want,
+            };
+        }
+    }
+}
+
+impl std::fmt::Display for Worst {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        write!(
+            f,
+            "{:.3e} at a = {:?}, b = {:?}: got {:e}, want {:e}",
+            self.err, self.a, self.b, self.got, self.want
+        )
+    }
 }
 
 #[test]
@@ -279,14 +353,14 @@ fn f64_software_functions_are_accurate_on_the_gpu() {
         };
         xs.push((a, b));
     }
-    let n = xs.len();
-    g.prepare_mesh(n, &[], &[]).unwrap();
-    let flat: Vec<f64> = xs.iter().flat_map(|&(a, b)| [a, b]).collect();
-    g.set(softc_compiler::ir::BufferId(0), &flat);
-    g.run(0, 0..n, &Uniforms::default()).unwrap();
-    let y = g.get(softc_compiler::ir::BufferId(1));
-    let names = ["exp", "ln", "sin", "cos", "tan", "tanh", "sqrt", "pow"];
-    let mut worst = [0.0f64; 8];
+    // The ends of f64's normal range: ln's bounded scaling loops, cbrt's scaled Newton step.
+    xs.extend([(1e300, 0.5), (1e-300, 0.5), (f64::MAX, 0.5)]);
+    let y = run_math(&mut g, &xs);
+    let names = MATH_FUNCTIONS;
+    let nf = names.len();
+    let mut worst = [Worst::default(); MATH_FUNCTIONS.len()];
+    // Wrong special values (NaN, infinities, exact zeros), all of them, reported together.
+    let mut special = Vec::new();
     for (i, &(a, b)) in xs.iter().enumerate() {
         // Trigonometric functions are checked where their reduction is accurate (|x| < 2^20).
         let trig_ok = a.abs() < 1e6;
@@ -299,18 +373,23 @@ fn f64_software_functions_are_accurate_on_the_gpu() {
             a.tanh(),
             a.sqrt(),
             a.powf(b),
+            a.cbrt(),
         ];
-        for c in 0..8 {
+        for c in 0..nf {
             if (2..=4).contains(&c) && !trig_ok {
                 continue;
             }
-            let (got, w) = (y[8 * i + c], want[c]);
+            let (got, w) = (y[nf * i + c], want[c]);
             if w.is_nan() {
-                assert!(got.is_nan(), "{}({a}, {b}) = {got}, want NaN", names[c]);
+                if !got.is_nan() {
+                    special.push(format!("{}({a:e}, {b:e}) = {got:e}, want NaN", names[c]));
+                }
                 continue;
             }
             if w.is_infinite() || w == 0.0 {
-                assert_eq!(got, w, "{}({a}, {b})", names[c]);
+                if got != w {
+                    special.push(format!("{}({a:e}, {b:e}) = {got:e}, want {w:e}", names[c]));
+                }
                 continue;
             }
             // Relative to the value, except near zeros of sin/cos/tan, where the argument's
@@ -320,15 +399,351 @@ fn f64_software_functions_are_accurate_on_the_gpu() {
             } else {
                 w.abs()
             };
-            worst[c] = worst[c].max((got - w).abs() / scale);
+            worst[c].add((got - w).abs() / scale, a, b, got, w);
         }
     }
-    eprintln!("f64 worst relative errors on the GPU: {names:?} {worst:?}");
-    for c in 0..8 {
+    // Everything first, then the verdict: a failure on a device at hand shows all of it.
+    eprintln!("f64 worst relative errors on the GPU:");
+    for c in 0..nf {
+        eprintln!("  {:>5}: {}", names[c], worst[c]);
+    }
+    eprintln!("f64 wrong special values on the GPU: {}", special.len());
+    for line in &special {
+        eprintln!("  {line}");
+    }
+    let mut failures = special.clone();
+    for c in 0..nf {
         // pow: b·ln(a) reaches ~50, so its rounding (~1e-14) is amplified by |b ln a|.
         let tol = if c == 7 { 1e-13 } else { 1e-14 };
-        assert!(worst[c] < tol, "{}: {:e}", names[c], worst[c]);
+        if !below(worst[c].err, tol) {
+            failures.push(format!("{}: {} (tolerance {tol:e})", names[c], worst[c]));
+        }
     }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// The f32 arguments of the f32 function test: every binade, near 1 (where `ln` must be
+/// accurate relative to `x − 1`), and the special values.
+fn f32_test_arguments() -> Vec<f64> {
+    let mut xs = Vec::new();
+    // Every binade of normal numbers, at mantissas across [1, 2) and around √2.
+    for e in -126..=127 {
+        for m in [
+            1.0,
+            1.0 + f64::from(f32::EPSILON),
+            1.1,
+            1.25,
+            std::f64::consts::SQRT_2 - 1e-7,
+            std::f64::consts::SQRT_2,
+            std::f64::consts::SQRT_2 + 1e-7,
+            1.5,
+            1.75,
+            2.0 - f64::from(f32::EPSILON),
+        ] {
+            xs.push(m * 2f64.powi(e));
+        }
+    }
+    // Pseudo-random mantissas over 1e-30..1e30 (a fixed linear congruential sequence).
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    for _ in 0..3000 {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        let t = (state >> 11) as f64 / (1u64 << 53) as f64;
+        xs.push(10f64.powf((t - 0.5) * 60.0));
+    }
+    // Near 1: 1 ± k ulps, and 1 ± 10^-p.
+    for k in 1..=64 {
+        xs.push(1.0 + f64::from(k) * 2f64.powi(-23));
+        xs.push(1.0 - f64::from(k) * 2f64.powi(-24));
+    }
+    for p in 3..=7 {
+        for m in [1.0, 1.7, 3.3, 7.9] {
+            let d = m * 10f64.powi(-p);
+            xs.push(1.0 + d);
+            xs.push(1.0 - d);
+        }
+    }
+    // Every float in [1 − 2^-14, 1 + 2^-13], at a stride.
+    let one = 1.0f32.to_bits();
+    for k in (0..1 << 10).step_by(3) {
+        xs.push(f64::from(f32::from_bits(one + k)));
+        xs.push(f64::from(f32::from_bits(one - k)));
+    }
+    // The largest and smallest normal numbers.
+    xs.extend([f64::from(f32::MAX), f64::from(f32::MIN_POSITIVE)]);
+    xs.into_iter()
+        .map(|x| f64::from(x as f32))
+        .collect::<Vec<_>>()
+}
+
+/// An f32 ulp at `v` (a normal number's; the smallest subnormal's below them).
+fn ulp32(v: f64) -> f64 {
+    let v = v.abs();
+    if v < f64::from(f32::MIN_POSITIVE) {
+        return 2f64.powi(-149);
+    }
+    2f64.powi(v.log2().floor() as i32 - 23)
+}
+
+/// f32 `ln` on the GPU is software (`softc_ln`): within 2 ulp of the f64 logarithm of the
+/// same f32 argument everywhere, including next to 1, where Vulkan lets the native `log` be
+/// 2^-21 off absolutely (NVIDIA is), which is all of `ln(1 + 1e-6)`; `pow` and `cbrt` are
+/// built on it. Special values are exact. The other f32 functions (native) are reported.
+#[test]
+fn f32_ln_pow_and_cbrt_are_accurate_on_the_gpu() {
+    let m = math_module();
+    let Some(mut g) = gpu(&m, Precision::F32) else {
+        return;
+    };
+    let exps = [2.0 / 3.0, -2.0 / 3.0, -1.5, 1.0 / 3.0, 0.5, 2.5];
+    let mut pairs: Vec<(f64, f64)> = f32_test_arguments()
+        .into_iter()
+        .enumerate()
+        .map(|(i, a)| (a, f64::from(exps[i % exps.len()] as f32)))
+        .collect();
+    let ordinary = pairs.len();
+    // Special values: zeros, negatives, infinities, NaN, and subnormals (a device may flush
+    // those to zero: -inf is accepted for them).
+    let subnormals = [1e-40, 2f64.powi(-149), 2f64.powi(-130), 1.1754942e-38];
+    for a in [
+        0.0,
+        -0.0,
+        -1.0,
+        -1e-30,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::NAN,
+    ] {
+        pairs.push((a, 0.5));
+    }
+    for a in subnormals {
+        pairs.push((f64::from(a as f32), 0.5));
+    }
+    let y = run_math(&mut g, &pairs);
+    let nf = MATH_FUNCTIONS.len();
+    let mut worst = [Worst::default(); MATH_FUNCTIONS.len()];
+    let mut failures = Vec::new();
+    for (i, &(a, b)) in pairs[..ordinary].iter().enumerate() {
+        let out = |c: usize| y[nf * i + c];
+        // ln in f32 ulps of the exact value.
+        let want = a.ln();
+        worst[1].add((out(1) - want).abs() / ulp32(want), a, b, out(1), want);
+        // cbrt: one Newton step from exp(ln|a|/3), within an ulp or two.
+        let want = a.cbrt();
+        worst[8].add((out(8) - want).abs() / ulp32(want), a, b, out(8), want);
+        // pow = exp(b ln a): native exp's error (Vulkan: 3 + 2|x| ulp at x = b ln a) and
+        // the rounding of b ln a (|b ln a| · 2^-24), in f32 ulps of the value.
+        let want = a.powf(b);
+        if want.is_finite() && want > f64::from(f32::MIN_POSITIVE) && want < f64::from(f32::MAX) {
+            let x = (b * a.ln()).abs();
+            let err = (out(7) - want).abs() / ulp32(want) / (4.0 + 3.0 * x);
+            worst[7].add(err, a, b, out(7), want);
+        }
+        // The native functions, reported only (relative errors in ulps).
+        for (c, want) in [(0, a.exp()), (6, a.sqrt())] {
+            if want.is_finite() && want > f64::from(f32::MIN_POSITIVE) && want < f64::from(f32::MAX)
+            {
+                worst[c].add((out(c) - want).abs() / ulp32(want), a, b, out(c), want);
+            }
+        }
+    }
+    for (i, &(a, b)) in pairs.iter().enumerate().skip(ordinary) {
+        let got = y[nf * i + 1];
+        let want = a.ln();
+        let ok = if subnormals.iter().any(|&s| f64::from(s as f32) == a) {
+            got == f64::NEG_INFINITY || (got - want).abs() <= 2.0 * ulp32(want)
+        } else if want.is_nan() {
+            got.is_nan()
+        } else {
+            got == want
+        };
+        eprintln!(
+            "f32 ln({a:e}) = {got:e} (want {want:e}{})",
+            if ok { "" } else { ": WRONG" }
+        );
+        if !ok {
+            failures.push(format!("ln({a:e}) = {got:e}, want {want:e}"));
+        }
+        // pow and cbrt keep the special values of Rust's powf and cbrt (except powf(-inf,
+        // b) = inf for non-integral b, which softc_pow makes NaN as for any negative base).
+        for (c, want) in [(7, a.powf(b)), (8, a.cbrt())] {
+            let got = y[nf * i + c];
+            let same = got == want || (got.is_nan() && want.is_nan());
+            let special = a == 0.0 || !a.is_finite() || (c == 7 && a < 0.0);
+            if !same && special && a != f64::NEG_INFINITY {
+                failures.push(format!(
+                    "{}({a:e}, {b}) = {got:e}, want {want:e}",
+                    MATH_FUNCTIONS[c]
+                ));
+            }
+        }
+    }
+    eprintln!(
+        "f32 worst errors on the GPU ({ordinary} arguments; ulps; pow's in units of 4 + 3|b ln a| ulps):"
+    );
+    for c in [1, 7, 8, 0, 6] {
+        eprintln!("  {:>5}: {}", MATH_FUNCTIONS[c], worst[c]);
+    }
+    for (c, tol) in [(1, 2.0), (8, 2.0), (7, 1.0)] {
+        if !below(worst[c].err, tol) {
+            failures.push(format!(
+                "{}: {} (tolerance {tol})",
+                MATH_FUNCTIONS[c], worst[c]
+            ));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// One node kernel of the device's basic arithmetic on `(a, b, c)`: `a / b`, `sqrt(a)`,
+/// `a·b − c` (where a driver may fuse the product into the subtraction) and `a·c`.
+fn arithmetic_module() -> Module {
+    let mut m = Module::default();
+    let x = m.buffer("x", Domain::Node, 3, "");
+    let y = m.buffer("y", Domain::Node, 4, "");
+    let mut k = KernelBuilder::new("arith", Domain::Node, "test");
+    let [a, b, c] = [0, 1, 2].map(|component| {
+        k.load(ArgSource::Own {
+            buffer: x,
+            component,
+        })
+    });
+    let q = k.b.div(a, b);
+    k.store(y, 0, q);
+    let r = k.b.un(UnOp::Sqrt, a);
+    k.store(y, 1, r);
+    let p = k.b.mul(a, b);
+    let d = k.b.sub(p, c);
+    k.store(y, 2, d);
+    // A product of its own (a driver fuses a product used once more readily).
+    let e = k.b.mul(a, c);
+    k.store(y, 3, e);
+    m.push_kernel(k.finish());
+    m
+}
+
+/// What the device does with the operations the f32 and f64 code relies on, printed for
+/// whoever runs this on new hardware (Vulkan promises less than IEEE for both precisions:
+/// 2.5-ulp division, `sqrt` as 1/inversesqrt, fused multiply-adds, flushed subnormals, NaN
+/// and infinities optimized as if absent). It asserts only what every later test needs:
+/// finite, nearly right quotients and roots.
+#[test]
+fn the_devices_arithmetic_is_reported() {
+    let m = arithmetic_module();
+    let mut far_off = Vec::new();
+    for p in [Precision::F32, Precision::F64] {
+        let Some(mut g) = gpu(&m, p) else {
+            continue;
+        };
+        let round = |v: f64| match p {
+            Precision::F32 => f64::from(v as f32),
+            Precision::F64 => v,
+        };
+        // Pseudo-random a, b in [1, 4) and over 1e-10..1e10, c = a·b rounded.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut xs = Vec::new();
+        for i in 0..4096 {
+            let (a, b) = if i % 2 == 0 {
+                (round(1.0 + 3.0 * next()), round(1.0 + 3.0 * next()))
+            } else {
+                (
+                    round(10f64.powf(20.0 * next() - 10.0)),
+                    round(10f64.powf(20.0 * next() - 10.0)),
+                )
+            };
+            xs.push([a, b, round(a * b)]);
+        }
+        let ordinary = xs.len();
+        // The window boundary of the implicit-Euler test, a subnormal times one (a·c), 0/0 and
+        // sqrt(0), 1/0, sqrt(-1).
+        let tiny = match p {
+            Precision::F32 => f64::from(f32::MIN_POSITIVE) / 4.0,
+            Precision::F64 => f64::MIN_POSITIVE / 4.0,
+        };
+        let specials = [
+            [round(0.003), round(0.001), 0.0],
+            [round(0.002), round(0.001), 0.0],
+            [tiny, 1.0, 1.0],
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [-1.0, 1.0, 0.0],
+        ];
+        xs.extend(specials);
+        let n = xs.len();
+        g.prepare_mesh(n, &[], &[]).unwrap();
+        g.set(
+            softc_compiler::ir::BufferId(0),
+            &xs.iter().flatten().copied().collect::<Vec<_>>(),
+        );
+        g.run(0, 0..n, &Uniforms::default()).unwrap();
+        let y = g.get(softc_compiler::ir::BufferId(1));
+        let ulp = |v: f64| match p {
+            Precision::F32 => ulp32(v),
+            Precision::F64 => {
+                let v = v.abs();
+                (f64::from_bits(v.to_bits() + 1) - v).max(f64::MIN_POSITIVE * f64::EPSILON)
+            }
+        };
+        let (mut div_wrong, mut div_worst, mut sqrt_wrong, mut sqrt_worst, mut fused) =
+            (0, 0.0f64, 0, 0.0f64, 0);
+        for (i, &[a, b, c]) in xs[..ordinary].iter().enumerate() {
+            let (q, r, d) = (y[4 * i], y[4 * i + 1], y[4 * i + 2]);
+            // Correctly rounded in the precision (for f32, the f64 result rounded: double
+            // rounding is off by one in ~2^-29 of cases).
+            let (wq, wr) = (round(a / b), round(a.sqrt()));
+            if q != wq {
+                div_wrong += 1;
+            }
+            if r != wr {
+                sqrt_wrong += 1;
+            }
+            div_worst = div_worst.max((q - a / b).abs() / ulp(wq));
+            sqrt_worst = sqrt_worst.max((r - a.sqrt()).abs() / ulp(wr));
+            // Without contraction a·b − fl(a·b) is exactly 0; fused, it is the product's
+            // rounding error, nonzero for most pairs.
+            if d != 0.0 && c == round(a * b) {
+                fused += 1;
+            }
+        }
+        let s = |i: usize, c: usize| y[4 * (ordinary + i) + c];
+        eprintln!("{p} arithmetic of {}:", g.adapter());
+        eprintln!(
+            "  a / b: {div_wrong} of {ordinary} not correctly rounded, worst {div_worst:.3} ulp"
+        );
+        eprintln!(
+            "  sqrt:  {sqrt_wrong} of {ordinary} not correctly rounded, worst {sqrt_worst:.3} ulp"
+        );
+        eprintln!("  a·b − c fused into one rounding (contraction) in {fused} of {ordinary}");
+        eprintln!(
+            "  0.003/0.001 = {:?} (floor {}), 0.002/0.001 = {:?}",
+            s(0, 0),
+            s(0, 0).floor(),
+            s(1, 0)
+        );
+        eprintln!(
+            "  subnormal {tiny:e} · 1 = {:e} ({})",
+            s(2, 3),
+            if s(2, 3) == 0.0 { "flushed" } else { "kept" }
+        );
+        eprintln!(
+            "  0/0 = {:?}, 1/0 = {:?}, sqrt(-1) = {:?}, sqrt(0) = {:?}",
+            s(3, 0),
+            s(4, 0),
+            s(5, 1),
+            s(3, 1)
+        );
+        if !(below(div_worst, 4.0) && below(sqrt_worst, 4.0)) {
+            far_off.push(format!("{p}: division or sqrt far off"));
+        }
+    }
+    assert!(far_off.is_empty(), "{far_off:?}");
 }
 
 #[test]
@@ -943,13 +1358,35 @@ fn implicit_euler_on_the_gpu_matrix_free_matches_the_cpu() {
     assert_eq!(solver.linear_solver, "krylov");
     assert!(solver.converged, "{solver:?}");
     let state = mean_rel_diff(&scene, &on_gpu.summary, &on_cpu.summary);
-    eprintln!("implicit Euler on the GPU: state {state:e} from the CPU; {solver:?}");
-    assert!(state < 1e-4, "{state:e}");
+    // Everything before the verdict: both solver reports, both gradients in full.
+    eprintln!("implicit Euler on the GPU: state {state:e} from the CPU");
+    eprintln!("  gpu solver: {solver:?}");
+    eprintln!("  cpu solver: {:?}", on_cpu.summary.solver);
+    eprintln!("  gpu gradients: {:?}", on_gpu.gradients);
+    eprintln!("  cpu gradients: {:?}", on_cpu.gradients);
+    let norm = on_cpu
+        .gradients
+        .values()
+        .fold(0.0f64, |m, c| m.max(c.abs()));
+    let mut failures = Vec::new();
+    if !below(state, 1e-4) {
+        failures.push(format!("state {state:e}"));
+    }
     for (name, c) in &on_cpu.gradients {
         let g = on_gpu.gradients[name];
         let rel = ((g - c) / c).abs();
-        eprintln!("{name}: gpu {g:e}, cpu {c:e}, relative {rel:e}");
+        eprintln!(
+            "  {name}: gpu {g:e}, cpu {c:e}, relative {rel:e}, relative to the largest \
+             component {:e}",
+            (g - c).abs() / norm
+        );
         // f32 kernels: the direct solver on the GPU is 1.3e-3 from the CPU on c10 as well.
-        assert!(rel < 5e-3, "{name}: {g} vs {c}");
+        // (The steps land on beta's window boundaries, 1, 2 and 3 ms: `window` counts a
+        // boundary in the window it starts whatever the division's rounding, or NVIDIA's
+        // 0.003f / 0.001f = 2.9999998 moved the 3 ms step's damping gradient to beta.2.)
+        if !below(rel, 5e-3) {
+            failures.push(format!("{name}: {g:e} vs {c:e}"));
+        }
     }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
 }

@@ -230,7 +230,7 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
         "window",
         "window(t: time, width: time) -> integer",
         ["t", "width"],
-        "Index ⌊t / width⌋ of the current window (windowed parameters)."
+        "Index ⌊t / width⌋ of the current window (windowed parameters); a t on a boundary is in the window it starts."
     ),
     b!(
         "step",

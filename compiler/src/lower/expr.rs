@@ -19,6 +19,13 @@ use crate::ir::{ArgSource, BinOp, BufferId, CmpOp, KernelBuilder, UnOp, V};
 use crate::sema::units;
 use std::collections::HashMap;
 
+/// The fraction of a window's width before its start from which `window(t, w)` counts `t` in
+/// it, and the same relative to `t` (f32's rounding of `t/w` grows with it): see the
+/// lowering of `window`.
+const WINDOW_SLACK: f64 = 1e-4;
+/// See [`WINDOW_SLACK`].
+const WINDOW_SLACK_RELATIVE: f64 = 1e-6;
+
 /// A lowered value: a scalar or an array of values (vectors, matrices).
 #[derive(Clone, Debug, PartialEq)]
 pub enum LVal {
@@ -538,8 +545,16 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 let m = k.b.bin(BinOp::Min, q, one);
                 LVal::S(k.b.bin(BinOp::Max, m, zero))
             }
+            // window(t, w) = ⌊t/w·(1 + 10⁻⁶) + 10⁻⁴⌋: a t that lands on a window's start (as
+            // t = k·dt does when dt divides w) is in that window whatever the rounding of t
+            // and of t/w — f32's, or a GPU's division, which Vulkan lets be 2.5 ulp off
+            // (NVIDIA's 0.003f/0.001f is 2.9999998). Without the slack, a boundary step's
+            // damping gradient went to the previous window's param on one backend only.
             ("window", [t, w]) => {
                 let q = k.b.div(t.scalar()?, w.scalar()?);
+                let q = k.b.scale(1.0 + WINDOW_SLACK_RELATIVE, q);
+                let slack = k.b.constant(WINDOW_SLACK);
+                let q = k.b.add(q, slack);
                 LVal::S(k.b.un(UnOp::Floor, q))
             }
             ("step", [t, at]) => LVal::S(k.b.cmp(CmpOp::Ge, t.scalar()?, at.scalar()?)),

@@ -506,8 +506,13 @@ impl<'a> Evaluator<'a> {
                     .min(Dual::constant(1.0))
                     .max(Dual::constant(0.0)),
             ),
-            // The index of the window of width w that t lies in.
-            ("window", [t, w]) => Val::S((s(t)? / s(w)?).floor()),
+            // The index of the window of width w that t lies in; a t within 10⁻⁴ of a width
+            // (and 10⁻⁶ of t/w) before a window's start counts as in it (SPEC.md: steps on a
+            // boundary belong to the window they start, whatever the rounding).
+            ("window", [t, w]) => {
+                let q = s(t)? / s(w)?;
+                Val::S((q * Dual::constant(1.0 + 1e-6) + Dual::constant(1e-4)).floor())
+            }
             ("step", [t, at]) => Val::S(truth(s(t)?.v >= s(at)?.v)),
             _ => {
                 return Err(format!(

@@ -1,19 +1,39 @@
 //! Math helpers emitted into WGSL modules, only those a module uses.
 //!
-//! f32: WGSL's built-ins, except `pow` (undefined in WGSL for negative bases, so it follows
-//! Rust's `powf` for negative bases with integral exponents and zero bases) and `tanh` (exactly
-//! ±1 for large arguments: some drivers compute it as a quotient of exponentials that
-//! overflows to NaN).
+//! f32: WGSL's built-ins for `exp`, `sqrt` and the trigonometric functions (Vulkan bounds
+//! their errors relative to the result), except:
+//! - `ln` is software (`softc_ln`): Vulkan lets `log`/`log2` have an *absolute* error of
+//!   2^-21 on `[0.5, 2]`, so a native `log(J)` at `J = 1 + 1e-6` may be off by 50 % (NVIDIA);
+//!   the stress of a hyperelastic material near rest is made of such logarithms. It is musl's
+//!   (fdlibm's) `logf`: the exponent and mantissa from the bits (subnormals scaled by 2^25
+//!   first), `m` in `[√½, √2)`, `f = m − 1` exact, `s = f/(2+f)` and
+//!   `ln(1+f) = f − f²/2 + s (f²/2 + R(s²))` with a degree-4 minimax `R`: within 1 ulp, and
+//!   relative to `f` near 1. The quotient only enters the correction term, so Vulkan's 2.5-ulp
+//!   division costs nothing, and no step relies on an exact product or sum, so a driver's
+//!   fused multiply-adds cannot break it. Special cases are decided on the bits (a driver may
+//!   assume floats are never NaN or infinite, and fold comparisons with them).
+//! - `pow` is `exp(b · softc_ln|a|)` (native `pow` is `exp2(b · log2 a)` with the same
+//!   absolute error), following Rust's `powf` for negative bases with integral exponents and
+//!   zero bases (WGSL leaves them undefined); `cbrt` starts from `exp(softc_ln|x| / 3)` and
+//!   takes one Newton step.
+//! - `tanh` is exactly ±1 for large arguments: some drivers compute it as a quotient of
+//!   exponentials that overflows to NaN.
 //!
 //! f64: SPIR-V's GLSL.std.450 transcendental functions take only 16/32-bit floats, so these
 //! are software implementations: `exp` by reduction to `r = x − k ln 2` (ln 2 in two parts,
 //! `|r| ≤ ln2/2`) and a degree-13 Taylor polynomial, then `ldexp`; `ln` from the
 //! mantissa moved into `[√½, √2)` (by exact `ldexp` scaling and an f32 `log2` estimate of the
-//! exponent: naga's f64 `frexp` needs 64-bit integers) and the `atanh` series of `s = (m−1)/(m+1)` (`|s| ≤ 0.172`,
-//! to `s^23`); `sin`/`cos`/`tan` by Cody–Waite reduction modulo π/2 (three parts of π/2, exact
-//! products for `|x| < 2^20`) and Taylor polynomials to degree 17/18 on `|r| ≤ π/4`; `tanh`
-//! from `expm1` (series below 0.5, so small arguments keep their relative accuracy). Truncation
-//! errors of the polynomials are below 1e-17 relative; rounding adds a few ulps.
+//! exponent, corrected by one step either way, so the estimate's error does not matter:
+//! naga's f64 `frexp` needs 64-bit integers) and the `atanh` series of `s = (m−1)/(m+1)`
+//! (`|s| ≤ 0.172`, to `s^23`); `sin`/`cos`/`tan` by Cody–Waite reduction modulo π/2 (three
+//! parts of π/2, exact products for `|x| < 2^20`) and Taylor polynomials to degree 17/18 on
+//! `|r| ≤ π/4`; `tanh` from `expm1` (series below 0.5, so small arguments keep their relative
+//! accuracy). Truncation errors of the polynomials are below 1e-17 relative; rounding adds a
+//! few ulps. None of them relies on an error-free transformation (no TwoSum or Dekker
+//! product): the Cody–Waite products are exact with or without a fused multiply-add, so a
+//! driver's contraction of `a·b + c` (SPIR-V allows it; naga emits no `NoContraction`) only
+//! removes roundings. They do rely on f64 `/` (ln, tan, tanh) and `sqrt` being accurate to
+//! a few ulps, which Vulkan does not promise for doubles (only single-precision accuracy).
 
 use super::Precision;
 use std::collections::BTreeSet;
@@ -60,12 +80,77 @@ fn horner(coeffs: &[f64], z: &str) -> String {
     s
 }
 
+/// An f32 constant given by its bits, as a WGSL literal that rounds back to it.
+fn lit32(bits: u32) -> String {
+    format!("{:?}f", f32::from_bits(bits))
+}
+
+/// f32 `softc_ln`: musl's `logf` (see the module's comment).
+fn ln_f32(w: &mut String) {
+    // ln 2 in two parts (the first times any exponent is exact), and the minimax
+    // coefficients of R(z) = Lg1 z + Lg2 z² + Lg3 z³ + Lg4 z⁴ (|error| < 2^-34.24).
+    let ln2_hi = lit32(0x3f31_7180);
+    let ln2_lo = lit32(0x3717_f7d1);
+    let lg1 = lit32((0xaaaaaa as f32 * 2f32.powi(-24)).to_bits());
+    let lg2 = lit32((0xccce13 as f32 * 2f32.powi(-25)).to_bits());
+    let lg3 = lit32((0x91e9ee as f32 * 2f32.powi(-25)).to_bits());
+    let lg4 = lit32((0xf89e26 as f32 * 2f32.powi(-26)).to_bits());
+    let _ = writeln!(
+        w,
+        "// ln x: x = m 2^k, m in [sqrt(1/2), sqrt(2)), f = m - 1;\n\
+         // ln(1+f) = f - f^2/2 + s (f^2/2 + R(s^2)), s = f/(2+f) (musl's logf, within 1 ulp)."
+    );
+    let _ = writeln!(w, "fn softc_ln(x: real) -> real {{");
+    let _ = writeln!(w, "    var ix = bitcast<u32>(x);");
+    let _ = writeln!(w, "    var k = 0;");
+    // The sign bit, infinities and NaN, decided on the bits.
+    let _ = writeln!(w, "    if (ix >= 0x7f800000u) {{");
+    let _ = writeln!(w, "        if (ix == 0x7f800000u) {{ return x; }}");
+    let _ = writeln!(
+        w,
+        "        return select(softc_nan(), -softc_inf(), ix == 0x80000000u);"
+    );
+    let _ = writeln!(w, "    }}");
+    let _ = writeln!(w, "    if (ix < 0x00800000u) {{");
+    let _ = writeln!(w, "        if (ix == 0u) {{ return -softc_inf(); }}");
+    let _ = writeln!(
+        w,
+        "        // A subnormal, scaled by 2^25 (a device that flushes it finds 0)."
+    );
+    let _ = writeln!(w, "        ix = bitcast<u32>(x * 33554432.0f);");
+    let _ = writeln!(
+        w,
+        "        if (ix < 0x00800000u) {{ return -softc_inf(); }}"
+    );
+    let _ = writeln!(w, "        k = -25;");
+    let _ = writeln!(w, "    }}");
+    let _ = writeln!(w, "    ix += 0x3f800000u - 0x3f3504f3u;");
+    let _ = writeln!(w, "    k += i32(ix >> 23u) - 127;");
+    let _ = writeln!(
+        w,
+        "    let f = bitcast<f32>((ix & 0x007fffffu) + 0x3f3504f3u) - 1.0f;"
+    );
+    let _ = writeln!(w, "    let s = f / (2.0f + f);");
+    let _ = writeln!(w, "    let z = s * s;");
+    let _ = writeln!(w, "    let w = z * z;");
+    let _ = writeln!(
+        w,
+        "    let r = z * ({lg1} + w * {lg3}) + w * ({lg2} + w * {lg4});"
+    );
+    let _ = writeln!(w, "    let hfsq = 0.5f * f * f;");
+    let _ = writeln!(w, "    let dk = f32(k);");
+    let _ = writeln!(
+        w,
+        "    return s * (hfsq + r) + dk * {ln2_lo} - hfsq + f + dk * {ln2_hi};"
+    );
+    let _ = writeln!(w, "}}");
+}
+
 impl Helpers {
     /// The name of the function computing `f`, recorded as used.
     pub(super) fn use_fn(&mut self, f: Fun, p: Precision) -> &'static str {
         match (f, p) {
             (Fun::Exp, Precision::F32) => "exp",
-            (Fun::Ln, Precision::F32) => "log",
             (Fun::Sin, Precision::F32) => "sin",
             (Fun::Cos, Precision::F32) => "cos",
             (Fun::Tan, Precision::F32) => "tan",
@@ -105,7 +190,7 @@ impl Helpers {
         let u = |f: Fun| self.used.contains(&f);
         let f64_mode = p == Precision::F64;
         let need_exp = f64_mode && (u(Fun::Exp) || u(Fun::Pow) || u(Fun::Tanh) || u(Fun::Cbrt));
-        let need_ln = f64_mode && (u(Fun::Ln) || u(Fun::Pow) || u(Fun::Cbrt));
+        let need_ln = u(Fun::Ln) || u(Fun::Pow) || u(Fun::Cbrt);
         let need_trig = f64_mode && (u(Fun::Sin) || u(Fun::Cos) || u(Fun::Tan));
         if need_exp {
             let c = inv_factorials(13);
@@ -129,7 +214,10 @@ impl Helpers {
             let _ = writeln!(w, "    return ldexp(p, i32(k));");
             let _ = writeln!(w, "}}");
         }
-        if need_ln {
+        if need_ln && !f64_mode {
+            ln_f32(w);
+        }
+        if need_ln && f64_mode {
             let c: Vec<f64> = (0..12).map(|i| 1.0 / f64::from(2 * i + 1)).collect();
             let _ = writeln!(
                 w,
@@ -145,15 +233,18 @@ impl Helpers {
             let _ = writeln!(w, "    if (x == softc_inf()) {{ return x; }}");
             // No frexp: naga's f64 frexp result has an i64 exponent (SHADER_INT64). Scale by
             // exact powers of two into f32's range, take the exponent from an f32 log2, correct.
+            // The scaling loops are bounded (10 steps span f64's range): a driver may fold the
+            // `x == inf` test above away (Vulkan lets it assume no infinities), and an
+            // unbounded loop would then hang the GPU on an infinite argument.
             let _ = writeln!(w, "    var y = x;");
             let _ = writeln!(w, "    var ex = 0.0lf;");
             let _ = writeln!(
                 w,
-                "    while (y > 1e30lf) {{ y = ldexp(y, -100); ex += 100.0lf; }}"
+                "    for (var i = 0; i < 11 && y > 1e30lf; i++) {{ y = ldexp(y, -100); ex += 100.0lf; }}"
             );
             let _ = writeln!(
                 w,
-                "    while (y < 1e-30lf) {{ y = ldexp(y, 100); ex -= 100.0lf; }}"
+                "    for (var i = 0; i < 11 && y < 1e-30lf; i++) {{ y = ldexp(y, 100); ex -= 100.0lf; }}"
             );
             let _ = writeln!(w, "    let k = floor(log2(f32(y)));");
             let _ = writeln!(w, "    var m = ldexp(y, -i32(k));");
@@ -259,11 +350,8 @@ impl Helpers {
             let _ = writeln!(w, "    if (m == {zero}) {{");
             let _ = writeln!(w, "        return select({zero}, softc_inf(), b < {zero});");
             let _ = writeln!(w, "    }}");
-            if f64_mode {
-                let _ = writeln!(w, "    var r = softc_exp(b * softc_ln(m));");
-            } else {
-                let _ = writeln!(w, "    var r = pow(m, b);");
-            }
+            let exp = if f64_mode { "softc_exp" } else { "exp" };
+            let _ = writeln!(w, "    var r = {exp}(b * softc_ln(m));");
             let _ = writeln!(w, "    if (a < {zero}) {{");
             let _ = writeln!(w, "        if (b != floor(b)) {{ return softc_nan(); }}");
             let _ = writeln!(w, "        if (fract(b * {half}) != {zero}) {{ r = -r; }}");
@@ -272,27 +360,33 @@ impl Helpers {
             let _ = writeln!(w, "}}");
         }
         if u(Fun::Cbrt) {
-            let (zero, third) = if f64_mode {
-                ("0.0lf", "0.3333333333333333lf")
+            // Above `big`, r³ in the Newton step would overflow: the cube root of m·2^-3j,
+            // times 2^j (exact scalings).
+            let (zero, third, big, j) = if f64_mode {
+                ("0.0lf", "0.3333333333333333lf", "1e300lf", 330)
             } else {
-                ("0.0f", "0.33333334f")
+                ("0.0f", "0.33333334f", "1e36f", 40)
             };
+            let exp = if f64_mode { "softc_exp" } else { "exp" };
             let _ = writeln!(
                 w,
                 "// The real cube root: |x|^(1/3) with x's sign, refined by one Newton step."
             );
             let _ = writeln!(w, "fn softc_cbrt(x: real) -> real {{");
-            let _ = writeln!(w, "    let m = abs(x);");
+            let _ = writeln!(w, "    var m = abs(x);");
             let _ = writeln!(
                 w,
                 "    if (m == {zero} || x != x || m == softc_inf()) {{ return x; }}"
             );
-            if f64_mode {
-                let _ = writeln!(w, "    var r = softc_exp({third} * softc_ln(m));");
-            } else {
-                let _ = writeln!(w, "    var r = pow(m, {third});");
-            }
+            let _ = writeln!(w, "    var scale = 0;");
+            let _ = writeln!(
+                w,
+                "    if (m > {big}) {{ m = ldexp(m, {}); scale = {j}; }}",
+                -3 * j
+            );
+            let _ = writeln!(w, "    var r = {exp}({third} * softc_ln(m));");
             let _ = writeln!(w, "    r = r - (r * r * r - m) / (real(3) * r * r);");
+            let _ = writeln!(w, "    r = ldexp(r, scale);");
             let _ = writeln!(w, "    return select(r, -r, x < {zero});");
             let _ = writeln!(w, "}}");
         }

@@ -79,8 +79,8 @@ fn softc_ln(x: real) -> real {
     if (x == softc_inf()) { return x; }
     var y = x;
     var ex = 0.0lf;
-    while (y > 1e30lf) { y = ldexp(y, -100); ex += 100.0lf; }
-    while (y < 1e-30lf) { y = ldexp(y, 100); ex -= 100.0lf; }
+    for (var i = 0; i < 11 && y > 1e30lf; i++) { y = ldexp(y, -100); ex += 100.0lf; }
+    for (var i = 0; i < 11 && y < 1e-30lf; i++) { y = ldexp(y, 100); ex -= 100.0lf; }
     let k = floor(log2(f32(y)));
     var m = ldexp(y, -i32(k));
     ex += real(k);

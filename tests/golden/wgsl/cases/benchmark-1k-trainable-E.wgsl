@@ -73,6 +73,33 @@ fn softc_nan() -> real {
     var zero = real(0);
     return zero / zero;
 }
+// ln x: x = m 2^k, m in [sqrt(1/2), sqrt(2)), f = m - 1;
+// ln(1+f) = f - f^2/2 + s (f^2/2 + R(s^2)), s = f/(2+f) (musl's logf, within 1 ulp).
+fn softc_ln(x: real) -> real {
+    var ix = bitcast<u32>(x);
+    var k = 0;
+    if (ix >= 0x7f800000u) {
+        if (ix == 0x7f800000u) { return x; }
+        return select(softc_nan(), -softc_inf(), ix == 0x80000000u);
+    }
+    if (ix < 0x00800000u) {
+        if (ix == 0u) { return -softc_inf(); }
+        // A subnormal, scaled by 2^25 (a device that flushes it finds 0).
+        ix = bitcast<u32>(x * 33554432.0f);
+        if (ix < 0x00800000u) { return -softc_inf(); }
+        k = -25;
+    }
+    ix += 0x3f800000u - 0x3f3504f3u;
+    k += i32(ix >> 23u) - 127;
+    let f = bitcast<f32>((ix & 0x007fffffu) + 0x3f3504f3u) - 1.0f;
+    let s = f / (2.0f + f);
+    let z = s * s;
+    let w = z * z;
+    let r = z * (0.6666666f + w * 0.28498787f) + w * (0.40000972f + w * 0.24279079f);
+    let hfsq = 0.5f * f * f;
+    let dk = f32(k);
+    return s * (hfsq + r) + dk * 9.058001e-6f - hfsq + f + dk * 0.6931381f;
+}
 
 // ======== kernel fem_rubber over element (from material rubber)
 struct Launch_fem_rubber {
@@ -210,7 +237,7 @@ fn fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let v114: real = 0.145f;
     let v115: real = v113 / v114;
     let v116: real = v112 / v110;
-    let v117: real = log(v107);
+    let v117: real = softc_ln(v107);
     let v118: real = v115 / v110;
     let v119: real = v117 * v118;
     let v120: real = v119 + v119;
@@ -615,7 +642,7 @@ fn fem_rubber_diagnostics(@builtin(global_invocation_id) gid: vec3<u32>, @builti
     let v116: real = 3.0f;
     let v117: real = v106 - v116;
     let v118: real = v115 * v117;
-    let v119: real = log(v89);
+    let v119: real = softc_ln(v89);
     let v120: real = v111 * v119;
     let v121: real = v118 - v120;
     let v122: real = v114 / v109;
@@ -966,7 +993,7 @@ fn adj_fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let v114: real = 0.145f;
     let v115: real = v113 / v114;
     let v116: real = v112 / v110;
-    let v117: real = log(v108);
+    let v117: real = softc_ln(v108);
     let v118: real = v115 / v110;
     let v119: real = v117 * v118;
     let v120: real = v119 + v119;

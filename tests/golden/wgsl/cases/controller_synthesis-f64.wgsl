@@ -89,8 +89,8 @@ fn softc_ln(x: real) -> real {
     if (x == softc_inf()) { return x; }
     var y = x;
     var ex = 0.0lf;
-    while (y > 1e30lf) { y = ldexp(y, -100); ex += 100.0lf; }
-    while (y < 1e-30lf) { y = ldexp(y, 100); ex -= 100.0lf; }
+    for (var i = 0; i < 11 && y > 1e30lf; i++) { y = ldexp(y, -100); ex += 100.0lf; }
+    for (var i = 0; i < 11 && y < 1e-30lf; i++) { y = ldexp(y, 100); ex -= 100.0lf; }
     let k = floor(log2(f32(y)));
     var m = ldexp(y, -i32(k));
     ex += real(k);
@@ -104,10 +104,13 @@ fn softc_ln(x: real) -> real {
 }
 // The real cube root: |x|^(1/3) with x's sign, refined by one Newton step.
 fn softc_cbrt(x: real) -> real {
-    let m = abs(x);
+    var m = abs(x);
     if (m == 0.0lf || x != x || m == softc_inf()) { return x; }
+    var scale = 0;
+    if (m > 1e300lf) { m = ldexp(m, -990); scale = 330; }
     var r = softc_exp(0.3333333333333333lf * softc_ln(m));
     r = r - (r * r * r - m) / (real(3) * r * r);
+    r = ldexp(r, scale);
     return select(r, -r, x < 0.0lf);
 }
 

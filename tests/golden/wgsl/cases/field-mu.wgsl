@@ -75,12 +75,42 @@ fn softc_nan() -> real {
     var zero = real(0);
     return zero / zero;
 }
+// ln x: x = m 2^k, m in [sqrt(1/2), sqrt(2)), f = m - 1;
+// ln(1+f) = f - f^2/2 + s (f^2/2 + R(s^2)), s = f/(2+f) (musl's logf, within 1 ulp).
+fn softc_ln(x: real) -> real {
+    var ix = bitcast<u32>(x);
+    var k = 0;
+    if (ix >= 0x7f800000u) {
+        if (ix == 0x7f800000u) { return x; }
+        return select(softc_nan(), -softc_inf(), ix == 0x80000000u);
+    }
+    if (ix < 0x00800000u) {
+        if (ix == 0u) { return -softc_inf(); }
+        // A subnormal, scaled by 2^25 (a device that flushes it finds 0).
+        ix = bitcast<u32>(x * 33554432.0f);
+        if (ix < 0x00800000u) { return -softc_inf(); }
+        k = -25;
+    }
+    ix += 0x3f800000u - 0x3f3504f3u;
+    k += i32(ix >> 23u) - 127;
+    let f = bitcast<f32>((ix & 0x007fffffu) + 0x3f3504f3u) - 1.0f;
+    let s = f / (2.0f + f);
+    let z = s * s;
+    let w = z * z;
+    let r = z * (0.6666666f + w * 0.28498787f) + w * (0.40000972f + w * 0.24279079f);
+    let hfsq = 0.5f * f * f;
+    let dk = f32(k);
+    return s * (hfsq + r) + dk * 9.058001e-6f - hfsq + f + dk * 0.6931381f;
+}
 // The real cube root: |x|^(1/3) with x's sign, refined by one Newton step.
 fn softc_cbrt(x: real) -> real {
-    let m = abs(x);
+    var m = abs(x);
     if (m == 0.0f || x != x || m == softc_inf()) { return x; }
-    var r = pow(m, 0.33333334f);
+    var scale = 0;
+    if (m > 1e36f) { m = ldexp(m, -120); scale = 40; }
+    var r = exp(0.33333334f * softc_ln(m));
     r = r - (r * r * r - m) / (real(3) * r * r);
+    r = ldexp(r, scale);
     return select(r, -r, x < 0.0f);
 }
 
