@@ -107,11 +107,14 @@ impl Cpu {
     }
 
     fn threads_for(&self, entities: usize) -> usize {
-        // A launch on the worker pool costs a wake-up and a join (some µs): worth it from a few
-        // thousand entities (the 10k scene's 2,620 nodes, whose gathers cost ~300 instructions
-        // each, in the backward pass's per-launch steps); the 1k scene stays on one thread.
+        // A launch on the worker pool wakes sleeping threads and joins them: on this project's
+        // 2-core VM that costs more than it saves below ~10,000 entities. Measured on
+        // benchmark-10k f32 forward+backward (whose backward launches one kernel at a time):
+        // 1,754 steps/s with every launch on one thread, 1,485 with launches of 8,000+
+        // entities on the pool, ~1,400 with 2,000+; at 50k (51,408 tets, 11,157 nodes) the
+        // pool wins (~430 against 341).
         self.threads.unwrap_or_else(|| {
-            if entities >= 2_000 {
+            if entities >= 11_000 {
                 // Capped at 8: each launch spawns its threads, and on a 16-core machine
                 // 16 threads ran 2.6x slower than 8 (benchmark-50k: 420 vs 162 steps/s).
                 std::thread::available_parallelism().map_or(1, |n| n.get().min(8))
