@@ -426,7 +426,11 @@ fn inline_ln_is_the_irs_ln_bit_for_bit_in_vector_and_scalar_code() {
     let xs = ln_arguments(&mut rng, 5e-324, f64::MAX / 2.0, f64::EPSILON);
     let topo = Topology::new(xs.len(), vec![], vec![]).unwrap();
     for cpu in both_ways(&module, Precision::F64) {
-        assert!(!cpu.clif(0).contains("call fn"), "ln is inline: {}", cpu.clif(0));
+        assert!(
+            !cpu.clif(0).contains("call fn"),
+            "ln is inline: {}",
+            cpu.clif(0)
+        );
         let mut bufs = Buffers::new(&module, &topo, Precision::F64);
         bufs.set(input, &xs).unwrap();
         cpu.run(0, &mut bufs, &topo, &[], 0..xs.len()).unwrap();

@@ -20,7 +20,9 @@
 //! through the 2^52 (2^23) bias trick instead of an int-to-float conversion, which x86 SSE has
 //! no 2 × i64 form of.
 
-/// The f64 constants of the method.
+/// The f64 constants of the method (the published decimal forms, which parse to the exact
+/// doubles).
+#[allow(clippy::excessive_precision)]
 pub mod f64c {
     pub const LG: [f64; 7] = [
         6.666666666666735130e-01,
@@ -51,13 +53,14 @@ pub mod f64c {
 /// The f32 constants of the method.
 pub mod f32c {
     pub const LG: [f32; 4] = [
-        0.666_666_63, // 0xaaaaaa × 2^-24
-        0.400_009_72, // 0xccce13 × 2^-25
-        0.284_987_87, // 0x91e9ee × 2^-25
-        0.242_790_79, // 0xf89e26 × 2^-26
+        f32::from_bits(0x3f2a_aaaa), // 0xaaaaaa × 2^-24 ≈ 0.666 666 63
+        f32::from_bits(0x3ecc_ce13), // 0xccce13 × 2^-25 ≈ 0.400 009 72
+        f32::from_bits(0x3e91_e9ee), // 0x91e9ee × 2^-25 ≈ 0.284 987 87
+        f32::from_bits(0x3e78_9e26), // 0xf89e26 × 2^-26 ≈ 0.242 790 79
     ];
-    pub const LN2_HI: f32 = 6.931_381_2e-1;
-    pub const LN2_LO: f32 = 9.058_000_6e-6;
+    /// ln 2 to 16 bits (k · LN2_HI is exact) and the rest.
+    pub const LN2_HI: f32 = f32::from_bits(0x3f31_7180);
+    pub const LN2_LO: f32 = f32::from_bits(0x3717_f7d1);
     pub const SHIFT: u32 = 0x3f80_0000 - 0x3f35_04f3;
     pub const SQRT_HALF_BITS: u32 = 0x3f35_04f3;
     pub const MANTISSA: u32 = (1 << 23) - 1;
@@ -203,19 +206,28 @@ mod tests {
                 f64::from(f32::from_bits(e.max(0x0080_0000))) * f64::from(f32::EPSILON)
             };
             let err = (got - exact).abs() / ulp;
-            assert!(err <= 1.0, "ln({x:e}) = {got:e}, exact {exact:e}: {err} ulp");
+            assert!(
+                err <= 1.0,
+                "ln({x:e}) = {got:e}, exact {exact:e}: {err} ulp"
+            );
             worst = worst.max(err);
             bits += 97;
         }
         // Within a few ulps of 1, where ln(1 + d) ≈ d.
         for k in 1..100_000u32 {
-            for x in [f32::from_bits(0x3f80_0000 + k), f32::from_bits(0x3f80_0000 - k)] {
+            for x in [
+                f32::from_bits(0x3f80_0000 + k),
+                f32::from_bits(0x3f80_0000 - k),
+            ] {
                 let exact = f64::from(x).ln();
                 let got = f64::from(ln_f32(x));
                 let ulp = f64::from(f32::from_bits(
                     ((exact.abs() as f32).to_bits() & 0x7f80_0000).max(0x0080_0000),
                 )) * f64::from(f32::EPSILON);
-                assert!((got - exact).abs() <= ulp, "ln({x:e}) = {got:e}, exact {exact:e}");
+                assert!(
+                    (got - exact).abs() <= ulp,
+                    "ln({x:e}) = {got:e}, exact {exact:e}"
+                );
             }
         }
         eprintln!("ln_f32: worst {worst:.3} ulp of the exact value");

@@ -107,16 +107,15 @@ impl Cpu {
     }
 
     fn threads_for(&self, entities: usize) -> usize {
-        // A launch on the worker pool wakes sleeping threads and joins them: on this project's
-        // 2-core VM that costs more than it saves below ~10,000 entities. Measured on
-        // benchmark-10k f32 forward+backward (whose backward launches one kernel at a time):
-        // 1,754 steps/s with every launch on one thread, 1,485 with launches of 8,000+
-        // entities on the pool, ~1,400 with 2,000+; at 50k (51,408 tets, 11,157 nodes) the
-        // pool wins (~430 against 341).
+        // Launches of 2,000+ entities are split over the launch pool's workers, which spin
+        // between launches (`pool.rs`), so a backward pass's short launches find them awake.
+        // Measured on this 2-core VM, f32 forward+backward steps/s: 10k tets 2,413 (1,843–1,971
+        // with launches below 11,000 entities on one thread; 1,754 all on one), 1k tets
+        // 18,381 (7,106 with its 1,032-element launches split too), 50k 550.
         self.threads.unwrap_or_else(|| {
-            if entities >= 11_000 {
-                // Capped at 8: each launch spawns its threads, and on a 16-core machine
-                // 16 threads ran 2.6x slower than 8 (benchmark-50k: 420 vs 162 steps/s).
+            if entities >= 2_000 {
+                // Capped at 8: on a 16-core machine 16 threads ran 2.6x slower than 8
+                // (benchmark-50k: 420 vs 162 steps/s, with threads spawned per launch then).
                 std::thread::available_parallelism().map_or(1, |n| n.get().min(8))
             } else {
                 1

@@ -430,6 +430,8 @@ impl Translator<'_> {
         };
         // Own components loaded `lanes` at a time: (buffer, first component) -> components.
         let mut own_groups: HashMap<(u32, usize), Vec<Value>> = HashMap::new();
+        // Corner components likewise: (buffer, corner, first component) -> components.
+        let mut corner_groups: HashMap<(u32, u32, usize), Vec<Value>> = HashMap::new();
         let mut rows: HashMap<(u32, Option<u32>), Value> = HashMap::new();
         let mut nodes: HashMap<(u32, u32), Value> = HashMap::new();
         let nc = corners(k.domain).unwrap_or(1) as usize;
@@ -456,8 +458,10 @@ impl Translator<'_> {
                                 vals.push(b.ins().load(vty, vector_flags(buffer.0), row, 0));
                                 continue;
                             }
-                            if nl > 1 && c0 + nl <= width {
-                                // Components c0.. of each lane's row as one vector, transposed.
+                            if nl > 1 && c0 < width {
+                                // Components c0.. of each lane's row as one vector, transposed
+                                // (past the row's end: the next row's values or the buffers'
+                                // zeroed slack, `super::SLACK`, in lanes nothing reads).
                                 let key = (buffer.0, c0);
                                 let group = own_groups.entry(key).or_insert_with(|| {
                                     let rowv: Vec<Value> = (0..nl)
@@ -487,29 +491,52 @@ impl Translator<'_> {
                             let width = m.buffers[buffer.0 as usize].width as i64;
                             let base = h.arg_buf[&a];
                             let conn = h.conn.expect("corner loads load the connectivity");
-                            let xs: Vec<Value> = (0..lanes)
-                                .map(|l| {
-                                    let node = *nodes.entry((*corner, l)).or_insert_with(|| {
-                                        let o = b.ins().imul_imm_s(i, nc as i64 * 4);
-                                        let p = b.ins().iadd(conn, o);
-                                        let at = (l as usize * nc + *corner as usize) * 4;
-                                        b.ins().uload32(readonly(), p, off(at))
-                                    });
-                                    let row = *rows
-                                        .entry((buffer.0, Some(*corner * lanes + l)))
-                                        .or_insert_with(|| {
-                                            let o = b.ins().imul_imm_s(node, width * size as i64);
-                                            b.ins().iadd(base, o)
-                                        });
-                                    b.ins().load(
-                                        fty,
-                                        load_flags(buffer.0),
-                                        row,
-                                        off(*component as usize * size),
-                                    )
-                                })
-                                .collect();
-                            pack(b, &xs)
+                            let mut node_row = |b: &mut FunctionBuilder, l: u32| {
+                                let node = *nodes.entry((*corner, l)).or_insert_with(|| {
+                                    let o = b.ins().imul_imm_s(i, nc as i64 * 4);
+                                    let p = b.ins().iadd(conn, o);
+                                    let at = (l as usize * nc + *corner as usize) * 4;
+                                    b.ins().uload32(readonly(), p, off(at))
+                                });
+                                *rows
+                                    .entry((buffer.0, Some(*corner * lanes + l)))
+                                    .or_insert_with(|| {
+                                        let o = b.ins().imul_imm_s(node, width * size as i64);
+                                        b.ins().iadd(base, o)
+                                    })
+                            };
+                            let nl = lanes as usize;
+                            let c = *component as usize;
+                            let c0 = c / nl * nl;
+                            if nl > 1 {
+                                // Each lane's node row from component c0 as one vector (past
+                                // the row's end as with own rows), transposed: four loads and
+                                // a few shuffles instead of a load and an insert per value.
+                                let key = (buffer.0, *corner, c0);
+                                let group = match corner_groups.get(&key) {
+                                    Some(g) => g.clone(),
+                                    None => {
+                                        let rowv: Vec<Value> = (0..lanes)
+                                            .map(|l| {
+                                                let row = node_row(b, l);
+                                                b.ins().load(
+                                                    vty,
+                                                    vector_flags(buffer.0),
+                                                    row,
+                                                    off(c0 * size),
+                                                )
+                                            })
+                                            .collect();
+                                        let g = transpose(b, &rowv);
+                                        corner_groups.insert(key, g.clone());
+                                        g
+                                    }
+                                };
+                                vals.push(group[c - c0]);
+                                continue;
+                            }
+                            let row = node_row(b, 0);
+                            b.ins().load(fty, load_flags(buffer.0), row, off(c * size))
                         }
                         ArgSource::Uniform(id) => {
                             let j = h
@@ -543,12 +570,7 @@ impl Translator<'_> {
                         UnOp::Floor => per_lane(b, &|b, a| b.ins().floor(a[0]), &[x]),
                         UnOp::Ceil => per_lane(b, &|b, a| b.ins().ceil(a[0]), &[x]),
                         UnOp::Ln => super::vmath::emit_ln(b, x, self.precision, lanes),
-                        UnOp::Cbrt
-                        | UnOp::Exp
-                        | UnOp::Sin
-                        | UnOp::Cos
-                        | UnOp::Tan
-                        | UnOp::Tanh => {
+                        UnOp::Cbrt | UnOp::Exp | UnOp::Sin | UnOp::Cos | UnOp::Tan | UnOp::Tanh => {
                             let f = h.fref[&Lib::Un(op)];
                             per_lane(
                                 b,

@@ -55,6 +55,7 @@
 mod codegen;
 mod gather;
 mod libm;
+mod pool;
 mod step_loop;
 mod vmath;
 
@@ -278,8 +279,16 @@ impl CpuModule {
                     };
                     ctx.clear();
                     ctx.func = func;
+                    let disasm = std::env::var_os("SOFTC_TMP_DISASM").is_some();
+                    ctx.set_disasm(disasm);
                     jit.define_function(fid, &mut ctx)
                         .map_err(|e| format!("kernel `{}`: Cranelift: {e:?}", k.name))?;
+                    if disasm
+                        && let Some(cc) = ctx.compiled_code()
+                        && let Some(v) = &cc.vcode
+                    {
+                        eprintln!("=== kernel {} simd={simd}\n{v}", k.name);
+                    }
                     Ok((fid, clif, simd))
                 })();
                 if result.is_ok() {
@@ -422,6 +431,7 @@ impl CpuModule {
                 uni32.as_ptr() as *const u8
             }
         };
+        buffers.ensure_slack();
         let ptrs: Vec<*mut u8> = buffers.data.iter_mut().map(Storage::as_mut_ptr).collect();
         let ctx = KernelCtx::new(ptrs.as_ptr(), uniforms_ptr, topology);
         let len = range.end - range.start;
@@ -429,33 +439,36 @@ impl CpuModule {
         let bounds: Vec<usize> = (0..=threads)
             .map(|t| range.start + len * t / threads)
             .collect();
-        let shared = SharedCtx(&ctx);
-        let f = k.func;
-        let call = |lo: usize, hi: usize| {
-            let c = &shared;
-            // SAFETY: the buffers the kernel touches have the lengths its layout needs for the
-            // topology's entity counts, the topology's indices were validated against those
-            // counts, `lo..hi` lies inside the kernel's domain, and the kernel was validated
-            // to access only inside that layout. Chunks are disjoint; an entity stores only to
-            // its own row of buffers of the kernel's domain, while other entities' rows are
-            // read only from buffers of other domains (corners read node buffers in element
-            // and triangle kernels, gathers read element or triangle buffers in node kernels),
-            // so concurrent calls never touch a location another one writes.
-            unsafe { f(c.0, lo as u64, hi as u64) }
-        };
-        if threads == 1 {
-            call(range.start, range.end);
-        } else {
-            // The chunks are fixed by the thread count alone, so which worker runs which
-            // chunk changes nothing in the result.
-            worker_pool().scope(|s| {
-                for t in 1..threads {
-                    let (lo, hi) = (bounds[t], bounds[t + 1]);
-                    s.spawn(move |_| call(lo, hi));
-                }
-                call(bounds[0], bounds[1]);
-            });
+        /// One launch split into the chunks `bounds[c]..bounds[c + 1]`.
+        struct Split<'a> {
+            f: KernelFn,
+            ctx: &'a KernelCtx,
+            bounds: &'a [usize],
         }
+        /// Chunk `c` of the `Split` at `data`.
+        unsafe fn chunk(data: *const (), c: usize) {
+            // SAFETY: `data` is the `Split` below, alive while `run_chunks` runs.
+            let s = unsafe { &*(data as *const Split) };
+            // SAFETY: the buffers the kernel touches have the lengths its layout needs for the
+            // topology's entity counts (and their slack), the topology's indices were validated
+            // against those counts, the chunk lies inside the kernel's domain, and the kernel
+            // was validated to access only inside that layout. Chunks are disjoint; an entity
+            // stores only to its own row of buffers of the kernel's domain, while other
+            // entities' rows are read only from buffers of other domains (corners read node
+            // buffers in element and triangle kernels, gathers read element or triangle
+            // buffers in node kernels), so concurrent chunks never touch a location another
+            // one writes.
+            unsafe { (s.f)(s.ctx, s.bounds[c] as u64, s.bounds[c + 1] as u64) }
+        }
+        let split = Split {
+            f: k.func,
+            ctx: &ctx,
+            bounds: &bounds,
+        };
+        // The chunks are fixed by the thread count alone, so which thread runs which chunk
+        // changes nothing in the result.
+        // SAFETY: see `chunk`; `split` outlives the call.
+        unsafe { pool::run_chunks(chunk, &split as *const Split as *const (), threads) };
         Ok(())
     }
 
@@ -593,6 +606,8 @@ impl CpuModule {
         n: u64,
         threads: usize,
     ) -> Result<(), String> {
+        // The loop's threads need the cores the launch pool's workers may be spinning on.
+        pool::park();
         let l = lp.kernels.len();
         if uniforms.len() != l || ranges.len() != l {
             return Err(format!(
@@ -642,6 +657,7 @@ impl CpuModule {
             }
         };
         // Buffer pointers before an even and an odd number of swaps.
+        buffers.ensure_slack();
         let even: Vec<*mut u8> = buffers.data.iter_mut().map(Storage::as_mut_ptr).collect();
         let mut odd = even.clone();
         for &(a, b) in swaps {
@@ -721,7 +737,8 @@ impl CpuModule {
     ///
     /// # Safety
     /// `ctx` must satisfy everything [`CpuModule::run_parallel`] checks: every buffer the
-    /// kernel touches holds `count(domain) × width` values of the module's precision,
+    /// kernel touches holds `count(domain) × width` values of the module's precision
+    /// followed by [`SLACK`] readable values (vector code may load past a row's end),
     /// connectivity and CSR indices are in range, `begin..end` lies inside the kernel's domain,
     /// and no other thread writes what this call reads or writes.
     pub unsafe fn run_raw(&self, kernel: usize, ctx: &KernelCtx, begin: u64, end: u64) {
@@ -730,11 +747,6 @@ impl CpuModule {
     }
 }
 
-struct SharedCtx<'a>(&'a KernelCtx);
-// SAFETY: the context is only read; the data behind its pointers is partitioned by entity
-// between threads (see `run_parallel`).
-unsafe impl Sync for SharedCtx<'_> {}
-
 /// The data of one buffer.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Storage {
@@ -742,7 +754,29 @@ pub enum Storage {
     F32(Vec<f32>),
 }
 
+/// Values past a buffer's end that vector code may read (and ignore): a row loaded as a whole
+/// vector (a node's x, y, z as 4 × f32) reads up to 3 values past the last row. Every launch
+/// first makes sure each buffer has this much zeroed capacity beyond its length
+/// ([`Buffers::ensure_slack`]), so the ignored lanes are zeros, never NaN or subnormal.
+pub const SLACK: usize = 4;
+
 impl Storage {
+    /// Reserve [`SLACK`] values of capacity past the end and zero them.
+    fn ensure_slack(&mut self) {
+        fn pad<T: Copy + Default>(v: &mut Vec<T>) {
+            if v.capacity() - v.len() < SLACK {
+                v.reserve_exact(SLACK);
+            }
+            for x in &mut v.spare_capacity_mut()[..SLACK] {
+                x.write(T::default());
+            }
+        }
+        match self {
+            Storage::F64(v) => pad(v),
+            Storage::F32(v) => pad(v),
+        }
+    }
+
     pub fn precision(&self) -> Precision {
         match self {
             Storage::F64(_) => Precision::F64,
@@ -804,6 +838,13 @@ impl Buffers {
 
     pub fn into_storage(self) -> Vec<Storage> {
         self.data
+    }
+
+    /// Give every buffer its zeroed [`SLACK`] (before pointers to them go to native code).
+    fn ensure_slack(&mut self) {
+        for d in &mut self.data {
+            d.ensure_slack();
+        }
     }
 
     /// The data of every buffer, in [`BufferId`] order (lengths and precisions are checked
@@ -879,18 +920,4 @@ impl Buffers {
             Storage::F64(_) => None,
         }
     }
-}
-
-/// The persistent workers of multi-threaded launches (as many as the machine has cores, at most
-/// 64), started on first use.
-fn worker_pool() -> &'static rayon::ThreadPool {
-    static POOL: std::sync::OnceLock<rayon::ThreadPool> = std::sync::OnceLock::new();
-    POOL.get_or_init(|| {
-        let n = std::thread::available_parallelism().map_or(1, |n| n.get().min(64));
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(n)
-            .thread_name(|i| format!("softc-cpu-{i}"))
-            .build()
-            .expect("the CPU backend's worker threads start")
-    })
 }

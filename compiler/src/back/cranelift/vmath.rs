@@ -11,7 +11,12 @@ use cranelift_codegen::ir::{InstBuilder, MemFlagsData, Type, Value, types};
 use cranelift_frontend::FunctionBuilder;
 
 /// Emits the IR's `ln` of `x` (a scalar, or a vector of `lanes` values) at `precision`.
-pub(super) fn emit_ln(b: &mut FunctionBuilder, x: Value, precision: Precision, lanes: u32) -> Value {
+pub(super) fn emit_ln(
+    b: &mut FunctionBuilder,
+    x: Value,
+    precision: Precision,
+    lanes: u32,
+) -> Value {
     let f64p = precision == Precision::F64;
     let fty = if f64p { types::F64 } else { types::F32 };
     let vty = if lanes == 1 {
