@@ -214,7 +214,10 @@ fn element_kernel(
     // Ds[r][c] = x_{c+1}[r] − x_0[r]
     let ds: [[V; 3]; 3] = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k.b.sub(xs[c + 1][r], xs[0][r])));
     let f = matmul(&mut k.b, &ds, &dmi);
-    let (w, p, j) = energy_and_stress(program, &mut k, material, &f, &fields)?;
+    // The stress comes scaled by −V0 (folded into its scalar factors: three products per
+    // element instead of nine), so H = −V0 · P · Dm⁻ᵀ is one matrix product.
+    let nv0 = k.b.neg(vol0);
+    let (w, p, j) = energy_and_stress(program, &mut k, material, &f, &fields, nv0)?;
     if diagnostics {
         // The stress is dead code here: pruned when the kernel is finished.
         let e = k.b.mul(vol0, w);
@@ -222,14 +225,12 @@ fn element_kernel(
         k.store(bufs.j, 0, j);
         return Ok(k.finish());
     }
-    // H = −V0 · P · Dm⁻ᵀ: H[r][c] = −V0 Σ_k P[r][k] Dm⁻¹[c][k]
-    let nv0 = k.b.neg(vol0);
+    // H = −V0 · P · Dm⁻ᵀ: H[r][c] = Σ_k (−V0 P)[r][k] Dm⁻¹[c][k]
     let mut h = [[V(0); 3]; 3];
     for r in 0..3 {
         for c in 0..3 {
             let terms: Vec<V> = (0..3).map(|kk| k.b.mul(p[r][kk], dmi[c][kk])).collect();
-            let s = k.b.sum(&terms);
-            h[r][c] = k.b.mul(nv0, s);
+            h[r][c] = k.b.sum(&terms);
         }
     }
     // Corner 0 takes minus the sum of the others (momentum balance); corner c+1 gets column c.
@@ -259,13 +260,15 @@ fn transpose(a: &[[V; 3]; 3]) -> [[V; 3]; 3] {
     [0, 1, 2].map(|r| [0, 1, 2].map(|c| a[c][r]))
 }
 
-/// W and the first Piola–Kirchhoff stress P = ∂W/∂F of a material at deformation gradient F.
+/// W and `scale` times the first Piola–Kirchhoff stress P = ∂W/∂F of a material at
+/// deformation gradient F.
 fn energy_and_stress(
     program: &Program,
     k: &mut KernelBuilder,
     material: &str,
     f: &[[V; 3]; 3],
     fields: &Fields,
+    scale: V,
 ) -> Result<(V, [[V; 3]; 3], V), LowerError> {
     let b = &mut k.b;
     // Cofactor matrix: cof[r][c] = (F_{r+1,c+1} F_{r+2,c+2} − F_{r+1,c+2} F_{r+2,c+1}).
@@ -338,9 +341,15 @@ fn energy_and_stress(
 
     let mut p = [[V(0); 3]; 3];
     let used = |b: &Builder, v: V| b.func.constant(v) != Some(0.0);
-    // The factors 2 of ∂I1/∂F and ∂I2/∂F go on the scalar derivatives (exact: a power of two),
-    // so a constant W_I1 folds with them into one constant.
-    let (two_wi1, two_wi2) = (b.scale(2.0, wi1), b.scale(2.0, wi2));
+    // The factors 2 of ∂I1/∂F and ∂I2/∂F and the caller's scale go on the scalar derivatives
+    // (the 2 exactly: a power of two), not on each of the nine components.
+    let two_wi1 = b.scale(2.0, wi1);
+    let two_wi2 = b.scale(2.0, wi2);
+    let (two_wi1, two_wi2, wj) = (
+        b.mul(scale, two_wi1),
+        b.mul(scale, two_wi2),
+        b.mul(scale, wj),
+    );
     let fc = matmul(b, f, &c);
     for r in 0..3 {
         for col in 0..3 {

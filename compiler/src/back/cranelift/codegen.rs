@@ -283,7 +283,7 @@ impl Translator<'_> {
             let fits = b.ins().icmp(IntCC::UnsignedLessThanOrEqual, next, end);
             b.ins().brif(fits, vbody, &[], sheader, &[]);
             b.switch_to_block(vbody);
-            let gathered = self.emit_gathers(&mut b, m, k, &h, &gathers, &csr, i, lanes);
+            let gathered = self.emit_gathers(&mut b, m, k, &h, &gathers, &csr, i, lanes, simd);
             self.emit_body(&mut b, m, k, &h, i, lanes, &gathered);
             b.def_var(iv, next);
             b.ins().jump(vheader, &[]);
@@ -297,7 +297,7 @@ impl Translator<'_> {
         b.ins().brif(more, sbody, &[], exit, &[]);
 
         b.switch_to_block(sbody);
-        let gathered = self.emit_gathers(&mut b, m, k, &h, &gathers, &csr, i, 1);
+        let gathered = self.emit_gathers(&mut b, m, k, &h, &gathers, &csr, i, 1, simd);
         self.emit_body(&mut b, m, k, &h, i, 1, &gathered);
         let i1 = b.ins().iadd_imm_s(i, 1);
         b.def_var(iv, i1);

@@ -28,7 +28,9 @@
 use super::codegen::{Hoisted, PTR, Translator, off, readonly, trusted};
 use crate::ir::{ArgSource, Domain, Kernel, Module};
 use cranelift_codegen::ir::condcodes::IntCC;
-use cranelift_codegen::ir::{InstBuilder, StackSlotData, StackSlotKind, Value, types};
+use cranelift_codegen::ir::{
+    InstBuilder, MemFlagsData, StackSlotData, StackSlotKind, Value, types,
+};
 use cranelift_frontend::{FunctionBuilder, Variable};
 use std::collections::HashMap;
 
@@ -39,6 +41,11 @@ pub(super) enum Incidences {
     Pairs(Value),
     /// `entity · corners + corner` (one `u32` per incidence).
     Slots(Value),
+    /// As `Slots`, and the values of a row summed as vectors (in vector code): one load and
+    /// add per 4 × f32 (2 × f64) components, each lane summing its component in list order,
+    /// so the sums are the scalar loop's bits. A row's last vector may read past the row into
+    /// the next one or the buffer's slack (`super::SLACK`), in lanes no argument takes.
+    SlotRows(Value),
 }
 
 impl Translator<'_> {
@@ -56,6 +63,7 @@ impl Translator<'_> {
         csr: &[(Value, Value, Value)],
         i: Value,
         lanes: u32,
+        simd: bool,
     ) -> HashMap<usize, Value> {
         let mut gathered = HashMap::new();
         for ((over, args), &(offsets, entries, slots)) in gathers.iter().zip(csr) {
@@ -69,10 +77,10 @@ impl Translator<'_> {
                 }
                 _ => false,
             });
-            let list = if per_corner {
-                Incidences::Slots(slots)
-            } else {
-                Incidences::Pairs(entries)
+            let list = match (per_corner, simd) {
+                (true, true) => Incidences::SlotRows(slots),
+                (true, false) => Incidences::Slots(slots),
+                _ => Incidences::Pairs(entries),
             };
             let sums = if lanes == 1 {
                 self.scalar_gather(b, m, k, h, args, offsets, list, i)
@@ -107,7 +115,7 @@ impl Translator<'_> {
                     Some(b.ins().uload32(readonly(), at, 4)),
                 )
             }
-            Incidences::Slots(slots) => {
+            Incidences::Slots(slots) | Incidences::SlotRows(slots) => {
                 let so = b.ins().imul_imm_s(j, 4);
                 let at = b.ins().iadd(slots, so);
                 (b.ins().uload32(readonly(), at, 0), None)
@@ -155,6 +163,9 @@ impl Translator<'_> {
         list: Incidences,
         i: Value,
     ) -> Vec<Value> {
+        if let Incidences::SlotRows(slots) = list {
+            return self.row_gather(b, k, h, args, offsets, slots, i);
+        }
         let fty = self.fty();
         let o = b.ins().imul_imm_s(i, 4);
         let oa = b.ins().iadd(offsets, o);
@@ -191,6 +202,102 @@ impl Translator<'_> {
         b.ins().jump(gh, &[]);
         b.switch_to_block(gx);
         accs.iter().map(|&acc| b.use_var(acc)).collect()
+    }
+
+    /// The scalar loop with each row's components summed as vectors ([`Incidences::SlotRows`]):
+    /// one accumulator per (buffer, stride, group of 4 × f32 / 2 × f64 components), the
+    /// arguments' sums taken from its lanes.
+    #[allow(clippy::too_many_arguments)]
+    fn row_gather(
+        &self,
+        b: &mut FunctionBuilder,
+        k: &Kernel,
+        h: &Hoisted,
+        args: &[usize],
+        offsets: Value,
+        slots: Value,
+        i: Value,
+    ) -> Vec<Value> {
+        let size = self.precision.size();
+        let nl = 16 / size;
+        let vty = self
+            .fty()
+            .by(nl as u32)
+            .expect("2 × f64 and 4 × f32 are vector types");
+        // (buffer, stride, first component) of each accumulator; per argument, its
+        // accumulator and lane.
+        let mut groups: Vec<(u32, u32, usize, usize)> = Vec::new();
+        let mut place: Vec<(usize, u8)> = Vec::new();
+        for &a in args {
+            let ArgSource::Gather {
+                buffer,
+                stride,
+                component,
+                ..
+            } = &k.args[a]
+            else {
+                unreachable!("grouped gathers are gathers")
+            };
+            let c = *component as usize;
+            let c0 = c / nl * nl;
+            let g = match groups
+                .iter()
+                .position(|&(bu, st, g0, _)| bu == buffer.0 && st == *stride && g0 == c0)
+            {
+                Some(g) => g,
+                None => {
+                    groups.push((buffer.0, *stride, c0, a));
+                    groups.len() - 1
+                }
+            };
+            place.push((g, (c - c0) as u8));
+        }
+        let o = b.ins().imul_imm_s(i, 4);
+        let oa = b.ins().iadd(offsets, o);
+        let start = b.ins().uload32(readonly(), oa, 0);
+        let stop = b.ins().uload32(readonly(), oa, 4);
+        let jv = b.declare_var(types::I64);
+        b.def_var(jv, start);
+        let zero = self.fconst(b, 0.0);
+        let zero = b.ins().splat(vty, zero);
+        let accs: Vec<Variable> = groups
+            .iter()
+            .map(|_| {
+                let v = b.declare_var(vty);
+                b.def_var(v, zero);
+                v
+            })
+            .collect();
+        let gh = b.create_block();
+        let gb = b.create_block();
+        let gx = b.create_block();
+        b.ins().jump(gh, &[]);
+        b.switch_to_block(gh);
+        let j = b.use_var(jv);
+        let more = b.ins().icmp(IntCC::UnsignedLessThan, j, stop);
+        b.ins().brif(more, gb, &[], gx, &[]);
+        b.switch_to_block(gb);
+        let so = b.ins().imul_imm_s(j, 4);
+        let at = b.ins().iadd(slots, so);
+        let slot = b.ins().uload32(readonly(), at, 0);
+        let flags = MemFlagsData::new().with_notrap().with_readonly();
+        for (&(_, stride, c0, a), &acc) in groups.iter().zip(&accs) {
+            let row = b.ins().imul_imm_s(slot, stride as i64 * size as i64);
+            let p = b.ins().iadd(h.arg_buf[&a], row);
+            let x = b.ins().load(vty, flags, p, off(c0 * size));
+            let s = b.use_var(acc);
+            let s = b.ins().fadd(s, x);
+            b.def_var(acc, s);
+        }
+        let j1 = b.ins().iadd_imm_s(j, 1);
+        b.def_var(jv, j1);
+        b.ins().jump(gh, &[]);
+        b.switch_to_block(gx);
+        let sums: Vec<Value> = accs.iter().map(|&acc| b.use_var(acc)).collect();
+        place
+            .iter()
+            .map(|&(g, l)| b.ins().extractlane(sums[g], l))
+            .collect()
     }
 
     /// Each lane's sums by the scalar loop, one lane after the other, packed into vectors.
