@@ -167,12 +167,6 @@ impl Translator<'_> {
             return self.row_gather(b, k, h, args, offsets, slots, i);
         }
         let fty = self.fty();
-        let o = b.ins().imul_imm_s(i, 4);
-        let oa = b.ins().iadd(offsets, o);
-        let start = b.ins().uload32(readonly(), oa, 0);
-        let stop = b.ins().uload32(readonly(), oa, 4);
-        let jv = b.declare_var(types::I64);
-        b.def_var(jv, start);
         let zero = self.fconst(b, 0.0);
         let accs: Vec<Variable> = args
             .iter()
@@ -182,25 +176,14 @@ impl Translator<'_> {
                 v
             })
             .collect();
-        let gh = b.create_block();
-        let gb = b.create_block();
-        let gx = b.create_block();
-        b.ins().jump(gh, &[]);
-        b.switch_to_block(gh);
-        let j = b.use_var(jv);
-        let more = b.ins().icmp(IntCC::UnsignedLessThan, j, stop);
-        b.ins().brif(more, gb, &[], gx, &[]);
-        b.switch_to_block(gb);
-        let xs = self.incidence_loads(b, m, k, h, args, list, j);
-        for (&x, &acc) in xs.iter().zip(&accs) {
-            let s = b.use_var(acc);
-            let s = b.ins().fadd(s, x);
-            b.def_var(acc, s);
-        }
-        let j1 = b.ins().iadd_imm_s(j, 1);
-        b.def_var(jv, j1);
-        b.ins().jump(gh, &[]);
-        b.switch_to_block(gx);
+        csr_loop(b, offsets, i, &mut |b, j| {
+            let xs = self.incidence_loads(b, m, k, h, args, list, j);
+            for (&x, &acc) in xs.iter().zip(&accs) {
+                let s = b.use_var(acc);
+                let s = b.ins().fadd(s, x);
+                b.def_var(acc, s);
+            }
+        });
         accs.iter().map(|&acc| b.use_var(acc)).collect()
     }
 
@@ -252,12 +235,6 @@ impl Translator<'_> {
             };
             place.push((g, (c - c0) as u8));
         }
-        let o = b.ins().imul_imm_s(i, 4);
-        let oa = b.ins().iadd(offsets, o);
-        let start = b.ins().uload32(readonly(), oa, 0);
-        let stop = b.ins().uload32(readonly(), oa, 4);
-        let jv = b.declare_var(types::I64);
-        b.def_var(jv, start);
         let zero = self.fconst(b, 0.0);
         let zero = b.ins().splat(vty, zero);
         let accs: Vec<Variable> = groups
@@ -268,31 +245,20 @@ impl Translator<'_> {
                 v
             })
             .collect();
-        let gh = b.create_block();
-        let gb = b.create_block();
-        let gx = b.create_block();
-        b.ins().jump(gh, &[]);
-        b.switch_to_block(gh);
-        let j = b.use_var(jv);
-        let more = b.ins().icmp(IntCC::UnsignedLessThan, j, stop);
-        b.ins().brif(more, gb, &[], gx, &[]);
-        b.switch_to_block(gb);
-        let so = b.ins().imul_imm_s(j, 4);
-        let at = b.ins().iadd(slots, so);
-        let slot = b.ins().uload32(readonly(), at, 0);
-        let flags = MemFlagsData::new().with_notrap().with_readonly();
-        for (&(_, stride, c0, a), &acc) in groups.iter().zip(&accs) {
-            let row = b.ins().imul_imm_s(slot, stride as i64 * size as i64);
-            let p = b.ins().iadd(h.arg_buf[&a], row);
-            let x = b.ins().load(vty, flags, p, off(c0 * size));
-            let s = b.use_var(acc);
-            let s = b.ins().fadd(s, x);
-            b.def_var(acc, s);
-        }
-        let j1 = b.ins().iadd_imm_s(j, 1);
-        b.def_var(jv, j1);
-        b.ins().jump(gh, &[]);
-        b.switch_to_block(gx);
+        csr_loop(b, offsets, i, &mut |b, j| {
+            let so = b.ins().imul_imm_s(j, 4);
+            let at = b.ins().iadd(slots, so);
+            let slot = b.ins().uload32(readonly(), at, 0);
+            let flags = MemFlagsData::new().with_notrap().with_readonly();
+            for (&(_, stride, c0, a), &acc) in groups.iter().zip(&accs) {
+                let row = b.ins().imul_imm_s(slot, stride as i64 * size as i64);
+                let p = b.ins().iadd(h.arg_buf[&a], row);
+                let x = b.ins().load(vty, flags, p, off(c0 * size));
+                let s = b.use_var(acc);
+                let s = b.ins().fadd(s, x);
+                b.def_var(acc, s);
+            }
+        });
         let sums: Vec<Value> = accs.iter().map(|&acc| b.use_var(acc)).collect();
         place
             .iter()
@@ -340,4 +306,34 @@ impl Translator<'_> {
             .map(|a| b.ins().load(vty, trusted(), base, off(a * 16)))
             .collect()
     }
+}
+
+/// `for j in offsets[i]..offsets[i + 1] { body(j) }`: node `i`'s CSR list, in order; the
+/// builder continues after the loop.
+fn csr_loop(
+    b: &mut FunctionBuilder,
+    offsets: Value,
+    i: Value,
+    body: &mut dyn FnMut(&mut FunctionBuilder, Value),
+) {
+    let o = b.ins().imul_imm_s(i, 4);
+    let oa = b.ins().iadd(offsets, o);
+    let start = b.ins().uload32(readonly(), oa, 0);
+    let stop = b.ins().uload32(readonly(), oa, 4);
+    let jv = b.declare_var(types::I64);
+    b.def_var(jv, start);
+    let gh = b.create_block();
+    let gb = b.create_block();
+    let gx = b.create_block();
+    b.ins().jump(gh, &[]);
+    b.switch_to_block(gh);
+    let j = b.use_var(jv);
+    let more = b.ins().icmp(IntCC::UnsignedLessThan, j, stop);
+    b.ins().brif(more, gb, &[], gx, &[]);
+    b.switch_to_block(gb);
+    body(b, j);
+    let j1 = b.ins().iadd_imm_s(j, 1);
+    b.def_var(jv, j1);
+    b.ins().jump(gh, &[]);
+    b.switch_to_block(gx);
 }
