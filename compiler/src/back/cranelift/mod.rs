@@ -818,9 +818,15 @@ impl Buffers {
             .iter()
             .map(|b| {
                 let n = topology.count(b.domain) * b.width as usize;
+                // Allocated with their zeroed slack, so the first launch moves nothing.
+                fn zeros<T: Copy + Default>(n: usize) -> Vec<T> {
+                    let mut v = vec![T::default(); n + SLACK];
+                    v.truncate(n);
+                    v
+                }
                 match precision {
-                    Precision::F64 => Storage::F64(vec![0.0; n]),
-                    Precision::F32 => Storage::F32(vec![0.0; n]),
+                    Precision::F64 => Storage::F64(zeros(n)),
+                    Precision::F32 => Storage::F32(zeros(n)),
                 }
             })
             .collect();
