@@ -94,13 +94,13 @@ pub(super) const CBRT_F32: (f32, f32, i32) = (1e36, 1e-18, 40);
 pub(super) const CBRT_F64: (f64, f64, i32) = (1e300, 1e-280, 330);
 
 /// `1/ln 2` and `2/π`, the reductions' quotient factors.
-pub(super) const INV_LN2: f64 = 1.442_695_040_888_963_4;
-pub(super) const TWO_OVER_PI: f64 = 0.636_619_772_367_581_4;
+pub(super) const INV_LN2: f64 = std::f64::consts::LOG2_E;
+pub(super) const TWO_OVER_PI: f64 = std::f64::consts::FRAC_2_PI;
 
 /// Taylor coefficients of `sin r / r` and `cos r` in `z = r²` (to r^17 and r^18).
 pub(super) fn sin_cos_coeffs() -> (Vec<f64>, Vec<f64>) {
     let f = inv_factorials(18);
-    let sign = |i: usize| if i % 2 == 0 { 1.0 } else { -1.0 };
+    let sign = |i: usize| if i.is_multiple_of(2) { 1.0 } else { -1.0 };
     (
         (0..9).map(|i| sign(i) * f[2 * i + 1]).collect(),
         (0..10).map(|i| sign(i) * f[2 * i]).collect(),

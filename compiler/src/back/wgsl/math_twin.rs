@@ -297,17 +297,19 @@ fn the_h200s_f64_errors_were_a_reassociated_reduction() {
 /// The f32 GPU test's ordinary arguments (every binade at several mantissas, pseudo-random
 /// ones over 1e-30..1e30), the H200's worst cbrt argument, and subnormals.
 fn f32_arguments() -> Vec<f32> {
-    let mut xs = vec![3.310_192_2e-36_f32];
+    let mut xs = vec![3.310_192_163_662_043e-36_f64 as f32];
     for e in -126..=127 {
         for m in [
             1.0,
-            1.0 + 1.2e-7,
+            1.0 + f64::from(f32::EPSILON),
             1.1,
             1.25,
-            1.414_213_4,
-            1.414_213_6,
+            std::f64::consts::SQRT_2 - 1e-7,
+            std::f64::consts::SQRT_2,
+            std::f64::consts::SQRT_2 + 1e-7,
             1.5,
-            1.999_999_9,
+            1.75,
+            2.0 - f64::from(f32::EPSILON),
         ] {
             xs.push((m * 2f64.powi(e)) as f32);
         }
@@ -367,7 +369,7 @@ fn f32_cbrt_of_a_tiny_argument_needed_the_scaling() {
         ftz: true,
         exp_ulps: 40.0,
     };
-    let x = 3.310_192_2e-36_f32;
+    let x = 3.310_192_163_662_043e-36_f64 as f32;
     let r = d.exp32(d.mul32(0.333_333_34, ln32(d, x)));
     let res = d.mad32(d.mul32(r, r), r, -x);
     assert_eq!(res, 0.0, "the residual r³ − m is flushed");
