@@ -92,10 +92,10 @@ fn softc_ln(x: real) -> real {
     }
     if (ix < 0x00800000u) {
         if (ix == 0u) { return -softc_inf(); }
-        // A subnormal, scaled by 2^25 (a device that flushes it finds 0).
-        ix = bitcast<u32>(x * 33554432.0f);
-        if (ix < 0x00800000u) { return -softc_inf(); }
-        k = -25;
+        // A subnormal, normalized on its bits (no float operation to flush it).
+        let sh = countLeadingZeros(ix) - 8u;
+        ix = ix << sh;
+        k = -i32(sh);
     }
     ix += 0x3f800000u - 0x3f3504f3u;
     k += i32(ix >> 23u) - 127;
@@ -114,6 +114,7 @@ fn softc_cbrt(x: real) -> real {
     if (m == 0.0f || x != x || m == softc_inf()) { return x; }
     var scale = 0;
     if (m > 1e36f) { m = ldexp(m, -120); scale = 40; }
+    if (m < 1e-18f) { m = ldexp(m, 120); scale = -40; }
     var r = exp(0.33333334f * softc_ln(m));
     r = r - (r * r * r - m) / (real(3) * r * r);
     r = ldexp(r, scale);

@@ -5,17 +5,19 @@
 //! - `ln` is software (`softc_ln`): Vulkan lets `log`/`log2` have an *absolute* error of
 //!   2^-21 on `[0.5, 2]`, so a native `log(J)` at `J = 1 + 1e-6` may be off by 50 % (NVIDIA);
 //!   the stress of a hyperelastic material near rest is made of such logarithms. It is musl's
-//!   (fdlibm's) `logf`: the exponent and mantissa from the bits (subnormals scaled by 2^25
-//!   first), `m` in `[√½, √2)`, `f = m − 1` exact, `s = f/(2+f)` and
+//!   (fdlibm's) `logf`: the exponent and mantissa from the bits (subnormals normalized by
+//!   integer shifts, not scaled by a product that a device flushing subnormals makes 0), `m`
+//!   in `[√½, √2)`, `f = m − 1` exact, `s = f/(2+f)` and
 //!   `ln(1+f) = f − f²/2 + s (f²/2 + R(s²))` with a degree-4 minimax `R`: within 1 ulp, and
 //!   relative to `f` near 1. The quotient only enters the correction term, so Vulkan's 2.5-ulp
 //!   division costs nothing, and no step relies on an exact product or sum, so a driver's
-//!   fused multiply-adds cannot break it. Special cases are decided on the bits (a driver may
+//!   fused multiply-adds cannot break it (`twin` checks it). Special cases are decided on the bits (a driver may
 //!   assume floats are never NaN or infinite, and fold comparisons with them).
 //! - `pow` is `exp(b · softc_ln|a|)` (native `pow` is `exp2(b · log2 a)` with the same
 //!   absolute error), following Rust's `powf` for negative bases with integral exponents and
 //!   zero bases (WGSL leaves them undefined); `cbrt` starts from `exp(softc_ln|x| / 3)` and
-//!   takes one Newton step.
+//!   takes one Newton step, on an argument scaled by `2^±120` out of the ends of the range
+//!   (below 1e-18 the residual `r³ − x` would be subnormal, and NVIDIA flushes it: 34 ulps).
 //! - `tanh` is exactly ±1 for large arguments: some drivers compute it as a quotient of
 //!   exponentials that overflows to NaN.
 //!
@@ -30,10 +32,15 @@
 //! `|r| ≤ π/4`; `tanh` from `expm1` (series below 0.5, so small arguments keep their relative
 //! accuracy). Truncation errors of the polynomials are below 1e-17 relative; rounding adds a
 //! few ulps. None of them relies on an error-free transformation (no TwoSum or Dekker
-//! product): the Cody–Waite products are exact with or without a fused multiply-add, so a
-//! driver's contraction of `a·b + c` (SPIR-V allows it; naga emits no `NoContraction`) only
-//! removes roundings. They do rely on f64 `/` (ln, tan, tanh) and `sqrt` being accurate to
-//! a few ulps, which Vulkan does not promise for doubles (only single-precision accuracy).
+//! product), but a reduction `(x − k·C1) − k·C2` relies on its order: without SPIR-V's
+//! `NoContraction` (naga emits none) a driver may reassociate as well as contract, and
+//! NVIDIA's (580, H200) computes `fma(−k, C1 + C2, x)` with the constant sum rounded, which
+//! throws the split away (its exp and sin/cos/tan errors at k = 953 and q ≈ 9040..63300
+//! matched that model to 4 digits: 2.2e-14 and 4.6e-10). So the reductions are chains of
+//! explicit `fma` calls, whose products `k·Ci` are exact anyway (a driver that evaluates an
+//! `fma` as a product and a sum gets the same result). They do rely on f64 `/` (ln, tan,
+//! tanh) and `sqrt` being accurate to a few ulps, which Vulkan does not promise for doubles
+//! (only single-precision accuracy).
 
 use super::Precision;
 use std::collections::BTreeSet;
@@ -54,6 +61,50 @@ pub(super) enum Fun {
 #[derive(Default)]
 pub(super) struct Helpers {
     used: BTreeSet<Fun>,
+}
+
+/// ln 2 in two parts (fdlibm's): `LN2_HI` has 32 significant bits, so `k·LN2_HI` is exact
+/// for any exponent `k`.
+pub(super) const LN2_HI: f64 = 6.931_471_803_691_238e-1;
+pub(super) const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
+/// π/2 in three parts of 33 bits (fdlibm's): `q·PIO2[i]` is exact for `|q| < 2^20`.
+pub(super) const PIO2: [f64; 3] = [
+    1.570_796_326_734_125_6,
+    6.077_100_506_303_966e-11,
+    2.022_266_248_711_166_5e-21,
+];
+/// f32 `softc_ln`'s constants: ln 2 in two parts (the first times any exponent is exact),
+/// and the minimax coefficients of R(z) = Lg1 z + Lg2 z² + Lg3 z³ + Lg4 z⁴
+/// (|error| < 2^-34.24).
+pub(super) fn ln_f32_consts() -> (f32, f32, [f32; 4]) {
+    (
+        f32::from_bits(0x3f31_7180),
+        f32::from_bits(0x3717_f7d1),
+        [
+            0xaaaaaa as f32 * 2f32.powi(-24),
+            0xccce13 as f32 * 2f32.powi(-25),
+            0x91e9ee as f32 * 2f32.powi(-25),
+            0xf89e26 as f32 * 2f32.powi(-26),
+        ],
+    )
+}
+/// `softc_cbrt`'s scaling (f32): above `BIG` the cube root of `m·2^-3J` times `2^J`, below
+/// `SMALL` that of `m·2^3J` times `2^-J`.
+pub(super) const CBRT_F32: (f32, f32, i32) = (1e36, 1e-18, 40);
+pub(super) const CBRT_F64: (f64, f64, i32) = (1e300, 1e-280, 330);
+
+/// `1/ln 2` and `2/π`, the reductions' quotient factors.
+pub(super) const INV_LN2: f64 = std::f64::consts::LOG2_E;
+pub(super) const TWO_OVER_PI: f64 = std::f64::consts::FRAC_2_PI;
+
+/// Taylor coefficients of `sin r / r` and `cos r` in `z = r²` (to r^17 and r^18).
+pub(super) fn sin_cos_coeffs() -> (Vec<f64>, Vec<f64>) {
+    let f = inv_factorials(18);
+    let sign = |i: usize| if i.is_multiple_of(2) { 1.0 } else { -1.0 };
+    (
+        (0..9).map(|i| sign(i) * f[2 * i + 1]).collect(),
+        (0..10).map(|i| sign(i) * f[2 * i]).collect(),
+    )
 }
 
 /// `1/n!` for `n = 0..=max`.
@@ -85,16 +136,15 @@ fn lit32(bits: u32) -> String {
     format!("{:?}f", f32::from_bits(bits))
 }
 
+#[cfg(test)]
+#[path = "math_twin.rs"]
+mod twin;
+
 /// f32 `softc_ln`: musl's `logf` (see the module's comment).
 fn ln_f32(w: &mut String) {
-    // ln 2 in two parts (the first times any exponent is exact), and the minimax
-    // coefficients of R(z) = Lg1 z + Lg2 z² + Lg3 z³ + Lg4 z⁴ (|error| < 2^-34.24).
-    let ln2_hi = lit32(0x3f31_7180);
-    let ln2_lo = lit32(0x3717_f7d1);
-    let lg1 = lit32((0xaaaaaa as f32 * 2f32.powi(-24)).to_bits());
-    let lg2 = lit32((0xccce13 as f32 * 2f32.powi(-25)).to_bits());
-    let lg3 = lit32((0x91e9ee as f32 * 2f32.powi(-25)).to_bits());
-    let lg4 = lit32((0xf89e26 as f32 * 2f32.powi(-26)).to_bits());
+    let (hi, lo, lg) = ln_f32_consts();
+    let [ln2_hi, ln2_lo] = [hi, lo].map(|c| lit32(c.to_bits()));
+    let [lg1, lg2, lg3, lg4] = lg.map(|c| lit32(c.to_bits()));
     let _ = writeln!(
         w,
         "// ln x: x = m 2^k, m in [sqrt(1/2), sqrt(2)), f = m - 1;\n\
@@ -113,16 +163,15 @@ fn ln_f32(w: &mut String) {
     let _ = writeln!(w, "    }}");
     let _ = writeln!(w, "    if (ix < 0x00800000u) {{");
     let _ = writeln!(w, "        if (ix == 0u) {{ return -softc_inf(); }}");
+    // musl scales a subnormal by 2^25; a device that flushes subnormals would find 0, so
+    // the bits are normalized instead (exponent field 1, k lowered by the shift).
     let _ = writeln!(
         w,
-        "        // A subnormal, scaled by 2^25 (a device that flushes it finds 0)."
+        "        // A subnormal, normalized on its bits (no float operation to flush it)."
     );
-    let _ = writeln!(w, "        ix = bitcast<u32>(x * 33554432.0f);");
-    let _ = writeln!(
-        w,
-        "        if (ix < 0x00800000u) {{ return -softc_inf(); }}"
-    );
-    let _ = writeln!(w, "        k = -25;");
+    let _ = writeln!(w, "        let sh = countLeadingZeros(ix) - 8u;");
+    let _ = writeln!(w, "        ix = ix << sh;");
+    let _ = writeln!(w, "        k = -i32(sh);");
     let _ = writeln!(w, "    }}");
     let _ = writeln!(w, "    ix += 0x3f800000u - 0x3f3504f3u;");
     let _ = writeln!(w, "    k += i32(ix >> 23u) - 127;");
@@ -205,10 +254,12 @@ impl Helpers {
                 "    if (x > 709.782712893384lf) {{ return softc_inf(); }}"
             );
             let _ = writeln!(w, "    if (x < -745.2lf) {{ return 0.0lf; }}");
-            let _ = writeln!(w, "    let k = round(x * 1.4426950408889634lf);");
+            let _ = writeln!(w, "    let k = round(x * {});", lit(INV_LN2));
             let _ = writeln!(
                 w,
-                "    let r = (x - k * 6.93147180369123816490e-01lf) - k * 1.90821492927058770002e-10lf;"
+                "    let r = fma(-k, {}, fma(-k, {}, x));",
+                lit(LN2_LO),
+                lit(LN2_HI)
             );
             let _ = writeln!(w, "    let p = {};", horner(&c, "r"));
             let _ = writeln!(w, "    return ldexp(p, i32(k));");
@@ -260,28 +311,27 @@ impl Helpers {
             let _ = writeln!(w, "    let lm = 2.0lf * s * ({});", horner(&c, "z"));
             let _ = writeln!(
                 w,
-                "    return ex * 6.93147180369123816490e-01lf + (ex * 1.90821492927058770002e-10lf + lm);"
+                "    return ex * {} + (ex * {} + lm);",
+                lit(LN2_HI),
+                lit(LN2_LO)
             );
             let _ = writeln!(w, "}}");
         }
         if need_trig {
-            let f = inv_factorials(18);
             // sin r = r (1 - r²/3! + r⁴/5! ...), cos r = 1 - r²/2! + ...
-            let sc: Vec<f64> = (0..9)
-                .map(|i| if i % 2 == 0 { 1.0 } else { -1.0 } * f[2 * i + 1])
-                .collect();
-            let cc: Vec<f64> = (0..10)
-                .map(|i| if i % 2 == 0 { 1.0 } else { -1.0 } * f[2 * i])
-                .collect();
+            let (sc, cc) = sin_cos_coeffs();
             let _ = writeln!(
                 w,
                 "// sin and cos of x: x = q pi/2 + r (Cody-Waite, 3 parts), |r| <= pi/4, Taylor in r."
             );
             let _ = writeln!(w, "fn softc_sincos(x: real) -> vec2<real> {{");
-            let _ = writeln!(w, "    let q = round(x * 0.6366197723675814lf);");
+            let _ = writeln!(w, "    let q = round(x * {});", lit(TWO_OVER_PI));
             let _ = writeln!(
                 w,
-                "    let r = ((x - q * 1.57079632673412561417e+00lf) - q * 6.07710050630396597660e-11lf) - q * 2.02226624871116645580e-21lf;"
+                "    let r = fma(-q, {}, fma(-q, {}, fma(-q, {}, x)));",
+                lit(PIO2[2]),
+                lit(PIO2[1]),
+                lit(PIO2[0])
             );
             let _ = writeln!(w, "    let z = r * r;");
             let _ = writeln!(w, "    let s = r * ({});", horner(&sc, "z"));
@@ -361,11 +411,21 @@ impl Helpers {
         }
         if u(Fun::Cbrt) {
             // Above `big`, r³ in the Newton step would overflow: the cube root of m·2^-3j,
-            // times 2^j (exact scalings).
-            let (zero, third, big, j) = if f64_mode {
-                ("0.0lf", "0.3333333333333333lf", "1e300lf", 330)
+            // times 2^j (exact scalings). Below `small`, the residual r³ − m (~m·2^-24 in
+            // f32) would be subnormal, and a device that flushes subnormals (NVIDIA's f32)
+            // drops the Newton step: the cube root of m·2^3j, times 2^-j.
+            let (zero, third, big, small, j) = if f64_mode {
+                let (big, small, j) = CBRT_F64;
+                ("0.0lf", "0.3333333333333333lf", lit(big), lit(small), j)
             } else {
-                ("0.0f", "0.33333334f", "1e36f", 40)
+                let (big, small, j) = CBRT_F32;
+                (
+                    "0.0f",
+                    "0.33333334f",
+                    format!("{big:e}f"),
+                    format!("{small:e}f"),
+                    j,
+                )
             };
             let exp = if f64_mode { "softc_exp" } else { "exp" };
             let _ = writeln!(
@@ -383,6 +443,11 @@ impl Helpers {
                 w,
                 "    if (m > {big}) {{ m = ldexp(m, {}); scale = {j}; }}",
                 -3 * j
+            );
+            let _ = writeln!(
+                w,
+                "    if (m < {small}) {{ m = ldexp(m, {}); scale = -{j}; }}",
+                3 * j
             );
             let _ = writeln!(w, "    var r = {exp}({third} * softc_ln(m));");
             let _ = writeln!(w, "    r = r - (r * r * r - m) / (real(3) * r * r);");

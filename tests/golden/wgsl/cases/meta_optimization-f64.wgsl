@@ -77,7 +77,7 @@ fn softc_exp(x: real) -> real {
     if (x > 709.782712893384lf) { return softc_inf(); }
     if (x < -745.2lf) { return 0.0lf; }
     let k = round(x * 1.4426950408889634lf);
-    let r = (x - k * 6.93147180369123816490e-01lf) - k * 1.90821492927058770002e-10lf;
+    let r = fma(-k, 1.9082149292705877e-10lf, fma(-k, 0.6931471803691238lf, x));
     let p = 1.0lf + r * (1.0lf + r * (0.5lf + r * (0.16666666666666666lf + r * (0.041666666666666664lf + r * (0.008333333333333333lf + r * (0.001388888888888889lf + r * (0.0001984126984126984lf + r * (2.48015873015873e-5lf + r * (2.7557319223985893e-6lf + r * (2.755731922398589e-7lf + r * (2.505210838544172e-8lf + r * (2.08767569878681e-9lf + r * (1.6059043836821613e-10lf)))))))))))));
     return ldexp(p, i32(k));
 }
@@ -100,7 +100,7 @@ fn softc_ln(x: real) -> real {
     let s = (m - 1.0lf) / (m + 1.0lf);
     let z = s * s;
     let lm = 2.0lf * s * (1.0lf + z * (0.3333333333333333lf + z * (0.2lf + z * (0.14285714285714285lf + z * (0.1111111111111111lf + z * (0.09090909090909091lf + z * (0.07692307692307693lf + z * (0.06666666666666667lf + z * (0.058823529411764705lf + z * (0.05263157894736842lf + z * (0.047619047619047616lf + z * (0.043478260869565216lf))))))))))));
-    return ex * 6.93147180369123816490e-01lf + (ex * 1.90821492927058770002e-10lf + lm);
+    return ex * 0.6931471803691238lf + (ex * 1.9082149292705877e-10lf + lm);
 }
 // The real cube root: |x|^(1/3) with x's sign, refined by one Newton step.
 fn softc_cbrt(x: real) -> real {
@@ -108,6 +108,7 @@ fn softc_cbrt(x: real) -> real {
     if (m == 0.0lf || x != x || m == softc_inf()) { return x; }
     var scale = 0;
     if (m > 1e300lf) { m = ldexp(m, -990); scale = 330; }
+    if (m < 1e-280lf) { m = ldexp(m, 990); scale = -330; }
     var r = softc_exp(0.3333333333333333lf * softc_ln(m));
     r = r - (r * r * r - m) / (real(3) * r * r);
     r = ldexp(r, scale);
