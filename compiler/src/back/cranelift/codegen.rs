@@ -458,7 +458,11 @@ impl Translator<'_> {
                                 vals.push(b.ins().load(vty, vector_flags(buffer.0), row, 0));
                                 continue;
                             }
-                            if nl > 1 && c0 < width {
+                            // Reading past the last lane's row is only for buffers this
+                            // kernel does not store to: another thread may be writing the
+                            // next entity's row of those.
+                            let stored = k.stores.iter().any(|s| s.buffer == *buffer);
+                            if nl > 1 && (c0 + nl <= width || (c0 < width && !stored)) {
                                 // Components c0.. of each lane's row as one vector, transposed
                                 // (past the row's end: the next row's values or the buffers'
                                 // zeroed slack, `super::SLACK`, in lanes nothing reads).
