@@ -31,7 +31,7 @@ struct Job {
 }
 
 // SAFETY: `data` is only dereferenced by `run` for a claimed chunk while the launching thread
-// waits in `Pool::run` (see there), which keeps what it points to alive and shared-readable.
+// waits in `run_chunks` (see there), which keeps what it points to alive and shared-readable.
 unsafe impl Send for Job {}
 
 struct Pool {
@@ -87,7 +87,7 @@ impl Pool {
     fn drain(&self) {
         while let Some((run, data, c)) = self.claim() {
             // SAFETY: the chunk was claimed from the current launch, whose caller waits in
-            // `run` until this chunk is counted done.
+            // `run_chunks` until this chunk is counted done.
             unsafe { run(data, c) };
             self.done.fetch_add(1, Ordering::Release);
         }
@@ -109,7 +109,7 @@ impl Pool {
                 if spins.is_multiple_of(256)
                     && (start.elapsed() > SPIN || self.parked.load(Ordering::Relaxed))
                 {
-                    // Sleep until the next launch (checked under the lock `run` notifies
+                    // Sleep until the next launch (checked under the lock `run_chunks` notifies
                     // under, so a launch published now is not missed).
                     let mut sleepers = self.sleepers.lock().unwrap_or_else(|e| e.into_inner());
                     while self.epoch.load(Ordering::Acquire) == seen {

@@ -38,7 +38,7 @@ pub(super) fn emit_ln(
 
     let min_positive = c(f32::MIN_POSITIVE, f64::MIN_POSITIVE);
     let min_positive = e.f(b, min_positive);
-    let tiny = e.fcmp(b, FloatCC::LessThan, x, min_positive);
+    let tiny = b.ins().fcmp(FloatCC::LessThan, x, min_positive);
     let scaled = {
         let s = e.f(b, c(f32c::SUBNORMAL_SCALE, f64c::SUBNORMAL_SCALE));
         b.ins().fmul(x, s)
@@ -115,13 +115,13 @@ pub(super) fn emit_ln(
 
     // Special values, in the order of `math::special`.
     let inf = e.f(b, f64::INFINITY);
-    let is_inf = e.fcmp(b, FloatCC::Equal, x, inf);
+    let is_inf = b.ins().fcmp(FloatCC::Equal, x, inf);
     let y = e.select(b, is_inf, inf, y);
     let zero = e.f(b, 0.0);
-    let is_zero = e.fcmp(b, FloatCC::Equal, x, zero);
+    let is_zero = b.ins().fcmp(FloatCC::Equal, x, zero);
     let neg_inf = e.f(b, f64::NEG_INFINITY);
     let y = e.select(b, is_zero, neg_inf, y);
-    let below = e.fcmp(b, FloatCC::UnorderedOrLessThan, x, zero);
+    let below = b.ins().fcmp(FloatCC::UnorderedOrLessThan, x, zero);
     let nan = e.f(b, f64::NAN);
     e.select(b, below, nan, y)
 }
@@ -164,11 +164,6 @@ impl Emit {
 
     fn to_float(&self, b: &mut FunctionBuilder, x: Value) -> Value {
         b.ins().bitcast(self.vty, MemFlagsData::new(), x)
-    }
-
-    /// A comparison: a scalar flag, or a lane mask.
-    fn fcmp(&self, b: &mut FunctionBuilder, cc: FloatCC, x: Value, y: Value) -> Value {
-        b.ins().fcmp(cc, x, y)
     }
 
     /// `c ? x : y` per lane.
