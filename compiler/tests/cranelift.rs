@@ -567,8 +567,8 @@ fn signed_volume(p: &[[f64; 3]], t: &[u32; 4]) -> f64 {
     common::signed_volume(t.map(|n| p[n as usize]))
 }
 
-fn dm_inv(p: &[[f64; 3]], t: &[u32; 4]) -> [f64; 9] {
-    common::dm_inv(t.map(|n| p[n as usize]))
+fn rest_shape(p: &[[f64; 3]], t: &[u32; 4]) -> [f64; 7] {
+    common::rest_shape(t.map(|n| p[n as usize]))
 }
 
 impl Mesh {
@@ -585,12 +585,12 @@ impl Mesh {
     fn fill(&self, m: &Module, bufs: &mut Buffers) {
         let id = |n: &str| m.buffer_named(n).unwrap();
         bufs.set(id("x"), &self.x.concat()).unwrap();
-        let dmi: Vec<f64> = self
+        let rest: Vec<f64> = self
             .tets
             .iter()
-            .flat_map(|t| dm_inv(&self.rest, t))
+            .flat_map(|t| rest_shape(&self.rest, t))
             .collect();
-        bufs.set(id("dm_inv"), &dmi).unwrap();
+        bufs.set(id("rest_shape"), &rest).unwrap();
         let vol: Vec<f64> = self
             .tets
             .iter()
@@ -602,7 +602,7 @@ impl Mesh {
     /// The interpreter's outputs of an element kernel at element `e`, by store.
     fn interp_element(&self, m: &Module, k: &Kernel, e: usize) -> Vec<f64> {
         let t = &self.tets[e];
-        let dmi = dm_inv(&self.rest, t);
+        let rest = rest_shape(&self.rest, t);
         let args: Vec<f64> = k
             .args
             .iter()
@@ -612,7 +612,7 @@ impl Mesh {
                 } => self.x[t[*corner as usize] as usize][*component as usize],
                 ArgSource::Own { buffer, component } => {
                     match m.buffers[buffer.0 as usize].name.as_str() {
-                        "dm_inv" => dmi[*component as usize],
+                        "rest_shape" => rest[*component as usize],
                         "vol0" => signed_volume(&self.rest, t),
                         other => panic!("unexpected buffer {other}"),
                     }

@@ -22,8 +22,8 @@ struct Tet {
 }
 
 impl Tet {
-    fn dm_inv(&self) -> [f64; 9] {
-        common::dm_inv(self.rest)
+    fn rest_shape(&self) -> [f64; 7] {
+        common::rest_shape(self.rest)
     }
     fn vol0(&self) -> f64 {
         common::signed_volume(self.rest)
@@ -39,7 +39,7 @@ fn run(module: &Module, k: &Kernel, tet: &Tet) -> ([[f64; 3]; 4], f64) {
 }
 
 fn run_one(module: &Module, k: &Kernel, tet: &Tet) -> ([[f64; 3]; 4], f64) {
-    let dmi = tet.dm_inv();
+    let rest = tet.rest_shape();
     let args: Vec<f64> = k
         .args
         .iter()
@@ -54,7 +54,7 @@ fn run_one(module: &Module, k: &Kernel, tet: &Tet) -> ([[f64; 3]; 4], f64) {
             }
             ArgSource::Own { buffer, component } => {
                 match module.buffers[buffer.0 as usize].name.as_str() {
-                    "dm_inv" => dmi[*component as usize],
+                    "rest_shape" => rest[*component as usize],
                     "vol0" => tet.vol0(),
                     other => panic!("unexpected buffer {other}"),
                 }

@@ -18,6 +18,16 @@
 //! not generated. A W written in I1 = tr C and J (an inversion-safe law such as the prelude's
 //! stable neo-Hookean) gets P = W_I1·2F + W_J·cof F: no J^(−2/3), no F⁻ᵀ, finite for J ≤ 0.
 //!
+//! The kernels never form F. With G = Dm⁻¹·Dm⁻ᵀ and d = det Dm⁻¹ precomputed per element
+//! (the `rest_shape` buffer, [`rest_shape`]) and K = Ds·G = F·Dm⁻ᵀ:
+//!
+//!   F·Dm⁻ᵀ = K,   cof(F)·Dm⁻ᵀ = d·cof(Ds),   J = d·det Ds,   I1 = Σ K∘Ds,
+//!   b = F·Fᵀ = K·Dsᵀ (tr C² = tr b²),   F·C·Dm⁻ᵀ = b·K,
+//!
+//! so H = −V₀·(2·W_I1·K + 2·W_I2·(I1·K − b·K) + W_J·d·cof Ds): the same forces in exact
+//! arithmetic, with F, F·Dm⁻ᵀ's second product and cof F's nine extra products gone (the
+//! benchmark's element kernel: 175 → 131 operations, its adjoint shrinks with it).
+//!
 //! A material constant given by a per-element param (`neo_hookean(mu: mu, …)` with `param mu:
 //! pressure[soft_part]`) is read per element from the buffer `param.mu` (element × 1, kernel
 //! element order), declared here for the fields the material reads ([`material_fields`]).
@@ -113,8 +123,8 @@ fn placeholder_fields(program: &Program, material: &str) -> Result<Fields, Lower
 pub struct FemBuffers {
     /// Current node positions (node × 3).
     pub x: BufferId,
-    /// Dm⁻¹ per element, row-major (element × 9).
-    pub dm_inv: BufferId,
+    /// G = Dm⁻¹·Dm⁻ᵀ's upper triangle and det Dm⁻¹ per element (element × 7, [`rest_shape`]).
+    pub rest_shape: BufferId,
     /// Rest volume per element (element × 1).
     pub vol0: BufferId,
     /// Forces on the 4 corners per element, corner-major (element × 12).
@@ -129,11 +139,11 @@ impl FemBuffers {
     pub fn declare(m: &mut Module) -> Self {
         FemBuffers {
             x: m.buffer("x", Domain::Node, 3, "node positions, m"),
-            dm_inv: m.buffer(
-                "dm_inv",
+            rest_shape: m.buffer(
+                "rest_shape",
                 Domain::Element,
-                9,
-                "rest edge matrix inverse, 1/m",
+                REST_SHAPE_WIDTH,
+                "Dm^-1 Dm^-T (G00 G01 G02 G11 G12 G22, 1/m^2) and det Dm^-1 (1/m^3)",
             ),
             vol0: m.buffer("vol0", Domain::Element, 1, "rest volume, m^3"),
             force: m.buffer(
@@ -146,6 +156,21 @@ impl FemBuffers {
             j: m.buffer("elem_j", Domain::Element, 1, "volume ratio det F"),
         }
     }
+}
+
+/// Values per element of the `rest_shape` buffer.
+pub const REST_SHAPE_WIDTH: u32 = 7;
+
+/// An element's row of the `rest_shape` buffer from its Dm⁻¹ (row-major): the upper triangle
+/// of G = Dm⁻¹·Dm⁻ᵀ (G00, G01, G02, G11, G12, G22) and d = det Dm⁻¹, in f64 (a device in f32
+/// rounds each once).
+pub fn rest_shape(dm_inv: &[[f64; 3]; 3]) -> [f64; REST_SHAPE_WIDTH as usize] {
+    let g = |r: usize, c: usize| (0..3).map(|k| dm_inv[r][k] * dm_inv[c][k]).sum::<f64>();
+    let m = dm_inv;
+    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    [g(0, 0), g(0, 1), g(0, 2), g(1, 1), g(1, 2), g(2, 2), det]
 }
 
 /// Build the element force kernel of one material: the forces on its corners, nothing else
@@ -199,13 +224,20 @@ fn element_kernel(
             })
         })
         .collect();
-    let dmi: [[V; 3]; 3] = [0, 1, 2].map(|r| {
-        [0, 1, 2].map(|c| {
+    // G = Dm⁻¹·Dm⁻ᵀ (symmetric: its upper triangle is stored) and d = det Dm⁻¹.
+    const UPPER: [[usize; 3]; 3] = [[0, 1, 2], [1, 3, 4], [2, 4, 5]];
+    let g_row: Vec<V> = (0..6)
+        .map(|c| {
             k.load(ArgSource::Own {
-                buffer: bufs.dm_inv,
-                component: 3 * r + c,
+                buffer: bufs.rest_shape,
+                component: c,
             })
         })
+        .collect();
+    let g: [[V; 3]; 3] = [0, 1, 2].map(|r| [0, 1, 2].map(|c| g_row[UPPER[r][c]]));
+    let d = k.load(ArgSource::Own {
+        buffer: bufs.rest_shape,
+        component: 6,
     });
     let vol0 = k.load(ArgSource::Own {
         buffer: bufs.vol0,
@@ -213,25 +245,16 @@ fn element_kernel(
     });
     // Ds[r][c] = x_{c+1}[r] − x_0[r]
     let ds: [[V; 3]; 3] = [0, 1, 2].map(|r| [0, 1, 2].map(|c| k.b.sub(xs[c + 1][r], xs[0][r])));
-    let f = matmul(&mut k.b, &ds, &dmi);
     // The stress comes scaled by −V0 (folded into its scalar factors: three products per
-    // element instead of nine), so H = −V0 · P · Dm⁻ᵀ is one matrix product.
+    // element instead of nine), and times Dm⁻ᵀ: H = −V0 · P · Dm⁻ᵀ directly.
     let nv0 = k.b.neg(vol0);
-    let (w, p, j) = energy_and_stress(program, &mut k, material, &f, &fields, nv0)?;
+    let (w, h, j) = energy_and_forces(program, &mut k, material, &ds, &g, d, &fields, nv0)?;
     if diagnostics {
-        // The stress is dead code here: pruned when the kernel is finished.
+        // The forces are dead code here: pruned when the kernel is finished.
         let e = k.b.mul(vol0, w);
         k.store(bufs.energy, 0, e);
         k.store(bufs.j, 0, j);
         return Ok(k.finish());
-    }
-    // H = −V0 · P · Dm⁻ᵀ: H[r][c] = Σ_k (−V0 P)[r][k] Dm⁻¹[c][k]
-    let mut h = [[V(0); 3]; 3];
-    for r in 0..3 {
-        for c in 0..3 {
-            let terms: Vec<V> = (0..3).map(|kk| k.b.mul(p[r][kk], dmi[c][kk])).collect();
-            h[r][c] = k.b.sum(&terms);
-        }
     }
     // Corner 0 takes minus the sum of the others (momentum balance); corner c+1 gets column c.
     for (d, row) in h.iter().enumerate() {
@@ -260,40 +283,49 @@ fn transpose(a: &[[V; 3]; 3]) -> [[V; 3]; 3] {
     [0, 1, 2].map(|r| [0, 1, 2].map(|c| a[c][r]))
 }
 
-/// W and `scale` times the first Piola–Kirchhoff stress P = ∂W/∂F of a material at
-/// deformation gradient F.
-fn energy_and_stress(
+/// W, `scale` times H = P·Dm⁻ᵀ (P = ∂W/∂F, the first Piola–Kirchhoff stress) and J of a
+/// material at edge matrix `ds`, from the rest shape G = Dm⁻¹·Dm⁻ᵀ (`g`) and d = det Dm⁻¹
+/// (the module docs give the identities).
+#[allow(clippy::too_many_arguments)]
+fn energy_and_forces(
     program: &Program,
     k: &mut KernelBuilder,
     material: &str,
-    f: &[[V; 3]; 3],
+    ds: &[[V; 3]; 3],
+    g: &[[V; 3]; 3],
+    d: V,
     fields: &Fields,
     scale: V,
 ) -> Result<(V, [[V; 3]; 3], V), LowerError> {
     let b = &mut k.b;
-    // Cofactor matrix: cof[r][c] = (F_{r+1,c+1} F_{r+2,c+2} − F_{r+1,c+2} F_{r+2,c+1}).
+    // cof(Ds)[r][c] = Ds_{r+1,c+1} Ds_{r+2,c+2} − Ds_{r+1,c+2} Ds_{r+2,c+1}; cof F·Dm⁻ᵀ = d·cof Ds.
     let mut cof = [[V(0); 3]; 3];
     for (r, row) in cof.iter_mut().enumerate() {
         for (c, cell) in row.iter_mut().enumerate() {
             let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
             let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
-            let p = b.mul(f[r1][c1], f[r2][c2]);
-            let q = b.mul(f[r1][c2], f[r2][c1]);
+            let p = b.mul(ds[r1][c1], ds[r2][c2]);
+            let q = b.mul(ds[r1][c2], ds[r2][c1]);
             *cell = b.sub(p, q);
         }
     }
-    let jt: Vec<V> = (0..3).map(|c| b.mul(f[0][c], cof[0][c])).collect();
-    let j = b.sum(&jt);
-    let c = matmul(b, &transpose(f), f);
-    let i1 = b.sum(&[c[0][0], c[1][1], c[2][2]]);
-    let cc = matmul(b, &c, &c);
-    let tr_cc = b.sum(&[cc[0][0], cc[1][1], cc[2][2]]);
+    let jt: Vec<V> = (0..3).map(|c| b.mul(ds[0][c], cof[0][c])).collect();
+    let det_ds = b.sum(&jt);
+    let j = b.mul(d, det_ds);
+    // K = Ds·G = F·Dm⁻ᵀ; I1 = tr(F·Fᵀ) = Σ K∘Ds.
+    let kk = matmul(b, ds, g);
+    let i1t: Vec<V> = (0..9).map(|e| b.mul(kk[e / 3][e % 3], ds[e / 3][e % 3])).collect();
+    let i1 = b.sum(&i1t);
     // Isochoric invariants only for a W written in them: a W of I1 = tr C and J (an
     // inversion-safe law) gets no J^(-2/3) factor, so it stays finite for J <= 0.
     let isochoric = material_is_isochoric(program, material)?;
+    // b = F·Fᵀ = K·Dsᵀ (symmetric): tr C² = tr b², and F·C·Dm⁻ᵀ = b·K.
+    let left_cg = matmul(b, &kk, &transpose(ds));
     let i2 = if isochoric {
         let i1sq = b.mul(i1, i1);
-        let diff = b.sub(i1sq, tr_cc);
+        let bb = matmul(b, &left_cg, &left_cg);
+        let tr_bb = b.sum(&[bb[0][0], bb[1][1], bb[2][2]]);
+        let diff = b.sub(i1sq, tr_bb);
         b.scale(0.5, diff)
     } else {
         b.constant(0.0)
@@ -333,16 +365,16 @@ fn energy_and_stress(
     // back, and its derivative is zero).
     let mut sb = Builder::extend(func);
     let wrt = [0, 1, 2].map(|a| sb.arg(a));
-    let (mut func, g) = ad::gradient(sb.finish(), w, &wrt);
-    func.outputs = vec![w, g[0], g[1], g[2]];
+    let (mut func, grad) = ad::gradient(sb.finish(), w, &wrt);
+    func.outputs = vec![w, grad[0], grad[1], grad[2]];
     let outs = k.inline(&sub_args, &func, &[i1, i2, j]);
     let (w, wi1, wi2, wj) = (outs[0], outs[1], outs[2], outs[3]);
     let b = &mut k.b;
 
-    let mut p = [[V(0); 3]; 3];
+    let mut h = [[V(0); 3]; 3];
     let used = |b: &Builder, v: V| b.func.constant(v) != Some(0.0);
-    // The factors 2 of ∂I1/∂F and ∂I2/∂F and the caller's scale go on the scalar derivatives
-    // (the 2 exactly: a power of two), not on each of the nine components.
+    // The factors 2 of ∂I1/∂F and ∂I2/∂F, the caller's scale and d go on the scalar
+    // derivatives (the 2 exactly: a power of two), not on each of the nine components.
     let two_wi1 = b.scale(2.0, wi1);
     let two_wi2 = b.scale(2.0, wi2);
     let (two_wi1, two_wi2, wj) = (
@@ -350,28 +382,29 @@ fn energy_and_stress(
         b.mul(scale, two_wi2),
         b.mul(scale, wj),
     );
-    let fc = matmul(b, f, &c);
+    let wj_d = b.mul(wj, d);
+    let bk = matmul(b, &left_cg, &kk);
     for r in 0..3 {
         for col in 0..3 {
             let mut terms = Vec::new();
             if used(b, wi1) {
-                // W_I1 ∂I1/∂F = 2·W_I1·F
-                terms.push(b.mul(two_wi1, f[r][col]));
+                // W_I1 ∂I1/∂F·Dm⁻ᵀ = 2·W_I1·K
+                terms.push(b.mul(two_wi1, kk[r][col]));
             }
             if used(b, wi2) {
-                // W_I2 ∂I2/∂F = 2·W_I2·(I1 F − F C)
-                let i1f = b.mul(i1, f[r][col]);
-                let s = b.sub(i1f, fc[r][col]);
+                // W_I2 ∂I2/∂F·Dm⁻ᵀ = 2·W_I2·(I1 K − b K)
+                let i1k = b.mul(i1, kk[r][col]);
+                let s = b.sub(i1k, bk[r][col]);
                 terms.push(b.mul(two_wi2, s));
             }
             if used(b, wj) {
-                // W_J ∂J/∂F = W_J cof(F)
-                terms.push(b.mul(wj, cof[r][col]));
+                // W_J ∂J/∂F·Dm⁻ᵀ = W_J·d·cof(Ds)
+                terms.push(b.mul(wj_d, cof[r][col]));
             }
-            p[r][col] = b.sum(&terms);
+            h[r][col] = b.sum(&terms);
         }
     }
-    Ok((w, p, j))
+    Ok((w, h, j))
 }
 
 /// The values a strain energy may read: I1 = tr(FᵀF), the isochoric Ī1, Ī2, and J.

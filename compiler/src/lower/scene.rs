@@ -61,8 +61,8 @@ pub struct SceneBuffers {
     pub vol0: BufferId,
     pub elem_force: BufferId,
     pub elem_j: BufferId,
-    /// FEM only.
-    pub dm_inv: Option<BufferId>,
+    /// FEM only: G = Dm⁻¹·Dm⁻ᵀ and det Dm⁻¹ per element (rows from `fem::rest_shape`).
+    pub rest_shape: Option<BufferId>,
     /// FEM only.
     pub elem_energy: Option<BufferId>,
     /// The spring mesh only.
@@ -85,7 +85,7 @@ impl SceneBuffers {
             vol0: id("vol0")?,
             elem_force: id("elem_force")?,
             elem_j: id("elem_j")?,
-            dm_inv: m.buffer_named("dm_inv"),
+            rest_shape: m.buffer_named("rest_shape"),
             elem_energy: m.buffer_named("elem_energy"),
             edge_l0: m.buffer_named("edge_l0"),
         })
@@ -123,7 +123,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     let mut module = Module::default();
     let materials = scene_materials(script)?;
     let model = force_model(script)?;
-    // The spring mesh declares its own buffers (no dm_inv, no elem_energy).
+    // The spring mesh declares its own buffers (no rest shape, no elem_energy).
     let x_buf = match model {
         ForceModel::Fem => FemBuffers::declare(&mut module).x,
         ForceModel::Springs { .. } => SpringBuffers::declare(&mut module).x,

@@ -28,7 +28,7 @@ use crate::ir::{ArgSource, BufferId, Domain, KernelBuilder, Module, V, ad};
 pub const TET_EDGES: [(u32, u32); 6] = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)];
 
 /// The buffers of the spring-mesh kernels (the same names as FEM's where they agree; no
-/// `dm_inv` and no `elem_energy`: these forces derive from no energy).
+/// `rest_shape` and no `elem_energy`: these forces derive from no energy).
 pub struct SpringBuffers {
     pub x: BufferId,
     pub vol0: BufferId,

@@ -29,6 +29,18 @@ pub fn signed_volume(r: [[f64; 3]; 4]) -> f64 {
         / 6.0
 }
 
+/// A row of the `rest_shape` buffer: G = Dm⁻¹·Dm⁻ᵀ's upper triangle (G00 G01 G02 G11 G12 G22)
+/// and det Dm⁻¹ = 1/det Dm, from this file's own Dm⁻¹ (not the compiler's `rest_shape`).
+pub fn rest_shape(r: [[f64; 3]; 4]) -> [f64; 7] {
+    let inv = dm_inv(r);
+    let g = |a: usize, b: usize| (0..3).map(|k| inv[3 * a + k] * inv[3 * b + k]).sum::<f64>();
+    let dm: [[f64; 3]; 3] = [0, 1, 2].map(|row| [0, 1, 2].map(|c| r[c + 1][row] - r[0][row]));
+    let det = dm[0][0] * (dm[1][1] * dm[2][2] - dm[1][2] * dm[2][1])
+        - dm[0][1] * (dm[1][0] * dm[2][2] - dm[1][2] * dm[2][0])
+        + dm[0][2] * (dm[1][0] * dm[2][1] - dm[1][1] * dm[2][0]);
+    [g(0, 0), g(0, 1), g(0, 2), g(1, 1), g(1, 2), g(2, 2), 1.0 / det]
+}
+
 /// Dm⁻¹ row-major, with Dm's columns x1−x0, x2−x0, x3−x0, computed independently of the
 /// runtime's precomputation (cofactors over the determinant).
 pub fn dm_inv(r: [[f64; 3]; 4]) -> [f64; 9] {

@@ -313,14 +313,12 @@ impl<'s, B: Backend> Simulation<'s, B> {
         );
         fill(Some(bufs.vol0), scene.pre.rest_volume.clone());
         fill(
-            bufs.dm_inv,
+            bufs.rest_shape,
             scene
                 .pre
                 .dm_inv
                 .iter()
-                .flatten()
-                .flatten()
-                .copied()
+                .flat_map(softc_compiler::driver::rest_shape)
                 .collect(),
         );
         if bufs.edge_l0.is_some() {
