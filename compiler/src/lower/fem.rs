@@ -314,7 +314,9 @@ fn energy_and_forces(
     let j = b.mul(d, det_ds);
     // K = Ds·G = F·Dm⁻ᵀ; I1 = tr(F·Fᵀ) = Σ K∘Ds.
     let kk = matmul(b, ds, g);
-    let i1t: Vec<V> = (0..9).map(|e| b.mul(kk[e / 3][e % 3], ds[e / 3][e % 3])).collect();
+    let i1t: Vec<V> = (0..9)
+        .map(|e| b.mul(kk[e / 3][e % 3], ds[e / 3][e % 3]))
+        .collect();
     let i1 = b.sum(&i1t);
     // Isochoric invariants only for a W written in them: a W of I1 = tr C and J (an
     // inversion-safe law) gets no J^(-2/3) factor, so it stays finite for J <= 0.

@@ -38,7 +38,15 @@ pub fn rest_shape(r: [[f64; 3]; 4]) -> [f64; 7] {
     let det = dm[0][0] * (dm[1][1] * dm[2][2] - dm[1][2] * dm[2][1])
         - dm[0][1] * (dm[1][0] * dm[2][2] - dm[1][2] * dm[2][0])
         + dm[0][2] * (dm[1][0] * dm[2][1] - dm[1][1] * dm[2][0]);
-    [g(0, 0), g(0, 1), g(0, 2), g(1, 1), g(1, 2), g(2, 2), 1.0 / det]
+    [
+        g(0, 0),
+        g(0, 1),
+        g(0, 2),
+        g(1, 1),
+        g(1, 2),
+        g(2, 2),
+        1.0 / det,
+    ]
 }
 
 /// Dm⁻¹ row-major, with Dm's columns x1−x0, x2−x0, x3−x0, computed independently of the

@@ -17,6 +17,7 @@
 
 use super::KernelCtx;
 use super::libm::Lib;
+use super::schedule::Step;
 use crate::back::Precision;
 use crate::ir::valid::{corners, validate_kernel};
 use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp, UniformId};
@@ -67,6 +68,17 @@ pub(super) fn readonly() -> MemFlagsData {
 /// A 32-bit immediate offset: at most 4 lanes × 2^24 components × 8 bytes (`validate_kernel`).
 pub(super) fn off(bytes: usize) -> i32 {
     i32::try_from(bytes).expect("offsets inside validated buffers fit in 32 bits")
+}
+
+/// `x · k` for an index `x`: a shift where `k` is a power of two, which the x86 lowering folds
+/// into an address (`base + x·4`) where an `imul` stays an instruction (Cranelift's e-graph,
+/// which would make the same rewrite, does not run: see `jit_module_with`).
+pub(super) fn scaled(b: &mut FunctionBuilder, x: Value, k: i64) -> Value {
+    if k > 0 && (k as u64).is_power_of_two() {
+        b.ins().ishl_imm_s(x, k.trailing_zeros() as i64)
+    } else {
+        b.ins().imul_imm_s(x, k)
+    }
 }
 
 /// What the entity loops share: values loaded once in the entry block.
@@ -434,11 +446,80 @@ impl Translator<'_> {
         let mut corner_groups: HashMap<(u32, u32, usize), Vec<Value>> = HashMap::new();
         let mut rows: HashMap<(u32, Option<u32>), Value> = HashMap::new();
         let mut nodes: HashMap<(u32, u32), Value> = HashMap::new();
+        // This iteration's connectivity row (first lane's entity), computed once.
+        let mut conn_row: Option<Value> = None;
         let nc = corners(k.domain).unwrap_or(1) as usize;
-        let mut vals: Vec<Value> = Vec::with_capacity(k.body.insts.len());
-        for inst in &k.body.insts {
-            let v = |n: crate::ir::V| vals[n.0 as usize];
-            let r = match *inst {
+        // Store units: `lanes` consecutive components of a buffer stored once each go as one
+        // transpose and one vector store per lane; the others one by one, lane by lane.
+        let units = store_units(m, k, lanes as usize);
+        let unit_values: Vec<Vec<usize>> = units
+            .iter()
+            .map(|u| {
+                u.stores()
+                    .iter()
+                    .map(|&j| k.body.outputs[k.stores[j].output].0 as usize)
+                    .collect()
+            })
+            .collect();
+        let reads_stored = k.args.iter().any(|a| match a {
+            ArgSource::Own { buffer, .. }
+            | ArgSource::Corner { buffer, .. }
+            | ArgSource::Gather { buffer, .. } => k.stores.iter().any(|s| s.buffer == *buffer),
+            ArgSource::Uniform(_) => false,
+        });
+        let deferred = |i: usize| {
+            matches!(k.body.insts[i], Inst::Const(_))
+                || matches!(k.body.insts[i], Inst::Arg(a)
+                    if !matches!(k.args[a as usize], ArgSource::Gather { .. }))
+        };
+        let steps = super::schedule::order(&k.body, &deferred, &unit_values, !reads_stored);
+        let mut vals: Vec<Option<Value>> = vec![None; k.body.insts.len()];
+        for step in steps {
+            let idx = match step {
+                Step::Inst(idx) => idx,
+                Step::Store(u) => {
+                    let xs: Vec<Value> = unit_values[u]
+                        .iter()
+                        .map(|&v| vals[v].expect("the schedule emits stored values first"))
+                        .collect();
+                    let mut row = |b: &mut FunctionBuilder, j: usize| {
+                        let s = &k.stores[j];
+                        let width = m.buffers[s.buffer.0 as usize].width as usize;
+                        *rows.entry((s.buffer.0, None)).or_insert_with(|| {
+                            let o = scaled(b, i, (width * size) as i64);
+                            b.ins().iadd(h.store_ptrs[j], o)
+                        })
+                    };
+                    match &units[u] {
+                        StoreUnit::Rows(group) => {
+                            let s = &k.stores[group[0]];
+                            let width = m.buffers[s.buffer.0 as usize].width as usize;
+                            let c0 = s.component as usize;
+                            let base = row(b, group[0]);
+                            let per_lane = transpose(b, &xs);
+                            for (l, &v) in per_lane.iter().enumerate() {
+                                let o = (l * width + c0) * size;
+                                b.ins()
+                                    .store(MemFlagsData::new().with_notrap(), v, base, off(o));
+                            }
+                        }
+                        StoreUnit::Lanes(j) => {
+                            let s = &k.stores[*j];
+                            let width = m.buffers[s.buffer.0 as usize].width as usize;
+                            let base = row(b, *j);
+                            for l in 0..lanes {
+                                let xl = lane(b, xs[0], l);
+                                let o = (l as usize * width + s.component as usize) * size;
+                                b.ins().store(trusted(), xl, base, off(o));
+                            }
+                        }
+                    }
+                    continue;
+                }
+            };
+            let v =
+                |n: crate::ir::V| vals[n.0 as usize].expect("the schedule emits operands first");
+            let r = match k.body.insts[idx] {
                 Inst::Const(c) => constant(b, c),
                 Inst::Arg(a) => {
                     let a = a as usize;
@@ -447,7 +528,7 @@ impl Translator<'_> {
                             let width = m.buffers[buffer.0 as usize].width as usize;
                             let base = h.arg_buf[&a];
                             let row = *rows.entry((buffer.0, None)).or_insert_with(|| {
-                                let o = b.ins().imul_imm_s(i, (width * size) as i64);
+                                let o = scaled(b, i, (width * size) as i64);
                                 b.ins().iadd(base, o)
                             });
                             let nl = lanes as usize;
@@ -455,7 +536,7 @@ impl Translator<'_> {
                             let c0 = c / nl * nl;
                             if nl > 1 && width == 1 {
                                 // The lanes' values are adjacent: one vector load.
-                                vals.push(b.ins().load(vty, vector_flags(buffer.0), row, 0));
+                                vals[idx] = Some(b.ins().load(vty, vector_flags(buffer.0), row, 0));
                                 continue;
                             }
                             // Reading past the last lane's row is only for buffers this
@@ -476,7 +557,7 @@ impl Translator<'_> {
                                         .collect();
                                     transpose(b, &rowv)
                                 });
-                                vals.push(group[c - c0]);
+                                vals[idx] = Some(group[c - c0]);
                                 continue;
                             }
                             let xs: Vec<Value> = (0..lanes as usize)
@@ -497,15 +578,17 @@ impl Translator<'_> {
                             let conn = h.conn.expect("corner loads load the connectivity");
                             let mut node_row = |b: &mut FunctionBuilder, l: u32| {
                                 let node = *nodes.entry((*corner, l)).or_insert_with(|| {
-                                    let o = b.ins().imul_imm_s(i, nc as i64 * 4);
-                                    let p = b.ins().iadd(conn, o);
+                                    let p = *conn_row.get_or_insert_with(|| {
+                                        let o = scaled(b, i, nc as i64 * 4);
+                                        b.ins().iadd(conn, o)
+                                    });
                                     let at = (l as usize * nc + *corner as usize) * 4;
                                     b.ins().uload32(readonly(), p, off(at))
                                 });
                                 *rows
                                     .entry((buffer.0, Some(*corner * lanes + l)))
                                     .or_insert_with(|| {
-                                        let o = b.ins().imul_imm_s(node, width * size as i64);
+                                        let o = scaled(b, node, width * size as i64);
                                         b.ins().iadd(base, o)
                                     })
                             };
@@ -536,7 +619,7 @@ impl Translator<'_> {
                                         g
                                     }
                                 };
-                                vals.push(group[c - c0]);
+                                vals[idx] = Some(group[c - c0]);
                                 continue;
                             }
                             let row = node_row(b, 0);
@@ -650,76 +733,7 @@ impl Translator<'_> {
                     select(b, t, v(x), v(y))
                 }
             };
-            vals.push(r);
-        }
-
-        // Stores: `lanes` consecutive components of a buffer stored once each go as one
-        // transpose and one vector store per lane; the others lane by lane.
-        let nl = lanes as usize;
-        let mut stored = vec![false; k.stores.len()];
-        if nl > 1 {
-            for si in 0..k.stores.len() {
-                let s = &k.stores[si];
-                let width = m.buffers[s.buffer.0 as usize].width as usize;
-                let c0 = s.component as usize;
-                if stored[si] || !c0.is_multiple_of(nl) || c0 + nl > width {
-                    continue;
-                }
-                let once = |c: usize| {
-                    let mut at = k
-                        .stores
-                        .iter()
-                        .enumerate()
-                        .filter(|(_, t)| t.buffer == s.buffer && t.component as usize == c);
-                    match (at.next(), at.next()) {
-                        (Some((j, _)), None) => Some(j),
-                        _ => None,
-                    }
-                };
-                let Some(group) = (c0..c0 + nl).map(once).collect::<Option<Vec<usize>>>() else {
-                    continue;
-                };
-                if group.iter().any(|&j| stored[j]) {
-                    continue;
-                }
-                let base = h.store_ptrs[si];
-                let row = *rows.entry((s.buffer.0, None)).or_insert_with(|| {
-                    let o = b.ins().imul_imm_s(i, (width * size) as i64);
-                    b.ins().iadd(base, o)
-                });
-                let xs: Vec<Value> = group
-                    .iter()
-                    .map(|&j| vals[k.body.outputs[k.stores[j].output].0 as usize])
-                    .collect();
-                let per_lane = transpose(b, &xs);
-                for (l, &v) in per_lane.iter().enumerate() {
-                    let o = (l * width + c0) * size;
-                    b.ins()
-                        .store(MemFlagsData::new().with_notrap(), v, row, off(o));
-                }
-                for &j in &group {
-                    stored[j] = true;
-                }
-            }
-        }
-        for ((s, &base), _) in k
-            .stores
-            .iter()
-            .zip(&h.store_ptrs)
-            .zip(&stored)
-            .filter(|(_, done)| !**done)
-        {
-            let width = m.buffers[s.buffer.0 as usize].width as usize;
-            let row = *rows.entry((s.buffer.0, None)).or_insert_with(|| {
-                let o = b.ins().imul_imm_s(i, (width * size) as i64);
-                b.ins().iadd(base, o)
-            });
-            let x = vals[k.body.outputs[s.output].0 as usize];
-            for l in 0..lanes {
-                let xl = lane(b, x, l);
-                let o = (l as usize * width + s.component as usize) * size;
-                b.ins().store(trusted(), xl, row, off(o));
-            }
+            vals[idx] = Some(r);
         }
     }
 
@@ -729,4 +743,65 @@ impl Translator<'_> {
             Precision::F32 => b.ins().f32const(c as f32),
         }
     }
+}
+
+/// Stores that go out together.
+pub(super) enum StoreUnit {
+    /// `lanes` stores of consecutive components `c0..c0 + lanes` of one buffer, each the only
+    /// store of its component: one transpose and one vector store per lane (stores in
+    /// component order).
+    Rows(Vec<usize>),
+    /// One store, lane by lane.
+    Lanes(usize),
+}
+
+impl StoreUnit {
+    fn stores(&self) -> &[usize] {
+        match self {
+            StoreUnit::Rows(g) => g,
+            StoreUnit::Lanes(j) => std::slice::from_ref(j),
+        }
+    }
+}
+
+/// The kernel's stores as units for `lanes` lanes (1: scalar code, no row units).
+fn store_units(m: &Module, k: &Kernel, lanes: usize) -> Vec<StoreUnit> {
+    let mut units = Vec::new();
+    let mut taken = vec![false; k.stores.len()];
+    if lanes > 1 {
+        for (si, s) in k.stores.iter().enumerate() {
+            let width = m.buffers[s.buffer.0 as usize].width as usize;
+            let c0 = s.component as usize;
+            if taken[si] || !c0.is_multiple_of(lanes) || c0 + lanes > width {
+                continue;
+            }
+            let once = |c: usize| {
+                let mut at = k
+                    .stores
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, t)| t.buffer == s.buffer && t.component as usize == c);
+                match (at.next(), at.next()) {
+                    (Some((j, _)), None) => Some(j),
+                    _ => None,
+                }
+            };
+            let Some(group) = (c0..c0 + lanes).map(once).collect::<Option<Vec<usize>>>() else {
+                continue;
+            };
+            if group.iter().any(|&j| taken[j]) {
+                continue;
+            }
+            for &j in &group {
+                taken[j] = true;
+            }
+            units.push(StoreUnit::Rows(group));
+        }
+    }
+    units.extend(
+        (0..k.stores.len())
+            .filter(|&j| !taken[j])
+            .map(StoreUnit::Lanes),
+    );
+    units
 }
