@@ -107,6 +107,7 @@ impl Bound {
 
 type Fail<T> = Result<T, String>;
 
+
 impl Resolved {
     /// Bind the program to a mesh (elements in file order).
     pub fn bind(&self, kernels: &SceneModule, mesh: &dyn MeshView) -> Fail<Bound> {
@@ -119,9 +120,18 @@ impl Resolved {
         let element_sets = all_element_sets(&program, ast, mesh)?;
         let slots = self.slots(&element_sets)?;
         let fields = fields(ast, kernels, mesh, &material_of, &element_sets)?;
-        // Group elements by material (stable), so each element kernel runs over a range.
-        let mut order: Vec<usize> = (0..mesh.tets().len()).collect();
-        order.sort_by_key(|&e| material_of[e]);
+        // Group elements by material, so each element kernel runs over a range, and within a
+        // group by their lowest node, so that the kernels' element order follows the node
+        // order whatever order the file lists elements in: the node kernel, walking the nodes,
+        // then reads its incident elements' force rows from a sliding window, and the element
+        // kernel reads corner positions from one. (50k benchmark, f32: with the tets shuffled
+        // in the file, ~1,420 steps/s in file order, ~2,050 in this one, the same as the
+        // generator's own order. A Morton curve through the centroids measured ~1,750: it
+        // does not follow the node order. Nodes keep the file's numbering; a random one costs
+        // about a third.)
+        let tets = mesh.tets();
+        let mut order: Vec<usize> = (0..tets.len()).collect();
+        order.sort_by_key(|&e| (material_of[e], tets[e].iter().min().copied()));
         let sorted: Vec<usize> = order.iter().map(|&e| material_of[e]).collect();
         let mut position = vec![0u32; order.len()];
         for (new, &old) in order.iter().enumerate() {
