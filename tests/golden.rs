@@ -334,6 +334,17 @@ fn bench_prints_a_table_and_well_formed_json() {
     }
     let cpu64 = rows.iter().find(|r| r["backend"] == "cpu-f64").unwrap();
     assert!(cpu64["vs_baseline"][0].as_f64().unwrap() > 0.0, "{cpu64}");
+    // The cpu rows (run on the backend's own choice of threads) also time one thread where
+    // there is more than one core; the other rows do not.
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    for r in rows {
+        let one = &r["forward_steps_per_second_one_thread"];
+        if cores > 1 && r["backend"].as_str().unwrap().starts_with("cpu") {
+            assert!(one.as_f64().unwrap() > 0.0, "{r}");
+        } else {
+            assert!(one.is_null(), "{r}");
+        }
+    }
     let backends: Vec<&str> = rows
         .iter()
         .map(|r| r["backend"].as_str().unwrap())

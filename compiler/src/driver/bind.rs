@@ -107,7 +107,6 @@ impl Bound {
 
 type Fail<T> = Result<T, String>;
 
-
 impl Resolved {
     /// Bind the program to a mesh (elements in file order).
     pub fn bind(&self, kernels: &SceneModule, mesh: &dyn MeshView) -> Fail<Bound> {

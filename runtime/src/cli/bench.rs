@@ -119,6 +119,9 @@ pub struct Row {
     pub backend: String,
     pub compile_seconds: f64,
     pub forward_steps_per_second: f64,
+    /// Forward speed of the cpu rows on one thread, where the row itself ran on the backend's
+    /// own choice of threads and this machine has more than one core.
+    pub forward_steps_per_second_one_thread: Option<f64>,
     /// Forward speed over the reference's on the same size (same run of `softc bench`).
     pub forward_speedup_vs_reference: Option<f64>,
     pub steps: u64,
@@ -321,7 +324,14 @@ fn time_batch(
     scenes: usize,
     args: &BenchArgs,
 ) -> Result<(f64, f64), String> {
-    let batch = device(scene, module, BackendChoice::Gpu, precision, scenes, args)?;
+    let batch = device(
+        scene,
+        module,
+        BackendChoice::Gpu,
+        precision,
+        scenes,
+        args.threads,
+    )?;
     let mut sims = Vec::new();
     for _ in 0..scenes {
         sims.push(Simulation::new(scene, batch.make()?));
@@ -372,13 +382,13 @@ fn device<'m>(
     backend: BackendChoice,
     precision: Precision,
     members: usize,
-    args: &BenchArgs,
+    threads: Option<usize>,
 ) -> Result<Devices<'m>, String> {
     let choice = DeviceChoice {
         backend,
         precision: Some(precision),
         adapter: None,
-        threads: args.threads,
+        threads,
     };
     crate::devices::open(&choice, scene, module, members)
 }
@@ -404,6 +414,7 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         backend: backend.to_string(),
         compile_seconds: compile,
         forward_steps_per_second: sps,
+        forward_steps_per_second_one_thread: None,
         forward_speedup_vs_reference: None,
         steps: args.steps,
         tip_mean_z: z,
@@ -422,22 +433,44 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         if !wanted(name) {
             continue;
         }
-        let forward = device(&scene, module, BackendChoice::Cpu, precision, 1, args)?;
-        let backward = device(&scene, adjoint, BackendChoice::Cpu, precision, 1, args)?;
+        let cpu = |m, threads| device(&scene, m, BackendChoice::Cpu, precision, 1, threads);
+        let forward = cpu(module, args.threads)?;
+        let backward = cpu(adjoint, args.threads)?;
         let start = Instant::now();
         forward.make()?;
         let compile = start.elapsed().as_secs_f64();
         let timed = time_engine(&scene, &|| forward.make(), args)?;
         let g = time_gradient(&scene, &|| backward.make(), args)?;
-        rows.push(with_gradient(row(name, compile, timed), g));
+        let mut r = with_gradient(row(name, compile, timed), g);
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        if args.threads.is_none() && cores > 1 {
+            let one = cpu(module, Some(1))?;
+            r.forward_steps_per_second_one_thread =
+                Some(time_engine(&scene, &|| one.make(), args)?.0);
+        }
+        rows.push(r);
     }
     // The GPU rows, when this machine has an adapter (lavapipe counts: it is one).
     for (name, precision) in [("gpu-f32", Precision::F32), ("gpu-f64", Precision::F64)] {
         if !wanted("gpu") {
             continue;
         }
-        let forward = device(&scene, module, BackendChoice::Gpu, precision, 1, args)?;
-        let backward = device(&scene, adjoint, BackendChoice::Gpu, precision, 1, args)?;
+        let forward = device(
+            &scene,
+            module,
+            BackendChoice::Gpu,
+            precision,
+            1,
+            args.threads,
+        )?;
+        let backward = device(
+            &scene,
+            adjoint,
+            BackendChoice::Gpu,
+            precision,
+            1,
+            args.threads,
+        )?;
         let start = Instant::now();
         if let Err(e) = forward.make() {
             eprintln!("note: no {name} row: {e}");
@@ -460,7 +493,7 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
             BackendChoice::Interp,
             Precision::F64,
             1,
-            args,
+            args.threads,
         )?;
         let timed = time_engine(&scene, &|| interp.make(), args)?;
         rows.push(row("interp", 0.0, timed));
@@ -567,11 +600,12 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     }
     let _ = writeln!(
         out,
-        "{:<5} {:<10} {:>10} {:>14} {:>12} {:>16} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
+        "{:<5} {:<10} {:>10} {:>14} {:>10} {:>12} {:>16} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
         "size",
         "backend",
         "compile_s",
         "fwd_steps/s",
+        "fwd_1thr",
         "x_reference",
         "tip_mean_z_m",
         "fwd+bwd_steps/s",
@@ -586,11 +620,13 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     for r in &rows {
         let _ = writeln!(
             out,
-            "{:<5} {:<10} {:>10.3} {:>14.1} {:>12.2} {:>16.6e} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
+            "{:<5} {:<10} {:>10.3} {:>14.1} {:>10} {:>12.2} {:>16.6e} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
             r.size,
             r.backend,
             r.compile_seconds,
             r.forward_steps_per_second,
+            r.forward_steps_per_second_one_thread
+                .map_or("-".into(), |v| format!("{v:.1}")),
             r.forward_speedup_vs_reference.unwrap_or(f64::NAN),
             r.tip_mean_z,
             r.forward_backward_steps_per_second
@@ -615,6 +651,7 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     let _ = writeln!(
         out,
         "median of {} timed runs of {} steps (forward+backward: {} steps) after a warm-up; \
+         fwd_1thr = the cpu rows' forward on one thread (the rows themselves: the backend's own choice); \
          tip_mean_z after those steps; x_reference = speed over the reference in this run; \
          peak_rss_MB = growth of the process's peak resident memory during one forward+backward pass; \
          xN rows: N copies of the scene in one GPU batch, fwd_steps/s counting each scene's steps; \
@@ -721,7 +758,15 @@ fn profile(args: &BenchArgs, out: &mut dyn Write) -> Result<(), String> {
         let scene = Scene::load(&path, &[]).map_err(|e| e.0)?;
         let module = &scene.lowered.module;
         for precision in [Precision::F64, Precision::F32] {
-            let cpu = device(&scene, module, BackendChoice::Cpu, precision, 1, args)?.make()?;
+            let cpu = device(
+                &scene,
+                module,
+                BackendChoice::Cpu,
+                precision,
+                1,
+                args.threads,
+            )?
+            .make()?;
             let mut sim = Simulation::new(&scene, Profiled::new(cpu, module, &scene));
             // One untimed run for the JIT and caches, then the profiled one.
             sim.run(None, Some(args.steps.min(50))).map_err(|e| e.0)?;
