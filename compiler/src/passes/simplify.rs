@@ -20,11 +20,14 @@
 //!    before).
 //! 4. **Shared reciprocals:** a divisor used by two or more divisions is inverted once and
 //!    the divisions become multiplications (F⁻ᵀ = cof/J: one division instead of nine).
-//! 5. **Dead stores and dead code:** of two stores to the same buffer component the last one
+//! 5. **Negations** move into sums and out of products: `x + (−y)` is `x − y`, `x − (−y)` is
+//!    `x + y`, `(−x)·y` is `−(x·y)` (and `/` alike), so the sum a product feeds absorbs its sign.
+//! 6. **Dead stores and dead code:** of two stores to the same buffer component the last one
 //!    wins; instructions no store reads are removed, then arguments nothing reads.
 //!
 //! Bit-exactness (f64; f32 alike): sharing subexpressions, folding constants, dead-code and
-//! dead-store removal, integer powers 2 and 3 (already products before this pass), `x^1` and
+//! dead-store removal, the negation rewrites (IEEE defines `x − y` as `x + (−y)`, and
+//! a product's or quotient's sign is its operands', zeros included), integer powers 2 and 3 (already products before this pass), `x^1` and
 //! the NaN guards are bit-exact. Not bit-exact, each within a few ulps of the original value:
 //! regrouping products of powers and of constants (reassociation), powers through
 //! `sqrt`/`cbrt` and products instead of `pow` (`pow` is within an ulp of the exact power,
@@ -121,6 +124,15 @@ impl Rewriter {
         let mut r = Rewriter {
             b: Builder::new(func.n_args),
         };
+        let mut uses = vec![0u32; func.insts.len()];
+        for inst in &func.insts {
+            for u in crate::ir::operands(inst) {
+                uses[u.0 as usize] += 1;
+            }
+        }
+        for o in &func.outputs {
+            uses[o.0 as usize] += 1;
+        }
         let mut map: Vec<V> = Vec::with_capacity(func.insts.len());
         for (i, inst) in func.insts.iter().enumerate() {
             let m = |v: V| map[v.0 as usize];
@@ -133,7 +145,10 @@ impl Rewriter {
                     let inv = r.b.div(one, m(d));
                     r.mul(m(a), inv)
                 }
-                Inst::Bin(op, a, c) => r.bin(op, m(a), m(c)),
+                Inst::Bin(op, a, c) => {
+                    let single = [uses[a.0 as usize] == 1, uses[c.0 as usize] == 1];
+                    r.bin_moving_negations(op, m(a), m(c), single)
+                }
                 Inst::Cmp(op, a, c) => r.b.cmp(op, m(a), m(c)),
                 Inst::Select(c, a, e) => r.b.select(m(c), m(a), m(e)),
             };
@@ -156,6 +171,41 @@ impl Rewriter {
                 self.b.select(neg, nan, x)
             }
             _ => self.b.un(op, a),
+        }
+    }
+
+    /// `Some(x)` where `v` is `neg x`.
+    fn negated(&self, v: V) -> Option<V> {
+        match self.b.func.inst(v) {
+            Inst::Un(UnOp::Neg, x) => Some(x),
+            _ => None,
+        }
+    }
+
+    /// `op(a, c)` with negations moved: `x + (−y)` is `x − y` and `x − (−y)` is `x + y`
+    /// always; a negated factor or dividend comes out of a product or quotient (`(−x)·y` is
+    /// `−(x·y)`) when the negation has no other use (`single`: the operands' use counts are
+    /// one), so that the sum the product feeds absorbs the sign — reverse-mode adjoints are
+    /// full of `(−y)·x` terms added up — and no negation is duplicated.
+    fn bin_moving_negations(&mut self, op: BinOp, a: V, c: V, single: [bool; 2]) -> V {
+        let (na, nc) = (self.negated(a), self.negated(c));
+        match (op, na, nc) {
+            (BinOp::Add, _, Some(y)) => self.b.sub(a, y),
+            (BinOp::Add, Some(x), None) => self.b.sub(c, x),
+            (BinOp::Sub, _, Some(y)) => self.b.add(a, y),
+            (BinOp::Mul | BinOp::Div, _, _)
+                if (na.is_some() && single[0]) || (nc.is_some() && single[1]) =>
+            {
+                let pa = na.filter(|_| single[0]);
+                let pc = nc.filter(|_| single[1]);
+                let r = self.bin(op, pa.unwrap_or(a), pc.unwrap_or(c));
+                if pa.is_some() == pc.is_some() {
+                    r
+                } else {
+                    self.b.neg(r)
+                }
+            }
+            _ => self.bin(op, a, c),
         }
     }
 
@@ -450,6 +500,48 @@ mod tests {
         for x in [0.3, 1.0, 2.7, 1e3] {
             for (w, g) in eval(&f, &[x]).iter().zip(&eval(&s, &[x])) {
                 assert!(close(*w, *g, 1e-15), "x = {x}: {w} vs {g}");
+            }
+        }
+    }
+
+    #[test]
+    fn negations_fold_into_sums_bit_for_bit() {
+        // c + (−a)·b, c − (−b) and b/(−d) + c, the shapes reverse-mode adjoints produce; −c
+        // has two uses and stays (moving it out of both products would add a negation).
+        let mut b = Builder::new(4);
+        let (a, bb, c, d) = (b.arg(0), b.arg(1), b.arg(2), b.arg(3));
+        let na = b.neg(a);
+        let p = b.mul(na, bb);
+        let s1 = b.add(c, p);
+        let nb = b.neg(bb);
+        let s2 = b.sub(c, nb);
+        let nd = b.neg(d);
+        let q = b.div(bb, nd);
+        let s3 = b.add(q, c);
+        let shared = b.neg(c);
+        let m1 = b.mul(shared, a);
+        let m2 = b.mul(shared, bb);
+        b.func.outputs = vec![s1, s2, s3, m1, m2];
+        let f = b.finish();
+        let s = simplify(&f);
+        assert_eq!(
+            count(&s, |i| matches!(i, Inst::Un(UnOp::Neg, _))),
+            1,
+            "{s:?}"
+        );
+        let cases = [
+            [0.3, 2.0, 7.0, -1.25],
+            [0.0, -0.0, 0.0, 1.0],
+            [-0.0, 1.0, -0.0, -0.0],
+            [1.5, 3.0, 4.5, 2.0],
+            [f64::INFINITY, 2.0, 1.0, 0.0],
+        ];
+        for xs in cases {
+            for (w, g) in eval(&f, &xs).iter().zip(&eval(&s, &xs)) {
+                assert!(
+                    w.to_bits() == g.to_bits() || (w.is_nan() && g.is_nan()),
+                    "{xs:?}: {w} vs {g}"
+                );
             }
         }
     }
