@@ -77,6 +77,15 @@ impl LoopSpeed {
     }
 }
 
+/// The threads a large launch is split over: this machine's cores, at most 8. Asked of the
+/// OS once: `available_parallelism` reads the cgroup files on every call (a few system calls),
+/// and a launch asked it each time — at 10k tets that cost the backward pass a third of its
+/// speed (f32 forward+backward ~3,400 steps/s, ~4,300 with `--threads 2`, which did not ask).
+fn launch_threads() -> usize {
+    static THREADS: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *THREADS.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get().min(8)))
+}
+
 impl Cpu {
     pub fn new(
         module: &Module,
@@ -116,7 +125,7 @@ impl Cpu {
             if entities >= 2_000 {
                 // Capped at 8: on a 16-core machine 16 threads ran 2.6x slower than 8
                 // (benchmark-50k: 420 vs 162 steps/s, with threads spawned per launch then).
-                std::thread::available_parallelism().map_or(1, |n| n.get().min(8))
+                launch_threads()
             } else {
                 1
             }
@@ -229,7 +238,7 @@ impl Backend for Cpu {
         // With no thread count given, steps of 8,000+ entities measure one thread against all
         // (at most 8, see `threads_for`) and run the faster (`LoopSpeed`); smaller steps (~30 µs
         // at 1k tets) stay on one thread, where a probe's waits would cost more than it wins.
-        let all = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
+        let all = launch_threads();
         let auto = self.threads.is_none() && largest >= 8_000 && all > 1 && n >= 8;
         let key = (
             largest,
