@@ -286,7 +286,9 @@ impl CpuModule {
                     };
                     ctx.clear();
                     ctx.func = func;
-                    let disasm = std::env::var_os("SOFTC_TMP_DISASM").is_some();
+                    // `SOFTC_DUMP_ASM=1`: each kernel's machine code (Cranelift's VCode, after
+                    // register allocation) on stderr, to count spills when tuning the backend.
+                    let disasm = std::env::var_os("SOFTC_DUMP_ASM").is_some();
                     ctx.set_disasm(disasm);
                     jit.define_function(fid, &mut ctx)
                         .map_err(|e| format!("kernel `{}`: Cranelift: {e:?}", k.name))?;
