@@ -472,7 +472,14 @@ impl Translator<'_> {
                 || matches!(k.body.insts[i], Inst::Arg(a)
                     if !matches!(k.args[a as usize], ArgSource::Gather { .. }))
         };
-        let steps = super::schedule::order(&k.body, &deferred, &unit_values, !reads_stored);
+        // Stores keep their order where two write one component (the last one wins).
+        let rewrites = k.stores.iter().enumerate().any(|(j, s)| {
+            k.stores[..j]
+                .iter()
+                .any(|t| t.buffer == s.buffer && t.component == s.component)
+        });
+        let early = !reads_stored && !rewrites;
+        let steps = super::schedule::order(&k.body, &deferred, &unit_values, early);
         let mut vals: Vec<Option<Value>> = vec![None; k.body.insts.len()];
         for step in steps {
             let idx = match step {

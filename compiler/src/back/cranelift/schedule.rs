@@ -10,7 +10,8 @@
 //!   arguments come first there). A constant is materialized at each use (a constant-pool load
 //!   the instruction needs anyway), so it holds no register in between.
 //! - A store goes out as soon as its values exist (where the kernel reads no buffer it stores
-//!   to, so no later load can see it), instead of holding every output until the end.
+//!   to, so no later load can see it, and stores each component once, so their order does not
+//!   matter), instead of holding every output until the end.
 //!
 //! The emitted operations are the same as in IR order, so results are the same bits.
 
