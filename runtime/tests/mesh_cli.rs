@@ -112,20 +112,22 @@ fn convert_between_formats() {
             &fx.join("gmsh_cube_v22_bin.msh"),
             &vtu,
             LengthUnit::Millimetre,
+            false,
             o,
             e,
         )
     });
     assert_eq!(c, 0, "{e}");
     let msh = d.join("cube.msh");
-    let (c, _, e) = run(|o, e| convert(&vtu, &msh, LengthUnit::Millimetre, o, e));
+    let (c, _, e) = run(|o, e| convert(&vtu, &msh, LengthUnit::Millimetre, false, o, e));
     assert_eq!(c, 0, "{e}");
     let a = softc::mesh::load(&fx.join("gmsh_cube_v22_bin.msh"), LengthUnit::Millimetre).unwrap();
     let b = softc::mesh::load(&msh, LengthUnit::Millimetre).unwrap();
     assert_eq!(a.tets, b.tets);
     assert_eq!(a.tri_tags, b.tri_tags);
     // Unsupported output format: exit 1, message names the file.
-    let (c, _, e) = run(|o, e| convert(&msh, &d.join("x.inp"), LengthUnit::Millimetre, o, e));
+    let (c, _, e) =
+        run(|o, e| convert(&msh, &d.join("x.inp"), LengthUnit::Millimetre, false, o, e));
     assert_eq!(c, 1);
     assert!(e.contains("x.inp"), "{e}");
     std::fs::remove_dir_all(&d).unwrap();
@@ -204,4 +206,77 @@ fn the_binary_takes_arguments_that_are_not_utf8() {
     );
     assert!(!err.contains("panicked"), "{err}");
     std::fs::remove_dir_all(&d).ok();
+}
+
+/// A mesh whose nodes are scattered (a fixed pseudo-random renumbering of the 10k benchmark
+/// mesh) is flagged by `info` and renumbered by `convert --renumber` into one with the same
+/// elements, sets and surfaces, its nodes numbered close together.
+#[test]
+fn scattered_node_numbering_is_reported_and_renumbered() {
+    use softc::mesh::renumber::{locality_order, span};
+    let d = tmp("renumber");
+    let original =
+        softc::mesh::load(&meshes().join("bench_10k.msh"), LengthUnit::Millimetre).unwrap();
+    let n = original.nodes.len();
+    // A permutation from a linear congruential sequence: deterministic, far from local.
+    let mut scatter: Vec<u32> = (0..n as u32).collect();
+    let mut state = 12345u64;
+    for i in (1..n).rev() {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        scatter.swap(i, (state >> 33) as usize % (i + 1));
+    }
+    let mut scattered = original.clone();
+    scattered.renumber_nodes(&scatter);
+    assert!(span(&original) < 0.15, "{}", span(&original));
+    assert!(span(&scattered) > 0.5, "{}", span(&scattered));
+    let file = d.join("scattered.msh");
+    softc::mesh::save(&scattered, &file, LengthUnit::Millimetre).unwrap();
+    let (c, o, e) = run(|o, e| info(&file, LengthUnit::Millimetre, false, o, e));
+    assert_eq!(c, 0, "{e}");
+    assert!(o.contains("convert --renumber"), "{o}");
+
+    let out = d.join("renumbered.msh");
+    let (c, o, e) = run(|o, e| convert(&file, &out, LengthUnit::Millimetre, true, o, e));
+    assert_eq!(c, 0, "{e}");
+    assert!(o.contains("renumbered the nodes"), "{o}");
+    let renumbered = softc::mesh::load(&out, LengthUnit::Millimetre).unwrap();
+    assert!(span(&renumbered) < span(&original), "{}", span(&renumbered));
+    let (c, o, _) = run(|o, e| info(&out, LengthUnit::Millimetre, false, o, e));
+    assert_eq!(c, 0);
+    assert!(!o.contains("convert --renumber"), "{o}");
+    // The same elements in the same order (their corners at the same points), the same sets
+    // and surfaces, each node once.
+    let at = |m: &softc::mesh::model::Mesh, v: u32| m.nodes[v as usize];
+    assert_eq!(renumbered.tets.len(), original.tets.len());
+    for (a, b) in original.tets.iter().zip(&renumbered.tets) {
+        assert_eq!(a.map(|v| at(&original, v)), b.map(|v| at(&renumbered, v)));
+    }
+    for (a, b) in original.tris.iter().zip(&renumbered.tris) {
+        assert_eq!(a.map(|v| at(&original, v)), b.map(|v| at(&renumbered, v)));
+    }
+    assert_eq!(original.tri_tags, renumbered.tri_tags);
+    for (name, set) in &original.node_sets {
+        let mut a: Vec<[u64; 3]> = set
+            .iter()
+            .map(|&v| at(&original, v).map(f64::to_bits))
+            .collect();
+        let mut b: Vec<[u64; 3]> = renumbered.node_sets[name]
+            .iter()
+            .map(|&v| at(&renumbered, v).map(f64::to_bits))
+            .collect();
+        a.sort_unstable();
+        b.sort_unstable();
+        assert_eq!(a, b, "node set {name}");
+    }
+    let mut order = locality_order(&scattered);
+    order.sort_unstable();
+    assert_eq!(order, (0..n as u32).collect::<Vec<_>>(), "a permutation");
+    assert!(
+        renumbered.validate().is_empty(),
+        "{:?}",
+        renumbered.validate()
+    );
+    std::fs::remove_dir_all(&d).unwrap();
 }

@@ -35,6 +35,7 @@ pub mod precompute;
 pub mod probe;
 pub mod quality;
 pub mod readers;
+pub mod renumber;
 pub mod validate;
 pub mod writers;
 

@@ -1,0 +1,139 @@
+//! Node numbering for memory locality.
+//!
+//! The kernels keep the file's node numbers (outputs, node sets and messages name them), and
+//! order elements by their lowest node, so how fast a step runs depends on how the file numbers
+//! its nodes: an element's corners and a node's incident elements should sit close together in
+//! memory. A mesher that numbers nodes in a scattered order costs about a third of the speed
+//! (the 50k benchmark with randomly renumbered nodes: ~1,360 against ~2,070 forward steps/s,
+//! f32 on 2 cores). [`span`] measures it (`softc mesh info`), [`locality_order`] (reverse
+//! Cuthill–McKee on the node graph) fixes it, applied by `softc mesh convert --renumber`.
+
+use super::model::Mesh;
+use std::collections::VecDeque;
+
+/// How far apart an element's nodes are numbered, on average over the elements: (largest −
+/// smallest node number) / number of nodes. A structured or well-numbered mesh is at a few per
+/// cent; random numbering near 0.75.
+pub fn span(mesh: &Mesh) -> f64 {
+    let n = mesh.nodes.len();
+    if n == 0 || mesh.tets.is_empty() {
+        return 0.0;
+    }
+    let total: f64 = mesh
+        .tets
+        .iter()
+        .map(|t| {
+            let lo = *t.iter().min().expect("four corners");
+            let hi = *t.iter().max().expect("four corners");
+            f64::from(hi - lo)
+        })
+        .sum();
+    total / mesh.tets.len() as f64 / n as f64
+}
+
+/// A node order with neighbours numbered close together: reverse Cuthill–McKee on the graph of
+/// nodes sharing an element, each connected part from a node of least degree on its last
+/// breadth-first level (a pseudo-peripheral start). `order[new] = old`; nodes in no element
+/// come last, in file order. Deterministic (ties by node number).
+pub fn locality_order(mesh: &Mesh) -> Vec<u32> {
+    let n = mesh.nodes.len();
+    let mut neighbours: Vec<Vec<u32>> = vec![Vec::new(); n];
+    for t in &mesh.tets {
+        for &a in t {
+            for &b in t {
+                if a != b {
+                    neighbours[a as usize].push(b);
+                }
+            }
+        }
+    }
+    for list in &mut neighbours {
+        list.sort_unstable();
+        list.dedup();
+    }
+    let degree = |v: u32| neighbours[v as usize].len();
+    let mut placed = vec![false; n];
+    let mut order: Vec<u32> = Vec::with_capacity(n);
+    // Breadth-first from `start` over unplaced nodes, neighbours by increasing degree: the
+    // visit order and the last level.
+    let bfs = |start: u32, placed: &[bool]| -> (Vec<u32>, Vec<u32>) {
+        let mut seen = placed.to_vec();
+        let mut visit = vec![start];
+        seen[start as usize] = true;
+        let mut level = vec![start];
+        let mut queue = VecDeque::from([(start, 0usize)]);
+        let mut depth = 0;
+        while let Some((v, d)) = queue.pop_front() {
+            let mut next: Vec<u32> = neighbours[v as usize]
+                .iter()
+                .copied()
+                .filter(|&w| !seen[w as usize])
+                .collect();
+            next.sort_by_key(|&w| (degree(w), w));
+            for w in next {
+                seen[w as usize] = true;
+                visit.push(w);
+                queue.push_back((w, d + 1));
+                if d + 1 > depth {
+                    depth = d + 1;
+                    level.clear();
+                }
+                level.push(w);
+            }
+        }
+        (visit, level)
+    };
+    for seed in 0..n as u32 {
+        if placed[seed as usize] || neighbours[seed as usize].is_empty() {
+            continue;
+        }
+        // One step towards the periphery: restart from the least-degree node of the last level.
+        let (_, last) = bfs(seed, &placed);
+        let start = last
+            .iter()
+            .copied()
+            .min_by_key(|&w| (degree(w), w))
+            .unwrap_or(seed);
+        let (visit, _) = bfs(start, &placed);
+        for &v in visit.iter().rev() {
+            placed[v as usize] = true;
+        }
+        // Reversed per part (Cuthill–McKee reversed), parts in order.
+        order.extend(visit.iter().rev());
+    }
+    order.extend((0..n as u32).filter(|&v| !placed[v as usize]));
+    order
+}
+
+impl Mesh {
+    /// Renumber the nodes: new node `i` is old node `order[i]` (a permutation of all nodes).
+    /// Elements, triangles and node sets follow; geometry, tags, windings and element order are
+    /// unchanged. The nodes are numbered 1..n from then on, as a file written from it numbers
+    /// them.
+    pub fn renumber_nodes(&mut self, order: &[u32]) {
+        let n = self.nodes.len();
+        assert_eq!(order.len(), n, "a permutation of every node");
+        let mut new_of = vec![u32::MAX; n];
+        for (new, &old) in order.iter().enumerate() {
+            new_of[old as usize] = new as u32;
+        }
+        assert!(
+            new_of.iter().all(|&v| v != u32::MAX),
+            "a permutation of every node"
+        );
+        self.nodes = order.iter().map(|&o| self.nodes[o as usize]).collect();
+        for t in &mut self.tets {
+            *t = t.map(|v| new_of[v as usize]);
+        }
+        for t in &mut self.tris {
+            *t = t.map(|v| new_of[v as usize]);
+        }
+        for set in self.node_sets.values_mut() {
+            for v in set.iter_mut() {
+                *v = new_of[*v as usize];
+            }
+            set.sort_unstable();
+        }
+        self.ids.nodes = Vec::new();
+    }
+}
