@@ -54,12 +54,15 @@ pub fn locality_order(mesh: &Mesh) -> Vec<u32> {
     let degree = |v: u32| neighbours[v as usize].len();
     let mut placed = vec![false; n];
     let mut order: Vec<u32> = Vec::with_capacity(n);
-    // Breadth-first from `start` over unplaced nodes, neighbours by increasing degree: the
-    // visit order and the last level.
-    let bfs = |start: u32, placed: &[bool]| -> (Vec<u32>, Vec<u32>) {
-        let mut seen = placed.to_vec();
+    // Breadth-first from `start` through its connected part, neighbours by increasing degree:
+    // the visit order and the last level. `seen[v] == pass` marks this pass's visits, so no
+    // pass clears or copies a whole-mesh array (a mesh may have many parts).
+    let mut seen = vec![0u32; n];
+    let mut pass = 0u32;
+    let mut bfs = |start: u32| -> (Vec<u32>, Vec<u32>) {
+        pass += 1;
         let mut visit = vec![start];
-        seen[start as usize] = true;
+        seen[start as usize] = pass;
         let mut level = vec![start];
         let mut queue = VecDeque::from([(start, 0usize)]);
         let mut depth = 0;
@@ -67,11 +70,11 @@ pub fn locality_order(mesh: &Mesh) -> Vec<u32> {
             let mut next: Vec<u32> = neighbours[v as usize]
                 .iter()
                 .copied()
-                .filter(|&w| !seen[w as usize])
+                .filter(|&w| seen[w as usize] != pass)
                 .collect();
             next.sort_by_key(|&w| (degree(w), w));
             for w in next {
-                seen[w as usize] = true;
+                seen[w as usize] = pass;
                 visit.push(w);
                 queue.push_back((w, d + 1));
                 if d + 1 > depth {
@@ -87,14 +90,15 @@ pub fn locality_order(mesh: &Mesh) -> Vec<u32> {
         if placed[seed as usize] || neighbours[seed as usize].is_empty() {
             continue;
         }
-        // One step towards the periphery: restart from the least-degree node of the last level.
-        let (_, last) = bfs(seed, &placed);
+        // One step towards the periphery: restart from the least-degree node of the last level
+        // (the part of `seed`, which no earlier part touches).
+        let (_, last) = bfs(seed);
         let start = last
             .iter()
             .copied()
             .min_by_key(|&w| (degree(w), w))
             .unwrap_or(seed);
-        let (visit, _) = bfs(start, &placed);
+        let (visit, _) = bfs(start);
         for &v in visit.iter().rev() {
             placed[v as usize] = true;
         }
