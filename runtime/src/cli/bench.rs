@@ -144,6 +144,57 @@ pub struct Row {
     /// Forward and forward+backward speed over the `--baseline` row of the same size and
     /// backend.
     pub vs_baseline: Option<[Option<f64>; 2]>,
+    /// GPU rows: host and GPU time per forward step, submissions per 1000 steps.
+    pub gpu_cost: Option<GpuCost>,
+}
+
+/// What a GPU row's device did per step in its last timed forward run.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct GpuCost {
+    /// Host time recording a step's commands, µs per step (queue submissions excluded).
+    pub host_us_per_step: f64,
+    /// Host time inside the driver's queue submissions, µs per step (a software driver such
+    /// as lavapipe runs the kernels there).
+    pub submit_us_per_step: f64,
+    /// GPU time of the compute passes (timestamp queries), µs per step, where the adapter
+    /// has them.
+    pub gpu_us_per_step: Option<f64>,
+    /// Queue submissions per 1000 steps.
+    pub submissions_per_1000_steps: f64,
+}
+
+/// The forward speed of a GPU device, as [`time_engine`], and what the device did per step
+/// in the last timed run.
+fn time_gpu_engine(
+    scene: &Scene,
+    make: &dyn Fn() -> Result<crate::devices::Device, String>,
+    args: &BenchArgs,
+) -> Result<((f64, f64), GpuCost), String> {
+    let cost = std::cell::Cell::new(None);
+    let run = || -> Result<(f64, Vec<[f64; 3]>), String> {
+        let mut sim = Simulation::new(scene, make()?);
+        let timed = sim.backend.enable_gpu_timing();
+        let before = sim.backend.gpu_stats().unwrap_or_default();
+        let start = Instant::now();
+        let s = sim.run(None, Some(args.steps)).map_err(|e| e.0)?;
+        let wall = start.elapsed().as_secs_f64();
+        let after = sim.backend.gpu_stats().unwrap_or_default();
+        let steps = args.steps.max(1) as f64;
+        cost.set(Some(GpuCost {
+            host_us_per_step: (after.host_seconds - before.host_seconds) / steps * 1e6,
+            submit_us_per_step: (after.submit_seconds - before.submit_seconds) / steps * 1e6,
+            gpu_us_per_step: match (timed, after.gpu_seconds, before.gpu_seconds) {
+                (true, Some(a), b) => Some((a - b.unwrap_or(0.0)) / steps * 1e6),
+                _ => None,
+            },
+            submissions_per_1000_steps: (after.submissions - before.submissions) as f64 / steps
+                * 1000.0,
+        }));
+        Ok((args.steps as f64 / wall, s.x))
+    };
+    let timed = warm_median(scene, args, run)?;
+    let cost = cost.get().ok_or("no timed run")?;
+    Ok((timed, cost))
 }
 
 /// Instructions of a kernel body that compute (not arguments or constants).
@@ -426,6 +477,7 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
         element_ops,
         adjoint_element_ops,
         vs_baseline: None,
+        gpu_cost: None,
     };
     let adjoint = &scene.lowered.adjoint.module;
     let wanted = |b: &str| args.backends.split(',').any(|w| w.trim() == b);
@@ -477,9 +529,12 @@ fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<Row>, String> {
             continue;
         }
         let compile = start.elapsed().as_secs_f64();
-        let timed = time_engine(&scene, &|| forward.make(), args)?;
+        let (timed, cost) = time_gpu_engine(&scene, &|| forward.make(), args)?;
         let g = time_gradient(&scene, &|| backward.make(), args)?;
-        rows.push(with_gradient(row(name, compile, timed), g));
+        rows.push(Row {
+            gpu_cost: Some(cost),
+            ..with_gradient(row(name, compile, timed), g)
+        });
         if args.batch > 1 && precision == Precision::F32 {
             let timed = time_batch(&scene, module, precision, args.batch, args)?;
             rows.push(row(&format!("{name} x{}", args.batch), compile, timed));
@@ -600,7 +655,7 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     }
     let _ = writeln!(
         out,
-        "{:<5} {:<10} {:>10} {:>14} {:>10} {:>12} {:>16} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
+        "{:<5} {:<10} {:>10} {:>14} {:>10} {:>12} {:>16} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13} {:>12} {:>10} {:>11} {:>8}",
         "size",
         "backend",
         "compile_s",
@@ -615,12 +670,16 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         "dloss/dp_peak",
         "elem_ops",
         "adj_ops",
-        "vs_baseline"
+        "vs_baseline",
+        "host_us/step",
+        "submit_us",
+        "gpu_us/step",
+        "subm/1k"
     );
     for r in &rows {
         let _ = writeln!(
             out,
-            "{:<5} {:<10} {:>10.3} {:>14.1} {:>10} {:>12.2} {:>16.6e} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13}",
+            "{:<5} {:<10} {:>10.3} {:>14.1} {:>10} {:>12.2} {:>16.6e} {:>16} {:>12} {:>12} {:>10} {:>14} {:>8} {:>8} {:>13} {:>12} {:>10} {:>11} {:>8}",
             r.size,
             r.backend,
             r.compile_seconds,
@@ -646,6 +705,17 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 ),
                 None => "-".into(),
             },
+            r.gpu_cost
+                .map_or("-".into(), |c| format!("{:.2}", c.host_us_per_step)),
+            r.gpu_cost
+                .map_or("-".into(), |c| format!("{:.2}", c.submit_us_per_step)),
+            r.gpu_cost
+                .and_then(|c| c.gpu_us_per_step)
+                .map_or("-".into(), |v| format!("{v:.2}")),
+            r.gpu_cost.map_or("-".into(), |c| format!(
+                "{:.1}",
+                c.submissions_per_1000_steps
+            )),
         );
     }
     let _ = writeln!(
@@ -656,7 +726,11 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
          peak_rss_MB = growth of the process's peak resident memory during one forward+backward pass; \
          xN rows: N copies of the scene in one GPU batch, fwd_steps/s counting each scene's steps; \
          elem_ops/adj_ops = operations of the element kernel and its adjoint; \
-         vs_baseline = forward/forward+backward speed over --baseline's row",
+         vs_baseline = forward/forward+backward speed over --baseline's row; \
+         gpu rows: host_us/step = host time recording a forward step's commands, \
+         submit_us = host time per step inside the driver's queue submissions (lavapipe runs the kernels there), \
+         gpu_us/step = GPU time of its compute passes (timestamp queries; - where the adapter has none), \
+         subm/1k = queue submissions per 1000 steps",
         args.repeats.max(1),
         args.steps,
         args.grad_steps

@@ -3,7 +3,7 @@
 //! type for code that runs whichever the flags name, and [`precision`] the kernels' precision.
 
 use super::cpu::Cpu;
-use super::gpu::{AdapterDesc, Gpu, GpuBatch, GpuScene};
+use super::gpu::{AdapterDesc, DispatchStats, Gpu, GpuBatch, GpuScene};
 use super::interp::Interpreter;
 use super::{Backend, Launch, Lockstep, Uniforms};
 use crate::engine::scene::Scene;
@@ -178,6 +178,26 @@ impl Device {
         match self {
             Device::Gpu(gpu) => Some(gpu.adapter()),
             _ => None,
+        }
+    }
+
+    /// What a GPU device did so far (launches, submissions, host and GPU time); `None` off
+    /// the GPU.
+    pub fn gpu_stats(&self) -> Option<DispatchStats> {
+        match self {
+            Device::Gpu(gpu) => Some(gpu.stats()),
+            Device::GpuScene(scene) => Some(scene.stats()),
+            _ => None,
+        }
+    }
+
+    /// Time a GPU device's compute passes with timestamp queries (see
+    /// [`Gpu::enable_timing`]); `false` off the GPU or where the adapter cannot.
+    pub fn enable_gpu_timing(&self) -> bool {
+        match self {
+            Device::Gpu(gpu) => gpu.enable_timing(),
+            Device::GpuScene(scene) => scene.enable_timing(),
+            _ => false,
         }
     }
 

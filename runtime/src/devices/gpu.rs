@@ -24,10 +24,10 @@
 //! `exp`/`log`/`pow` are the driver's), f64 kernels use the software transcendental functions
 //! of the WGSL backend.
 
-use super::{Backend, Lockstep, Uniforms};
+use super::{Backend, Launch, Lockstep, Uniforms};
 use crate::engine::scene::{Csr, Scene};
 use softc_compiler::back::Precision;
-use softc_compiler::back::wgsl::{self, Binding, TopoArray, WgslModule};
+use softc_compiler::back::wgsl::{self, Binding, LaunchMode, TopoArray, WgslModule};
 use softc_compiler::ir::{BufferId, Domain, Module};
 use std::cell::RefCell;
 use std::collections::{HashMap, VecDeque};
@@ -130,21 +130,141 @@ enum Op {
 }
 
 /// A dispatch of one submission: a kernel over one or more scenes.
+#[derive(Clone, Copy)]
 struct Dispatch {
     kernel: usize,
-    key: Vec<usize>,
-    offset: u32,
+    /// Its bind group in [`Core::groups`].
+    group: usize,
+    /// Where its launch blocks are: the row of the launch table ([`LaunchMode::Table`], set as
+    /// the immediate) or the byte offset in the uniform buffer ([`LaunchMode::Uniform`]).
+    arg: u32,
     groups: (u32, u32, u32),
 }
 
-/// Launches recorded and dispatches submitted: how well a batch merges.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// What the device did: how well a batch merges, how many times the host submitted and
+/// waited, and the host time recording and submitting took.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct DispatchStats {
     /// Kernel launches the scenes recorded.
     pub launches: u64,
     /// Dispatches submitted for them (one per launch unbatched; as few as launches / scenes
     /// when a batch runs in lockstep).
     pub dispatches: u64,
+    /// Queue submissions.
+    pub submissions: u64,
+    /// Readbacks (each waits for the GPU to finish what was submitted).
+    pub readbacks: u64,
+    /// Host seconds spent recording launches and steps into command buffers (readbacks'
+    /// waits and the queue submissions themselves excluded).
+    pub host_seconds: f64,
+    /// Host seconds inside the driver's queue submissions (a software driver such as
+    /// lavapipe may run the kernels there).
+    pub submit_seconds: f64,
+    /// GPU seconds of the submitted compute passes, from timestamp queries, when
+    /// [`Gpu::enable_timing`] asked for them and the adapter has them.
+    pub gpu_seconds: Option<f64>,
+}
+
+/// Steps of a time loop recorded into one submission at most (thousands: a submission costs
+/// ~140 µs on an H100, a dispatch ~3.5 µs).
+const STEPS_PER_SUBMISSION: u64 = 2048;
+
+/// Launch-block bytes held at least (grows as needed).
+const MIN_LAUNCH_BYTES: u64 = 256 << 10;
+
+/// GPU time of the submitted compute passes from timestamp queries: a pair of queries per
+/// submission, resolved in its command buffer, read back when the pairs run out or the
+/// figures are asked for.
+struct Timing {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    read: wgpu::Buffer,
+    pairs: u32,
+    used: u32,
+    /// Nanoseconds per tick.
+    period: f64,
+    seconds: f64,
+}
+
+impl Timing {
+    const PAIRS: u32 = 512;
+
+    fn new(device: &wgpu::Device, queue: &wgpu::Queue) -> Self {
+        let bytes = u64::from(Self::PAIRS) * wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT;
+        Timing {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("softc pass times"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2 * Self::PAIRS,
+            }),
+            resolve: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("softc pass times"),
+                size: bytes,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            read: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("softc pass times read"),
+                size: bytes,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            pairs: Self::PAIRS,
+            used: 0,
+            period: f64::from(queue.get_timestamp_period()),
+            seconds: 0.0,
+        }
+    }
+
+    /// The first query of a free pair, if any is left.
+    fn next_pair(&mut self) -> Option<u32> {
+        (self.used < self.pairs).then(|| {
+            self.used += 1;
+            2 * (self.used - 1)
+        })
+    }
+
+    fn resolve(&self, enc: &mut wgpu::CommandEncoder, first: u32) {
+        enc.resolve_query_set(
+            &self.set,
+            first..first + 2,
+            &self.resolve,
+            u64::from(first / 2) * wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT,
+        );
+    }
+
+    /// Add up the used pairs (waits for the GPU) and free them.
+    fn collect(&mut self, device: &wgpu::Device, queue: &wgpu::Queue) {
+        if self.used == 0 {
+            return;
+        }
+        // Each pair's two ticks at the start of its own aligned span.
+        let span = wgpu::QUERY_RESOLVE_BUFFER_ALIGNMENT as usize;
+        let bytes = u64::from(self.used) * span as u64;
+        let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("softc pass times"),
+        });
+        enc.copy_buffer_to_buffer(&self.resolve, 0, &self.read, 0, bytes);
+        queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        self.read
+            .map_async(wgpu::MapMode::Read, 0..bytes, move |r| {
+                let _ = tx.send(r);
+            });
+        let _ = device.poll(wgpu::PollType::wait_indefinitely());
+        if let Ok(Ok(())) = rx.recv()
+            && let Ok(view) = self.read.get_mapped_range(0..bytes)
+        {
+            let tick =
+                |c: &[u8]| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]);
+            for pair in view.chunks_exact(span) {
+                let (begin, end) = (tick(&pair[0..8]), tick(&pair[8..16]));
+                self.seconds += end.saturating_sub(begin) as f64 * self.period * 1e-9;
+            }
+        }
+        self.read.unmap();
+        self.used = 0;
+    }
 }
 
 /// The device, the compiled kernels, the buffers of every scene and the recorded work.
@@ -168,13 +288,21 @@ struct Core {
     topo: Vec<wgpu::Buffer>,
     /// Entities per domain of the prepared mesh: element, triangle, node.
     counts: [usize; 3],
-    uniform: Option<wgpu::Buffer>,
+    /// The launch blocks of the recorded dispatches: a uniform buffer bound at dynamic offsets
+    /// ([`LaunchMode::Uniform`]) or the storage launch table ([`LaunchMode::Table`]).
+    launch_buffer: Option<wgpu::Buffer>,
+    /// Its contents for the next submission.
     staging: Vec<u8>,
     /// Each scene's recorded operations.
     queues: Vec<VecDeque<Op>>,
     recorded: usize,
-    bind_groups: HashMap<(usize, Vec<usize>), wgpu::BindGroup>,
+    /// Dispatches made from recorded operations and steps, not yet submitted (in order).
+    pending: Vec<Dispatch>,
+    /// Bind groups by (kernel, physical buffers bound), as indices into `groups`.
+    bind_groups: HashMap<(usize, Vec<usize>), usize>,
+    groups: Vec<wgpu::BindGroup>,
     readback: Option<wgpu::Buffer>,
+    timing: Option<Timing>,
     stats: DispatchStats,
     /// Lockstep: scenes in the group, the buffer each waiting scene wants, served readbacks.
     active: Vec<bool>,
@@ -243,12 +371,26 @@ impl Core {
             }
             features |= wgpu::Features::SHADER_F64;
         }
-        let wg = match batch {
-            Some(n) => wgsl::emit_batched(module, precision, n)?,
-            None => wgsl::emit(module, precision)?,
-        };
-        let scenes = batch.unwrap_or(1) as u64;
         let limits = chosen.limits();
+        // Launch blocks as uniform blocks at dynamic offsets (any adapter). The alternative, a
+        // storage table indexed by an immediate (`SOFTC_GPU_LAUNCH=table`, where the adapter
+        // has immediates), gives the same bits but measured slower on an H100 (10k, 8000
+        // steps: 22,495 against 29,698 steps/s): each kernel then starts with a dependent
+        // load of its launch block from memory.
+        let has_immediates = chosen.features().contains(wgpu::Features::IMMEDIATES)
+            && limits.max_immediate_size >= wgsl::IMMEDIATE_BYTES;
+        let launch =
+            if has_immediates && std::env::var("SOFTC_GPU_LAUNCH").as_deref() == Ok("table") {
+                features |= wgpu::Features::IMMEDIATES;
+                LaunchMode::Table
+            } else {
+                LaunchMode::Uniform
+            };
+        if chosen.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
+            features |= wgpu::Features::TIMESTAMP_QUERY;
+        }
+        let wg = wgsl::emit_for(module, precision, batch, launch)?;
+        let scenes = batch.unwrap_or(1) as u64;
         for k in &wg.kernels {
             if k.storage_buffers > limits.max_storage_buffers_per_shader_stage {
                 return Err(format!(
@@ -256,8 +398,8 @@ impl Core {
                     k.name, k.storage_buffers, limits.max_storage_buffers_per_shader_stage
                 ));
             }
-            let blocks = scenes * round_up(k.launch_size, 16);
-            if blocks > limits.max_uniform_buffer_binding_size {
+            let blocks = scenes * k.launch_stride();
+            if launch == LaunchMode::Uniform && blocks > limits.max_uniform_buffer_binding_size {
                 return Err(format!(
                     "kernel `{}`: {scenes} launch blocks of {} bytes exceed the {} bytes adapter \
                      {desc} binds as uniforms; run fewer scenes per batch",
@@ -307,9 +449,12 @@ impl Core {
                         Binding::Launch => wgpu::BindingType::Buffer {
                             ty: wgpu::BufferBindingType::Uniform,
                             has_dynamic_offset: true,
-                            min_binding_size: wgpu::BufferSize::new(
-                                scenes * round_up(k.launch_size, 16),
-                            ),
+                            min_binding_size: wgpu::BufferSize::new(scenes * k.launch_stride()),
+                        },
+                        Binding::LaunchTable => wgpu::BindingType::Buffer {
+                            ty: wgpu::BufferBindingType::Storage { read_only: true },
+                            has_dynamic_offset: false,
+                            min_binding_size: None,
                         },
                     };
                     wgpu::BindGroupLayoutEntry {
@@ -327,7 +472,10 @@ impl Core {
             let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some(&k.name),
                 bind_group_layouts: &[Some(&layout)],
-                immediate_size: 0,
+                immediate_size: match launch {
+                    LaunchMode::Table => wgsl::IMMEDIATE_BYTES,
+                    LaunchMode::Uniform => 0,
+                },
             });
             let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some(&k.name),
@@ -364,17 +512,51 @@ impl Core {
             lens: Vec::new(),
             topo: Vec::new(),
             counts: [0; 3],
-            uniform: None,
+            launch_buffer: None,
             staging: Vec::new(),
             queues: (0..scenes).map(|_| VecDeque::new()).collect(),
             recorded: 0,
+            pending: Vec::new(),
             bind_groups: HashMap::new(),
+            groups: Vec::new(),
             readback: None,
+            timing: None,
             stats: DispatchStats::default(),
             active: vec![false; scenes],
             waiting: vec![None; scenes],
             served: (0..scenes).map(|_| None).collect(),
         })
+    }
+
+    /// Add the host time since `start` (an instant and the submission time then), less the
+    /// time inside queue submissions, to the stats.
+    fn add_host_time(&mut self, start: (std::time::Instant, f64)) {
+        let submitting = self.stats.submit_seconds - start.1;
+        self.stats.host_seconds += start.0.elapsed().as_secs_f64() - submitting;
+    }
+
+    /// Time the compute passes with timestamp queries from now on, if the adapter has them
+    /// (`false` if not).
+    fn enable_timing(&mut self) -> bool {
+        if self.timing.is_none()
+            && self
+                .device
+                .features()
+                .contains(wgpu::Features::TIMESTAMP_QUERY)
+        {
+            self.timing = Some(Timing::new(&self.device, &self.queue));
+        }
+        self.timing.is_some()
+    }
+
+    /// The figures so far (reading the pass times back waits for the GPU).
+    fn stats_now(&mut self) -> DispatchStats {
+        let mut s = self.stats;
+        if let Some(t) = self.timing.as_mut() {
+            t.collect(&self.device, &self.queue);
+            s.gpu_seconds = Some(t.seconds);
+        }
+        s
     }
 
     fn take_error(&self) -> Option<String> {
@@ -470,6 +652,9 @@ impl Core {
         self.lens = lens;
         self.topo = topo;
         self.bind_groups.clear();
+        self.groups.clear();
+        self.pending.clear();
+        self.staging.clear();
         for q in &mut self.queues {
             q.clear();
         }
@@ -503,7 +688,8 @@ impl Core {
         self.queues[scene].push_back(op);
         self.recorded += 1;
         if self.recorded >= MAX_PENDING {
-            self.flush();
+            self.drain();
+            self.submit();
             if let Some(e) = self.take_error() {
                 return Err(e);
             }
@@ -541,41 +727,12 @@ impl Core {
         if let Some(e) = self.take_error() {
             return Err(e);
         }
-        let kernel = self
-            .module
-            .kernels
-            .get(k)
-            .ok_or_else(|| format!("no kernel {k}"))?;
-        if self.topo.is_empty() {
-            return Err("the backend is not prepared".into());
-        }
-        let n = domain_count(&self.counts, kernel.domain);
-        if range.start > range.end || range.end > n {
-            return Err(format!(
-                "entity range {range:?} outside 0..{n} of kernel `{}`",
-                kernel.name
-            ));
-        }
-        if range.is_empty() {
+        let start = (std::time::Instant::now(), self.stats.submit_seconds);
+        if self.check_launch(k, &range)?.is_none() {
             return Ok(());
         }
-        let groups = (range.len() as u64).div_ceil(u64::from(wgsl::WORKGROUP_SIZE));
-        let max = u64::from(self.device.limits().max_compute_workgroups_per_dimension);
-        if groups.div_ceil(max) > max {
-            return Err(format!(
-                "kernel `{}`: {} entities exceed one launch of this adapter",
-                kernel.name,
-                range.len()
-            ));
-        }
-        let key = kernel
-            .bindings
-            .iter()
-            .filter_map(|(_, w)| match w {
-                Binding::Buffer { id, .. } => Some(slot[id.0 as usize]),
-                _ => None,
-            })
-            .collect();
+        let key = self.key_of(k, slot);
+        let kernel = &self.module.kernels[k];
         let values = kernel.uniforms.iter().map(|&id| u.get(id)).collect();
         self.stats.launches += 1;
         self.record(
@@ -587,15 +744,25 @@ impl Core {
                 count: range.len() as u32,
                 values,
             },
-        )
+        )?;
+        self.add_host_time(start);
+        Ok(())
     }
 
-    /// Submit every scene's recorded operations, each scene's in its order. The scenes' next
-    /// launches of the same kernel on the same buffers become one dispatch; a `set` waits
-    /// until no scene has a launch before its own next `set`, so the writes of a batch in
-    /// lockstep cost one break in the submission.
+    /// Submit every scene's recorded operations, each scene's in its order (see
+    /// [`Core::drain`]).
     fn flush(&mut self) {
-        let mut dispatches: Vec<Dispatch> = Vec::new();
+        let start = (std::time::Instant::now(), self.stats.submit_seconds);
+        self.drain();
+        self.submit();
+        self.add_host_time(start);
+    }
+
+    /// Turn every scene's recorded operations into pending dispatches, each scene's in its
+    /// order. The scenes' next launches of the same kernel on the same buffers become one
+    /// dispatch; a `set` waits until no scene has a launch before its own next `set`, so the
+    /// writes of a batch in lockstep cost one break in the submission.
+    fn drain(&mut self) {
         loop {
             let heads: Vec<usize> = (0..self.scenes)
                 .filter(|&s| !self.queues[s].is_empty())
@@ -610,7 +777,7 @@ impl Core {
                 .collect();
             if runs.is_empty() {
                 // Only writes at the heads: what is recorded reads the old contents.
-                self.submit(&mut dispatches);
+                self.submit();
                 for s in heads {
                     if let Some(Op::Set { phys, bytes }) = self.queues[s].pop_front() {
                         let offset = (s * self.lens[phys] * self.module.precision.size()) as u64;
@@ -631,149 +798,439 @@ impl Core {
                 }
             }
             for (kernel, key, members) in groups {
-                let offset = self.write_blocks(kernel, &members);
-                let count = members
-                    .iter()
-                    .filter_map(|&s| match self.queues[s].front() {
-                        Some(Op::Run { count, .. }) => Some(u64::from(*count)),
-                        _ => None,
-                    })
-                    .max()
-                    .unwrap_or(0);
-                for &s in &members {
-                    self.queues[s].pop_front();
+                let (at, arg) = self.alloc_blocks(kernel, 1);
+                let mut count = 0u64;
+                for (j, &s) in members.iter().enumerate() {
+                    if let Some(Op::Run {
+                        begin,
+                        count: c,
+                        values,
+                        ..
+                    }) = self.queues[s].pop_front()
+                    {
+                        self.write_block(at, j, kernel, s, begin, c, values.iter().copied());
+                        count = count.max(u64::from(c));
+                    }
                 }
-                let groups = count.div_ceil(u64::from(wgsl::WORKGROUP_SIZE));
-                let max = u64::from(self.device.limits().max_compute_workgroups_per_dimension);
-                let gx = groups.min(max);
-                dispatches.push(Dispatch {
+                let group = self.bind_group(kernel, &key);
+                let groups = self.workgroups(count, members.len());
+                self.pending.push(Dispatch {
                     kernel,
-                    key,
-                    offset,
-                    groups: (gx as u32, groups.div_ceil(gx) as u32, members.len() as u32),
+                    group,
+                    arg,
+                    groups,
                 });
             }
         }
-        self.submit(&mut dispatches);
         self.recorded = 0;
     }
 
-    /// Write the launch blocks of the head launches of `members` (one per scene, consecutive)
-    /// into the staging area; returns their offset.
-    fn write_blocks(&mut self, kernel: usize, members: &[usize]) -> u32 {
-        let k = &self.module.kernels[kernel];
-        let stride = round_up(k.launch_size, 16) as usize;
-        let offset = round_up(self.staging.len() as u64, u64::from(self.align)) as usize;
-        // The binding covers every scene's block, used or not.
-        self.staging.resize(offset + self.scenes * stride, 0);
-        for (j, &s) in members.iter().enumerate() {
-            let Some(Op::Run {
-                begin,
-                count,
-                values,
-                ..
-            }) = self.queues[s].front()
-            else {
-                continue;
-            };
-            let mut block: Vec<u8> = Vec::with_capacity(stride);
-            block.extend_from_slice(&begin.to_le_bytes());
-            block.extend_from_slice(&count.to_le_bytes());
-            if self.module.batch.is_some() {
-                for v in [s, self.counts[0], self.counts[1], self.counts[2]] {
-                    block.extend_from_slice(&(v as u32).to_le_bytes());
-                }
-            }
-            block.resize(k.uniform_offset as usize, 0);
-            for &v in values {
-                match self.module.precision {
-                    Precision::F32 => block.extend_from_slice(&(v as f32).to_le_bytes()),
-                    Precision::F64 => block.extend_from_slice(&v.to_le_bytes()),
-                }
-            }
-            let at = offset + j * stride;
-            self.staging[at..at + block.len()].copy_from_slice(&block);
-        }
-        offset as u32
+    /// Workgroups of a dispatch of `count` entities for `scenes` scenes (rows beyond 65,535
+    /// workgroups go to y).
+    fn workgroups(&self, count: u64, scenes: usize) -> (u32, u32, u32) {
+        let groups = count.div_ceil(u64::from(wgsl::WORKGROUP_SIZE));
+        let max = u64::from(self.device.limits().max_compute_workgroups_per_dimension);
+        let gx = groups.clamp(1, max);
+        (gx as u32, groups.div_ceil(gx) as u32, scenes as u32)
     }
 
-    /// Submit `dispatches` in one compute pass (their blocks are in the staging area).
-    fn submit(&mut self, dispatches: &mut Vec<Dispatch>) {
-        if dispatches.is_empty() {
-            self.staging.clear();
+    /// Bytes of launch blocks the next submission can hold.
+    fn launch_capacity(&self) -> u64 {
+        self.launch_buffer.as_ref().map_or(0, |b| b.size())
+    }
+
+    /// Make room for `bytes` more bytes of launch blocks (aligned) in the next submission:
+    /// submits what is pending if they do not fit, and grows the buffer (dropping the bind
+    /// groups, which bind it) if one submission cannot hold them.
+    fn reserve(&mut self, bytes: u64) {
+        let used = self.staging.len() as u64;
+        if used + bytes <= self.launch_capacity() {
             return;
         }
-        let need = self.staging.len() as u64;
-        if self.uniform.as_ref().is_none_or(|u| u.size() < need) {
-            let size = need.next_power_of_two().max(4096);
-            self.uniform = Some(self.device.create_buffer(&wgpu::BufferDescriptor {
+        self.submit();
+        if bytes > self.launch_capacity() {
+            let size = bytes.next_power_of_two().max(MIN_LAUNCH_BYTES);
+            let usage = match self.module.launch {
+                LaunchMode::Table => wgpu::BufferUsages::STORAGE,
+                LaunchMode::Uniform => wgpu::BufferUsages::UNIFORM,
+            } | wgpu::BufferUsages::COPY_DST;
+            self.launch_buffer = Some(self.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("softc launch blocks"),
                 size,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                usage,
                 mapped_at_creation: false,
             }));
             self.bind_groups.clear();
+            self.groups.clear();
         }
-        let Some(uniform) = self.uniform.clone() else {
-            return;
+    }
+
+    /// The alignment of a kernel's launch blocks in the launch buffer.
+    fn block_align(&self, kernel: usize) -> u64 {
+        match self.module.launch {
+            LaunchMode::Table => self.module.kernels[kernel].launch_stride(),
+            LaunchMode::Uniform => u64::from(self.align),
+        }
+    }
+
+    /// Room for `rows` dispatches' launch blocks of `kernel` (each one block per scene);
+    /// returns the byte offset of the first and its dispatch argument (see [`Dispatch::arg`]).
+    /// Call [`Core::reserve`] first for many rows at once.
+    fn alloc_blocks(&mut self, kernel: usize, rows: u64) -> (usize, u32) {
+        let stride = self.module.kernels[kernel].launch_stride();
+        let align = self.block_align(kernel);
+        let span = round_up(self.scenes as u64 * stride, align);
+        self.reserve(span * rows + align);
+        let at = round_up(self.staging.len() as u64, align);
+        self.staging.resize((at + span * rows) as usize, 0);
+        let arg = match self.module.launch {
+            LaunchMode::Table => at / stride,
+            LaunchMode::Uniform => at,
         };
-        self.queue.write_buffer(&uniform, 0, &self.staging);
-        // Bind groups first (the pass borrows them).
-        for d in dispatches.iter() {
-            let cache_key = (d.kernel, d.key.clone());
-            if self.bind_groups.contains_key(&cache_key) {
+        (at as usize, arg as u32)
+    }
+
+    /// The dispatch argument of the row `row` rows after `arg` (see [`Core::alloc_blocks`]).
+    fn next_arg(&self, kernel: usize, arg: u32, row: u64) -> u32 {
+        let stride = self.module.kernels[kernel].launch_stride();
+        let span = round_up(self.scenes as u64 * stride, self.block_align(kernel));
+        match self.module.launch {
+            LaunchMode::Table => arg + (row * span / stride) as u32,
+            LaunchMode::Uniform => arg + (row * span) as u32,
+        }
+    }
+
+    /// Write scene `scene`'s launch block, the `j`-th of the blocks at `at`.
+    #[allow(clippy::too_many_arguments)]
+    fn write_block(
+        &mut self,
+        at: usize,
+        j: usize,
+        kernel: usize,
+        scene: usize,
+        begin: u32,
+        count: u32,
+        values: impl Iterator<Item = f64>,
+    ) {
+        let k = &self.module.kernels[kernel];
+        let stride = k.launch_stride() as usize;
+        let start = at + j * stride;
+        let block = &mut self.staging[start..start + stride];
+        block[0..4].copy_from_slice(&begin.to_le_bytes());
+        block[4..8].copy_from_slice(&count.to_le_bytes());
+        if self.module.batch.is_some() {
+            for (i, v) in [scene, self.counts[0], self.counts[1], self.counts[2]]
+                .into_iter()
+                .enumerate()
+            {
+                block[8 + 4 * i..12 + 4 * i].copy_from_slice(&(v as u32).to_le_bytes());
+            }
+        }
+        let mut o = k.uniform_offset as usize;
+        for v in values {
+            match self.module.precision {
+                Precision::F32 => {
+                    block[o..o + 4].copy_from_slice(&(v as f32).to_le_bytes());
+                    o += 4;
+                }
+                Precision::F64 => {
+                    block[o..o + 8].copy_from_slice(&v.to_le_bytes());
+                    o += 8;
+                }
+            }
+        }
+    }
+
+    /// The bind group of `kernel` with the physical buffers `key` bound (made once).
+    fn bind_group(&mut self, kernel: usize, key: &[usize]) -> usize {
+        if let Some(&g) = self.bind_groups.get(&(kernel, key.to_vec())) {
+            return g;
+        }
+        let Some(launch) = self.launch_buffer.clone() else {
+            unreachable!("launch blocks are reserved before their bind group");
+        };
+        let k = &self.module.kernels[kernel];
+        let mut phys = key.iter();
+        let entries: Vec<wgpu::BindGroupEntry> = k
+            .bindings
+            .iter()
+            .map(|&(binding, what)| {
+                let resource = match what {
+                    Binding::Buffer { .. } => {
+                        let p = *phys.next().unwrap_or(&0);
+                        self.buffers[p].as_entire_binding()
+                    }
+                    Binding::Topo(t) => self.topo[t as usize].as_entire_binding(),
+                    Binding::Launch => wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &launch,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(self.scenes as u64 * k.launch_stride()),
+                    }),
+                    Binding::LaunchTable => launch.as_entire_binding(),
+                };
+                wgpu::BindGroupEntry { binding, resource }
+            })
+            .collect();
+        let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(&k.name),
+            layout: &self.pipelines[kernel].layout,
+            entries: &entries,
+        });
+        self.groups.push(bg);
+        self.bind_groups
+            .insert((kernel, key.to_vec()), self.groups.len() - 1);
+        self.groups.len() - 1
+    }
+
+    /// The physical buffers kernel `k` binds when the module's buffers are mapped by `slot`.
+    fn key_of(&self, k: usize, slot: &[usize]) -> Vec<usize> {
+        self.module.kernels[k]
+            .bindings
+            .iter()
+            .filter_map(|(_, w)| match w {
+                Binding::Buffer { id, .. } => Some(slot[id.0 as usize]),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Check a launch of kernel `k` over `range`; `Ok(None)` for an empty one, else its
+    /// kernel's entity count.
+    fn check_launch(&self, k: usize, range: &Range<usize>) -> Result<Option<()>, String> {
+        let kernel = self
+            .module
+            .kernels
+            .get(k)
+            .ok_or_else(|| format!("no kernel {k}"))?;
+        if self.topo.is_empty() {
+            return Err("the backend is not prepared".into());
+        }
+        let n = domain_count(&self.counts, kernel.domain);
+        if range.start > range.end || range.end > n {
+            return Err(format!(
+                "entity range {range:?} outside 0..{n} of kernel `{}`",
+                kernel.name
+            ));
+        }
+        if range.is_empty() {
+            return Ok(None);
+        }
+        let groups = (range.len() as u64).div_ceil(u64::from(wgsl::WORKGROUP_SIZE));
+        let max = u64::from(self.device.limits().max_compute_workgroups_per_dimension);
+        if groups.div_ceil(max) > max {
+            return Err(format!(
+                "kernel `{}`: {} entities exceed one launch of this adapter",
+                kernel.name,
+                range.len()
+            ));
+        }
+        Ok(Some(()))
+    }
+
+    /// The time loop of one scene (unbatched): `n` steps from step `first`, each setting
+    /// `t = step · dt` where a kernel reads it, running `launches` in order and then swapping
+    /// `swaps` in `slot`. Launch blocks are written once per step only for kernels that read
+    /// `t` (once per submission for the others), bind groups are resolved once per buffer
+    /// parity, and up to [`STEPS_PER_SUBMISSION`] steps go in one submission, submitted
+    /// without waiting. The same dispatches, blocks and order as launching one by one.
+    #[allow(clippy::too_many_arguments)]
+    fn record_steps(
+        &mut self,
+        slot: &mut [usize],
+        launches: &[Launch],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        n: u64,
+        dt: f64,
+        u: &Uniforms,
+    ) -> Result<(), String> {
+        if let Some(e) = self.take_error() {
+            return Err(e);
+        }
+        let start = (std::time::Instant::now(), self.stats.submit_seconds);
+        self.drain();
+        let t_id = u.id("t");
+        // Per launch: kernel, range, the position of `t` among its uniforms, its values.
+        struct Plan {
+            kernel: usize,
+            begin: u32,
+            count: u32,
+            t_at: Option<usize>,
+            values: Vec<f64>,
+            groups: (u32, u32, u32),
+        }
+        let mut plans = Vec::new();
+        for (k, range) in launches {
+            if self.check_launch(*k, range)?.is_none() {
                 continue;
             }
-            let k = &self.module.kernels[d.kernel];
-            let mut phys = d.key.iter();
-            let entries: Vec<wgpu::BindGroupEntry> = k
-                .bindings
-                .iter()
-                .map(|&(binding, what)| {
-                    let resource = match what {
-                        Binding::Buffer { .. } => {
-                            let p = *phys.next().unwrap_or(&0);
-                            self.buffers[p].as_entire_binding()
-                        }
-                        Binding::Topo(t) => self.topo[t as usize].as_entire_binding(),
-                        Binding::Launch => wgpu::BindingResource::Buffer(wgpu::BufferBinding {
-                            buffer: &uniform,
-                            offset: 0,
-                            size: wgpu::BufferSize::new(
-                                self.scenes as u64 * round_up(k.launch_size, 16),
-                            ),
-                        }),
-                    };
-                    wgpu::BindGroupEntry { binding, resource }
-                })
-                .collect();
-            let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(&k.name),
-                layout: &self.pipelines[d.kernel].layout,
-                entries: &entries,
+            let kernel = &self.module.kernels[*k];
+            let t_at = t_id.and_then(|t| kernel.uniforms.iter().position(|&id| id == t));
+            let values = kernel.uniforms.iter().map(|&id| u.get(id)).collect();
+            plans.push(Plan {
+                kernel: *k,
+                begin: range.start as u32,
+                count: range.len() as u32,
+                t_at,
+                values,
+                groups: self.workgroups(range.len() as u64, 1),
             });
-            self.bind_groups.insert(cache_key, bg);
         }
+        // Bind groups by parity: two steps' swaps bring pairs of distinct buffers back.
+        let swap_all = |slot: &mut [usize]| {
+            for (a, b) in swaps {
+                slot.swap(a.0 as usize, b.0 as usize);
+            }
+        };
+        let mut after_two = slot.to_vec();
+        swap_all(&mut after_two);
+        swap_all(&mut after_two);
+        let periodic = after_two == slot;
+        let mut done = 0u64;
+        while done < n {
+            let chunk = (n - done).min(STEPS_PER_SUBMISSION);
+            // Room for every block of the chunk, so that nothing is submitted half-way.
+            let bytes: u64 = plans
+                .iter()
+                .map(|p| {
+                    let align = self.block_align(p.kernel);
+                    let span = round_up(self.module.kernels[p.kernel].launch_stride(), align);
+                    span * if p.t_at.is_some() { chunk } else { 1 } + align
+                })
+                .sum();
+            self.reserve(bytes);
+            // Blocks: one per step for kernels reading `t`, else one for the chunk.
+            let mut args = Vec::with_capacity(plans.len());
+            for (i, p) in plans.iter().enumerate() {
+                let rows = if p.t_at.is_some() { chunk } else { 1 };
+                let (at, arg) = self.alloc_blocks(p.kernel, rows);
+                let stride = round_up(
+                    self.module.kernels[p.kernel].launch_stride(),
+                    self.block_align(p.kernel),
+                ) as usize;
+                let mut values = p.values.clone();
+                for r in 0..rows {
+                    if let Some(ti) = p.t_at {
+                        values[ti] = (first + done + r) as f64 * dt;
+                    }
+                    self.write_block(
+                        at + r as usize * stride,
+                        0,
+                        p.kernel,
+                        0,
+                        p.begin,
+                        p.count,
+                        values.iter().copied(),
+                    );
+                }
+                args.push((i, arg));
+            }
+            let mut parity: [Option<Vec<usize>>; 2] = [None, None];
+            for s in 0..chunk {
+                let groups = match (periodic, &parity[(s % 2) as usize]) {
+                    (true, Some(g)) => g.clone(),
+                    _ => {
+                        let g: Vec<usize> = plans
+                            .iter()
+                            .map(|p| {
+                                let key = self.key_of(p.kernel, slot);
+                                self.bind_group(p.kernel, &key)
+                            })
+                            .collect();
+                        parity[(s % 2) as usize] = Some(g.clone());
+                        g
+                    }
+                };
+                for (&(i, arg), group) in args.iter().zip(groups) {
+                    let p = &plans[i];
+                    let arg = if p.t_at.is_some() {
+                        self.next_arg(p.kernel, arg, s)
+                    } else {
+                        arg
+                    };
+                    self.pending.push(Dispatch {
+                        kernel: p.kernel,
+                        group,
+                        arg,
+                        groups: p.groups,
+                    });
+                }
+                swap_all(slot);
+            }
+            self.stats.launches += chunk * plans.len() as u64;
+            self.submit();
+            done += chunk;
+        }
+        self.add_host_time(start);
+        match self.take_error() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// Submit the pending dispatches in one compute pass (their blocks are in the staging
+    /// area), without waiting.
+    fn submit(&mut self) {
+        if self.pending.is_empty() {
+            self.staging.clear();
+            return;
+        }
+        let Some(launch) = self.launch_buffer.clone() else {
+            unreachable!("dispatches have launch blocks");
+        };
+        self.queue.write_buffer(&launch, 0, &self.staging);
         let mut enc = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("softc steps"),
             });
+        if self.timing.as_ref().is_some_and(|t| t.used == t.pairs)
+            && let Some(t) = self.timing.as_mut()
         {
+            t.collect(&self.device, &self.queue);
+        }
+        let pair = self.timing.as_mut().and_then(Timing::next_pair);
+        {
+            let timestamp_writes = match (&self.timing, pair) {
+                (Some(t), Some(i)) => Some(wgpu::ComputePassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: Some(i),
+                    end_of_pass_write_index: Some(i + 1),
+                }),
+                _ => None,
+            };
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("softc steps"),
-                timestamp_writes: None,
+                timestamp_writes,
             });
-            for d in dispatches.iter() {
-                let bg = &self.bind_groups[&(d.kernel, d.key.clone())];
-                pass.set_pipeline(&self.pipelines[d.kernel].pipeline);
-                pass.set_bind_group(0, bg, &[d.offset]);
+            let table = self.module.launch == LaunchMode::Table;
+            let mut bound: Option<(usize, usize)> = None;
+            for d in &self.pending {
+                if bound.is_none_or(|(k, _)| k != d.kernel) {
+                    pass.set_pipeline(&self.pipelines[d.kernel].pipeline);
+                }
+                if table {
+                    if bound.is_none_or(|(_, g)| g != d.group) {
+                        pass.set_bind_group(0, &self.groups[d.group], &[]);
+                    }
+                    pass.set_immediates(0, &d.arg.to_le_bytes());
+                } else {
+                    pass.set_bind_group(0, &self.groups[d.group], &[d.arg]);
+                }
+                bound = Some((d.kernel, d.group));
                 pass.dispatch_workgroups(d.groups.0, d.groups.1, d.groups.2);
             }
         }
-        self.queue.submit([enc.finish()]);
-        self.stats.dispatches += dispatches.len() as u64;
-        dispatches.clear();
+        if let (Some(t), Some(i)) = (&self.timing, pair) {
+            t.resolve(&mut enc, i);
+        }
+        let commands = enc.finish();
+        let queued = std::time::Instant::now();
+        self.queue.submit([commands]);
+        self.stats.submit_seconds += queued.elapsed().as_secs_f64();
+        self.stats.dispatches += self.pending.len() as u64;
+        self.stats.submissions += 1;
+        self.pending.clear();
         self.staging.clear();
     }
 
@@ -781,6 +1238,7 @@ impl Core {
     /// then one copy per request into one readback buffer, one map, one wait.
     fn read(&mut self, requests: &[(usize, usize)]) -> Result<Vec<Vec<f64>>, String> {
         self.flush();
+        self.stats.readbacks += 1;
         let size = self.module.precision.size();
         let mut spans = Vec::new();
         let mut total = 0u64;
@@ -936,6 +1394,22 @@ impl Gpu {
         self.core.borrow().module.precision
     }
 
+    /// Launches, dispatches, submissions, readbacks and host (and GPU) time so far.
+    pub fn stats(&self) -> DispatchStats {
+        self.core.borrow_mut().stats_now()
+    }
+
+    /// Time the compute passes on the GPU from now on ([`DispatchStats::gpu_seconds`]), if
+    /// the adapter has timestamp queries; `false` if not.
+    pub fn enable_timing(&self) -> bool {
+        self.core.borrow_mut().enable_timing()
+    }
+
+    /// Where the kernels find their launch blocks on this adapter.
+    pub fn launch_mode(&self) -> LaunchMode {
+        self.core.borrow().module.launch
+    }
+
     /// The WGSL source the kernels run.
     pub fn wgsl(&self) -> String {
         self.core.borrow().module.source.clone()
@@ -1023,6 +1497,27 @@ impl Backend for Gpu {
     fn run(&mut self, k: usize, range: Range<usize>, u: &Uniforms) -> Result<(), String> {
         self.core.get_mut().record_run(0, &self.slot, k, range, u)
     }
+
+    fn run_steps(
+        &mut self,
+        launches: &[Launch],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        n: u64,
+        dt: f64,
+        uniforms: &Uniforms,
+    ) -> Result<bool, String> {
+        self.core.get_mut().record_steps(
+            &mut self.slot,
+            launches,
+            swaps,
+            first,
+            n,
+            dt,
+            uniforms,
+        )?;
+        Ok(true)
+    }
 }
 
 /// The device and buffers of a batch, shared by its scenes.
@@ -1084,9 +1579,14 @@ impl GpuBatch {
         self.shared.lock().adapter.clone()
     }
 
-    /// Launches recorded and dispatches submitted so far.
+    /// Launches, dispatches, submissions, readbacks and host (and GPU) time so far.
     pub fn stats(&self) -> DispatchStats {
-        self.shared.lock().stats
+        self.shared.lock().stats_now()
+    }
+
+    /// Time the compute passes on the GPU from now on (see [`Gpu::enable_timing`]).
+    pub fn enable_timing(&self) -> bool {
+        self.shared.lock().enable_timing()
     }
 }
 
@@ -1095,6 +1595,18 @@ pub struct GpuScene {
     shared: Arc<Shared>,
     scene: usize,
     slot: Vec<usize>,
+}
+
+impl GpuScene {
+    /// What the batch's device did so far (all its scenes).
+    pub fn stats(&self) -> DispatchStats {
+        self.shared.lock().stats_now()
+    }
+
+    /// Time the batch's compute passes (see [`Gpu::enable_timing`]).
+    pub fn enable_timing(&self) -> bool {
+        self.shared.lock().enable_timing()
+    }
 }
 
 impl Backend for GpuScene {

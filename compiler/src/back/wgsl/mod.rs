@@ -113,7 +113,24 @@ pub enum Binding {
     Topo(TopoArray),
     /// The kernel's launch block (uniform, bound with a dynamic offset).
     Launch,
+    /// The launch-block table ([`LaunchMode::Table`]): a read-only storage array of launch
+    /// blocks, the row in the immediate `softc_row`.
+    LaunchTable,
 }
+
+/// Where a kernel finds its launch block.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum LaunchMode {
+    /// A uniform block bound at a dynamic offset per dispatch: any adapter.
+    Uniform,
+    /// A row of a read-only storage array of launch blocks (`array<Launch_k>`), its index in
+    /// an immediate (push constant) set per dispatch: a dispatch changes no binding, so a time
+    /// loop binds each kernel's group once. Needs wgpu's `IMMEDIATES` (4 bytes).
+    Table,
+}
+
+/// Bytes of the immediate data a [`LaunchMode::Table`] module reads (the row, a `u32`).
+pub const IMMEDIATE_BYTES: u32 = 4;
 
 /// One kernel's entry point.
 #[derive(Clone, Debug, PartialEq)]
@@ -131,8 +148,17 @@ pub struct WgslKernel {
     pub launch_size: u64,
     /// Byte offset of the first uniform in the launch block.
     pub uniform_offset: u64,
-    /// Storage buffers the entry point binds (buffers and connectivity).
+    /// Storage buffers the entry point binds (buffers, connectivity and, in
+    /// [`LaunchMode::Table`], the launch table).
     pub storage_buffers: u32,
+}
+
+impl WgslKernel {
+    /// Bytes between consecutive launch blocks of this kernel: a batch's scenes, and rows of a
+    /// [`LaunchMode::Table`] (whose struct is 16-byte aligned, so its array stride is this).
+    pub fn launch_stride(&self) -> u64 {
+        self.launch_size.div_ceil(16) * 16
+    }
 }
 
 /// A module's kernels as WGSL.
@@ -141,6 +167,8 @@ pub struct WgslModule {
     pub precision: Precision,
     /// Scenes per launch of a batched module ([`emit_batched`]), `None` for one scene.
     pub batch: Option<u32>,
+    /// Where the kernels find their launch blocks.
+    pub launch: LaunchMode,
     pub source: String,
     pub kernels: Vec<WgslKernel>,
 }
@@ -443,7 +471,21 @@ fn literal(c: f64, p: Precision) -> String {
 /// (an access outside a buffer's declared layout), as the Cranelift backend checks them.
 /// The module's kernels for one scene.
 pub fn emit(module: &Module, precision: Precision) -> Result<WgslModule, String> {
-    emit_with(module, precision, None)
+    emit_with(module, precision, None, LaunchMode::Uniform)
+}
+
+/// The module's kernels for `batch` scenes (`None`: one, as [`emit`]; `Some(n)`: as
+/// [`emit_batched`]) with their launch blocks where `launch` says.
+pub fn emit_for(
+    module: &Module,
+    precision: Precision,
+    batch: Option<u32>,
+    launch: LaunchMode,
+) -> Result<WgslModule, String> {
+    if batch == Some(0) {
+        return Err("a batch needs at least one scene".into());
+    }
+    emit_with(module, precision, batch, launch)
 }
 
 /// The module's kernels for a batch of up to `scenes` scenes that share a mesh and differ in
@@ -460,14 +502,16 @@ pub fn emit_batched(
     if scenes == 0 {
         return Err("a batch needs at least one scene".into());
     }
-    emit_with(module, precision, Some(scenes))
+    emit_with(module, precision, Some(scenes), LaunchMode::Uniform)
 }
 
 fn emit_with(
     module: &Module,
     precision: Precision,
     batch: Option<u32>,
+    launch_mode: LaunchMode,
 ) -> Result<WgslModule, String> {
+    let table = launch_mode == LaunchMode::Table;
     crate::ir::valid::validate_module(module)?;
     let nb = module.buffers.len() as u32;
     let topo_binding = |t: TopoArray| nb + t.index();
@@ -482,6 +526,7 @@ fn emit_with(
     for t in TopoArray::ALL {
         taken.insert(t.name().to_string());
     }
+    taken.insert("SoftcRow".to_string());
     let entries: Vec<String> = module
         .kernels
         .iter()
@@ -515,6 +560,15 @@ fn emit_with(
         );
     }
     let _ = writeln!(w, "\nalias real = {real};\n");
+    if table {
+        let _ = writeln!(
+            w,
+            "// The launch blocks are rows of each kernel's launch table; a dispatch's row comes as \
+             an immediate."
+        );
+        let _ = writeln!(w, "struct SoftcRow {{\n    row: u32,\n}}");
+        let _ = writeln!(w, "var<immediate> softc_row: SoftcRow;\n");
+    }
     let _ = writeln!(
         w,
         "// ---- buffers: len(domain) x width values, entity-major"
@@ -580,15 +634,17 @@ fn emit_with(
             k.origin
         );
         let _ = writeln!(w, "struct {struct_name} {{");
-        if batch.is_some() {
+        if batch.is_some() || table {
             // 16-byte alignment: uniform arrays need a stride that is a multiple of 16.
             let _ = writeln!(w, "    @align(16) begin: u32,");
             let _ = writeln!(w, "    count: u32,");
+        }
+        if batch.is_some() {
             let _ = writeln!(w, "    scene: u32,");
             let _ = writeln!(w, "    elements: u32,");
             let _ = writeln!(w, "    triangles: u32,");
             let _ = writeln!(w, "    nodes: u32,");
-        } else {
+        } else if !table {
             let _ = writeln!(w, "    begin: u32,");
             let _ = writeln!(w, "    count: u32,");
         }
@@ -601,11 +657,18 @@ fn emit_with(
         }
         let _ = writeln!(w, "}}");
         let lb = launch_binding(ki);
-        let ty = match batch {
-            Some(n) => format!("array<{struct_name}, {n}>"),
-            None => struct_name.clone(),
-        };
-        let _ = writeln!(w, "@group(0) @binding({lb}) var<uniform> {launch}: {ty};");
+        if table {
+            let _ = writeln!(
+                w,
+                "@group(0) @binding({lb}) var<storage, read> {launch}: array<{struct_name}>;"
+            );
+        } else {
+            let ty = match batch {
+                Some(n) => format!("array<{struct_name}, {n}>"),
+                None => struct_name.clone(),
+            };
+            let _ = writeln!(w, "@group(0) @binding({lb}) var<uniform> {launch}: {ty};");
+        }
 
         // Bindings this entry uses.
         let mut used_bufs: BTreeSet<u32> = BTreeSet::new();
@@ -654,8 +717,15 @@ fn emit_with(
                 .iter()
                 .map(|&t| (topo_binding(t), Binding::Topo(t))),
         );
-        let storage_buffers = bindings.len() as u32;
-        bindings.push((lb, Binding::Launch));
+        let storage_buffers = bindings.len() as u32 + u32::from(table);
+        bindings.push((
+            lb,
+            if table {
+                Binding::LaunchTable
+            } else {
+                Binding::Launch
+            },
+        ));
 
         let _ = writeln!(w, "\n@compute @workgroup_size({WORKGROUP_SIZE})");
         let _ = writeln!(
@@ -664,11 +734,20 @@ fn emit_with(
             entries[ki]
         );
         let _ = writeln!(w, "    let i = gid.x + gid.y * nwg.x * {WORKGROUP_SIZE}u;");
-        let block = if batch.is_some() {
-            let _ = writeln!(w, "    let l = &{launch}[gid.z];");
-            "(*l)".to_string()
-        } else {
-            launch.clone()
+        let block = match (batch.is_some(), table) {
+            (true, true) => {
+                let _ = writeln!(w, "    let l = &{launch}[softc_row.row + gid.z];");
+                "(*l)".to_string()
+            }
+            (false, true) => {
+                let _ = writeln!(w, "    let l = &{launch}[softc_row.row];");
+                "(*l)".to_string()
+            }
+            (true, false) => {
+                let _ = writeln!(w, "    let l = &{launch}[gid.z];");
+                "(*l)".to_string()
+            }
+            (false, false) => launch.clone(),
         };
         let _ = writeln!(w, "    if (i >= {block}.count) {{");
         let _ = writeln!(w, "        return;");
@@ -712,6 +791,7 @@ fn emit_with(
     Ok(WgslModule {
         precision,
         batch,
+        launch: launch_mode,
         source: out,
         kernels,
     })
@@ -973,9 +1053,11 @@ fn emit_body(
 /// source lines.
 pub fn validate(source: &str, precision: Precision) -> Result<(), String> {
     let module = naga::front::wgsl::parse_str(source).map_err(|e| e.emit_to_string(source))?;
+    // Immediates: the row of a `LaunchMode::Table` module.
+    let caps = naga::valid::Capabilities::default() | naga::valid::Capabilities::IMMEDIATES;
     let caps = match precision {
-        Precision::F32 => naga::valid::Capabilities::default(),
-        Precision::F64 => naga::valid::Capabilities::default() | naga::valid::Capabilities::FLOAT64,
+        Precision::F32 => caps,
+        Precision::F64 => caps | naga::valid::Capabilities::FLOAT64,
     };
     naga::valid::Validator::new(naga::valid::ValidationFlags::all(), caps)
         .validate(&module)
