@@ -474,3 +474,43 @@ fn bench_solvers_prints_a_row_per_solver_and_well_formed_json() {
     }
     std::fs::remove_file(&json).ok();
 }
+
+/// The benchmark's kernels with their launch blocks in a storage table whose row comes as an
+/// immediate (`SOFTC_GPU_LAUNCH=table` on the GPU): the same bodies as the uniform blocks'
+/// golden, only where `begin`, `count` and the uniforms are read from differs.
+#[test]
+fn the_launch_table_variant_matches_its_golden_wgsl() {
+    use softc_compiler::back::Precision;
+    use softc_compiler::back::wgsl::{self, LaunchMode};
+    let scene =
+        softc::engine::scene::Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
+    let module = &scene.lowered.adjoint.module;
+    let table = wgsl::emit_for(module, Precision::F32, None, LaunchMode::Table).unwrap();
+    wgsl::validate(&table.source, Precision::F32).unwrap();
+    let mut failures = Vec::new();
+    check_golden(
+        &root().join("tests/golden/wgsl/cases/benchmark-1k-table.wgsl"),
+        &table.source,
+        "benchmark-1k, launch table",
+        &mut failures,
+    );
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+    assert!(table.source.contains("var<immediate> softc_row: SoftcRow;"));
+    assert!(table.source.contains(
+        "@group(0) @binding(30) var<storage, read> launch_pressure_cavity: array<Launch_pressure_cavity>;"
+    ));
+    assert!(
+        table
+            .source
+            .contains("    let l = &launch_pressure_cavity[softc_row.row];")
+    );
+    // Every kernel reads its block from the table and nothing else changed: the uniform
+    // variant's entry points, bindings and bodies are the same apart from the block.
+    let uniform = wgsl::emit(module, Precision::F32).unwrap();
+    assert_eq!(table.kernels.len(), uniform.kernels.len());
+    for (t, u) in table.kernels.iter().zip(&uniform.kernels) {
+        assert_eq!((&t.entry, &t.uniforms), (&u.entry, &u.uniforms));
+        assert_eq!(t.storage_buffers, u.storage_buffers + 1, "{}", t.name);
+        assert_eq!(t.launch_stride(), u.launch_stride());
+    }
+}

@@ -5,7 +5,7 @@
 use super::cpu::Cpu;
 use super::gpu::{AdapterDesc, DispatchStats, Gpu, GpuBatch, GpuScene};
 use super::interp::Interpreter;
-use super::{Backend, Launch, Lockstep, Uniforms};
+use super::{Backend, Launch, Lockstep, PendingRead, Uniforms};
 use crate::engine::scene::Scene;
 use clap::ValueEnum;
 use softc_compiler::back::Precision;
@@ -255,6 +255,34 @@ impl Backend for Device {
 
     fn lockstep(&self) -> Lockstep {
         self.inner().lockstep()
+    }
+
+    fn read_later(&mut self, bufs: &[BufferId]) -> PendingRead {
+        self.inner_mut().read_later(bufs)
+    }
+
+    fn collect(&mut self, read: PendingRead) -> Vec<Vec<f64>> {
+        self.inner_mut().collect(read)
+    }
+
+    fn device_states(&mut self, slots: usize, len: usize) -> Result<Option<u64>, String> {
+        self.inner_mut().device_states(slots, len)
+    }
+
+    fn store_state(&mut self, slot: usize, x: BufferId, v: BufferId) -> Result<(), String> {
+        self.inner_mut().store_state(slot, x, v)
+    }
+
+    fn restore_state(&mut self, slot: usize, x: BufferId, v: BufferId) -> Result<(), String> {
+        self.inner_mut().restore_state(slot, x, v)
+    }
+
+    fn get_into(&self, b: BufferId, out: crate::devices::HostSliceMut<'_>) {
+        self.inner().get_into(b, out)
+    }
+
+    fn set_from(&mut self, b: BufferId, src: crate::devices::HostSlice<'_>) {
+        self.inner_mut().set_from(b, src)
     }
 
     fn run_steps(

@@ -24,7 +24,7 @@
 //! `exp`/`log`/`pow` are the driver's), f64 kernels use the software transcendental functions
 //! of the WGSL backend.
 
-use super::{Backend, Launch, Lockstep, Uniforms};
+use super::{Backend, Launch, Lockstep, PendingRead, Uniforms};
 use crate::engine::scene::{Csr, Scene};
 use softc_compiler::back::Precision;
 use softc_compiler::back::wgsl::{self, Binding, LaunchMode, TopoArray, WgslModule};
@@ -172,6 +172,81 @@ const STEPS_PER_SUBMISSION: u64 = 2048;
 /// Launch-block bytes held at least (grows as needed).
 const MIN_LAUNCH_BYTES: u64 = 256 << 10;
 
+/// States of the adjoint's checkpoint store kept in the device's memory at most, by default
+/// (`SOFTC_GPU_STATE_BYTES` sets another limit): 8 GiB fits the GPUs this is for with room
+/// to spare; a device that cannot allocate them keeps the states on the host.
+pub const DEVICE_STATE_BYTES: u64 = 8 << 30;
+
+/// The bytes of states the device may keep ([`DEVICE_STATE_BYTES`] or
+/// `SOFTC_GPU_STATE_BYTES`).
+pub fn device_state_limit() -> u64 {
+    std::env::var("SOFTC_GPU_STATE_BYTES")
+        .ok()
+        .and_then(|v| v.parse::<u64>().ok())
+        .unwrap_or(DEVICE_STATE_BYTES)
+}
+
+/// The adjoint's states in device memory: `slots` slots of `slot_bytes` (x then v, padded
+/// to the storage offset alignment) in chunks of `per_chunk` slots, and the copy kernels'
+/// pipelines.
+struct DeviceStates {
+    chunks: Vec<wgpu::Buffer>,
+    per_chunk: usize,
+    slot_bytes: u64,
+    slots: usize,
+    /// Values of x (and of v) of one scene.
+    len: usize,
+    /// Pipelines of the copies into and out of a slot.
+    store: usize,
+    restore: usize,
+}
+
+/// The copy kernel between a state (`x`, `v`: `len` values each) and a slot of the device's
+/// state store (bound at a dynamic offset): `store` into the slot, else out of it.
+fn state_copy_wgsl(real: &str, len: usize, store: bool) -> String {
+    let (state, slot, body, name) = if store {
+        (
+            "read",
+            "read_write",
+            "slot[i] = x[i];\n        slot[N + i] = v[i];",
+            "store",
+        )
+    } else {
+        (
+            "read_write",
+            "read",
+            "x[i] = slot[i];\n        v[i] = slot[N + i];",
+            "restore",
+        )
+    };
+    format!(
+        "// softc: the adjoint's state store on the device (copies, no arithmetic).
+alias real = {real};
+const N: u32 = {len}u;
+@group(0) @binding(0) var<storage, {state}> x: array<real>;
+@group(0) @binding(1) var<storage, {state}> v: array<real>;
+@group(0) @binding(2) var<storage, {slot}> slot: array<real>;
+@compute @workgroup_size(64)
+fn {name}(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {{
+    let i = gid.x + gid.y * nwg.x * 64u;
+    if (i < N) {{
+        {body}
+    }}
+}}
+"
+    )
+}
+
+/// A readback under way.
+struct InFlight {
+    buffer: wgpu::Buffer,
+    total: u64,
+    /// (offset, bytes) of each buffer's values in it.
+    spans: Vec<(u64, u64)>,
+    index: wgpu::SubmissionIndex,
+    mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+}
+
 /// GPU time of the submitted compute passes from timestamp queries: a pair of queries per
 /// submission, resolved in its command buffer, read back when the pairs run out or the
 /// figures are asked for.
@@ -303,6 +378,12 @@ struct Core {
     groups: Vec<wgpu::BindGroup>,
     readback: Option<wgpu::Buffer>,
     timing: Option<Timing>,
+    /// Readbacks under way, by ticket, and mapped buffers free for the next.
+    in_flight: HashMap<u64, InFlight>,
+    next_ticket: u64,
+    spare_readbacks: Vec<wgpu::Buffer>,
+    /// The adjoint's states kept on the device.
+    states: Option<DeviceStates>,
     stats: DispatchStats,
     /// Lockstep: scenes in the group, the buffer each waiting scene wants, served readbacks.
     active: Vec<bool>,
@@ -332,6 +413,7 @@ impl Core {
         precision: Precision,
         adapter: Option<&str>,
         batch: Option<u32>,
+        launch: Option<LaunchMode>,
     ) -> Result<Self, String> {
         let inst = instance();
         let mut all = pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()));
@@ -379,13 +461,25 @@ impl Core {
         // load of its launch block from memory.
         let has_immediates = chosen.features().contains(wgpu::Features::IMMEDIATES)
             && limits.max_immediate_size >= wgsl::IMMEDIATE_BYTES;
-        let launch =
-            if has_immediates && std::env::var("SOFTC_GPU_LAUNCH").as_deref() == Ok("table") {
-                features |= wgpu::Features::IMMEDIATES;
+        let wanted = launch.unwrap_or(
+            if std::env::var("SOFTC_GPU_LAUNCH").as_deref() == Ok("table") {
                 LaunchMode::Table
             } else {
                 LaunchMode::Uniform
-            };
+            },
+        );
+        let launch = match wanted {
+            LaunchMode::Table if has_immediates => {
+                features |= wgpu::Features::IMMEDIATES;
+                LaunchMode::Table
+            }
+            LaunchMode::Table => {
+                return Err(format!(
+                    "adapter {desc} has no immediates (push constants) for launch tables"
+                ));
+            }
+            LaunchMode::Uniform => LaunchMode::Uniform,
+        };
         if chosen.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
             features |= wgpu::Features::TIMESTAMP_QUERY;
         }
@@ -521,6 +615,10 @@ impl Core {
             groups: Vec::new(),
             readback: None,
             timing: None,
+            in_flight: HashMap::new(),
+            next_ticket: 0,
+            spare_readbacks: Vec::new(),
+            states: None,
             stats: DispatchStats::default(),
             active: vec![false; scenes],
             waiting: vec![None; scenes],
@@ -823,6 +921,9 @@ impl Core {
             }
         }
         self.recorded = 0;
+        if self.pending.len() >= MAX_PENDING {
+            self.submit();
+        }
     }
 
     /// Workgroups of a dispatch of `count` entities for `scenes` scenes (rows beyond 65,535
@@ -1158,8 +1259,12 @@ impl Core {
                 swap_all(slot);
             }
             self.stats.launches += chunk * plans.len() as u64;
-            self.submit();
             done += chunk;
+            // A full chunk goes now; the rest with what follows it (the state check's step
+            // and readback copy share its submission).
+            if chunk == STEPS_PER_SUBMISSION {
+                self.submit();
+            }
         }
         self.add_host_time(start);
         match self.take_error() {
@@ -1171,19 +1276,35 @@ impl Core {
     /// Submit the pending dispatches in one compute pass (their blocks are in the staging
     /// area), without waiting.
     fn submit(&mut self) {
-        if self.pending.is_empty() {
-            self.staging.clear();
-            return;
+        if !self.pending.is_empty() {
+            self.submit_with(|_| {});
         }
-        let Some(launch) = self.launch_buffer.clone() else {
-            unreachable!("dispatches have launch blocks");
-        };
-        self.queue.write_buffer(&launch, 0, &self.staging);
+        self.staging.clear();
+    }
+
+    /// Submit the pending dispatches in one compute pass followed by `after`'s commands (a
+    /// readback's copies) in the same submission; returns its index.
+    fn submit_with(
+        &mut self,
+        after: impl FnOnce(&mut wgpu::CommandEncoder),
+    ) -> wgpu::SubmissionIndex {
         let mut enc = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("softc steps"),
             });
+        if self.pending.is_empty() {
+            after(&mut enc);
+            let index = self.queue.submit([enc.finish()]);
+            self.stats.submissions += 1;
+            return index;
+        }
+        // (Only state copies pending: no launch blocks.)
+        if let Some(launch) = &self.launch_buffer
+            && !self.staging.is_empty()
+        {
+            self.queue.write_buffer(launch, 0, &self.staging);
+        }
         if self.timing.as_ref().is_some_and(|t| t.used == t.pairs)
             && let Some(t) = self.timing.as_mut()
         {
@@ -1204,12 +1325,16 @@ impl Core {
                 timestamp_writes,
             });
             let table = self.module.launch == LaunchMode::Table;
+            let kernels = self.module.kernels.len();
             let mut bound: Option<(usize, usize)> = None;
             for d in &self.pending {
                 if bound.is_none_or(|(k, _)| k != d.kernel) {
                     pass.set_pipeline(&self.pipelines[d.kernel].pipeline);
                 }
-                if table {
+                if d.kernel >= kernels {
+                    // A state copy: its slot at a dynamic offset.
+                    pass.set_bind_group(0, &self.groups[d.group], &[d.arg]);
+                } else if table {
                     if bound.is_none_or(|(_, g)| g != d.group) {
                         pass.set_bind_group(0, &self.groups[d.group], &[]);
                     }
@@ -1224,14 +1349,323 @@ impl Core {
         if let (Some(t), Some(i)) = (&self.timing, pair) {
             t.resolve(&mut enc, i);
         }
+        after(&mut enc);
         let commands = enc.finish();
         let queued = std::time::Instant::now();
-        self.queue.submit([commands]);
+        let index = self.queue.submit([commands]);
         self.stats.submit_seconds += queued.elapsed().as_secs_f64();
         self.stats.dispatches += self.pending.len() as u64;
         self.stats.submissions += 1;
         self.pending.clear();
         self.staging.clear();
+        index
+    }
+
+    /// Start reading `(physical buffer, scene)` pairs back: submits what is recorded and a
+    /// copy into a readback buffer, maps it without waiting; [`Core::collect`] waits for that
+    /// submission only, so the GPU runs on with what is submitted after.
+    fn read_later(&mut self, requests: &[(usize, usize)]) -> Result<u64, String> {
+        let start = (std::time::Instant::now(), self.stats.submit_seconds);
+        self.drain();
+        self.stats.readbacks += 1;
+        let size = self.module.precision.size();
+        let mut spans = Vec::new();
+        let mut total = 0u64;
+        for &(phys, scene) in requests {
+            let n = *self
+                .lens
+                .get(phys)
+                .ok_or_else(|| format!("no buffer {phys}"))?;
+            let bytes = (n * size) as u64;
+            spans.push((phys, (scene * n * size) as u64, total, bytes));
+            total = round_up(total + bytes, 256);
+        }
+        let total = total.max(256);
+        let buffer = match self.spare_readbacks.iter().position(|b| b.size() >= total) {
+            Some(i) => self.spare_readbacks.swap_remove(i),
+            None => self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("softc readback"),
+                size: total.next_power_of_two(),
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+        };
+        // The copies go in the submission of the work recorded before them.
+        let sources: Vec<wgpu::Buffer> = spans
+            .iter()
+            .map(|&(phys, ..)| self.buffers[phys].clone())
+            .collect();
+        let index = self.submit_with(|enc| {
+            for (src, &(_, from, to, bytes)) in sources.iter().zip(&spans) {
+                if bytes > 0 {
+                    enc.copy_buffer_to_buffer(src, from, &buffer, to, bytes);
+                }
+            }
+        });
+        self.staging.clear();
+        self.add_host_time(start);
+        let (tx, rx) = std::sync::mpsc::channel();
+        buffer.map_async(wgpu::MapMode::Read, 0..total, move |r| {
+            let _ = tx.send(r);
+        });
+        self.next_ticket += 1;
+        let ticket = self.next_ticket;
+        self.in_flight.insert(
+            ticket,
+            InFlight {
+                buffer,
+                total,
+                spans: spans.iter().map(|s| (s.2, s.3)).collect(),
+                index,
+                mapped: rx,
+            },
+        );
+        Ok(ticket)
+    }
+
+    /// The values of a [`Core::read_later`] (waits for its copy).
+    fn collect(&mut self, ticket: u64) -> Result<Vec<Vec<f64>>, String> {
+        let f = self
+            .in_flight
+            .remove(&ticket)
+            .ok_or_else(|| format!("no readback {ticket} under way"))?;
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(f.index),
+                timeout: None,
+            })
+            .map_err(|e| format!("GPU ({}): {e}", self.adapter))?;
+        match f.mapped.recv() {
+            Ok(Ok(())) => {}
+            _ => {
+                return Err(format!(
+                    "GPU ({}): reading a buffer back failed",
+                    self.adapter
+                ));
+            }
+        }
+        let out = {
+            let view = f
+                .buffer
+                .get_mapped_range(0..f.total)
+                .map_err(|e| format!("GPU ({}): {e}", self.adapter))?;
+            f.spans
+                .iter()
+                .map(|&(to, bytes)| self.values(&view[to as usize..(to + bytes) as usize]))
+                .collect()
+        };
+        f.buffer.unmap();
+        self.spare_readbacks.push(f.buffer);
+        if let Some(e) = self.take_error() {
+            return Err(e);
+        }
+        Ok(out)
+    }
+
+    /// Values of the module's precision from their bytes.
+    fn values(&self, bytes: &[u8]) -> Vec<f64> {
+        match self.module.precision {
+            Precision::F32 => bytes
+                .chunks_exact(4)
+                .map(|c| f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]])))
+                .collect(),
+            Precision::F64 => bytes
+                .chunks_exact(8)
+                .map(|c| {
+                    let mut a = [0u8; 8];
+                    a.copy_from_slice(c);
+                    f64::from_le_bytes(a)
+                })
+                .collect(),
+        }
+    }
+
+    /// Reserve `slots` device slots of `len` values each (x then v) and build the copy
+    /// kernels; `None` when they do not fit [`DEVICE_STATE_BYTES`] or the device's memory.
+    fn device_states(&mut self, slots: usize, len: usize) -> Result<Option<u64>, String> {
+        self.flush();
+        self.states = None;
+        let size = self.module.precision.size() as u64;
+        let limits = self.device.limits();
+        let align = u64::from(limits.min_storage_buffer_offset_alignment).max(256);
+        let slot_bytes = round_up(2 * len as u64 * size, align);
+        let total = slot_bytes.saturating_mul(slots as u64);
+        let cap = device_state_limit();
+        if slots == 0 || total > cap || slot_bytes > limits.max_storage_buffer_binding_size {
+            return Ok(None);
+        }
+        let per_chunk = (limits.max_buffer_size.min(1 << 30) / slot_bytes).max(1) as usize;
+        // Out of memory: keep the states on the host instead.
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let mut chunks = Vec::new();
+        let mut left = slots;
+        while left > 0 {
+            let n = left.min(per_chunk);
+            chunks.push(self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("softc device states"),
+                size: n as u64 * slot_bytes,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            }));
+            left -= n;
+        }
+        if pollster::block_on(scope.pop()).is_some() {
+            return Ok(None);
+        }
+        let real = match self.module.precision {
+            Precision::F32 => "f32",
+            Precision::F64 => "f64",
+        };
+        let entry = |binding: u32, read_only: bool, dynamic: bool| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only },
+                has_dynamic_offset: dynamic,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let first = self.module.kernels.len();
+        self.pipelines.truncate(first);
+        for (name, entries) in [
+            (
+                "store",
+                [
+                    entry(0, true, false),
+                    entry(1, true, false),
+                    entry(2, false, true),
+                ],
+            ),
+            (
+                "restore",
+                [
+                    entry(0, false, false),
+                    entry(1, false, false),
+                    entry(2, true, true),
+                ],
+            ),
+        ] {
+            let shader = self
+                .device
+                .create_shader_module(wgpu::ShaderModuleDescriptor {
+                    label: Some(name),
+                    source: wgpu::ShaderSource::Wgsl(
+                        state_copy_wgsl(real, len, name == "store").into(),
+                    ),
+                });
+            let layout = self
+                .device
+                .create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                    label: Some(name),
+                    entries: &entries,
+                });
+            let pl = self
+                .device
+                .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                    label: Some(name),
+                    bind_group_layouts: &[Some(&layout)],
+                    immediate_size: 0,
+                });
+            let pipeline = self
+                .device
+                .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(name),
+                    layout: Some(&pl),
+                    module: &shader,
+                    entry_point: Some(name),
+                    compilation_options: Default::default(),
+                    cache: None,
+                });
+            self.pipelines.push(Pipeline { pipeline, layout });
+        }
+        if let Some(e) = self.take_error() {
+            return Err(e);
+        }
+        self.states = Some(DeviceStates {
+            chunks,
+            per_chunk,
+            slot_bytes,
+            slots,
+            len,
+            store: first,
+            restore: first + 1,
+        });
+        Ok(Some(total))
+    }
+
+    /// Record a copy between the state buffers `x`, `v` (physical) and device slot `slot`:
+    /// `store` into the slot, else out of it. A dispatch in the step's compute pass.
+    fn record_state_copy(
+        &mut self,
+        store: bool,
+        slot: usize,
+        x: usize,
+        v: usize,
+    ) -> Result<(), String> {
+        let start = (std::time::Instant::now(), self.stats.submit_seconds);
+        self.drain();
+        let Some(st) = &self.states else {
+            return Err("no device states reserved".into());
+        };
+        if slot >= st.slots {
+            return Err(format!("device state slot {slot} of {}", st.slots));
+        }
+        if self.lens[x] != st.len || self.lens[v] != st.len {
+            return Err("a device state copy of buffers of another size".into());
+        }
+        let (chunk, offset) = (
+            slot / st.per_chunk,
+            (slot % st.per_chunk) as u64 * st.slot_bytes,
+        );
+        let kernel = if store { st.store } else { st.restore };
+        let (count, slot_bytes) = (st.len as u64, st.slot_bytes);
+        let key = vec![x, v, chunk];
+        let group = match self.bind_groups.get(&(kernel, key.clone())) {
+            Some(&g) => g,
+            None => {
+                let st = self.states.as_ref().ok_or("no device states")?;
+                let bg = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("softc state copy"),
+                    layout: &self.pipelines[kernel].layout,
+                    entries: &[
+                        wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: self.buffers[x].as_entire_binding(),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 1,
+                            resource: self.buffers[v].as_entire_binding(),
+                        },
+                        wgpu::BindGroupEntry {
+                            binding: 2,
+                            resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                buffer: &st.chunks[chunk],
+                                offset: 0,
+                                size: wgpu::BufferSize::new(slot_bytes),
+                            }),
+                        },
+                    ],
+                });
+                self.groups.push(bg);
+                self.bind_groups
+                    .insert((kernel, key), self.groups.len() - 1);
+                self.groups.len() - 1
+            }
+        };
+        let groups = self.workgroups(count, 1);
+        self.pending.push(Dispatch {
+            kernel,
+            group,
+            arg: offset as u32,
+            groups,
+        });
+        self.stats.launches += 1;
+        if self.pending.len() >= MAX_PENDING {
+            self.submit();
+        }
+        self.add_host_time(start);
+        Ok(())
     }
 
     /// Read back the values of `(physical buffer, scene)` pairs: submits what is recorded,
@@ -1380,7 +1814,21 @@ impl Gpu {
         adapter: Option<&str>,
     ) -> Result<Self, String> {
         Ok(Gpu {
-            core: RefCell::new(Core::open(module, precision, adapter, None)?),
+            core: RefCell::new(Core::open(module, precision, adapter, None, None)?),
+            slot: Vec::new(),
+        })
+    }
+
+    /// As [`Gpu::new`], with the launch blocks where `launch` says ([`LaunchMode::Table`]
+    /// needs an adapter with immediates).
+    pub fn with_launch_mode(
+        module: &Module,
+        precision: Precision,
+        adapter: Option<&str>,
+        launch: LaunchMode,
+    ) -> Result<Self, String> {
+        Ok(Gpu {
+            core: RefCell::new(Core::open(module, precision, adapter, None, Some(launch))?),
             slot: Vec::new(),
         })
     }
@@ -1498,6 +1946,61 @@ impl Backend for Gpu {
         self.core.get_mut().record_run(0, &self.slot, k, range, u)
     }
 
+    fn read_later(&mut self, bufs: &[BufferId]) -> PendingRead {
+        let requests: Vec<(usize, usize)> = bufs
+            .iter()
+            .map(|b| {
+                (
+                    self.slot.get(b.0 as usize).copied().unwrap_or(b.0 as usize),
+                    0,
+                )
+            })
+            .collect();
+        let core = self.core.get_mut();
+        let lens = requests
+            .iter()
+            .map(|&(p, _)| core.lens.get(p).copied().unwrap_or(0))
+            .collect();
+        match core.read_later(&requests) {
+            Ok(ticket) => PendingRead::Ticket(ticket, lens),
+            Err(e) => {
+                if let Ok(mut errors) = core.errors.lock() {
+                    errors.push(e);
+                }
+                PendingRead::Done(lens.iter().map(|&n| vec![f64::NAN; n]).collect())
+            }
+        }
+    }
+
+    fn collect(&mut self, read: PendingRead) -> Vec<Vec<f64>> {
+        match read {
+            PendingRead::Done(v) => v,
+            PendingRead::Ticket(ticket, lens) => {
+                let core = self.core.get_mut();
+                core.collect(ticket).unwrap_or_else(|e| {
+                    if let Ok(mut errors) = core.errors.lock() {
+                        errors.push(e);
+                    }
+                    lens.iter().map(|&n| vec![f64::NAN; n]).collect()
+                })
+            }
+        }
+    }
+
+    fn device_states(&mut self, slots: usize, len: usize) -> Result<Option<u64>, String> {
+        self.core.get_mut().device_states(slots, len)
+    }
+
+    fn store_state(&mut self, slot: usize, x: BufferId, v: BufferId) -> Result<(), String> {
+        let (x, v) = (self.slot[x.0 as usize], self.slot[v.0 as usize]);
+        self.core.get_mut().record_state_copy(true, slot, x, v)
+    }
+
+    fn restore_state(&mut self, slot: usize, x: BufferId, v: BufferId) -> Result<(), String> {
+        let (x, v) = (self.slot[x.0 as usize], self.slot[v.0 as usize]);
+        self.core.get_mut().record_state_copy(false, slot, x, v)
+    }
+
     fn run_steps(
         &mut self,
         launches: &[Launch],
@@ -1556,7 +2059,7 @@ impl GpuBatch {
             .ok_or_else(|| format!("a batch of {scenes} scenes"))?;
         Ok(GpuBatch {
             shared: Arc::new(Shared {
-                core: Mutex::new(Core::open(module, precision, adapter, Some(n))?),
+                core: Mutex::new(Core::open(module, precision, adapter, Some(n), None)?),
                 served: Condvar::new(),
             }),
         })

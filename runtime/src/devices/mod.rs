@@ -67,6 +67,37 @@ pub trait Backend {
     fn lockstep(&self) -> Lockstep {
         Lockstep::default()
     }
+    /// Start reading buffers back without waiting for them: a GPU copies them at this point
+    /// of its recorded work and goes on; [`Backend::collect`] waits for the copy (and only
+    /// for it). Backends that hold buffers on the host read them at once.
+    fn read_later(&mut self, bufs: &[BufferId]) -> PendingRead {
+        PendingRead::Done(bufs.iter().map(|&b| self.get(b)).collect())
+    }
+    /// The values of a [`Backend::read_later`], in its buffers' order.
+    fn collect(&mut self, read: PendingRead) -> Vec<Vec<f64>> {
+        match read {
+            PendingRead::Done(v) => v,
+            PendingRead::Ticket(..) => panic!("a read of another backend"),
+        }
+    }
+    /// Keep up to `slots` states of `len` values each (a state's x and v) in the device's
+    /// memory for [`Backend::store_state`] and [`Backend::restore_state`]: `Ok(Some(bytes))`
+    /// when it does (the bytes reserved), `Ok(None)` when states stay on the host (the
+    /// default; also a device without room). Replaces earlier slots.
+    fn device_states(&mut self, slots: usize, len: usize) -> Result<Option<u64>, String> {
+        let _ = (slots, len);
+        Ok(None)
+    }
+    /// Copy `x` and `v` into device slot `slot` (after [`Backend::device_states`]).
+    fn store_state(&mut self, slot: usize, x: BufferId, v: BufferId) -> Result<(), String> {
+        let _ = (slot, x, v);
+        Err("this backend keeps no states on the device".into())
+    }
+    /// Copy device slot `slot` into `x` and `v`.
+    fn restore_state(&mut self, slot: usize, x: BufferId, v: BufferId) -> Result<(), String> {
+        let _ = (slot, x, v);
+        Err("this backend keeps no states on the device".into())
+    }
     /// Run `n` whole steps at once, the first being step `first`, if the backend can: each
     /// step sets `t = step · dt`, runs `launches` (kernel, entity range) in order, then swaps
     /// the buffer pairs `swaps`. Returns `false`, having done nothing, when it cannot; the
@@ -83,6 +114,14 @@ pub trait Backend {
         let _ = (launches, swaps, first, n, dt, uniforms);
         Ok(false)
     }
+}
+
+/// A readback under way ([`Backend::read_later`]).
+pub enum PendingRead {
+    /// Read already.
+    Done(Vec<Vec<f64>>),
+    /// A GPU's copy in flight: its ticket and the values' counts.
+    Ticket(u64, Vec<usize>),
 }
 
 /// Values kept on the host (a checkpoint slot), in their stored precision.

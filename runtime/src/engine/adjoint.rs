@@ -110,6 +110,29 @@ impl<B: Backend> Simulation<'_, B> {
         self.backend.set(self.ids.v, &s.1);
     }
 
+    /// Keep the current state (step `current`) in slot `slot`: on the device, or copied to
+    /// the host store.
+    fn store(
+        &mut self,
+        host: &mut StateStore,
+        device_steps: &mut [Option<u64>],
+        on_device: bool,
+        slot: usize,
+        current: u64,
+    ) -> Result<(), RunError> {
+        if on_device {
+            self.backend
+                .store_state(slot, self.ids.x, self.ids.v)
+                .map_err(RunError)?;
+            device_steps[slot] = Some(current);
+        } else {
+            let (x, v) = host.slot_mut(slot, current);
+            self.backend.get_into(self.ids.x, x);
+            self.backend.get_into(self.ids.v, v);
+        }
+        Ok(())
+    }
+
     /// Add the loss's own derivative at the current state (state `k`, time `t`) to the
     /// adjoint of that state, and its direct param derivatives to `direct`.
     fn add_loss_gradient(&mut self, l: &Loss, t: f64, direct: &mut BTreeMap<String, f64>) -> f64 {
@@ -232,11 +255,29 @@ impl<B: Backend> Simulation<'_, B> {
     }
 
     /// Norms of ∂L/∂x and ∂L/∂v of state `k`; a non-finite value stops the pass.
-    fn adjoint_health(&self, k: u64, dt: f64) -> Result<HealthSample, RunError> {
+    fn adjoint_health(&mut self, k: u64, dt: f64) -> Result<HealthSample, RunError> {
+        let read = self.start_health(k);
+        self.finish_health(read, dt)
+    }
+
+    /// Start reading ∂L/∂x and ∂L/∂v of state `k` back, without waiting (a GPU goes on
+    /// reversing steps meanwhile).
+    fn start_health(&mut self, k: u64) -> (u64, crate::devices::PendingRead) {
         let adj = &self.scene.lowered.adjoint;
+        let bufs: Vec<_> = adj.state.iter().take(2).map(|s| s.adj_next).collect();
+        (k, self.backend.read_later(&bufs))
+    }
+
+    /// The health sample of a [`Simulation::start_health`].
+    fn finish_health(
+        &mut self,
+        (k, read): (u64, crate::devices::PendingRead),
+        dt: f64,
+    ) -> Result<HealthSample, RunError> {
+        let adj = &self.scene.lowered.adjoint;
+        let values = self.backend.collect(read);
         let mut norms = [0.0; 2];
-        for (i, s) in adj.state.iter().take(2).enumerate() {
-            let g = self.backend.get(s.adj_next);
+        for (i, (s, g)) in adj.state.iter().zip(&values).enumerate() {
             if let Some(p) = g.iter().position(|x| !x.is_finite()) {
                 return Err(RunError(format!(
                     "the gradient became non-finite in the backward pass at step {k} \
@@ -339,6 +380,40 @@ impl<B: Backend> Simulation<'_, B> {
             }
             s
         };
+        // Every state on the device when the backend can hold them there (a GPU: no state
+        // crosses to the host, nothing is recomputed) unless a budget or an explicit schedule
+        // says otherwise; else the host store.
+        let len = 3 * n_nodes;
+        let (schedule, on_device) = match (options.checkpoint, options.memory_budget) {
+            (Checkpointing::Auto, None) if steps >= 1 => {
+                match self
+                    .backend
+                    .device_states(steps as usize + 1, len)
+                    .map_err(RunError)?
+                {
+                    Some(bytes) => {
+                        let mut s = Schedule::store_all(steps);
+                        s.kind = format!(
+                            "auto: store_all on the device ({} states, {:.1} MB of the {:.1} MB \
+                             allowed)",
+                            steps + 1,
+                            bytes as f64 / 1e6,
+                            crate::devices::gpu::device_state_limit() as f64 / 1e6
+                        );
+                        (s, true)
+                    }
+                    None => (schedule, false),
+                }
+            }
+            _ => {
+                let on_device = self
+                    .backend
+                    .device_states(schedule.slots + 1, len)
+                    .map_err(RunError)?
+                    .is_some();
+                (schedule, on_device)
+            }
+        };
         // Zero the adjoint state and the param accumulators.
         for s in &adj.state {
             let len = domain_len(self.scene, adj.module.buffers[s.adj.0 as usize].domain)
@@ -350,7 +425,14 @@ impl<B: Backend> Simulation<'_, B> {
 
         // The forward run: the schedule's prefix, then the last step.
         let prefix = schedule.forward_prefix();
-        let mut slots = StateStore::new(schedule.slots + 1, 3 * n_nodes, single);
+        let mut slots = StateStore::new(
+            if on_device { 0 } else { schedule.slots + 1 },
+            3 * n_nodes,
+            single,
+        );
+        // The step each device slot holds.
+        let mut device_steps: Vec<Option<u64>> = vec![None; schedule.slots + 1];
+        let mut pending_check = None;
         let mut current = 0u64;
         // A blow-up before the first state check is run again from the initial state.
         self.last_good = Some((
@@ -381,7 +463,11 @@ impl<B: Backend> Simulation<'_, B> {
                         forward_steps += 1;
                         loss_sum += self.loss_term(&loss, current, dt);
                         if current % CHECK_EVERY == 1 {
-                            self.check_state(current - 1, dt)?;
+                            // Checked when the next check starts: the device runs on.
+                            let started = self.start_check(current - 1);
+                            if let Some(earlier) = pending_check.replace(started) {
+                                self.finish_check(earlier, dt)?;
+                            }
                         }
                         if let Some(p) = &mut self.progress {
                             p.update("forward", current, steps);
@@ -389,9 +475,7 @@ impl<B: Backend> Simulation<'_, B> {
                     }
                 }
                 Action::Store { slot } => {
-                    let (x, v) = slots.slot_mut(slot, current);
-                    self.backend.get_into(self.ids.x, x);
-                    self.backend.get_into(self.ids.v, v);
+                    self.store(&mut slots, &mut device_steps, on_device, slot, current)?
                 }
                 _ => unreachable!("the prefix only advances and stores"),
             }
@@ -406,6 +490,7 @@ impl<B: Backend> Simulation<'_, B> {
                     steps - 1
                 )));
             }
+            self.settle_check(&mut pending_check, dt)?;
             let before_last = self.save_state();
             self.run_diagnostics()?;
             self.step(current, dt)?;
@@ -440,6 +525,7 @@ impl<B: Backend> Simulation<'_, B> {
         }
         let mut done = false;
         let mut initial_state = None;
+        let mut pending_health = None;
         for a in &schedule.actions[prefix..] {
             if done {
                 break;
@@ -453,19 +539,31 @@ impl<B: Backend> Simulation<'_, B> {
                     }
                 }
                 Action::Store { slot } => {
-                    let (x, v) = slots.slot_mut(slot, current);
-                    self.backend.get_into(self.ids.x, x);
-                    self.backend.get_into(self.ids.v, v);
+                    self.store(&mut slots, &mut device_steps, on_device, slot, current)?
                 }
                 Action::Restore { slot } => {
-                    let (k, x, v) = slots
-                        .slot(slot)
-                        .expect("the schedule restores a stored slot");
-                    self.backend.set_from(self.ids.x, x);
-                    self.backend.set_from(self.ids.v, v);
-                    current = k;
+                    if on_device {
+                        current = device_steps[slot]
+                            .ok_or_else(|| RunError(format!("slot {slot} was never stored")))?;
+                        self.backend
+                            .restore_state(slot, self.ids.x, self.ids.v)
+                            .map_err(RunError)?;
+                    } else {
+                        let (k, x, v) = slots
+                            .slot(slot)
+                            .expect("the schedule restores a stored slot");
+                        self.backend.set_from(self.ids.x, x);
+                        self.backend.set_from(self.ids.v, v);
+                        current = k;
+                    }
                 }
-                Action::Free { slot } => slots.free(slot),
+                Action::Free { slot } => {
+                    if on_device {
+                        device_steps[slot] = None;
+                    } else {
+                        slots.free(slot);
+                    }
+                }
                 Action::Reverse { step } => {
                     debug_assert_eq!(current, step);
                     self.reverse_step(step, dt)?;
@@ -476,7 +574,16 @@ impl<B: Backend> Simulation<'_, B> {
                         }
                     }
                     if step % CHECK_EVERY == 0 || step == stop_at {
-                        health.push(self.adjoint_health(step, dt)?);
+                        // Checked when the next sample starts: the device reverses on.
+                        let started = self.start_health(step);
+                        if let Some(earlier) = pending_health.replace(started) {
+                            health.push(self.finish_health(earlier, dt)?);
+                        }
+                        if step == stop_at
+                            && let Some(last) = pending_health.take()
+                        {
+                            health.push(self.finish_health(last, dt)?);
+                        }
                         if let Some(p) = &mut self.progress {
                             p.update("backward", steps - step, steps - stop_at);
                         }
@@ -492,6 +599,9 @@ impl<B: Backend> Simulation<'_, B> {
                     }
                 }
             }
+        }
+        if let Some(last) = pending_health.take() {
+            health.push(self.finish_health(last, dt)?);
         }
         let gradients = self.collect_gradients(direct)?;
         let backward_seconds = back_start.elapsed().as_secs_f64();

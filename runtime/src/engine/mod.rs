@@ -253,6 +253,12 @@ struct Ids {
     fields: Vec<(usize, BufferId, Vec<UniformId>)>,
 }
 
+/// A state check whose buffers are being read back ([`Simulation::start_check`]).
+pub(crate) struct PendingCheck {
+    step: u64,
+    read: crate::devices::PendingRead,
+}
+
 /// How often the state is checked for blow-ups and inversions.
 const CHECK_EVERY: u64 = 50;
 
@@ -589,7 +595,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.backend.get(self.ids.v),
         ));
         let mut step = 0;
+        // The check under way: finished when the next one starts (the GPU runs the stretch
+        // between meanwhile), before any output reads the state, and at the end.
+        let mut pending: Option<PendingCheck> = None;
         while step < steps {
+            let outputs_due = csv_due(&self.csv, step) || vtk_due(&self.vtk, step);
+            if outputs_due || loss_fn.is_some_and(|l| l.in_window((step + 1) as f64 * dt, dt)) {
+                self.settle_check(&mut pending, dt)?;
+            }
             if csv_due(&self.csv, step) {
                 let x = self.backend.get(self.ids.x);
                 for c in self.csv.iter_mut().filter(|c| step % c.every == 0) {
@@ -620,13 +633,17 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 loss_sum += self.loss_term(l, last + 1, dt);
             }
             if check {
-                self.check_state(last, dt)?;
+                let started = self.start_check(last);
+                if let Some(earlier) = pending.replace(started) {
+                    self.finish_check(earlier, dt)?;
+                }
             }
             if let Some(p) = &mut self.progress {
                 p.update("forward", end, steps);
             }
             step = end;
         }
+        self.settle_check(&mut pending, dt)?;
         if !self.csv.is_empty() {
             let x = self.backend.get(self.ids.x);
             for c in &mut self.csv {
@@ -758,22 +775,59 @@ impl<'s, B: Backend> Simulation<'s, B> {
     }
 
     fn check_state(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
+        let check = self.start_check(step);
+        self.finish_check(check, dt)
+    }
+
+    /// Start the state check after step `step` (see [`Simulation::check_state`]): its
+    /// buffers are read back without waiting, so a GPU goes on with the next steps while
+    /// they come; [`Simulation::finish_check`] checks them.
+    fn start_check(&mut self, step: u64) -> PendingCheck {
+        let read = self
+            .backend
+            .read_later(&[self.ids.elem_j, self.ids.x, self.ids.v]);
+        PendingCheck { step, read }
+    }
+
+    /// Check the state a [`Simulation::start_check`] read: a problem is diagnosed from the
+    /// last good state as [`Simulation::check_state`] does (the steps run since are
+    /// discarded), a good state becomes the last good one.
+    fn finish_check(&mut self, check: PendingCheck, dt: f64) -> Result<(), RunError> {
+        let step = check.step;
         let t = (step + 1) as f64 * dt;
+        let mut values = self.backend.collect(check.read).into_iter();
         if let Some(e) = self.backend.device_error() {
             return Err(RunError(format!(
                 "the device failed by step {} (t = {t:.6} s): {e}",
                 step + 1
             )));
         }
-        let js = self.backend.get(self.ids.elem_j);
-        let xs = self.backend.get(self.ids.x);
+        let (js, xs, vs) = match (values.next(), values.next(), values.next()) {
+            (Some(j), Some(x), Some(v)) => (j, x, v),
+            _ => {
+                return Err(RunError(
+                    "internal error: a state check read nothing".into(),
+                ));
+            }
+        };
         match self.first_problem(&js, &xs) {
             None => {
-                let vs = self.backend.get(self.ids.v);
                 self.last_good = Some((step + 1, xs, vs));
                 Ok(())
             }
             Some(p) => Err(RunError(self.diagnose(step, dt, p))),
+        }
+    }
+
+    /// Finish a state check under way, if any.
+    fn settle_check(
+        &mut self,
+        pending: &mut Option<PendingCheck>,
+        dt: f64,
+    ) -> Result<(), RunError> {
+        match pending.take() {
+            Some(c) => self.finish_check(c, dt),
+            None => Ok(()),
         }
     }
 
