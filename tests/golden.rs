@@ -514,3 +514,43 @@ fn the_launch_table_variant_matches_its_golden_wgsl() {
         assert_eq!(t.launch_stride(), u.launch_stride());
     }
 }
+
+/// Kernels with no data between them share a dispatch on the GPU: the benchmark's element and
+/// pressure kernels fuse (each part reading its own launch block), the node kernel that
+/// gathers their forces does not.
+#[test]
+fn independent_kernels_fuse_into_one_entry_point() {
+    use softc_compiler::back::Precision;
+    use softc_compiler::back::wgsl;
+    let scene =
+        softc::engine::scene::Scene::load(&root().join("examples/benchmark-1k.soft"), &[]).unwrap();
+    let module = &scene.lowered.module;
+    let names: Vec<&str> = module.kernels.iter().map(|k| k.name.as_str()).collect();
+    let (fem, pressure, integrate) = (
+        names.iter().position(|n| *n == "fem_rubber").unwrap(),
+        names.iter().position(|n| *n == "pressure_cavity").unwrap(),
+        names.iter().position(|n| *n == "integrate").unwrap(),
+    );
+    assert!(wgsl::independent(module, fem, pressure));
+    assert!(!wgsl::independent(module, pressure, integrate));
+    let fused = wgsl::emit_fused(module, Precision::F32, &[vec![fem, pressure]]).unwrap();
+    wgsl::validate(&fused.source, Precision::F32).unwrap();
+    let entry = fused.kernels.last().unwrap();
+    assert_eq!(entry.parts, vec![fem, pressure]);
+    assert_eq!(entry.entry, "softc_fused_fem_rubber_pressure_cavity");
+    assert!(
+        fused
+            .source
+            .contains("        softc_part_pressure_cavity(i);")
+    );
+    assert!(fused.source.contains("    i -= launch_fem_rubber.count;"));
+    // Both launch blocks are bound (two dynamic offsets).
+    let launches = entry
+        .bindings
+        .iter()
+        .filter(|b| matches!(b.1, wgsl::Binding::Launch))
+        .count();
+    assert_eq!(launches, 2);
+    let err = wgsl::emit_fused(module, Precision::F32, &[vec![pressure, integrate]]).unwrap_err();
+    assert!(err.contains("depend on each other"), "{err}");
+}

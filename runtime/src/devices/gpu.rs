@@ -27,7 +27,7 @@
 use super::{Backend, Launch, Lockstep, PendingRead, Uniforms};
 use crate::engine::scene::{Csr, Scene};
 use softc_compiler::back::Precision;
-use softc_compiler::back::wgsl::{self, Binding, LaunchMode, TopoArray, WgslModule};
+use softc_compiler::back::wgsl::{self, Binding, LaunchMode, TopoArray, WgslKernel, WgslModule};
 use softc_compiler::ir::{BufferId, Domain, Module};
 use std::cell::RefCell;
 use std::collections::{HashMap, VecDeque};
@@ -106,6 +106,78 @@ fn rank(a: &wgpu::Adapter) -> (u8, u8) {
     (t, b)
 }
 
+/// Bytes of the launch block bound at `binding` (a kernel's launch binding follows the
+/// buffers and the connectivity, in kernel order).
+fn launch_stride_of(wg: &WgslModule, buffers: usize, binding: u32) -> u64 {
+    let k = binding as usize - buffers - TopoArray::ALL.len();
+    wg.kernels.get(k).map_or(16, WgslKernel::launch_stride)
+}
+
+/// The pipeline of entry point `k` of `shader`, its bind group laid out as its bindings say
+/// (launch blocks of `scenes` scenes at dynamic offsets, `stride_of` giving a launch
+/// binding's block size, or the launch table with its row as an immediate).
+fn pipeline_for(
+    device: &wgpu::Device,
+    shader: &wgpu::ShaderModule,
+    k: &WgslKernel,
+    scenes: u64,
+    launch: LaunchMode,
+    stride_of: &dyn Fn(u32) -> u64,
+) -> Pipeline {
+    let entries: Vec<wgpu::BindGroupLayoutEntry> = k
+        .bindings
+        .iter()
+        .map(|&(binding, what)| {
+            let ty = match what {
+                Binding::Buffer { writable, .. } => wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage {
+                        read_only: !writable,
+                    },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                Binding::Topo(_) | Binding::LaunchTable => wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only: true },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                Binding::Launch => wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: wgpu::BufferSize::new(scenes * stride_of(binding)),
+                },
+            };
+            wgpu::BindGroupLayoutEntry {
+                binding,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty,
+                count: None,
+            }
+        })
+        .collect();
+    let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some(&k.name),
+        entries: &entries,
+    });
+    let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(&k.name),
+        bind_group_layouts: &[Some(&layout)],
+        immediate_size: match launch {
+            LaunchMode::Table => wgsl::IMMEDIATE_BYTES,
+            LaunchMode::Uniform => 0,
+        },
+    });
+    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(&k.name),
+        layout: Some(&pl),
+        module: shader,
+        entry_point: Some(&k.entry),
+        compilation_options: Default::default(),
+        cache: None,
+    });
+    Pipeline { pipeline, layout }
+}
+
 /// One kernel's pipeline.
 struct Pipeline {
     pipeline: wgpu::ComputePipeline,
@@ -129,16 +201,35 @@ enum Op {
     },
 }
 
-/// A dispatch of one submission: a kernel over one or more scenes.
+/// Kernels one dispatch runs at most ([`wgsl::emit_fused`]).
+const MAX_PARTS: usize = 4;
+
+/// A dispatch of one submission: a kernel (or fused kernels, or a state copy) over one or
+/// more scenes.
 #[derive(Clone, Copy)]
 struct Dispatch {
+    /// Its pipeline in [`Core::pipelines`].
     kernel: usize,
     /// Its bind group in [`Core::groups`].
     group: usize,
     /// Where its launch blocks are: the row of the launch table ([`LaunchMode::Table`], set as
-    /// the immediate) or the byte offset in the uniform buffer ([`LaunchMode::Uniform`]).
-    arg: u32,
+    /// the immediate) or byte offsets in the uniform buffer (one per part of a fused
+    /// dispatch), or a state copy's slot offset.
+    args: [u32; MAX_PARTS],
+    parts: u8,
     groups: (u32, u32, u32),
+}
+
+impl Dispatch {
+    fn one(kernel: usize, group: usize, arg: u32, groups: (u32, u32, u32)) -> Self {
+        Dispatch {
+            kernel,
+            group,
+            args: [arg, 0, 0, 0],
+            parts: 1,
+            groups,
+        }
+    }
 }
 
 /// What the device did: how well a batch merges, how many times the host submitted and
@@ -384,6 +475,13 @@ struct Core {
     spare_readbacks: Vec<wgpu::Buffer>,
     /// The adjoint's states kept on the device.
     states: Option<DeviceStates>,
+    /// The kernel IR (fused entry points are emitted from it on demand).
+    ir: Module,
+    /// Fuse independent kernels of a step into one dispatch (`SOFTC_GPU_FUSE=0`: never).
+    fuse: bool,
+    /// Fused entry points' pipelines by their (sorted) kernels, and their entry points.
+    fused: HashMap<Vec<usize>, usize>,
+    fused_kernels: HashMap<usize, WgslKernel>,
     stats: DispatchStats,
     /// Lockstep: scenes in the group, the buffer each waiting scene wants, served readbacks.
     active: Vec<bool>,
@@ -521,66 +619,12 @@ impl Core {
             label: Some("softc kernels"),
             source: wgpu::ShaderSource::Wgsl(wg.source.as_str().into()),
         });
-        let mut pipelines = Vec::new();
-        for k in &wg.kernels {
-            let entries: Vec<wgpu::BindGroupLayoutEntry> = k
-                .bindings
-                .iter()
-                .map(|&(binding, what)| {
-                    let ty = match what {
-                        Binding::Buffer { writable, .. } => wgpu::BindingType::Buffer {
-                            ty: wgpu::BufferBindingType::Storage {
-                                read_only: !writable,
-                            },
-                            has_dynamic_offset: false,
-                            min_binding_size: None,
-                        },
-                        Binding::Topo(_) => wgpu::BindingType::Buffer {
-                            ty: wgpu::BufferBindingType::Storage { read_only: true },
-                            has_dynamic_offset: false,
-                            min_binding_size: None,
-                        },
-                        Binding::Launch => wgpu::BindingType::Buffer {
-                            ty: wgpu::BufferBindingType::Uniform,
-                            has_dynamic_offset: true,
-                            min_binding_size: wgpu::BufferSize::new(scenes * k.launch_stride()),
-                        },
-                        Binding::LaunchTable => wgpu::BindingType::Buffer {
-                            ty: wgpu::BufferBindingType::Storage { read_only: true },
-                            has_dynamic_offset: false,
-                            min_binding_size: None,
-                        },
-                    };
-                    wgpu::BindGroupLayoutEntry {
-                        binding,
-                        visibility: wgpu::ShaderStages::COMPUTE,
-                        ty,
-                        count: None,
-                    }
-                })
-                .collect();
-            let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some(&k.name),
-                entries: &entries,
-            });
-            let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some(&k.name),
-                bind_group_layouts: &[Some(&layout)],
-                immediate_size: match launch {
-                    LaunchMode::Table => wgsl::IMMEDIATE_BYTES,
-                    LaunchMode::Uniform => 0,
-                },
-            });
-            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(&k.name),
-                layout: Some(&pl),
-                module: &shader,
-                entry_point: Some(&k.entry),
-                compilation_options: Default::default(),
-                cache: None,
-            });
-            pipelines.push(Pipeline { pipeline, layout });
-        }
+        let stride_of = |b: u32| launch_stride_of(&wg, module.buffers.len(), b);
+        let pipelines = wg
+            .kernels
+            .iter()
+            .map(|k| pipeline_for(&device, &shader, k, scenes, launch, &stride_of))
+            .collect();
         let _ = device.poll(wgpu::PollType::wait_indefinitely());
         if let Some(e) = errors.lock().ok().and_then(|mut v| v.drain(..).next()) {
             return Err(format!("adapter {desc}: the kernels do not compile: {e}"));
@@ -619,6 +663,10 @@ impl Core {
             next_ticket: 0,
             spare_readbacks: Vec::new(),
             states: None,
+            ir: module.clone(),
+            fuse: std::env::var("SOFTC_GPU_FUSE").as_deref() != Ok("0"),
+            fused: HashMap::new(),
+            fused_kernels: HashMap::new(),
             stats: DispatchStats::default(),
             active: vec![false; scenes],
             waiting: vec![None; scenes],
@@ -912,12 +960,7 @@ impl Core {
                 }
                 let group = self.bind_group(kernel, &key);
                 let groups = self.workgroups(count, members.len());
-                self.pending.push(Dispatch {
-                    kernel,
-                    group,
-                    arg,
-                    groups,
-                });
+                self.pending.push(Dispatch::one(kernel, group, arg, groups));
             }
         }
         self.recorded = 0;
@@ -1050,7 +1093,7 @@ impl Core {
         let Some(launch) = self.launch_buffer.clone() else {
             unreachable!("launch blocks are reserved before their bind group");
         };
-        let k = &self.module.kernels[kernel];
+        let k = self.entry_kernel(kernel);
         let mut phys = key.iter();
         let entries: Vec<wgpu::BindGroupEntry> = k
             .bindings
@@ -1065,7 +1108,10 @@ impl Core {
                     Binding::Launch => wgpu::BindingResource::Buffer(wgpu::BufferBinding {
                         buffer: &launch,
                         offset: 0,
-                        size: wgpu::BufferSize::new(self.scenes as u64 * k.launch_stride()),
+                        size: wgpu::BufferSize::new(
+                            self.scenes as u64
+                                * launch_stride_of(&self.module, self.buffer_count, binding),
+                        ),
                     }),
                     Binding::LaunchTable => launch.as_entire_binding(),
                 };
@@ -1085,7 +1131,7 @@ impl Core {
 
     /// The physical buffers kernel `k` binds when the module's buffers are mapped by `slot`.
     fn key_of(&self, k: usize, slot: &[usize]) -> Vec<usize> {
-        self.module.kernels[k]
+        self.entry_kernel(k)
             .bindings
             .iter()
             .filter_map(|(_, w)| match w {
@@ -1093,6 +1139,52 @@ impl Core {
                 _ => None,
             })
             .collect()
+    }
+
+    /// The entry point of pipeline `p`: a module kernel or a fused one.
+    fn entry_kernel(&self, p: usize) -> &WgslKernel {
+        match self.module.kernels.get(p) {
+            Some(k) => k,
+            None => &self.fused_kernels[&p],
+        }
+    }
+
+    /// The pipelines of fused entry points for `groups` (kernels of the module, mutually
+    /// independent), compiled once per group: one shader module for the new ones.
+    fn fused_pipelines(&mut self, groups: &[Vec<usize>]) -> Result<Vec<usize>, String> {
+        let new: Vec<Vec<usize>> = groups
+            .iter()
+            .filter(|g| !self.fused.contains_key(*g))
+            .cloned()
+            .collect();
+        if !new.is_empty() {
+            let wg = wgsl::emit_fused(&self.ir, self.module.precision, &new)?;
+            let shader = self
+                .device
+                .create_shader_module(wgpu::ShaderModuleDescriptor {
+                    label: Some("softc fused kernels"),
+                    source: wgpu::ShaderSource::Wgsl(wg.source.as_str().into()),
+                });
+            let stride_of = |b: u32| launch_stride_of(&self.module, self.buffer_count, b);
+            for (g, k) in new.iter().zip(&wg.kernels[self.module.kernels.len()..]) {
+                let p = pipeline_for(
+                    &self.device,
+                    &shader,
+                    k,
+                    self.scenes as u64,
+                    LaunchMode::Uniform,
+                    &stride_of,
+                );
+                self.pipelines.push(p);
+                let at = self.pipelines.len() - 1;
+                self.fused.insert(g.clone(), at);
+                self.fused_kernels.insert(at, k.clone());
+            }
+            if let Some(e) = self.take_error() {
+                return Err(e);
+            }
+        }
+        Ok(groups.iter().map(|g| self.fused[g]).collect())
     }
 
     /// Check a launch of kernel `k` over `range`; `Ok(None)` for an empty one, else its
@@ -1177,6 +1269,41 @@ impl Core {
                 groups: self.workgroups(range.len() as u64, 1),
             });
         }
+        // Dispatch units: runs of consecutive launches with no data between them share a
+        // dispatch (a fused entry point), one launch block each.
+        let mut units: Vec<(usize, Vec<usize>)> = Vec::new();
+        let fuse = self.fuse && self.scenes == 1 && self.module.launch == LaunchMode::Uniform;
+        for (i, p) in plans.iter().enumerate() {
+            let joins = fuse
+                && units.last().is_some_and(|(_, members)| {
+                    members.len() < MAX_PARTS
+                        && members
+                            .iter()
+                            .all(|&m| wgsl::independent(&self.ir, plans[m].kernel, p.kernel))
+                });
+            match units.last_mut() {
+                Some((_, members)) if joins => members.push(i),
+                _ => units.push((p.kernel, vec![i])),
+            }
+        }
+        for unit in &mut units {
+            if unit.1.len() > 1 {
+                unit.1.sort_by_key(|&m| plans[m].kernel);
+                let kernels: Vec<usize> = unit.1.iter().map(|&m| plans[m].kernel).collect();
+                unit.0 = self.fused_pipelines(&[kernels])?[0];
+            }
+        }
+        let unit_groups: Vec<(u32, u32, u32)> = units
+            .iter()
+            .map(|(_, members)| {
+                let count: u64 = members.iter().map(|&m| u64::from(plans[m].count)).sum();
+                if members.len() == 1 {
+                    plans[members[0]].groups
+                } else {
+                    self.workgroups(count, 1)
+                }
+            })
+            .collect();
         // Bind groups by parity: two steps' swaps bring pairs of distinct buffers back.
         let swap_all = |slot: &mut [usize]| {
             for (a, b) in swaps {
@@ -1231,30 +1358,32 @@ impl Core {
                 let groups = match (periodic, &parity[(s % 2) as usize]) {
                     (true, Some(g)) => g.clone(),
                     _ => {
-                        let g: Vec<usize> = plans
+                        let g: Vec<usize> = units
                             .iter()
-                            .map(|p| {
-                                let key = self.key_of(p.kernel, slot);
-                                self.bind_group(p.kernel, &key)
+                            .map(|&(pipeline, _)| {
+                                let key = self.key_of(pipeline, slot);
+                                self.bind_group(pipeline, &key)
                             })
                             .collect();
                         parity[(s % 2) as usize] = Some(g.clone());
                         g
                     }
                 };
-                for (&(i, arg), group) in args.iter().zip(groups) {
-                    let p = &plans[i];
-                    let arg = if p.t_at.is_some() {
-                        self.next_arg(p.kernel, arg, s)
-                    } else {
-                        arg
-                    };
-                    self.pending.push(Dispatch {
-                        kernel: p.kernel,
-                        group,
-                        arg,
-                        groups: p.groups,
-                    });
+                for (((pipeline, members), group), &workgroups) in
+                    units.iter().zip(groups).zip(&unit_groups)
+                {
+                    let mut d = Dispatch::one(*pipeline, group, 0, workgroups);
+                    for (j, &m) in members.iter().enumerate() {
+                        let p = &plans[m];
+                        let arg = args[m].1;
+                        d.args[j] = if p.t_at.is_some() {
+                            self.next_arg(p.kernel, arg, s)
+                        } else {
+                            arg
+                        };
+                    }
+                    d.parts = members.len() as u8;
+                    self.pending.push(d);
                 }
                 swap_all(slot);
             }
@@ -1332,15 +1461,15 @@ impl Core {
                     pass.set_pipeline(&self.pipelines[d.kernel].pipeline);
                 }
                 if d.kernel >= kernels {
-                    // A state copy: its slot at a dynamic offset.
-                    pass.set_bind_group(0, &self.groups[d.group], &[d.arg]);
+                    // Fused kernels (a launch block each) or a state copy (its slot).
+                    pass.set_bind_group(0, &self.groups[d.group], &d.args[..d.parts as usize]);
                 } else if table {
                     if bound.is_none_or(|(_, g)| g != d.group) {
                         pass.set_bind_group(0, &self.groups[d.group], &[]);
                     }
-                    pass.set_immediates(0, &d.arg.to_le_bytes());
+                    pass.set_immediates(0, &d.args[0].to_le_bytes());
                 } else {
-                    pass.set_bind_group(0, &self.groups[d.group], &[d.arg]);
+                    pass.set_bind_group(0, &self.groups[d.group], &d.args[..1]);
                 }
                 bound = Some((d.kernel, d.group));
                 pass.dispatch_workgroups(d.groups.0, d.groups.1, d.groups.2);
@@ -1526,8 +1655,7 @@ impl Core {
             },
             count: None,
         };
-        let first = self.module.kernels.len();
-        self.pipelines.truncate(first);
+        let first = self.pipelines.len();
         for (name, entries) in [
             (
                 "store",
@@ -1654,12 +1782,8 @@ impl Core {
             }
         };
         let groups = self.workgroups(count, 1);
-        self.pending.push(Dispatch {
-            kernel,
-            group,
-            arg: offset as u32,
-            groups,
-        });
+        self.pending
+            .push(Dispatch::one(kernel, group, offset as u32, groups));
         self.stats.launches += 1;
         if self.pending.len() >= MAX_PENDING {
             self.submit();
@@ -1851,6 +1975,12 @@ impl Gpu {
     /// the adapter has timestamp queries; `false` if not.
     pub fn enable_timing(&self) -> bool {
         self.core.borrow_mut().enable_timing()
+    }
+
+    /// Fuse a step's independent kernels into one dispatch (on by default; off with
+    /// `SOFTC_GPU_FUSE=0`): the same bits either way, a dispatch fewer per fused kernel.
+    pub fn set_fusion(&self, on: bool) {
+        self.core.borrow_mut().fuse = on;
     }
 
     /// Where the kernels find their launch blocks on this adapter.
