@@ -184,9 +184,20 @@ fn gradients_with_the_states_on_the_gpu_equal_those_kept_on_the_host() {
     };
     let steps = 240;
     let options = GradOptions::default();
-    let on_device = Simulation::new(&scene, g)
-        .gradient(None, Some(steps), &options)
-        .unwrap();
+    let mut sim = Simulation::new(&scene, g);
+    let before = sim.backend.stats();
+    let on_device = sim.gradient(None, Some(steps), &options).unwrap();
+    let after = sim.backend.stats();
+    let submissions = after.submissions - before.submissions;
+    eprintln!(
+        "forward+backward of {steps} steps: {submissions} submissions, {} dispatches",
+        after.dispatches - before.dispatches
+    );
+    // Both passes run as the time loop: a submission per state check or health sample.
+    assert!(
+        submissions <= 2 * (steps / 50) + 12,
+        "{submissions} submissions"
+    );
     assert!(
         on_device.schedule.contains("on the device"),
         "{}",

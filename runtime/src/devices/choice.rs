@@ -285,6 +285,10 @@ impl Backend for Device {
         self.inner_mut().set_from(b, src)
     }
 
+    fn run_stepped(&mut self, stepped: &crate::devices::Stepped<'_>) -> Result<bool, String> {
+        self.inner_mut().run_stepped(stepped)
+    }
+
     fn run_steps(
         &mut self,
         launches: &[Launch],

@@ -24,7 +24,7 @@
 //! `exp`/`log`/`pow` are the driver's), f64 kernels use the software transcendental functions
 //! of the WGSL backend.
 
-use super::{Backend, Launch, Lockstep, PendingRead, Uniforms};
+use super::{Backend, Launch, Lockstep, PendingRead, StateCopy, Stepped, Uniforms};
 use crate::engine::scene::{Csr, Scene};
 use softc_compiler::back::Precision;
 use softc_compiler::back::wgsl::{self, Binding, LaunchMode, TopoArray, WgslKernel, WgslModule};
@@ -1226,17 +1226,21 @@ impl Core {
     /// `t` (once per submission for the others), bind groups are resolved once per buffer
     /// parity, and up to [`STEPS_PER_SUBMISSION`] steps go in one submission, submitted
     /// without waiting. The same dispatches, blocks and order as launching one by one.
-    #[allow(clippy::too_many_arguments)]
-    fn record_steps(
-        &mut self,
-        slot: &mut [usize],
-        launches: &[Launch],
-        swaps: &[(BufferId, BufferId)],
-        first: u64,
-        n: u64,
-        dt: f64,
-        u: &Uniforms,
-    ) -> Result<(), String> {
+    fn record_steps(&mut self, slot: &mut [usize], stepped: &Stepped<'_>) -> Result<(), String> {
+        let Stepped {
+            launches,
+            swaps,
+            first,
+            n,
+            dt,
+            uniforms: u,
+            reverse,
+            states,
+        } = *stepped;
+        let step_of = |j: u64| if reverse { first - j } else { first + j };
+        if reverse && n > first + 1 {
+            return Err(format!("{n} steps down from step {first}"));
+        }
         if let Some(e) = self.take_error() {
             return Err(e);
         }
@@ -1339,7 +1343,7 @@ impl Core {
                 let mut values = p.values.clone();
                 for r in 0..rows {
                     if let Some(ti) = p.t_at {
-                        values[ti] = (first + done + r) as f64 * dt;
+                        values[ti] = step_of(done + r) as f64 * dt;
                     }
                     self.write_block(
                         at + r as usize * stride,
@@ -1355,6 +1359,16 @@ impl Core {
             }
             let mut parity: [Option<Vec<usize>>; 2] = [None, None];
             for s in 0..chunk {
+                if let Some(copy) = states {
+                    let (store, x, v) = match copy {
+                        StateCopy::Store { x, v } => (true, x, v),
+                        StateCopy::Restore { x, v } => (false, x, v),
+                    };
+                    let (x, v) = (slot[x.0 as usize], slot[v.0 as usize]);
+                    let d = self.state_copy(store, step_of(done + s) as usize, x, v)?;
+                    self.pending.push(d);
+                    self.stats.launches += 1;
+                }
                 let groups = match (periodic, &parity[(s % 2) as usize]) {
                     (true, Some(g)) => g.clone(),
                     _ => {
@@ -1733,6 +1747,25 @@ impl Core {
     ) -> Result<(), String> {
         let start = (std::time::Instant::now(), self.stats.submit_seconds);
         self.drain();
+        let d = self.state_copy(store, slot, x, v)?;
+        self.pending.push(d);
+        self.stats.launches += 1;
+        if self.pending.len() >= MAX_PENDING {
+            self.submit();
+        }
+        self.add_host_time(start);
+        Ok(())
+    }
+
+    /// The dispatch of a copy between the state buffers `x`, `v` (physical) and device slot
+    /// `slot`: `store` into the slot, else out of it.
+    fn state_copy(
+        &mut self,
+        store: bool,
+        slot: usize,
+        x: usize,
+        v: usize,
+    ) -> Result<Dispatch, String> {
         let Some(st) = &self.states else {
             return Err("no device states reserved".into());
         };
@@ -1782,14 +1815,7 @@ impl Core {
             }
         };
         let groups = self.workgroups(count, 1);
-        self.pending
-            .push(Dispatch::one(kernel, group, offset as u32, groups));
-        self.stats.launches += 1;
-        if self.pending.len() >= MAX_PENDING {
-            self.submit();
-        }
-        self.add_host_time(start);
-        Ok(())
+        Ok(Dispatch::one(kernel, group, offset as u32, groups))
     }
 
     /// Read back the values of `(physical buffer, scene)` pairs: submits what is recorded,
@@ -2140,15 +2166,22 @@ impl Backend for Gpu {
         dt: f64,
         uniforms: &Uniforms,
     ) -> Result<bool, String> {
-        self.core.get_mut().record_steps(
-            &mut self.slot,
+        let stepped = Stepped {
             launches,
             swaps,
             first,
             n,
             dt,
             uniforms,
-        )?;
+            reverse: false,
+            states: None,
+        };
+        self.core.get_mut().record_steps(&mut self.slot, &stepped)?;
+        Ok(true)
+    }
+
+    fn run_stepped(&mut self, stepped: &Stepped<'_>) -> Result<bool, String> {
+        self.core.get_mut().record_steps(&mut self.slot, stepped)?;
         Ok(true)
     }
 }

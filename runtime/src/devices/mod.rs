@@ -98,6 +98,13 @@ pub trait Backend {
         let _ = (slot, x, v);
         Err("this backend keeps no states on the device".into())
     }
+    /// Run a [`Stepped`] stretch (steps up or down, with device state copies) at once, if
+    /// the backend can; `Ok(false)`, having done nothing, if not. Bit-identical to the same
+    /// copies and launches made one by one.
+    fn run_stepped(&mut self, stepped: &Stepped<'_>) -> Result<bool, String> {
+        let _ = stepped;
+        Ok(false)
+    }
     /// Run `n` whole steps at once, the first being step `first`, if the backend can: each
     /// step sets `t = step · dt`, runs `launches` (kernel, entity range) in order, then swaps
     /// the buffer pairs `swaps`. Returns `false`, having done nothing, when it cannot; the
@@ -114,6 +121,30 @@ pub trait Backend {
         let _ = (launches, swaps, first, n, dt, uniforms);
         Ok(false)
     }
+}
+
+/// A stretch of steps a backend may run at once ([`Backend::run_stepped`]): step `j` of
+/// the `n` is step `first + j` (`first - j` when `reverse`, the adjoint's order), runs at
+/// `t = step · dt` (in every launch that reads `t`), first copying the state into or out of
+/// device slot `step` when `states` says so, then `launches` in order, then swapping the
+/// buffer pairs `swaps`.
+pub struct Stepped<'a> {
+    pub launches: &'a [Launch],
+    pub swaps: &'a [(BufferId, BufferId)],
+    pub first: u64,
+    pub n: u64,
+    pub dt: f64,
+    pub uniforms: &'a Uniforms,
+    pub reverse: bool,
+    pub states: Option<StateCopy>,
+}
+
+/// The state copy before each step of a [`Stepped`] stretch: positions and velocities into
+/// device slot `step` ([`Backend::store_state`]) or out of it ([`Backend::restore_state`]).
+#[derive(Clone, Copy, Debug)]
+pub enum StateCopy {
+    Store { x: BufferId, v: BufferId },
+    Restore { x: BufferId, v: BufferId },
 }
 
 /// A readback under way ([`Backend::read_later`]).

@@ -100,6 +100,57 @@ impl GradientReport {
 /// Positions and velocities copied to the host.
 type HostState = (Vec<f64>, Vec<f64>);
 
+/// Steps of a run "store state k in slot k, advance to k + 1" at the start of `actions`,
+/// state `current` current.
+fn storing_run(actions: &[Action], current: u64) -> u64 {
+    let mut m = 0u64;
+    while let [Action::Store { slot }, Action::Advance { to }, ..] = actions[2 * m as usize..] {
+        if slot as u64 != current + m || to != current + m + 1 {
+            break;
+        }
+        m += 1;
+    }
+    m
+}
+
+/// Steps of a run "restore state k from slot k, reverse step k, free slot k" from step `from`
+/// down (the first restore may be missing: state `from` is current), at most down to `stop`,
+/// ending after the first step a health sample is due at; and the actions it takes. Only
+/// steps whose state `holds(k)` in slot k count.
+fn reversing_run(
+    actions: &[Action],
+    from: u64,
+    stop: u64,
+    holds: impl Fn(u64) -> bool,
+) -> (u64, usize) {
+    let (mut m, mut at) = (0u64, 0usize);
+    loop {
+        let k = from - m;
+        if !holds(k) {
+            break;
+        }
+        let mut j = at;
+        if actions.get(j) == Some(&Action::Restore { slot: k as usize }) {
+            j += 1;
+        } else if m > 0 {
+            break;
+        }
+        if actions.get(j) != Some(&Action::Reverse { step: k }) {
+            break;
+        }
+        j += 1;
+        if actions.get(j) == Some(&Action::Free { slot: k as usize }) {
+            j += 1;
+        }
+        m += 1;
+        at = j;
+        if k == stop || k.is_multiple_of(CHECK_EVERY) {
+            break;
+        }
+    }
+    (m, at)
+}
+
 impl<B: Backend> Simulation<'_, B> {
     fn save_state(&self) -> HostState {
         (self.backend.get(self.ids.x), self.backend.get(self.ids.v))
@@ -108,6 +159,79 @@ impl<B: Backend> Simulation<'_, B> {
     fn load_state(&mut self, s: &HostState) {
         self.backend.set(self.ids.x, &s.0);
         self.backend.set(self.ids.v, &s.1);
+    }
+
+    /// Steps `from..to` with each step's state stored on the device first (slot = step): one
+    /// stretch of the backend's time loop where it has one, else one by one.
+    fn advance_storing(&mut self, from: u64, to: u64, dt: f64) -> Result<(), RunError> {
+        let (launches, swaps) = self.step_plan();
+        let stepped = crate::devices::Stepped {
+            launches: &launches,
+            swaps: &swaps,
+            first: from,
+            n: to - from,
+            dt,
+            uniforms: &self.uniforms,
+            reverse: false,
+            states: Some(crate::devices::StateCopy::Store {
+                x: self.ids.x,
+                v: self.ids.v,
+            }),
+        };
+        if to > from && self.backend.run_stepped(&stepped).map_err(RunError)? {
+            return Ok(());
+        }
+        for k in from..to {
+            self.backend
+                .store_state(k as usize, self.ids.x, self.ids.v)
+                .map_err(RunError)?;
+            self.step(k, dt)?;
+        }
+        Ok(())
+    }
+
+    /// Reverse steps `from` down to `from + 1 - n`, each step's state restored from its
+    /// device slot (slot = step) first: one stretch of the backend's time loop where it has
+    /// one, else one by one.
+    fn reverse_restoring(&mut self, from: u64, n: u64, dt: f64) -> Result<(), RunError> {
+        let adj = &self.scene.lowered.adjoint;
+        let mut launches = Vec::new();
+        if adj.needs_forward {
+            let forces = self.scene.material_ranges.len() + self.scene.chamber_ranges.len();
+            launches.extend((0..forces).map(|k| (k, self.kernel_range(k))));
+        }
+        for rk in &adj.reverse {
+            let range = match rk.range_of {
+                Some(f) => self.kernel_range(f),
+                None => 0..domain_len(self.scene, adj.module.kernels[rk.kernel].domain),
+            };
+            launches.push((rk.kernel, range));
+        }
+        let swaps: Vec<_> = adj.state.iter().map(|s| (s.adj, s.adj_next)).collect();
+        let stepped = crate::devices::Stepped {
+            launches: &launches,
+            swaps: &swaps,
+            first: from,
+            n,
+            dt,
+            uniforms: &self.uniforms,
+            reverse: true,
+            states: Some(crate::devices::StateCopy::Restore {
+                x: self.ids.x,
+                v: self.ids.v,
+            }),
+        };
+        if n > 0 && self.backend.run_stepped(&stepped).map_err(RunError)? {
+            return Ok(());
+        }
+        for j in 0..n {
+            let k = from - j;
+            self.backend
+                .restore_state(k as usize, self.ids.x, self.ids.v)
+                .map_err(RunError)?;
+            self.reverse_step(k, dt)?;
+        }
+        Ok(())
     }
 
     /// Keep the current state (step `current`) in slot `slot`: on the device, or copied to
@@ -443,15 +567,45 @@ impl<B: Backend> Simulation<'_, B> {
         let mut loss_sum = 0.0;
         let mut direct = BTreeMap::new();
         let mut forward_steps = 0u64;
-        for a in &schedule.actions[..prefix] {
-            match *a {
+        let mut i = 0;
+        while i < prefix {
+            let mut action = schedule.actions[i];
+            i += 1;
+            // On the device, "store state k in slot k, advance to k + 1" over and over (the
+            // store-all schedule) runs as the time loop, each step's state copied into its
+            // slot before the step.
+            let mut store_each = false;
+            if on_device
+                && action
+                    == (Action::Store {
+                        slot: current as usize,
+                    })
+            {
+                let run = storing_run(&schedule.actions[i - 1..prefix], current);
+                if run > 0 {
+                    i += 2 * run as usize - 1;
+                    action = Action::Advance { to: current + run };
+                    store_each = true;
+                }
+            }
+            match action {
                 Action::Advance { to } => {
                     while current < to {
                         // Up to the next step after which the host has work, at once.
                         let end = super::stretch_end(current, to, |j| {
                             j % CHECK_EVERY == 0 || loss.in_window((j + 1) as f64 * dt, dt)
                         });
-                        self.advance(current, end - 1, dt)?;
+                        if store_each {
+                            self.advance_storing(current, end - 1, dt)?;
+                            for k in current..end {
+                                device_steps[k as usize] = Some(k);
+                            }
+                            self.backend
+                                .store_state(end as usize - 1, self.ids.x, self.ids.v)
+                                .map_err(RunError)?;
+                        } else {
+                            self.advance(current, end - 1, dt)?;
+                        }
                         forward_steps += end - 1 - current;
                         current = end - 1;
                         if current.is_multiple_of(CHECK_EVERY) {
@@ -526,11 +680,43 @@ impl<B: Backend> Simulation<'_, B> {
         let mut done = false;
         let mut initial_state = None;
         let mut pending_health = None;
-        for a in &schedule.actions[prefix..] {
+        let mut i = prefix;
+        while i < schedule.actions.len() {
             if done {
                 break;
             }
-            match *a {
+            let mut action = schedule.actions[i];
+            i += 1;
+            let mut reversed = false;
+            // On the device, with no loss terms on the way, "restore state k, reverse step
+            // k" down to the next health sample runs as the time loop (the store-all
+            // schedule's backward pass).
+            if on_device && loss.window == LossWindow::End {
+                let from = match action {
+                    Action::Reverse { step } if step == current => Some(step),
+                    Action::Restore { slot } if device_steps[slot] == Some(slot as u64) => {
+                        Some(slot as u64)
+                    }
+                    _ => None,
+                };
+                if let Some(from) = from {
+                    let holds = |k: u64| device_steps.get(k as usize) == Some(&Some(k));
+                    let (m, taken) =
+                        reversing_run(&schedule.actions[i - 1..], from, stop_at, holds);
+                    if m > 0 {
+                        self.reverse_restoring(from, m, dt)?;
+                        for k in from + 1 - m..=from {
+                            device_steps[k as usize] = None;
+                        }
+                        i += taken - 1;
+                        current = from + 1 - m;
+                        // The last step's bookkeeping below.
+                        action = Action::Reverse { step: current };
+                        reversed = true;
+                    }
+                }
+            }
+            match action {
                 Action::Advance { to } => {
                     if current < to {
                         self.advance(current, to, dt)?;
@@ -566,7 +752,9 @@ impl<B: Backend> Simulation<'_, B> {
                 }
                 Action::Reverse { step } => {
                     debug_assert_eq!(current, step);
-                    self.reverse_step(step, dt)?;
+                    if !reversed {
+                        self.reverse_step(step, dt)?;
+                    }
                     if step >= 1 && loss.window != LossWindow::End {
                         let t = step as f64 * dt;
                         if loss.in_window(t, dt) {
