@@ -239,3 +239,57 @@ fn gradients_with_the_states_on_the_gpu_equal_those_kept_on_the_host() {
         );
     }
 }
+
+#[test]
+fn a_batch_runs_its_scenes_matching_stretches_as_one() {
+    let scene = scene("benchmark-1k.soft");
+    let module = &scene.lowered.module;
+    let Some(g) = gpu(module, LaunchMode::Uniform) else {
+        return;
+    };
+    let steps = 260;
+    let pressures = [1.0e3, 2.0e3, 3.0e3, 4.0e3];
+    let single: Vec<_> = pressures
+        .iter()
+        .map(|&p| {
+            let g = gpu(module, LaunchMode::Uniform).unwrap();
+            let mut sim = Simulation::new(&scene, g);
+            sim.uniforms.set_named("param.p_peak", p);
+            sim.run(None, Some(steps)).unwrap()
+        })
+        .collect();
+    drop(g);
+    let batch = softc::devices::gpu::GpuBatch::new(module, Precision::F32, None, 4).unwrap();
+    let mut sims: Vec<_> = pressures
+        .iter()
+        .enumerate()
+        .map(|(i, &p)| {
+            let mut sim = Simulation::new(&scene, batch.scene(i).unwrap());
+            sim.uniforms.set_named("param.p_peak", p);
+            sim
+        })
+        .collect();
+    let before = batch.stats();
+    let results = softc::engine::in_lockstep(&mut sims, |_, sim| sim.run(None, Some(steps)));
+    let after = batch.stats();
+    let (launches, dispatches) = (
+        after.launches - before.launches,
+        after.dispatches - before.dispatches,
+    );
+    eprintln!(
+        "batch of 4, {steps} steps: {launches} launches in {dispatches} dispatches, {} submissions",
+        after.submissions - before.submissions
+    );
+    // Each stretch of the four scenes is one batched stretch: a dispatch per launch of all.
+    assert!(
+        dispatches * 4 <= launches + 8,
+        "{launches} launches, {dispatches} dispatches"
+    );
+    for (i, (b, s)) in results.into_iter().zip(&single).enumerate() {
+        let b = b.unwrap();
+        assert!(
+            same_bits(&b.x, &s.x) && same_bits(&b.v, &s.v),
+            "scene {i}: the batch changed its results"
+        );
+    }
+}

@@ -199,6 +199,32 @@ enum Op {
         phys: usize,
         bytes: Vec<u8>,
     },
+    /// A stretch of the time loop ([`Backend::run_steps`]); the scenes' stretches that
+    /// match become one batched stretch.
+    Steps(Box<StepsOp>),
+}
+
+/// A scene's recorded stretch of steps: its plan, its buffer slots at the start and its
+/// uniforms.
+#[derive(Clone)]
+struct StepsOp {
+    launches: Vec<Launch>,
+    swaps: Vec<(BufferId, BufferId)>,
+    slot: Vec<usize>,
+    first: u64,
+    n: u64,
+    dt: f64,
+    uniforms: Uniforms,
+}
+
+impl StepsOp {
+    /// Stretches that run as one batched stretch: the same launches, slots and steps.
+    fn matches(&self, other: &StepsOp) -> bool {
+        self.launches == other.launches
+            && self.swaps == other.swaps
+            && self.slot == other.slot
+            && (self.first, self.n, self.dt.to_bits()) == (other.first, other.n, other.dt.to_bits())
+    }
 }
 
 /// Kernels one dispatch runs at most ([`wgsl::emit_fused`]).
@@ -916,6 +942,59 @@ impl Core {
             if heads.is_empty() {
                 break;
             }
+            // Stretches first: those that match run as one batched stretch.
+            let mut stretches: Vec<Vec<usize>> = Vec::new();
+            for &s in &heads {
+                let Some(Op::Steps(op)) = self.queues[s].front() else {
+                    continue;
+                };
+                let found = stretches
+                    .iter_mut()
+                    .find(|g| match self.queues[g[0]].front() {
+                        Some(Op::Steps(first)) => first.matches(op),
+                        _ => false,
+                    });
+                match found {
+                    Some(g) => g.push(s),
+                    None => stretches.push(vec![s]),
+                }
+            }
+            for members in &stretches {
+                let ops: Vec<StepsOp> = members
+                    .iter()
+                    .filter_map(|&s| match self.queues[s].pop_front() {
+                        Some(Op::Steps(op)) => Some(*op),
+                        _ => None,
+                    })
+                    .collect();
+                let Some(op) = ops.first() else {
+                    continue;
+                };
+                let mut slot = op.slot.clone();
+                let stepped = Stepped {
+                    launches: &op.launches,
+                    swaps: &op.swaps,
+                    first: op.first,
+                    n: op.n,
+                    dt: op.dt,
+                    uniforms: &op.uniforms,
+                    reverse: false,
+                    states: None,
+                };
+                let scenes: Vec<(usize, &Uniforms)> = members
+                    .iter()
+                    .zip(&ops)
+                    .map(|(&s, op)| (s, &op.uniforms))
+                    .collect();
+                if let Err(e) = self.record_steps_for(&mut slot, &stepped, &scenes)
+                    && let Ok(mut errors) = self.errors.lock()
+                {
+                    errors.push(e);
+                }
+            }
+            if !stretches.is_empty() {
+                continue;
+            }
             let runs: Vec<usize> = heads
                 .iter()
                 .copied()
@@ -1227,6 +1306,29 @@ impl Core {
     /// parity, and up to [`STEPS_PER_SUBMISSION`] steps go in one submission, submitted
     /// without waiting. The same dispatches, blocks and order as launching one by one.
     fn record_steps(&mut self, slot: &mut [usize], stepped: &Stepped<'_>) -> Result<(), String> {
+        if let Some(e) = self.take_error() {
+            return Err(e);
+        }
+        let start = (std::time::Instant::now(), self.stats.submit_seconds);
+        self.drain();
+        let recorded = self.record_steps_for(slot, stepped, &[(0, stepped.uniforms)]);
+        self.add_host_time(start);
+        recorded?;
+        match self.take_error() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// [`Core::record_steps`] for the scenes `members` of a batch (scene, its uniforms), all
+    /// with the same buffer slots: each dispatch runs the kernel for every member, one launch
+    /// block each.
+    fn record_steps_for(
+        &mut self,
+        slot: &mut [usize],
+        stepped: &Stepped<'_>,
+        members: &[(usize, &Uniforms)],
+    ) -> Result<(), String> {
         let Stepped {
             launches,
             swaps,
@@ -1238,14 +1340,12 @@ impl Core {
             states,
         } = *stepped;
         let step_of = |j: u64| if reverse { first - j } else { first + j };
+        if states.is_some() && members.len() != 1 {
+            return Err("device state copies are for one scene".into());
+        }
         if reverse && n > first + 1 {
             return Err(format!("{n} steps down from step {first}"));
         }
-        if let Some(e) = self.take_error() {
-            return Err(e);
-        }
-        let start = (std::time::Instant::now(), self.stats.submit_seconds);
-        self.drain();
         let t_id = u.id("t");
         // Per launch: kernel, range, the position of `t` among its uniforms, its values.
         struct Plan {
@@ -1253,7 +1353,8 @@ impl Core {
             begin: u32,
             count: u32,
             t_at: Option<usize>,
-            values: Vec<f64>,
+            /// Each member's values.
+            values: Vec<Vec<f64>>,
             groups: (u32, u32, u32),
         }
         let mut plans = Vec::new();
@@ -1263,14 +1364,17 @@ impl Core {
             }
             let kernel = &self.module.kernels[*k];
             let t_at = t_id.and_then(|t| kernel.uniforms.iter().position(|&id| id == t));
-            let values = kernel.uniforms.iter().map(|&id| u.get(id)).collect();
+            let values = members
+                .iter()
+                .map(|(_, u)| kernel.uniforms.iter().map(|&id| u.get(id)).collect())
+                .collect();
             plans.push(Plan {
                 kernel: *k,
                 begin: range.start as u32,
                 count: range.len() as u32,
                 t_at,
                 values,
-                groups: self.workgroups(range.len() as u64, 1),
+                groups: self.workgroups(range.len() as u64, members.len()),
             });
         }
         // Dispatch units: runs of consecutive launches with no data between them share a
@@ -1326,7 +1430,10 @@ impl Core {
                 .iter()
                 .map(|p| {
                     let align = self.block_align(p.kernel);
-                    let span = round_up(self.module.kernels[p.kernel].launch_stride(), align);
+                    let span = round_up(
+                        self.scenes as u64 * self.module.kernels[p.kernel].launch_stride(),
+                        align,
+                    );
                     span * if p.t_at.is_some() { chunk } else { 1 } + align
                 })
                 .sum();
@@ -1336,24 +1443,26 @@ impl Core {
             for (i, p) in plans.iter().enumerate() {
                 let rows = if p.t_at.is_some() { chunk } else { 1 };
                 let (at, arg) = self.alloc_blocks(p.kernel, rows);
-                let stride = round_up(
-                    self.module.kernels[p.kernel].launch_stride(),
+                let span = round_up(
+                    self.scenes as u64 * self.module.kernels[p.kernel].launch_stride(),
                     self.block_align(p.kernel),
                 ) as usize;
-                let mut values = p.values.clone();
-                for r in 0..rows {
-                    if let Some(ti) = p.t_at {
-                        values[ti] = step_of(done + r) as f64 * dt;
+                for (j, &(scene, _)) in members.iter().enumerate() {
+                    let mut values = p.values[j].clone();
+                    for r in 0..rows {
+                        if let Some(ti) = p.t_at {
+                            values[ti] = step_of(done + r) as f64 * dt;
+                        }
+                        self.write_block(
+                            at + r as usize * span,
+                            j,
+                            p.kernel,
+                            scene,
+                            p.begin,
+                            p.count,
+                            values.iter().copied(),
+                        );
                     }
-                    self.write_block(
-                        at + r as usize * stride,
-                        0,
-                        p.kernel,
-                        0,
-                        p.begin,
-                        p.count,
-                        values.iter().copied(),
-                    );
                 }
                 args.push((i, arg));
             }
@@ -1401,7 +1510,7 @@ impl Core {
                 }
                 swap_all(slot);
             }
-            self.stats.launches += chunk * plans.len() as u64;
+            self.stats.launches += chunk * (plans.len() * members.len()) as u64;
             done += chunk;
             // A full chunk goes now; the rest with what follows it (the state check's step
             // and readback copy share its submission).
@@ -1409,11 +1518,7 @@ impl Core {
                 self.submit();
             }
         }
-        self.add_host_time(start);
-        match self.take_error() {
-            Some(e) => Err(e),
-            None => Ok(()),
-        }
+        Ok(())
     }
 
     /// Submit the pending dispatches in one compute pass (their blocks are in the staging
@@ -2361,6 +2466,43 @@ impl Backend for GpuScene {
         self.shared
             .lock()
             .record_run(self.scene, &self.slot, k, range, u)
+    }
+
+    /// Records the stretch; the batch's scenes that record the same stretch (in lockstep,
+    /// all of them) run it as one batched stretch at the next submission.
+    fn run_steps(
+        &mut self,
+        launches: &[Launch],
+        swaps: &[(BufferId, BufferId)],
+        first: u64,
+        n: u64,
+        dt: f64,
+        uniforms: &Uniforms,
+    ) -> Result<bool, String> {
+        let mut core = self.shared.lock();
+        if let Some(e) = core.take_error() {
+            return Err(e);
+        }
+        for (k, range) in launches {
+            core.check_launch(*k, range)?;
+        }
+        let op = StepsOp {
+            launches: launches.to_vec(),
+            swaps: swaps.to_vec(),
+            slot: self.slot.clone(),
+            first,
+            n,
+            dt,
+            uniforms: uniforms.clone(),
+        };
+        core.record(self.scene, Op::Steps(Box::new(op)))?;
+        drop(core);
+        for _ in 0..n {
+            for (a, b) in swaps {
+                self.slot.swap(a.0 as usize, b.0 as usize);
+            }
+        }
+        Ok(true)
     }
 
     /// Joins the batch's lockstep group until the token is dropped: each readback then waits
