@@ -4,6 +4,40 @@ use super::*;
 
 /// Bytes of the launch block bound at `binding` (a kernel's launch binding follows the
 /// buffers and the connectivity, in kernel order).
+/// Runs of consecutive kernels of `module` (in its order, as a step launches them) that are
+/// pairwise independent: what a time loop fuses into one dispatch.
+fn fusable_runs(module: &Module) -> Vec<Vec<usize>> {
+    let mut runs: Vec<Vec<usize>> = Vec::new();
+    let mut run: Vec<usize> = Vec::new();
+    for k in 0..module.kernels.len() {
+        let joins = run.len() < MAX_PARTS && run.iter().all(|&m| wgsl::independent(module, m, k));
+        if !joins {
+            if run.len() > 1 {
+                runs.push(std::mem::take(&mut run));
+            }
+            run.clear();
+        }
+        run.push(k);
+    }
+    if run.len() > 1 {
+        runs.push(run);
+    }
+    runs
+}
+
+/// Storage buffers an entry point fusing `kernels` binds.
+pub(super) fn fused_storage_buffers(wg: &WgslModule, kernels: &[usize]) -> u32 {
+    let mut bindings: Vec<u32> = kernels
+        .iter()
+        .flat_map(|&k| wg.kernels[k].bindings.iter())
+        .filter(|b| !matches!(b.1, Binding::Launch))
+        .map(|b| b.0)
+        .collect();
+    bindings.sort_unstable();
+    bindings.dedup();
+    bindings.len() as u32
+}
+
 pub(super) fn launch_stride_of(wg: &WgslModule, buffers: usize, binding: u32) -> u64 {
     let k = binding as usize - buffers - TopoArray::ALL.len();
     wg.kernels.get(k).map_or(16, WgslKernel::launch_stride)
@@ -153,7 +187,24 @@ impl Core {
         if chosen.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
             features |= wgpu::Features::TIMESTAMP_QUERY;
         }
-        let wg = wgsl::emit_for(module, precision, batch, launch)?;
+        let mut wg = wgsl::emit_for(module, precision, batch, launch)?;
+        // The fused entry points a time loop will want, compiled with the others (a
+        // pipeline made in the middle of a run costs it milliseconds): runs of consecutive
+        // independent kernels, as a step launches them in module order.
+        let fuse = std::env::var("SOFTC_GPU_FUSE").as_deref() != Ok("0");
+        let groups: Vec<Vec<usize>> = if fuse && batch.is_none() && launch == LaunchMode::Uniform {
+            fusable_runs(module)
+                .into_iter()
+                .filter(|g| {
+                    fused_storage_buffers(&wg, g) <= limits.max_storage_buffers_per_shader_stage
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if !groups.is_empty() {
+            wg = wgsl::emit_fused(module, precision, &groups)?;
+        }
         let scenes = batch.unwrap_or(1) as u64;
         for k in &wg.kernels {
             if k.storage_buffers > limits.max_storage_buffers_per_shader_stage {
@@ -201,6 +252,17 @@ impl Core {
         if let Some(e) = errors.lock().ok().and_then(|mut v| v.drain(..).next()) {
             return Err(format!("adapter {desc}: the kernels do not compile: {e}"));
         }
+        // The fused entry points follow the module's kernels.
+        let fused_kernels: HashMap<usize, WgslKernel> = wg
+            .kernels
+            .drain(module.kernels.len()..)
+            .enumerate()
+            .map(|(i, k)| (module.kernels.len() + i, k))
+            .collect();
+        let fused = fused_kernels
+            .iter()
+            .map(|(&at, k)| (k.parts.clone(), at))
+            .collect();
         let align = limits.min_uniform_buffer_offset_alignment.max(16);
         let scenes = scenes as usize;
         Ok(Core {
@@ -236,9 +298,9 @@ impl Core {
             spare_readbacks: Vec::new(),
             states: None,
             ir: module.clone(),
-            fuse: std::env::var("SOFTC_GPU_FUSE").as_deref() != Ok("0"),
-            fused: HashMap::new(),
-            fused_kernels: HashMap::new(),
+            fuse,
+            fused,
+            fused_kernels,
             stats: DispatchStats::default(),
             active: vec![false; scenes],
             waiting: vec![None; scenes],

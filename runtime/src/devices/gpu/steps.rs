@@ -2,7 +2,7 @@
 //! restored) recorded at once, independent kernels fused into one dispatch, a batch's
 //! matching stretches merged.
 
-use super::setup::{launch_stride_of, pipeline_for};
+use super::setup::{fused_storage_buffers, launch_stride_of, pipeline_for};
 use super::*;
 
 impl Core {
@@ -139,12 +139,17 @@ impl Core {
         let mut units: Vec<(usize, Vec<usize>)> = Vec::new();
         let fuse = self.fuse && self.scenes == 1 && self.module.launch == LaunchMode::Uniform;
         for (i, p) in plans.iter().enumerate() {
+            let limit = self.device.limits().max_storage_buffers_per_shader_stage;
             let joins = fuse
                 && units.last().is_some_and(|(_, members)| {
+                    let mut kernels: Vec<usize> =
+                        members.iter().map(|&m| plans[m].kernel).collect();
+                    kernels.push(p.kernel);
                     members.len() < MAX_PARTS
                         && members
                             .iter()
                             .all(|&m| wgsl::independent(&self.ir, plans[m].kernel, p.kernel))
+                        && fused_storage_buffers(&self.module, &kernels) <= limit
                 });
             match units.last_mut() {
                 Some((_, members)) if joins => members.push(i),
