@@ -162,8 +162,9 @@ fn a_thousand_steps_take_one_submission_per_state_check() {
         (after.host_seconds - before.host_seconds) / steps as f64 * 1e6
     );
     // The state is checked every 50 steps: each stretch, its checked step and the check's
-    // readback copy are one submission; the run's first and last reads add a few.
-    assert!(submissions <= steps / 50 + 6, "{submissions} submissions");
+    // readback copy are one submission; the run's reads of x and v at its start and end and
+    // the loss's add one each (six).
+    assert!(submissions <= steps / 50 + 8, "{submissions} submissions");
     assert!(readbacks <= steps / 50 + 8, "{readbacks} readbacks");
     // Three kernels a step (element, pressure, node) and a diagnostics launch per check;
     // the element and pressure kernels share a dispatch in the time loop.
@@ -193,9 +194,11 @@ fn gradients_with_the_states_on_the_gpu_equal_those_kept_on_the_host() {
         "forward+backward of {steps} steps: {submissions} submissions, {} dispatches",
         after.dispatches - before.dispatches
     );
-    // Both passes run as the time loop: a submission per state check or health sample.
+    // Both passes run as the time loop: a submission per state check or health sample, and
+    // about twenty for the reads at the ends (the last state, the loss and its derivative,
+    // the accumulated gradients), not one per step.
     assert!(
-        submissions <= 2 * (steps / 50) + 12,
+        submissions <= 2 * (steps / 50) + 20,
         "{submissions} submissions"
     );
     assert!(

@@ -319,7 +319,6 @@ struct Core {
     /// Bind groups by (kernel, physical buffers bound), as indices into `groups`.
     bind_groups: HashMap<(usize, Vec<usize>), usize>,
     groups: Vec<wgpu::BindGroup>,
-    readback: Option<wgpu::Buffer>,
     timing: Option<Timing>,
     /// Readbacks under way, by ticket, and mapped buffers free for the next.
     in_flight: HashMap<u64, InFlight>,

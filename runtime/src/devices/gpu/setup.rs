@@ -291,7 +291,6 @@ impl Core {
             pending: Vec::new(),
             bind_groups: HashMap::new(),
             groups: Vec::new(),
-            readback: None,
             timing: None,
             in_flight: HashMap::new(),
             next_ticket: 0,

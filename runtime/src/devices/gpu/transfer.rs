@@ -463,96 +463,13 @@ impl Core {
         Ok(Dispatch::one(kernel, group, offset as u32, groups))
     }
 
-    /// Read back the values of `(physical buffer, scene)` pairs: submits what is recorded,
-    /// then one copy per request into one readback buffer, one map, one wait.
+    /// Read back the values of `(physical buffer, scene)` pairs: submits what is recorded
+    /// with the copies, and waits for that submission.
     pub(super) fn read(&mut self, requests: &[(usize, usize)]) -> Result<Vec<Vec<f64>>, String> {
-        self.flush();
-        self.stats.readbacks += 1;
-        let size = self.module.precision.size();
-        let mut spans = Vec::new();
-        let mut total = 0u64;
-        for &(phys, scene) in requests {
-            let n = *self
-                .lens
-                .get(phys)
-                .ok_or_else(|| format!("no buffer {phys}"))?;
-            let bytes = (n * size) as u64;
-            spans.push((phys, (scene * n * size) as u64, total, bytes));
-            total = round_up(total + bytes, 256);
-        }
-        if total == 0 {
-            return Ok(requests.iter().map(|_| Vec::new()).collect());
-        }
-        if self.readback.as_ref().is_none_or(|r| r.size() < total) {
-            self.readback = Some(self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("softc readback"),
-                size: total.next_power_of_two(),
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }));
-        }
-        let rb = self.readback.clone().ok_or("no readback buffer")?;
-        let mut enc = self
-            .device
-            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("softc read"),
-            });
-        for &(phys, from, to, bytes) in &spans {
-            if bytes > 0 {
-                enc.copy_buffer_to_buffer(&self.buffers[phys], from, &rb, to, bytes);
-            }
-        }
-        self.queue.submit([enc.finish()]);
-        let (tx, rx) = std::sync::mpsc::channel();
-        rb.map_async(wgpu::MapMode::Read, 0..total, move |r| {
-            let _ = tx.send(r);
-        });
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| format!("GPU ({}): {e}", self.adapter))?;
-        match rx.recv() {
-            Ok(Ok(())) => {}
-            _ => {
-                return Err(format!(
-                    "GPU ({}): reading a buffer back failed",
-                    self.adapter
-                ));
-            }
-        }
-        let out = {
-            let view = rb
-                .get_mapped_range(0..total)
-                .map_err(|e| format!("GPU ({}): {e}", self.adapter))?;
-            spans
-                .iter()
-                .map(|&(_, _, to, bytes)| {
-                    let bytes = &view[to as usize..(to + bytes) as usize];
-                    match self.module.precision {
-                        Precision::F32 => bytes
-                            .chunks_exact(4)
-                            .map(|c| f64::from(f32::from_le_bytes([c[0], c[1], c[2], c[3]])))
-                            .collect(),
-                        Precision::F64 => bytes
-                            .chunks_exact(8)
-                            .map(|c| {
-                                let mut a = [0u8; 8];
-                                a.copy_from_slice(c);
-                                f64::from_le_bytes(a)
-                            })
-                            .collect(),
-                    }
-                })
-                .collect()
-        };
-        rb.unmap();
-        if let Some(e) = self.take_error() {
-            return Err(e);
-        }
-        Ok(out)
+        let ticket = self.read_later(requests)?;
+        self.collect(ticket)
     }
 
-    /// A failed readback (a lost device, a mapping error) cannot be returned from
-    /// [`Backend::get`]: it is recorded, reported by the next launch or state check, and the
     /// values are NaN.
     pub(super) fn values_or_nan(&self, phys: usize, r: Result<Vec<f64>, String>) -> Vec<f64> {
         r.unwrap_or_else(|e| {
