@@ -136,9 +136,9 @@ fn convert_between_formats() {
 #[test]
 fn bad_inputs_exit_1_with_file_and_problem() {
     let d = tmp("bad");
-    // Missing spec.
+    // Missing spec: an unreadable file is a usage error (2, issue 31 item 13).
     let (c, _, e) = run(|o, e| generate(&d.join("nope.toml"), &d.join("o.msh"), None, o, e));
-    assert_eq!(c, 1);
+    assert_eq!(c, 2);
     assert!(e.contains("nope.toml"), "{e}");
     // Spec with an error.
     std::fs::write(
@@ -169,9 +169,9 @@ fn bad_inputs_exit_1_with_file_and_problem() {
     assert_eq!(c, 1);
     let j: serde_json::Value = serde_json::from_str(&o).unwrap();
     assert_eq!(j["valid"], false);
-    // Unreadable file.
+    // Unreadable file: a usage error (issue 31 item 13).
     let (c, _, e) = run(|o, e| info(&d.join("missing.vtu"), LengthUnit::Millimetre, false, o, e));
-    assert_eq!(c, 1);
+    assert_eq!(c, 2);
     assert!(e.contains("missing.vtu"));
     std::fs::remove_dir_all(&d).unwrap();
 }

@@ -578,6 +578,14 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         let _ = writeln!(err, "error: --out {}: {e}", args.out.display());
         return 2;
     }
+    if args.tradeoff.is_none() && !args.examples.is_dir() {
+        let _ = writeln!(
+            err,
+            "error: --examples {}: not a folder (it should hold benchmark-SIZE.soft)",
+            args.examples.display()
+        );
+        return 2;
+    }
     if args.profile {
         return match profile(&args, out) {
             Ok(()) => 0,

@@ -48,8 +48,8 @@ pub struct RunArgs {
     /// design again, longer or with other outputs. `--set` wins over it
     #[arg(long, value_name = "JSON")]
     pub params: Option<PathBuf>,
-    /// Override the number of steps.
-    #[arg(long, allow_hyphen_values = true)]
+    /// Override the number of steps (at least 1).
+    #[arg(long, allow_hyphen_values = true, value_parser = clap::value_parser!(u64).range(1..))]
     pub steps: Option<u64>,
     /// Override the time step, with its unit: `--dt 20us`.
     #[arg(long, allow_hyphen_values = true)]
@@ -202,6 +202,40 @@ fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
     Ok(out)
 }
 
+/// Flags that do not fit the scene they are given with (usage errors, exit 2): `--dt` for a
+/// quasi-static solve, which has no time step; a `--memory-budget` below the two states of
+/// the scene a backward pass holds at least.
+fn check_scene_flags(args: &RunArgs, scene: &Scene, dt: Option<f64>) -> Result<(), String> {
+    let statics = scene.lowered.statics.as_ref();
+    if dt.is_some() && statics.is_some_and(|s| s.implicit.is_none()) {
+        return Err(format!(
+            "--dt: {} is solved quasi-statically, which has no time step; leave --dt out \
+             (`--steps N` sets the number of equilibrium states)",
+            args.file.display()
+        ));
+    }
+    if let Some(m) = args.memory_budget.as_deref()
+        && statics.is_none()
+    {
+        let budget = parse_memory_budget(m)?;
+        let precision = crate::devices::precision(
+            args.backend,
+            args.precision.map(Into::into),
+            scene.resolved.sim.precision,
+        );
+        let single = precision == softc_compiler::back::Precision::F32
+            && args.backend != BackendChoice::Interp;
+        let least = crate::engine::adjoint::least_budget(scene.mesh.nodes.len(), single);
+        if budget < least {
+            return Err(format!(
+                "--memory-budget {m}: holds less than the {least} bytes of two states of this \
+                 scene (the current one and one stored); give at least {least} bytes"
+            ));
+        }
+    }
+    Ok(())
+}
+
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     // An unreadable script or a folder is a usage error (exit 2), found before anything else.
     let readable = std::fs::metadata(&args.file).and_then(|_| {
@@ -300,6 +334,10 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         return 2;
     }
     if let Err(e) = check_overrides(&scene, &overrides, &from_file) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
+    if let Err(e) = check_scene_flags(&args, &scene, dt) {
         let _ = writeln!(err, "softc: {e}");
         return 2;
     }

@@ -23,6 +23,12 @@ use std::collections::BTreeMap;
 /// schedules cost 1.8-2.8 extra forward steps per reversed step (issue 18).
 pub const AUTO_STORE_ALL_BYTES: u64 = 1 << 30;
 
+/// The least memory budget a backward pass can keep: two states (the current one and one
+/// stored) of `nodes` nodes, stored as f32 when `single`.
+pub fn least_budget(nodes: usize, single: bool) -> u64 {
+    2 * 2 * 3 * nodes as u64 * if single { 4 } else { 8 }
+}
+
 /// Which states the backward pass keeps.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Checkpointing {

@@ -1,6 +1,6 @@
 //! The work behind `softc mesh ...` (the clap layer is `crate::cli::mesh`). Each command
-//! returns its exit code (0 ok, 1 bad input) and writes messages to the given sinks, so it can
-//! be tested without a process.
+//! returns its exit code (0 ok, 1 bad input, 2 a file that cannot be read or written) and
+//! writes messages to the given sinks, so it can be tested without a process.
 
 use std::io::Write;
 use std::path::Path;
@@ -13,9 +13,14 @@ use super::mesher::{MeshSpec, generate as gen_mesh};
 use super::model::{LengthUnit, Mesh};
 use super::validate::{Severity, has_errors};
 
+/// Report `e`: a file that cannot be opened, read or written is a usage error (2), as the
+/// README's exit-status table says; a bad mesh or spec is bad input (1).
 fn fail(err: &mut dyn Write, e: &MeshError) -> i32 {
     let _ = writeln!(err, "error: {e}");
-    1
+    match e.kind {
+        super::error::MeshErrorKind::Io => 2,
+        _ => 1,
+    }
 }
 
 /// `softc mesh generate SPEC -o OUT [--resolution H]`.
