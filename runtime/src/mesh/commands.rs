@@ -152,6 +152,8 @@ pub fn info_json(mesh: &Mesh, file: &Path) -> serde_json::Value {
         "min_dihedral_deg": q.min_dihedral_deg,
         "max_dihedral_deg": q.max_dihedral_deg,
         "worst_aspect_ratio": q.worst_aspect_ratio,
+        "worst_dihedral_tet": mesh.tet_id(q.worst_dihedral_element),
+        "worst_aspect_tet": mesh.tet_id(q.worst_aspect_element),
         "aspect_ratio_definition": "circumradius / (3 * inradius), 1 for a regular tet",
         "min_edge": q.min_edge,
         "max_edge": q.max_edge,
@@ -217,7 +219,7 @@ pub fn info(
             out,
             "node span {:.1} % (an element's node numbers apart, over the node count, on average){}",
             100.0 * span,
-            if span > SCATTERED_SPAN && q.nodes >= 1000 {
+            if span > SCATTERED_SPAN {
                 format!(
                     ": scattered numbering slows the kernels by up to a third; `softc mesh \
                      convert --renumber {} OUT` writes a renumbered copy",
@@ -264,9 +266,9 @@ pub fn info(
             "dihedral angles [{:.2}°, {:.2}°] (worst tet {}), worst aspect ratio R/(3r) {:.3} (tet {})",
             q.min_dihedral_deg,
             q.max_dihedral_deg,
-            q.worst_dihedral_element,
+            mesh.tet_id(q.worst_dihedral_element),
             q.worst_aspect_ratio,
-            q.worst_aspect_element
+            mesh.tet_id(q.worst_aspect_element)
         );
         if mesh.report.reoriented_tets > 0 || mesh.report.reoriented_faces > 0 {
             let _ = writeln!(
