@@ -93,3 +93,54 @@ fn exit_statuses_follow_the_readme_table() {
     std::fs::remove_dir_all(&dir).unwrap();
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
 }
+
+/// Issue 31 item 2: a loss window that holds none of the run's states summed nothing and
+/// reported loss 0 and gradient 0. Now the run stops (bad input, exit 1) saying where the
+/// window is and where the states are — for an explicit run and for a static load path.
+#[test]
+fn a_loss_window_with_no_state_in_it_is_an_error() {
+    let dir = std::env::temp_dir().join(format!("softc-window-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let variant = |example: &str, from: &str, to: &str, name: &str| {
+        let text = std::fs::read_to_string(root().join("examples").join(example)).unwrap();
+        assert!(text.contains(from), "{example}");
+        let text = text
+            .replace(from, to)
+            .replace("\"../meshes/", &format!("\"{}/meshes/", root().display()));
+        let path = dir.join(name);
+        std::fs::write(&path, text).unwrap();
+        path.display().to_string()
+    };
+    let explicit = variant(
+        "benchmark-1k.soft",
+        "at end",
+        "over [0.1 s, 0.15 s]",
+        "explicit.soft",
+    );
+    let statics = variant(
+        "pressure_optimization.soft",
+        "at end",
+        "over [0 s, 0.1 s]",
+        "static.soft",
+    );
+    for (script, extra) in [(&explicit, "--steps"), (&statics, "--grad")] {
+        let args: Vec<&str> = if extra == "--steps" {
+            vec!["run", script, "--steps", "10", "--grad"]
+        } else {
+            vec!["run", script, "--grad"]
+        };
+        let (code, out, err) = softc(&args);
+        assert_eq!(code, 1, "{script}: {out}\n{err}");
+        assert!(err.contains("holds none of the run's states"), "{err}");
+    }
+    // A window that does hold states runs.
+    let inside = variant(
+        "benchmark-1k.soft",
+        "at end",
+        "over [0.2 ms, 0.3 ms]",
+        "inside.soft",
+    );
+    let (code, _, err) = softc(&["run", &inside, "--steps", "10"]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

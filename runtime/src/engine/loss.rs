@@ -24,13 +24,35 @@ impl<'s> Loss<'s> {
     /// The script's loss for a run of `steps` steps of `dt`; `None` without a loss.
     pub fn build(scene: &'s Scene, dt: f64, steps: u64) -> Result<Option<Loss<'s>>, String> {
         let t_end = steps as f64 * dt;
-        Ok(scene.loss.as_ref().map(|kernels| Loss {
+        let Some(kernels) = scene.loss.as_ref() else {
+            return Ok(None);
+        };
+        let loss = Loss {
             kernels,
             t_end,
             dt,
             window: kernels.window(t_end, dt),
             ids: OnceCell::new(),
-        }))
+        };
+        // A window that holds none of the run's states (t = k·dt, k = 1..steps) would sum
+        // nothing: a loss and gradient of 0 that look like an answer (issue 31 item 2).
+        if let LossWindow::Over { from, to } = loss.window
+            && steps >= 1
+        {
+            let first = ((from - 0.5 * dt) / dt).ceil().max(1.0);
+            let last = ((to + 0.5 * dt) / dt).floor().min(steps as f64);
+            if !(first <= last
+                && (first as u64..=last as u64).any(|k| loss.in_window(k as f64 * dt, dt)))
+            {
+                return Err(format!(
+                    "the loss window [{from:e} s, {to:e} s] holds none of the run's states: they \
+                     are at t = {dt:e} s, {:e} s, … {t_end:e} s ({steps} states, {dt:e} s apart); \
+                     move the window (`loss = … over [a, b]`) into the run, or run longer",
+                    2.0 * dt
+                ));
+            }
+        }
+        Ok(Some(loss))
     }
 
     /// The loss term at one state: positions and velocities (flat, 3 per node), time, and the
