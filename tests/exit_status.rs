@@ -144,3 +144,43 @@ fn a_loss_window_with_no_state_in_it_is_an_error() {
     assert_eq!(code, 0, "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Issue 31 item 12: flags that had no effect were taken silently. `bench`'s trade-off knobs
+/// without `--tradeoff` are a usage error; `--linear-solver krylov` on an explicit scene and
+/// `--initial-state` on a quasi-static one run with a warning naming the flag and why.
+#[test]
+fn flags_without_effect_are_named() {
+    let ex = |name: &str| root().join("examples").join(name).display().to_string();
+    let examples = root().join("examples").display().to_string();
+    let (code, _, err) = softc(&[
+        "bench",
+        "--integrators",
+        "explicit",
+        "--examples",
+        &examples,
+        "--sizes",
+        "1k",
+        "--backends",
+        "cpu-f32",
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("--tradeoff"), "{err}");
+    let bench = ex("benchmark-1k.soft");
+    let (code, _, err) = softc(&["run", &bench, "--steps", "5", "--linear-solver", "krylov"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        err.contains("warning: --linear-solver has no effect") && err.contains("explicit"),
+        "{err}"
+    );
+    let statics = ex("pressure_optimization.soft");
+    let (code, out, err) = softc(&["run", &statics, "--grad", "--initial-state"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        err.contains("warning: --initial-state has no effect"),
+        "{err}"
+    );
+    assert!(out.contains("\"initial_state_gradients\": null"), "{out}");
+    // Where they apply, no warning.
+    let (_, _, err) = softc(&["run", &bench, "--steps", "5", "--grad", "--initial-state"]);
+    assert!(!err.contains("no effect"), "{err}");
+}

@@ -81,31 +81,40 @@ pub struct BenchArgs {
     #[arg(long, requires = "solvers")]
     pub krylov: bool,
     /// With --tradeoff: the output, a node set and an axis (mean displacement).
-    #[arg(long, value_name = "SET.AXIS", default_value = "tip.z")]
+    #[arg(
+        long,
+        value_name = "SET.AXIS",
+        default_value = "tip.z",
+        requires = "tradeoff"
+    )]
     pub output: String,
     /// With --tradeoff: mesh refinement factors (cell counts of the mesh's `.toml` spec scaled).
-    #[arg(long, default_value = "0.5,1,1.5")]
+    #[arg(long, default_value = "0.5,1,1.5", requires = "tradeoff")]
     pub resolutions: String,
     /// With --tradeoff: precisions (the first is the baseline's).
-    #[arg(long, default_value = "f64,f32")]
+    #[arg(long, default_value = "f64,f32", requires = "tradeoff")]
     pub precisions: String,
     /// With --tradeoff: dt = SAFETY × the stable-step estimate (the first is the baseline's).
-    #[arg(long, default_value = "0.9,0.5,0.25")]
+    #[arg(long, default_value = "0.9,0.5,0.25", requires = "tradeoff")]
     pub safeties: String,
     /// With --tradeoff: settling tolerances — settled when max speed × time ≤ TOL × max
     /// displacement (the smallest is the baseline's).
-    #[arg(long, default_value = "1e-2,1e-3,1e-4")]
+    #[arg(long, default_value = "1e-2,1e-3,1e-4", requires = "tradeoff")]
     pub settle: String,
     /// With --tradeoff: the integrators compared — `explicit` (settled explicit runs, every
     /// knob above), `quasi_static` (one static solve per resolution and precision),
     /// `implicit_euler` (the baseline mesh in 20 backward Euler steps over the duration).
-    #[arg(long, default_value = "explicit,quasi_static,implicit_euler")]
+    #[arg(
+        long,
+        default_value = "explicit,quasi_static,implicit_euler",
+        requires = "tradeoff"
+    )]
     pub integrators: String,
     /// With --tradeoff: also spring-mesh variants with this volume stiffness (`1kPa/mm`).
-    #[arg(long, value_name = "ALPHA")]
+    #[arg(long, value_name = "ALPHA", requires = "tradeoff")]
     pub springs: Option<String>,
     /// With --tradeoff: a param or input value, with its unit (`--set p_peak=3kPa`).
-    #[arg(long = "set", value_name = "NAME=VALUE")]
+    #[arg(long = "set", value_name = "NAME=VALUE", requires = "tradeoff")]
     pub set: Vec<String>,
     /// With --tradeoff: the output folder.
     #[arg(long, value_name = "DIR", default_value = "tradeoff")]

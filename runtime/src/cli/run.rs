@@ -236,6 +236,34 @@ fn check_scene_flags(args: &RunArgs, scene: &Scene, dt: Option<f64>) -> Result<(
     Ok(())
 }
 
+/// Flags that have no effect on the scene they are given with: a warning naming each and
+/// why, so that a run does not quietly differ from what was asked (issue 31 item 12).
+fn warn_ignored_flags(args: &RunArgs, scene: &Scene, err: &mut dyn Write) {
+    let statics = scene.lowered.statics.as_ref();
+    if args.linear_solver != LinearSolver::Direct && statics.is_none() {
+        let _ = writeln!(
+            err,
+            "softc: warning: --linear-solver has no effect: {} runs explicit steps, which solve \
+             no linear systems (it applies to `integrator = quasi_static` and `implicit_euler`)",
+            args.file.display()
+        );
+    }
+    if args.initial_state && statics.is_some() {
+        let _ = writeln!(
+            err,
+            "softc: warning: --initial-state has no effect: {} is solved by {}, whose gradient \
+             has no derivative with respect to the initial state (`initial_state_gradients` is \
+             null); it applies to explicit runs",
+            args.file.display(),
+            if statics.is_some_and(|s| s.implicit.is_some()) {
+                "implicit Euler"
+            } else {
+                "a quasi-static solve"
+            }
+        );
+    }
+}
+
 pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     // An unreadable script or a folder is a usage error (exit 2), found before anything else.
     let readable = std::fs::metadata(&args.file).and_then(|_| {
@@ -341,6 +369,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         let _ = writeln!(err, "softc: {e}");
         return 2;
     }
+    warn_ignored_flags(&args, &scene, err);
     if !args.grad && !args.no_optimize {
         match crate::optim::Plan::from_scene(&scene) {
             Ok(Some(plan)) => return super::optimize(&args, &scene, plan, dt, out, err),
