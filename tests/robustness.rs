@@ -1431,3 +1431,35 @@ fn the_reference_backend_refuses_f32() {
         "{err}"
     );
 }
+
+#[test]
+fn issue31_item11_a_warm_start_list_for_another_batch_is_refused() {
+    let d = scratch_dir("warm");
+    let script = softc_tests::root().join("examples/pressure_optimization.soft");
+    let s = script.to_str().unwrap();
+    let out = d.join("out");
+    let out = out.to_str().unwrap();
+    let (code, _, err) = softc_within(300, &["run", s, "--out", out, "--iterations", "1"]);
+    assert_eq!(code, 0, "{err}");
+    let state = d.join("out/state.json");
+    let text = std::fs::read_to_string(&state).unwrap();
+    let mut json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    // One scene: one starting state. Two are a state from another batch.
+    let warm = json["warm_starts"].as_array().unwrap().clone();
+    assert_eq!(
+        warm.len(),
+        1,
+        "a static study saves its next starting state"
+    );
+    json["warm_starts"] = serde_json::Value::Array(vec![warm[0].clone(), warm[0].clone()]);
+    let body = json.to_string();
+    std::fs::write(&state, &body).unwrap();
+    let (code, _, err) = softc_within(300, &["run", s, "--resume", out, "--iterations", "2"]);
+    assert_ne!(code, 0, "{err}");
+    assert!(
+        err.contains("`warm_starts` holds 2 starting states") && err.contains("1 scene(s)"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&state).unwrap(), body);
+    std::fs::remove_dir_all(&d).ok();
+}

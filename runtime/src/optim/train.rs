@@ -345,6 +345,15 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                 }
             }
         };
+        // One starting state per scene of the batch, or none (issue 31 item 11).
+        if !state.warm_starts.is_empty() && state.warm_starts.len() != sims.len() {
+            return Err(RunError(format!(
+                "the saved state is inconsistent: `warm_starts` holds {} starting states (one \
+                 per scene), but the batch has {} scene(s); run without --resume to start afresh",
+                state.warm_starts.len(),
+                sims.len()
+            )));
+        }
         for (i, (sim, w)) in sims.iter_mut().zip(&state.warm_starts).enumerate() {
             if w.is_empty() {
                 continue;
