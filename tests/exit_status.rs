@@ -78,6 +78,11 @@ fn exit_statuses_follow_the_readme_table() {
             "a memory budget below two states",
         ),
         (vec!["run", &missing], 2, "an unreadable script"),
+        (
+            vec!["run", &statics, "--backend", "reference"],
+            2,
+            "the explicit oracle on a quasi-static scene (issue 31 item 1)",
+        ),
         (vec!["run", &bench, "--steps", "5"], 0, "a short run"),
     ];
     let mut wrong = Vec::new();

@@ -207,6 +207,21 @@ fn params_file(path: &std::path::Path) -> Result<Vec<(String, f64)>, String> {
 /// the scene a backward pass holds at least.
 fn check_scene_flags(args: &RunArgs, scene: &Scene, dt: Option<f64>) -> Result<(), String> {
     let statics = scene.lowered.statics.as_ref();
+    if args.backend == BackendChoice::Reference
+        && let Some(s) = statics
+    {
+        // The oracle steps explicitly: it would answer another problem (issue 31 item 1).
+        return Err(format!(
+            "--backend reference: the reference oracle runs explicit steps only, and {} is \
+             solved with `integrator = {}`; use --backend cpu (or gpu) for its solver",
+            args.file.display(),
+            if s.implicit.is_some() {
+                "implicit_euler"
+            } else {
+                "quasi_static"
+            }
+        ));
+    }
     if dt.is_some() && statics.is_some_and(|s| s.implicit.is_none()) {
         return Err(format!(
             "--dt: {} is solved quasi-statically, which has no time step; leave --dt out \
