@@ -176,8 +176,9 @@ fn mesh_info_accepts_the_shipped_meshes_and_refuses_a_missing_one() {
     let cuboid = root().join("meshes/cuboid.msh");
     let (code, _, _) = softc(&["mesh", "info", cuboid.to_str().unwrap()]);
     assert_eq!(code, 0);
+    // An unreadable file is a usage error (README's exit-status table; issue 31 item 13).
     let (code, _, _) = softc(&["mesh", "info", "/nonexistent/x.msh"]);
-    assert_eq!(code, 1);
+    assert_eq!(code, 2);
 }
 
 #[test]

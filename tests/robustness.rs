@@ -557,11 +557,11 @@ fn smaller_defects_of_messages_and_outputs() {
         err.contains("--out /proc/softc-out") && !err.contains("iteration 1/"),
         "{err}"
     );
-    // A 1 B --memory-budget was silently exceeded.
+    // A 1 B --memory-budget was silently exceeded; it is a usage error (issue 31 item 13).
     let (code, _, err) = run_bench_1k(&["--grad", "--memory-budget", "1B"]);
-    assert_eq!(code, 1, "{err}");
+    assert_eq!(code, 2, "{err}");
     assert!(
-        err.contains("memory budget of 1 bytes") && err.contains("give at least"),
+        err.contains("--memory-budget 1B") && err.contains("give at least"),
         "{err}"
     );
     // The VTU wrote points in mm and displacement in m, unlabelled: one unit system (SI), and

@@ -83,13 +83,31 @@ class Mesh:
 def quantity(text: str, unit: Optional[str] = None, name: str = "value") -> float:
     """A value written with its unit, in SI: ``quantity("12 kPa") == 12000.0``. With ``unit``
     (an SI unit such as ``"Pa"``), the value must have that dimension."""
-    value, si = _softc.quantity(text)
+    try:
+        value, si = _softc.quantity(text)
+    except ValueError as e:
+        raise ParamError(f"{name} = {text!r} is not a number with a unit: {e}") from None
     if unit is not None and si != unit:
         raise ParamError(
             f"{name} = {text!r} is in {si}, but `{name}` is in {unit}: give a value in a unit of "
             f"the same dimension (or a float in {unit})"
         )
     return value
+
+
+def _number(name: str, value, unit: str) -> float:
+    """One entry of a param or input: a number, or a string with its unit; anything else
+    (``True``, ``None``, bytes, a list where a number goes) is a :class:`ParamError`."""
+    if isinstance(value, (str, np.str_)):
+        return quantity(str(value), unit, name)
+    if value is None or isinstance(value, (bool, np.bool_)) or not isinstance(
+        value, (int, float, np.integer, np.floating)
+    ):
+        raise ParamError(
+            f"`{name}` = {value!r}: give a number (in {unit}) or a value with its unit such as "
+            f"\"3 kPa\""
+        )
+    return float(value)
 
 
 def _shaped(values, shape):
@@ -221,9 +239,12 @@ class Scene:
                     )
                 if hasattr(value, "detach"):  # a torch tensor
                     value = value.detach().cpu().numpy()
-                if isinstance(value, str):
-                    value = quantity(value, slot.unit, name)
-                array = np.asarray(value, dtype=np.float64)
+                given = np.asarray(value, dtype=object)
+                # Every entry checked: True is not 1 Pa, None is not NaN, and strings (also
+                # in a NumPy array) are read with their units.
+                array = np.asarray(
+                    [_number(name, v, slot.unit) for v in given.ravel()], dtype=np.float64
+                ).reshape(given.shape)
                 if array.size != 1 and array.shape != slot.shape:
                     raise ParamError(
                         f"`{name}` has shape {slot.shape}; a value of shape {array.shape} was "

@@ -273,3 +273,22 @@ def test_values_with_units(beam):
         beam.run({"p0": "3 mm"}, steps=30)
     with pytest.raises(ValueError):
         softc.quantity("12 parsecs per fortnight")
+
+
+def test_malformed_param_values_are_param_errors(beam):
+    """Issue 31 item 17: a malformed unit string raised a plain ValueError with parser text,
+    True ran as 1 Pa, None became NaN, a NumPy array of strings got past the unit check."""
+    with pytest.raises(softc.ParamError, match="p0 = .12 kPaa. is not a number with a unit"):
+        beam.run({"p0": "12 kPaa"}, steps=5)
+    with pytest.raises(softc.ParamError, match="`p0` = True"):
+        beam.run({"p0": True}, steps=5)
+    with pytest.raises(softc.ParamError, match="`p0` = None"):
+        beam.run({"p0": None}, steps=5)
+    size = beam.params["mu"].size
+    with pytest.raises(softc.ParamError, match="is in m, but `mu` is in Pa"):
+        beam.run({"mu": np.array(["3 mm"] * size)}, steps=5)
+    with pytest.raises(softc.ParamError, match="`mu` = None"):
+        beam.run({"mu": [20e3] * (size - 1) + [None]}, steps=5)
+    # Strings with the right unit, in a NumPy array too, are the numbers they say.
+    as_text = beam.run({"mu": np.array(["20 kPa"] * size)}, steps=5)["loss"]
+    assert as_text == beam.run({"mu": np.full(size, 20e3)}, steps=5)["loss"]

@@ -587,6 +587,15 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         let _ = writeln!(err, "error: --out {}: {e}", args.out.display());
         return 2;
     }
+    // The sizes and the folder of the benchmark scripts are checked before any work.
+    let sizes: Vec<&str> = args.sizes.split(',').map(str::trim).collect();
+    if let Some(bad) = sizes.iter().find(|s| !["1k", "10k", "50k"].contains(s)) {
+        let _ = writeln!(
+            err,
+            "error: unknown benchmark size `{bad}`; use 1k, 10k or 50k (e.g. --sizes 1k,10k)"
+        );
+        return 2;
+    }
     if args.tradeoff.is_none() && !args.examples.is_dir() {
         let _ = writeln!(
             err,
@@ -624,14 +633,6 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
                 code
             }
         };
-    }
-    let sizes: Vec<&str> = args.sizes.split(',').map(str::trim).collect();
-    if let Some(bad) = sizes.iter().find(|s| !["1k", "10k", "50k"].contains(s)) {
-        let _ = writeln!(
-            err,
-            "error: unknown benchmark size `{bad}`; use 1k, 10k or 50k (e.g. --sizes 1k,10k)"
-        );
-        return 2;
     }
     if args.solvers {
         return match solvers::run(&args, &sizes, out) {
