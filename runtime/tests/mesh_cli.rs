@@ -208,6 +208,23 @@ fn the_binary_takes_arguments_that_are_not_utf8() {
     std::fs::remove_dir_all(&d).ok();
 }
 
+/// `mesh` with its nodes renumbered by a permutation from a linear congruential sequence
+/// seeded with `seed`: deterministic, far from local.
+fn scattered(mesh: &softc::mesh::model::Mesh, seed: u64) -> softc::mesh::model::Mesh {
+    let n = mesh.nodes.len();
+    let mut scatter: Vec<u32> = (0..n as u32).collect();
+    let mut state = seed;
+    for i in (1..n).rev() {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        scatter.swap(i, (state >> 33) as usize % (i + 1));
+    }
+    let mut scattered = mesh.clone();
+    scattered.renumber_nodes(&scatter);
+    scattered
+}
+
 /// A mesh whose nodes are scattered (a fixed pseudo-random renumbering of the 10k benchmark
 /// mesh) is flagged by `info` and renumbered by `convert --renumber` into one with the same
 /// elements, sets and surfaces, its nodes numbered close together.
@@ -217,18 +234,7 @@ fn scattered_node_numbering_is_reported_and_renumbered() {
     let d = tmp("renumber");
     let original =
         softc::mesh::load(&meshes().join("bench_10k.msh"), LengthUnit::Millimetre).unwrap();
-    let n = original.nodes.len();
-    // A permutation from a linear congruential sequence: deterministic, far from local.
-    let mut scatter: Vec<u32> = (0..n as u32).collect();
-    let mut state = 12345u64;
-    for i in (1..n).rev() {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        scatter.swap(i, (state >> 33) as usize % (i + 1));
-    }
-    let mut scattered = original.clone();
-    scattered.renumber_nodes(&scatter);
+    let scattered = scattered(&original, 12345);
     assert!(span(&original) < 0.15, "{}", span(&original));
     assert!(span(&scattered) > 0.5, "{}", span(&scattered));
     let file = d.join("scattered.msh");
@@ -272,7 +278,11 @@ fn scattered_node_numbering_is_reported_and_renumbered() {
     }
     let mut order = locality_order(&scattered);
     order.sort_unstable();
-    assert_eq!(order, (0..n as u32).collect::<Vec<_>>(), "a permutation");
+    assert_eq!(
+        order,
+        (0..original.nodes.len() as u32).collect::<Vec<_>>(),
+        "a permutation"
+    );
     assert!(
         renumbered.validate().is_empty(),
         "{:?}",
@@ -290,17 +300,7 @@ fn mesh_info_names_tets_by_the_files_numbers_and_hints_at_renumbering_any_scatte
     let d = tmp("info-ids");
     let original =
         softc::mesh::load(&meshes().join("bench_1k.msh"), LengthUnit::Millimetre).unwrap();
-    let n = original.nodes.len();
-    let mut scatter: Vec<u32> = (0..n as u32).collect();
-    let mut state = 777u64;
-    for i in (1..n).rev() {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        scatter.swap(i, (state >> 33) as usize % (i + 1));
-    }
-    let mut scattered = original.clone();
-    scattered.renumber_nodes(&scatter);
+    let scattered = scattered(&original, 777);
     let file = d.join("small-scattered.msh");
     softc::mesh::save(&scattered, &file, LengthUnit::Millimetre).unwrap();
     let loaded = softc::mesh::load(&file, LengthUnit::Millimetre).unwrap();
