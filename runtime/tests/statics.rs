@@ -509,3 +509,27 @@ fn the_soft_endoscope_reaches_the_thesis_circle_within_the_cap() {
         dy.hypot(dz) * 1e3
     );
 }
+
+/// Issue 31 item 14: an implicit Euler run reported a residual of 0.0 whatever its steps
+/// reached. The report now holds the worst step's residual, absolute and relative to that
+/// step's predictor.
+#[test]
+fn implicit_euler_reports_its_worst_steps_residual() {
+    let path = all_kinds_implicit("all_kinds_implicit_residual.soft");
+    let scene = Scene::load(&path, &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let summary = Simulation::new(&scene, cpu).run(None, None).unwrap();
+    let solver = summary.solver.unwrap();
+    assert_eq!(solver.kind, "implicit_euler");
+    assert!(solver.converged);
+    assert!(
+        solver.residual_norm > 0.0 && solver.residual_norm.is_finite(),
+        "{}",
+        solver.residual_norm
+    );
+    assert!(
+        solver.relative_residual > 0.0 && solver.relative_residual <= 1e-6,
+        "{}",
+        solver.relative_residual
+    );
+}

@@ -84,7 +84,13 @@ impl<B: Backend> Simulation<'_, B> {
                 tolerance,
                 1e3 * tolerance,
             )? {
-                Newton::Converged { .. } => {}
+                // The report gives the worst step's residual, absolute and relative to
+                // its predictor's (issue 31 item 14: it said 0).
+                Newton::Converged { residual, .. } => {
+                    report.residual_norm = report.residual_norm.max(residual);
+                    let relative = if scale > 0.0 { residual / scale } else { 0.0 };
+                    report.relative_residual = report.relative_residual.max(relative);
+                }
                 Newton::Failed { why } => {
                     return Err(RunError(format!(
                         "implicit Euler step {} (t = {t} s) found no solution: {why}. Use a \

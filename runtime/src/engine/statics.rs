@@ -153,8 +153,14 @@ struct Goal {
 
 /// How one Newton solve ended.
 pub(super) enum Newton {
-    Converged { iterations: u64 },
-    Failed { why: String },
+    /// Converged, with the residual's norm (N) at the converged state.
+    Converged {
+        iterations: u64,
+        residual: f64,
+    },
+    Failed {
+        why: String,
+    },
 }
 
 impl<'s, B: Backend> Simulation<'s, B> {
@@ -295,7 +301,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let mut refresh = false;
         for it in 0..MAX_NEWTON {
             if r_norm <= tolerance {
-                return Ok(Newton::Converged { iterations: it });
+                return Ok(Newton::Converged {
+                    iterations: it,
+                    residual: r_norm,
+                });
             }
             report.newton_iterations += 1;
             // Inexact Newton: a matrix-free solve need only be as accurate as the step can
@@ -316,7 +325,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
             // tell: refresh it first.
             if dx.iter().fold(0.0f64, |m, d| m.max(d.abs())) <= self.round_off_length() {
                 if fresh {
-                    return Ok(Newton::Converged { iterations: it + 1 });
+                    return Ok(Newton::Converged {
+                        iterations: it + 1,
+                        residual: r_norm,
+                    });
                 }
                 refresh = true;
                 continue;
@@ -360,7 +372,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
                     // At the round-off floor no step decreases the residual further.
                     if r_norm <= floor {
                         self.residual(t, load)?;
-                        return Ok(Newton::Converged { iterations: it + 1 });
+                        return Ok(Newton::Converged {
+                            iterations: it + 1,
+                            residual: r_norm,
+                        });
                     }
                     return Ok(Newton::Failed { why });
                 }
@@ -369,6 +384,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if r_norm <= tolerance {
             return Ok(Newton::Converged {
                 iterations: MAX_NEWTON,
+                residual: r_norm,
             });
         }
         Ok(Newton::Failed {
@@ -555,7 +571,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             let s_try = (s + ds).min(1.0);
             let (t, load) = at(s_try);
             match self.newton(tangent, report, t, load, tolerance, tolerance)? {
-                Newton::Converged { iterations } => {
+                Newton::Converged { iterations, .. } => {
                     s = s_try;
                     good = self.backend.get(self.ids.x);
                     report.load_steps += 1;
