@@ -189,6 +189,13 @@ fn gradients_with_the_states_on_the_gpu_equal_those_kept_on_the_host() {
     let before = sim.backend.stats();
     let on_device = sim.gradient(None, Some(steps), &options).unwrap();
     let after = sim.backend.stats();
+    // Again on the same device (an optimization's next iteration): the state store and its
+    // copy kernels are reused, the same bits come out.
+    let again = sim.gradient(None, Some(steps), &options).unwrap();
+    assert_eq!(again.schedule, on_device.schedule);
+    for (name, g) in &on_device.gradients {
+        assert_eq!(again.gradients[name].to_bits(), g.to_bits(), "{name}");
+    }
     let submissions = after.submissions - before.submissions;
     eprintln!(
         "forward+backward of {steps} steps: {submissions} submissions, {} dispatches",

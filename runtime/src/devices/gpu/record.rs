@@ -49,7 +49,7 @@ impl Core {
             return Err(e);
         }
         let start = (std::time::Instant::now(), self.stats.submit_seconds);
-        if self.check_launch(k, &range)?.is_none() {
+        if !self.check_launch(k, &range)? {
             return Ok(());
         }
         let key = self.key_of(k, slot);
@@ -369,13 +369,8 @@ impl Core {
             .collect()
     }
 
-    /// Check a launch of kernel `k` over `range`; `Ok(None)` for an empty one, else its
-    /// kernel's entity count.
-    pub(super) fn check_launch(
-        &self,
-        k: usize,
-        range: &Range<usize>,
-    ) -> Result<Option<()>, String> {
+    /// Check a launch of kernel `k` over `range`: whether it has entities to run.
+    pub(super) fn check_launch(&self, k: usize, range: &Range<usize>) -> Result<bool, String> {
         let kernel = self
             .module
             .kernels
@@ -392,7 +387,7 @@ impl Core {
             ));
         }
         if range.is_empty() {
-            return Ok(None);
+            return Ok(false);
         }
         let groups = (range.len() as u64).div_ceil(u64::from(wgsl::WORKGROUP_SIZE));
         let max = u64::from(self.device.limits().max_compute_workgroups_per_dimension);
@@ -403,7 +398,7 @@ impl Core {
                 range.len()
             ));
         }
-        Ok(Some(()))
+        Ok(true)
     }
 
     /// Submit the pending dispatches in one compute pass (their blocks are in the staging

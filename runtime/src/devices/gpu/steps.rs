@@ -116,7 +116,7 @@ impl Core {
         }
         let mut plans = Vec::new();
         for (k, range) in launches {
-            if self.check_launch(*k, range)?.is_none() {
+            if !self.check_launch(*k, range)? {
                 continue;
             }
             let kernel = &self.module.kernels[*k];
@@ -201,8 +201,9 @@ impl Core {
                 .sum();
             self.reserve(bytes);
             // Blocks: one per step for kernels reading `t`, else one for the chunk.
+            // Each plan's first launch block (its dispatch argument).
             let mut args = Vec::with_capacity(plans.len());
-            for (i, p) in plans.iter().enumerate() {
+            for p in &plans {
                 let rows = if p.t_at.is_some() { chunk } else { 1 };
                 let (at, arg) = self.alloc_blocks(p.kernel, rows);
                 let span = round_up(
@@ -226,7 +227,7 @@ impl Core {
                         );
                     }
                 }
-                args.push((i, arg));
+                args.push(arg);
             }
             let mut parity: [Option<Vec<usize>>; 2] = [None, None];
             for s in 0..chunk {
@@ -260,7 +261,7 @@ impl Core {
                     let mut d = Dispatch::one(*pipeline, group, 0, workgroups);
                     for (j, &m) in members.iter().enumerate() {
                         let p = &plans[m];
-                        let arg = args[m].1;
+                        let arg = args[m];
                         d.args[j] = if p.t_at.is_some() {
                             self.next_arg(p.kernel, arg, s)
                         } else {

@@ -272,7 +272,21 @@ impl Core {
         len: usize,
     ) -> Result<Option<u64>, String> {
         self.flush();
-        self.states = None;
+        // An optimization asks once per iteration: the store it has serves when it is large
+        // enough (its buffers, copy kernels and bind groups are kept).
+        if let Some(st) = &self.states
+            && st.len == len
+            && st.slots >= slots
+            && slots > 0
+        {
+            return Ok(Some(st.slot_bytes * slots as u64));
+        }
+        // A new store: the copy kernels' bind groups name the old buffers.
+        let copies = self.states.take().map(|st| (st.store, st.restore, st.len));
+        if let Some((store, restore, _)) = copies {
+            self.bind_groups
+                .retain(|(k, _), _| *k != store && *k != restore);
+        }
         let size = self.module.precision.size() as u64;
         let limits = self.device.limits();
         let align = u64::from(limits.min_storage_buffer_offset_alignment).max(256);
@@ -314,6 +328,21 @@ impl Core {
             },
             count: None,
         };
+        // The copy kernels depend only on `len`: made once for it.
+        if let Some((store, restore, made_for)) = copies
+            && made_for == len
+        {
+            self.states = Some(DeviceStates {
+                chunks,
+                per_chunk,
+                slot_bytes,
+                slots,
+                len,
+                store,
+                restore,
+            });
+            return Ok(Some(total));
+        }
         let first = self.pipelines.len();
         for (name, entries) in [
             (
