@@ -362,7 +362,12 @@ fn malformed_other_formats_are_refused() {
     refuse("trunc_bin.vtk", &bin[..bin.len() - 40], &["truncated"]);
     refuse("kind.vtk", vtk.replace("ASCII", "HEX").as_bytes(), &["HEX"]);
     let vtu = fixture_text("cube_ascii.vtu");
-    refuse("trunc.vtu", vtu[..vtu.len() * 2 / 3].as_bytes(), &[]);
+    // A cut XML file is called truncated, at its last line (it was "no <Piece> element").
+    refuse(
+        "trunc.vtu",
+        vtu[..vtu.len() * 2 / 3].as_bytes(),
+        &["truncated", "without `</VTKFile>`"],
+    );
     refuse(
         "offs.vtu",
         vtu.replace("4 8 12 16 20 24 27 30", "4 8 12 16 20 24 27 99")
@@ -407,6 +412,22 @@ fn malformed_other_formats_are_refused() {
         e.to_string().contains("cube.ele") && e.to_string().contains("60"),
         "{e}"
     );
+    // Cut short by one line: refused as truncated at its last line (it was read as a mesh
+    // with one tet fewer), and by half.
+    let ele = fixture_text("cube.ele");
+    let lines: Vec<&str> = ele.lines().collect();
+    for keep in [lines.len() - 1, lines.len() / 2] {
+        std::fs::write(d.join("cube.ele"), lines[..keep].join("\n")).unwrap();
+        let e = load(&d.join("cube.ele"), LengthUnit::Millimetre).unwrap_err();
+        let data = keep - 1; // the header, then one tet per line
+        assert!(
+            e.to_string()
+                .contains(&format!("cube.ele:{keep}: the file is truncated"))
+                && e.to_string()
+                    .contains(&format!("after {data} of the 6 tetrahedra")),
+            "{e}"
+        );
+    }
     std::fs::write(d.join("cube.ele"), fixture_text("cube.ele")).unwrap();
     std::fs::write(
         d.join("cube.node"),

@@ -546,3 +546,55 @@ fn a_non_finite_loss_stops_the_run_with_an_error() {
         assert!(!out.contains("\"gradients\""), "{extra:?}: {out}");
     }
 }
+
+/// A solve that fails inside an optimization names the failing iteration as the progress log
+/// numbers it, with the params it ran with, and the saved state keeps the iterations before it
+/// (issue 31 item 4: the error named the previous iteration, without its params).
+#[test]
+fn a_failing_iteration_is_named_with_its_params_and_the_good_ones_are_kept() {
+    let dir = scratch("failing-iteration");
+    // A learning rate so large that the second iteration's pressure inverts an element.
+    let script = variant(
+        "pressure.soft",
+        &[
+            ("in [0 kPa, 50 kPa]", "in [0 kPa, 100 MPa]"),
+            ("nadam(lr: 0.2)", "nadam(lr: 3)"),
+        ],
+        &dir,
+    );
+    let out = dir.join("out");
+    let (code, _, err) = softc(&[
+        "run",
+        script.to_str().unwrap(),
+        "--steps",
+        "200",
+        "--iterations",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("iteration 1/3: loss "), "{err}");
+    let state = read_json(&out.join("state.json"));
+    assert_eq!(state["iteration"], 1, "{err}");
+    // The params the failing iteration ran with: the update after iteration 1.
+    let u = state["u"][0].as_f64().unwrap();
+    let failed = err
+        .lines()
+        .find(|l| l.contains("iteration 2/3 failed with p_peak = "))
+        .unwrap_or_else(|| panic!("{err}"));
+    let p: f64 = failed
+        .split("p_peak = ")
+        .nth(1)
+        .and_then(|r| r.split(':').next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("{failed}"));
+    assert!(p > 50e3, "p_peak = {p} (u = {u})");
+    assert!(failed.contains("inverted at step"), "{failed}");
+    // Shown to seven digits, not as 3.9999999999999996e-5.
+    assert!(failed.contains("dt = 4e-5 s"), "{failed}");
+    assert!(
+        err.contains("state.json` keeps the 1 iteration(s) that succeeded"),
+        "{err}"
+    );
+}

@@ -381,7 +381,10 @@ fn train<B: Backend + Send>(
         None
     };
     while !trainer.finished() {
-        let record = trainer.step().map_err(|e| e.0)?.clone();
+        let record = match trainer.step() {
+            Ok(r) => r.clone(),
+            Err(e) => return Err(with_saved_state(e.0, ctx.dir.as_deref(), &trainer.state)),
+        };
         let line = log_line(&record, iterations);
         match &bar {
             Some(b) => {
@@ -594,4 +597,19 @@ fn write_plots<B: Backend + Send>(
         scenes.max(1)
     );
     write_figure(&dir.join("optimization"), &title, &panels).map(|_| ())
+}
+
+/// A failed iteration's error, told what the saved state keeps: the last iteration that
+/// succeeded (written before the failing one started), or that nothing was saved.
+fn with_saved_state(error: String, dir: Option<&Path>, state: &TrainState) -> String {
+    match dir {
+        Some(d) if state.iteration > 0 => format!(
+            "{error}\n`{}` keeps the {} iteration(s) that succeeded, their params and losses \
+             in its `history`",
+            d.join(STATE_FILE).display(),
+            state.iteration
+        ),
+        Some(_) => format!("{error}\nno iteration succeeded: nothing was saved"),
+        None => error,
+    }
 }

@@ -22,6 +22,7 @@ pub use crate::devices::Backend;
 pub use crate::devices::cpu::Cpu;
 
 use crate::devices::{Launch, Lockstep, Uniforms};
+use crate::outputs::Sig;
 use crate::outputs::csv::CsvOutput;
 use crate::outputs::vtk::{Frame, VtkOutput};
 use scene::{DtChoice, Scene};
@@ -905,14 +906,16 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let what = match problem {
             // J is the volume ratio of state `s`, evaluated by step `s`.
             Problem::Inverted { element, j } => format!(
-                "element {} inverted at step {s} (t = {:.6} s): J = {j:e}",
+                "element {} inverted at step {s} (t = {:.6} s): J = {j}",
                 mesh.tet_id(element),
-                s as f64 * dt
+                s as f64 * dt,
+                j = Sig(j)
             ),
             Problem::NonFiniteJ { element, j } => format!(
-                "element {} became non-finite at step {s} (t = {:.6} s): J = {j:e}",
+                "element {} became non-finite at step {s} (t = {:.6} s): J = {j}",
                 mesh.tet_id(element),
-                s as f64 * dt
+                s as f64 * dt,
+                j = Sig(j)
             ),
             Problem::NonFinite { node } => format!(
                 "the simulation became unstable at step {} (t = {:.6} s): node {} has a \
@@ -924,8 +927,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
         };
         let (Some((good, _, _)), Some(x)) = (last, checked) else {
             return format!(
-                "{what}. Reduce dt (now {dt:e} s) or the load rate; `dt = auto` estimates the \
-                 stable step"
+                "{what}. Reduce dt (now {dt} s) or the load rate; `dt = auto` estimates the \
+                 stable step",
+                dt = Sig(dt)
             );
         };
         let cause = self.cause(dt, s, start, &x, &problem);
@@ -975,10 +979,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         {
             return format!(
                 "The material constants are not physical: the stiffness at rest is not \
-                 positive (a deformation mode with ω² = {:e} /s², against {highest:e} /s² \
+                 positive (a deformation mode with ω² = {} /s², against {highest} /s² \
                  for the stiffest); check the moduli (E > 0, μ > 0, a bulk modulus > 0) and \
                  Poisson's ratio (−1 < ν < 0.5). A smaller dt does not help",
-                lowest.min(highest)
+                Sig(lowest.min(highest)),
+                highest = Sig(highest)
             );
         }
         // Mass damping: v ← (1 − β·dt)·v + …, unstable by itself for β·dt > 2 whatever the
@@ -990,9 +995,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
             return format!(
                 "The damping is too strong for this time step: β = {beta:.3e} /s at that time, \
                  and β·dt = {bdt:.3e} > 2 makes every velocity flip sign and grow each step \
-                 (the elastic forces alone would be stable up to dt = {:e} s). Lower the damping \
+                 (the elastic forces alone would be stable up to dt = {} s). Lower the damping \
                  below {:.3e} /s, or dt below {:.3e} s",
-                self.estimate.unwrap_or(f64::NAN),
+                Sig(self.estimate.unwrap_or(f64::NAN)),
                 2.0 / dt,
                 2.0 / beta
             );
@@ -1003,8 +1008,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
             Ok(e) if e.is_finite() && e > 0.0 => e,
             _ => {
                 return format!(
-                    "The stable step could not be estimated there; try a smaller dt, e.g. {:e} s",
-                    dt / 4.0
+                    "The stable step could not be estimated there; try a smaller dt, e.g. {} s",
+                    Sig(dt / 4.0)
                 );
             }
         };
@@ -1013,19 +1018,28 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if dt > 0.9 * here {
             let suggested = 0.8 * here;
             return match self.estimate {
-                Some(rest) if here < rest => format!(
-                    "The run is unstable because the time step dt = {dt:e} s is too large: the \
+                // Both estimates have their own error: only a clearly smaller step is the
+                // material stiffening.
+                Some(rest) if here < 0.95 * rest => format!(
+                    "The run is unstable because the time step dt = {dt} s is too large: the \
                      material stiffens as it \
-                     deforms, the stable step is {here:e} s at step {good} (the last state \
-                     checked), against {rest:e} s at rest where `dt = auto` estimates it. Use dt \
-                     <= {suggested:e} s, e.g. `dt = auto(safety: {})`",
-                    two_digits_down((suggested / rest).min(0.9))
+                     deforms, the stable step is {here} s at step {good} (the last state \
+                     checked), against {rest} s at rest where `dt = auto` estimates it. Use dt \
+                     <= {suggested} s, e.g. `dt = auto(safety: {})`",
+                    two_digits_down((suggested / rest).min(0.9)),
+                    dt = Sig(dt),
+                    here = Sig(here),
+                    rest = Sig(rest),
+                    suggested = Sig(suggested)
                 ),
                 _ => format!(
-                    "The run is unstable because the time step dt = {dt:e} s is too large for \
+                    "The run is unstable because the time step dt = {dt} s is too large for \
                      this mesh and material: the \
-                     stable step at step {good} (the last state checked) is {here:e} s; use dt \
-                     <= {suggested:e} s"
+                     stable step at step {good} (the last state checked) is {here} s; use dt \
+                     <= {suggested} s",
+                    dt = Sig(dt),
+                    here = Sig(here),
+                    suggested = Sig(suggested)
                 ),
             };
         }
@@ -1033,13 +1047,17 @@ impl<'s, B: Backend> Simulation<'s, B> {
                     there, or use an inversion-safe material such as `stable_neo_hookean`";
         match problem {
             Problem::Inverted { .. } => format!(
-                "The time step is not the cause (dt = {dt:e} s is within the stable step \
-                 {here:e} s at step {good}, the last state checked): the load deforms the element past \
-                 inversion — {load}"
+                "The time step is not the cause (dt = {dt} s is within the stable step \
+                 {here} s at step {good}, the last state checked): the load deforms the element past \
+                 inversion — {load}",
+                dt = Sig(dt),
+                here = Sig(here)
             ),
             _ => format!(
-                "The time step is not the cause (dt = {dt:e} s is within the stable step \
-                 {here:e} s at step {good}, the last state checked): the forces grew without bound — {load}"
+                "The time step is not the cause (dt = {dt} s is within the stable step \
+                 {here} s at step {good}, the last state checked): the forces grew without bound — {load}",
+                dt = Sig(dt),
+                here = Sig(here)
             ),
         }
     }

@@ -86,7 +86,8 @@ impl<B: Backend> Simulation<'_, B> {
             return Err(RunError(format!(
                 "the stable-step estimate failed: the stiffness probe gave ω² = {theta:e} \
                  (residual {residual:e}); the rest state's forces are not finite — check the \
-                 material constants, or give a fixed `dt`"
+                 material constants (a fixed `dt` does not help: the first step would not be \
+                 finite either)"
             )));
         }
         let omega2 = theta + residual;

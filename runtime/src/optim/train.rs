@@ -288,7 +288,8 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
                 let script_part = |f: &str| f.split('/').next().unwrap_or("").to_string();
                 if !s.fingerprint.contains('/') {
                     return Err(RunError(
-                        "the saved state does not record its mesh (an older softc wrote it);                          run without --resume to start afresh"
+                        "the saved state does not record its mesh (an older softc wrote it); \
+                         run without --resume to start afresh"
                             .into(),
                     ));
                 }
@@ -440,6 +441,7 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let start = std::time::Instant::now();
         let it = self.state.iteration;
         self.set_params();
+        let params = self.params();
         let shuffle = !matches!(self.plan.method, super::method::Method::Gd);
         let members: Vec<usize> = if self.plan.inputs.is_empty() {
             vec![0]
@@ -485,14 +487,12 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         let mut scenes = Vec::new();
         for (r, inputs) in results.into_iter().zip(assignments) {
             let report = r.map_err(|e| {
-                RunError(format!(
-                    "iteration {it}{}: {e}",
-                    if inputs.is_empty() {
-                        String::new()
-                    } else {
-                        format!(" (scene {inputs:?})")
-                    }
-                ))
+                let scene = if inputs.is_empty() {
+                    String::new()
+                } else {
+                    format!(", scene {}", listed(&inputs))
+                };
+                RunError(format!("{}{scene}: {e}", self.failing(it, &params)))
             })?;
             let l = report.summary.loss.unwrap_or(f64::NAN);
             loss += l / n;
@@ -503,14 +503,15 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         }
         if !loss.is_finite() {
             return Err(RunError(format!(
-                "iteration {it}: the loss is {loss}; the params were {:?}",
-                self.params()
+                "{}: the loss is {loss}",
+                self.failing(it, &params)
             )));
         }
         if let Some((k, g)) = gradient.iter().find(|(_, g)| !g.is_finite()) {
             return Err(RunError(format!(
-                "iteration {it}: d loss/d {} is {g}; try `gradient_scale`, `truncate` or `clip` \
-                 in the optimize block",
+                "{}: d loss/d {} is {g}; try `gradient_scale`, `truncate` or `clip` in the \
+                 optimize block",
+                self.failing(it, &params),
                 k.trim_start_matches("param.")
             )));
         }
@@ -534,7 +535,6 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
             .plan
             .schedule
             .at(self.plan.lr, it, self.plan.iterations);
-        let params = self.params();
         let first = &self.sims[0];
         let stop = self
             .plan
@@ -554,8 +554,9 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
             // as `null`): stop before the state is written.
             if let Some(k) = self.state.u.iter().position(|u| !u.is_finite()) {
                 return Err(RunError(format!(
-                    "iteration {it}: the update made `{}` non-finite; the saved state keeps \
-                     iteration {it}'s start — lower the learning rate or clip the gradient",
+                    "{}: the update made `{}` non-finite — lower the learning rate or clip the \
+                     gradient",
+                    self.failing(it, &params),
                     self.plan.entries[k].uniform.trim_start_matches("param.")
                 )));
             }
@@ -576,6 +577,17 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
             seconds: start.elapsed().as_secs_f64(),
         });
         Ok(self.state.history.last().expect("just pushed"))
+    }
+
+    /// How an error names the iteration `it` (0-based) that failed: its number as the progress
+    /// log prints it and the param values it ran with, so the failure can be reproduced.
+    fn failing(&self, it: u64, params: &BTreeMap<String, f64>) -> String {
+        format!(
+            "iteration {}/{} failed with {}",
+            it + 1,
+            self.plan.iterations,
+            listed(params)
+        )
     }
 
     /// The params the run ends with: those of the stopping iteration, else the last update.
@@ -631,4 +643,19 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
         }
         Ok(out)
     }
+}
+
+/// `a = 1.5e3, b = 2e0, …` for an error message: the first few values of a map of uniforms
+/// (a controller may train hundreds), the rest counted.
+fn listed(values: &BTreeMap<String, f64>) -> String {
+    const SHOWN: usize = 6;
+    let mut parts: Vec<String> = values
+        .iter()
+        .take(SHOWN)
+        .map(|(k, v)| format!("{} = {v:e}", k.trim_start_matches("param.")))
+        .collect();
+    if values.len() > SHOWN {
+        parts.push(format!("and {} more", values.len() - SHOWN));
+    }
+    parts.join(", ")
 }

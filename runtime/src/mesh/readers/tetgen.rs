@@ -69,14 +69,26 @@ fn count(
         MeshError::parse(format!("empty file, expected the {what} header")).in_file(path)
     })?;
     let n = tok.int(toks, 0, *line, &format!("number of {what}"))?;
-    if n < 0 || n as usize > all.len() {
+    if n < 0 {
+        return Err(MeshError::parse(format!("the header declares {n} {what}"))
+            .in_file(path)
+            .at_line(*line));
+    }
+    let data = all.len() - 1;
+    if n as usize > data {
+        // Where the data stops: a file cut short (an interrupted export or copy) is by far the
+        // likelier cause than a wrong count.
+        let end = all.last().map_or(*line, |l| l.0);
         return Err(MeshError::parse(format!(
-            "header says {n} {what} but the file has {} data lines",
-            all.len() - 1
+            "the file is truncated: it ends at line {end} after {data} of the {n} {what} its \
+             header (line {line}) declares"
         ))
         .in_file(path)
-        .at_line(*line)
-        .with_fix("the file is truncated or the count is wrong"));
+        .at_line(end)
+        .with_fix(
+            "re-export or copy the file again; if it is complete, correct the count on the \
+             header line",
+        ));
     }
     Ok(n as usize)
 }

@@ -221,6 +221,17 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
             .in_file(path)
             .with_fix("softc reads .vtu unstructured grids"));
     }
+    // Every writer closes the root element last (after any appended data): without it the
+    // file was cut short, and a missing element further down would be the wrong diagnosis.
+    if find(&data, b"</VTKFile>").is_none() {
+        let end = cur.line_at(data.len().saturating_sub(1));
+        return Err(MeshError::parse(format!(
+            "the file is truncated: it ends at line {end} without `</VTKFile>`"
+        ))
+        .in_file(path)
+        .at_line(end)
+        .with_fix("re-export or copy the file again"));
+    }
     if let Some(k) = xml.find("<VTKFile") {
         let end = xml[k..].find('>').map(|e| k + e).unwrap_or(xml.len());
         let a = attrs(&xml[k..end]);
