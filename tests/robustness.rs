@@ -415,6 +415,45 @@ fn a_second_run_on_an_out_folder_in_use_is_refused() {
 }
 
 #[test]
+fn no_output_path_inside_a_held_folder_is_accepted() {
+    // Issue 31 item 8: while an optimization held `D`, `--json D/result.json` and another
+    // optimization's `--out D/vtk` were accepted and overwrote its files.
+    let d = scratch("lock-inside");
+    let held = d.join("held");
+    std::fs::create_dir_all(&held).unwrap();
+    let first = std::fs::File::create(held.join(".softc.lock")).unwrap();
+    first.try_lock().unwrap();
+    let script = softc_tests::root().join("runtime/tests/fixtures/optim/pressure.soft");
+    let script = script.to_str().unwrap();
+    let inside = |p: &str| held.join(p).to_str().unwrap().to_string();
+    let (json, vtk, csv) = (inside("result.json"), inside("vtk"), inside("logs/csv"));
+    for args in [
+        vec!["--iterations", "1", "--json", &json],
+        vec!["--iterations", "1", "--out", &vtk],
+        vec!["--no-optimize", "--steps", "10", "--vtk", &vtk],
+        vec!["--no-optimize", "--steps", "10", "--csv", &csv],
+    ] {
+        let mut full = vec!["run", script];
+        full.extend(&args);
+        let (code, _, err) = softc_tests::softc(&full);
+        assert_eq!(code, 2, "{args:?}: {err}");
+        assert!(
+            err.contains(args[args.len() - 2]) && err.contains("in use by another softc run"),
+            "{args:?}: {err}"
+        );
+    }
+    assert_eq!(
+        std::fs::read_dir(&held).unwrap().count(),
+        1,
+        "only the lock file"
+    );
+    drop(first);
+    let (code, _, err) = softc_tests::softc(&["run", script, "--iterations", "1", "--json", &json]);
+    assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&d).ok();
+}
+
+#[test]
 fn a_plain_run_holds_its_output_folders() {
     // The sibling of item 2 for plain runs: `--vtk DIR` and `--csv DIR` of two runs.
     let d = scratch("lock-vtk");

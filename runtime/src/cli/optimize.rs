@@ -360,7 +360,7 @@ fn train<B: Backend + Send>(
         trainer.plan.method.name(),
         members,
         trainer.state.steps,
-        trainer.state.dt,
+        crate::outputs::Sig(trainer.state.dt),
         if trainer.state.iteration > 0 {
             format!(", resuming after iteration {}", trainer.state.iteration)
         } else {

@@ -5,6 +5,7 @@ use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
 use crate::engine::statics::LinearSolver;
 use crate::engine::{RunSummary, Simulation};
+use crate::outputs::Sig;
 use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
 use crate::session::{
     check_set_dims, csv_outputs, grad_options, parse_checkpoint, parse_dt, parse_memory_budget,
@@ -385,6 +386,21 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         return 2;
     }
     warn_ignored_flags(&args, &scene, err);
+    // No output inside a folder another run holds (its own folder lock covers only that folder).
+    let outputs: Vec<(&str, &std::path::Path)> = [
+        ("--json", &args.json),
+        ("--vtk", &args.vtk),
+        ("--csv", &args.csv),
+        ("--out", &args.out),
+        ("--resume", &args.resume),
+    ]
+    .into_iter()
+    .filter_map(|(flag, p)| p.as_deref().map(|p| (flag, p)))
+    .collect();
+    if let Err(e) = crate::outputs::lock::check_outputs(&outputs) {
+        let _ = writeln!(err, "softc: {e}");
+        return 2;
+    }
     if !args.grad && !args.no_optimize {
         match crate::optim::Plan::from_scene(&scene) {
             Ok(Some(plan)) => return super::optimize(&args, &scene, plan, dt, out, err),
@@ -484,7 +500,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         "{}: {} steps of {:e} s in {:.3} s ({:.0} steps/s, backend {})",
         args.file.display(),
         summary.steps,
-        summary.dt,
+        Sig(summary.dt),
         summary.wall_seconds,
         summary.steps as f64 / summary.wall_seconds.max(1e-12),
         backend_name
@@ -638,7 +654,7 @@ fn run_scenes(
                     "{}: scene {k}: {} steps of {:e} s in {:.3} s (backend {backend})",
                     args.file.display(),
                     summary.steps,
-                    summary.dt,
+                    Sig(summary.dt),
                     summary.wall_seconds
                 );
                 if let Some(w) = crate::session::steady_loss_moving(&scene, &summary) {
@@ -680,17 +696,20 @@ fn announce_dt<B: Backend>(
     };
     let _ = writeln!(
         err,
-        "stable step estimate (2/omega_max of M^-1 K at rest): {est:e} s; dt = {:e} s",
-        chosen.unwrap_or(est)
+        "stable step estimate (2/omega_max of M^-1 K at rest): {} s; dt = {} s",
+        Sig(est),
+        Sig(chosen.unwrap_or(est))
     );
     if let Some(d) = chosen
         && d > est
     {
         let _ = writeln!(
             err,
-            "warning: dt = {d:e} s exceeds the stable step {est:e} s of this mesh and material; \
-             the run will likely blow up. Use `dt = auto` or dt <= {:e} s",
-            0.9 * est
+            "warning: dt = {} s exceeds the stable step {} s of this mesh and material; \
+             the run will likely blow up. Use `dt = auto` or dt <= {} s",
+            Sig(d),
+            Sig(est),
+            Sig(0.9 * est)
         );
     }
     Ok(())

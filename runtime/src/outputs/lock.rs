@@ -48,6 +48,51 @@ pub fn lock_folder(dir: &Path, flag: &str) -> Result<FolderLock, String> {
     }
 }
 
+/// The folder, if any, that another run holds and that `path` lies in (`path` itself, or one
+/// of the folders above it). A folder holds everything below it: a run writing `D/result.json`
+/// or `D/vtk` while an optimization holds `D` would overwrite that run's files. Call it before
+/// this run takes its own locks (a lock this process holds looks held too).
+pub fn held_above(path: &Path) -> Option<std::path::PathBuf> {
+    let absolute = std::path::absolute(path).ok()?;
+    // The deepest folder that exists, with its links resolved as the holder's were.
+    let existing = absolute.ancestors().find(|a| a.is_dir())?;
+    let canonical = existing.canonicalize().ok()?;
+    canonical
+        .ancestors()
+        .find(|a| is_held(a))
+        .map(Path::to_path_buf)
+}
+
+/// Whether another open lock holds `dir`.
+fn is_held(dir: &Path) -> bool {
+    let Ok(file) = std::fs::File::open(dir.join(LOCK_FILE)) else {
+        return false;
+    };
+    match file.try_lock() {
+        // Released when `file` drops at the end of this function.
+        Ok(()) => false,
+        Err(std::fs::TryLockError::WouldBlock) => true,
+        Err(std::fs::TryLockError::Error(_)) => false,
+    }
+}
+
+/// Refuse outputs inside a folder another run holds: each `(flag, path)` a run will write.
+pub fn check_outputs(outputs: &[(&str, &Path)]) -> Result<(), String> {
+    for (flag, path) in outputs {
+        if let Some(dir) = held_above(path) {
+            return Err(format!(
+                "{flag} {}: `{}` is in use by another softc run (it holds a lock on `{}`), \
+                 and this run would overwrite its files there; wait for that run to finish, or \
+                 choose a path outside that folder",
+                path.display(),
+                dir.display(),
+                dir.join(LOCK_FILE).display()
+            ));
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -65,6 +110,21 @@ mod tests {
         let again = lock_folder(&d, "--out");
         assert!(again.is_ok(), "{again:?}");
         drop(again);
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn a_path_inside_a_held_folder_is_refused() {
+        let d = std::env::temp_dir().join(format!("softc-lock-inside-{}", std::process::id()));
+        let held = lock_folder(&d, "--out").unwrap();
+        // Not free from inside this process either: checked before a run takes its own locks.
+        for inside in [d.join("result.json"), d.join("vtk"), d.join("a/b/c.csv")] {
+            let e = check_outputs(&[("--json", &inside)]).unwrap_err();
+            assert!(e.contains("in use by another softc run"), "{e}");
+        }
+        drop(held);
+        assert!(check_outputs(&[("--json", &d.join("result.json"))]).is_ok());
+        assert!(held_above(&d.join("vtk")).is_none());
         std::fs::remove_dir_all(&d).unwrap();
     }
 }

@@ -32,6 +32,13 @@ impl std::fmt::Display for Sig {
     }
 }
 
+/// `{:e}` too: the same short form.
+impl std::fmt::LowerExp for Sig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        std::fmt::Display::fmt(self, f)
+    }
+}
+
 /// Mean, min and max displacement of a node set per axis (m): what `softc run` reports per set
 /// and `output csv(SET)` logs. `position(n)` is node n's current position.
 pub fn set_displacement(
