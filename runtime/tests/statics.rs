@@ -533,3 +533,70 @@ fn implicit_euler_reports_its_worst_steps_residual() {
         solver.relative_residual
     );
 }
+
+/// A log line sink the test reads back.
+#[derive(Clone, Default)]
+struct Log(std::sync::Arc<std::sync::Mutex<Vec<u8>>>);
+
+impl std::io::Write for Log {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().unwrap().extend_from_slice(b);
+        Ok(b.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Issue 31 item 10: static and implicit runs of any length started silently (no progress,
+/// no estimate of the time left), unlike explicit ones. Here the progress shows at once.
+#[test]
+fn static_and_implicit_runs_report_their_progress() {
+    use softc::outputs::progress::Progress;
+    use std::time::Duration;
+    let static_path = beam_script(
+        "progress_static.soft",
+        "material rubber = neo_hookean(mu: 100 kPa, kappa: 1 MPa, density: 1070 kg/m^3)",
+        "  integrator = quasi_static\n  duration = 1 s\n  steps = 3\n  \
+         pressure cavity = 1 kPa * ramp(t, 1 s)",
+        "",
+    );
+    let implicit_path = all_kinds_implicit("progress_implicit.soft");
+    for (path, gradient, want) in [
+        (
+            &static_path,
+            false,
+            &["quasi-static step 1/3", "quasi-static step 3/3"][..],
+        ),
+        (
+            &implicit_path,
+            true,
+            &[
+                "implicit step 1/8",
+                "implicit step 8/8",
+                "backward step 8/8",
+            ][..],
+        ),
+    ] {
+        let scene = Scene::load(path, &[]).unwrap();
+        let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+        let mut sim = Simulation::new(&scene, cpu);
+        let log = Log::default();
+        sim.progress = Some(Progress::to_log(
+            "run",
+            Box::new(log.clone()),
+            Duration::ZERO,
+            Duration::ZERO,
+        ));
+        if gradient {
+            sim.gradient(None, None, &GradOptions::default()).unwrap();
+        } else {
+            sim.run(None, None).unwrap();
+        }
+        let text = String::from_utf8(log.0.lock().unwrap().clone()).unwrap();
+        for w in want {
+            assert!(text.contains(w), "`{w}` missing from:\n{text}");
+        }
+        assert!(text.contains("s left"), "{text}");
+    }
+}

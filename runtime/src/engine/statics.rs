@@ -745,6 +745,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 }
                 return Err(e);
             }
+            if let Some(p) = &mut self.progress {
+                p.update("quasi-static", k, steps);
+            }
             if !self.csv.is_empty() {
                 let x = self.backend.get(self.ids.x);
                 for c in &mut self.csv {

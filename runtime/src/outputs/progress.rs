@@ -76,8 +76,8 @@ impl Progress {
                 let fraction = done as f64 / total.max(1) as f64;
                 let left = if fraction > 0.0 {
                     format!(
-                        ", ~{:.0} s left",
-                        elapsed.as_secs_f64() * (1.0 - fraction) / fraction
+                        ", ~{} left",
+                        human(elapsed.as_secs_f64() * (1.0 - fraction) / fraction)
                     )
                 } else {
                     String::new()
@@ -110,6 +110,22 @@ impl Progress {
                 }
             }
         }
+    }
+}
+
+/// A time left in the unit a reader takes in at a glance: `42 s`, `12 min`, `3.4 h`,
+/// `5.2 days`, `1.3 years` (a run of 10⁹ static steps should not read `42368149 s`).
+fn human(seconds: f64) -> String {
+    // (unit, name, from how many of it on)
+    const UNITS: [(f64, &str, f64); 4] = [
+        (365.25 * 86400.0, "years", 1.0),
+        (86400.0, "days", 2.0),
+        (3600.0, "h", 2.0),
+        (60.0, "min", 2.0),
+    ];
+    match UNITS.iter().find(|(size, _, from)| seconds >= from * size) {
+        Some((size, name, _)) => format!("{:.1} {name}", seconds / size),
+        None => format!("{seconds:.0} s"),
     }
 }
 
@@ -166,5 +182,14 @@ mod tests {
             "{text}"
         );
         assert!(lines[1].contains("step 200/200 (100.0 %)"), "{text}");
+    }
+
+    #[test]
+    fn the_time_left_reads_in_a_fitting_unit() {
+        assert_eq!(human(42.4), "42 s");
+        assert_eq!(human(119.0), "119 s");
+        assert_eq!(human(720.0), "12.0 min");
+        assert_eq!(human(3.4 * 3600.0), "3.4 h");
+        assert_eq!(human(42_368_149.0), "1.3 years");
     }
 }
