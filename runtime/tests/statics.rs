@@ -600,3 +600,37 @@ fn static_and_implicit_runs_report_their_progress() {
         assert!(text.contains("s left"), "{text}");
     }
 }
+
+/// Issue 31 item 14, the static half: a converged solve whose loads are zero reported a
+/// relative residual of 1.0 (its residual over the round-off of the rest forces). It is now
+/// relative to the internal forces of a small deformation, and Newton does not chase
+/// round-off.
+#[test]
+fn a_zero_load_static_solve_reports_a_small_relative_residual() {
+    let path = beam_script(
+        "zero_load.soft",
+        "material rubber = neo_hookean(mu: 100 kPa, kappa: 1 MPa, density: 1070 kg/m^3)",
+        "  integrator = quasi_static\n  duration = 1 s\n  steps = 2\n  \
+         pressure cavity = 0 kPa * ramp(t, 1 s)",
+        "",
+    );
+    let scene = Scene::load(&path, &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let summary = Simulation::new(&scene, cpu).run(None, None).unwrap();
+    let solver = summary.solver.unwrap();
+    assert!(solver.converged);
+    assert!(
+        solver.relative_residual < 1e-10,
+        "relative residual {} (residual {} N)",
+        solver.relative_residual,
+        solver.residual_norm
+    );
+    assert_eq!(solver.newton_iterations, 0, "the rest state is the answer");
+    let moved = summary
+        .x
+        .iter()
+        .zip(&scene.mesh.nodes)
+        .map(|(x, x0)| (0..3).map(|d| (x[d] - x0[d]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    assert!(moved < 1e-15, "moved {moved} m");
+}
