@@ -484,7 +484,7 @@ fn bench_tradeoff_measures_error_against_wall_time_and_marks_the_pareto_front() 
     // Two resolutions cannot be extrapolated: the finest f64 FEM run is the reference.
     let method = v["reference"]["method"].as_str().unwrap();
     assert!(
-        method.contains("finest f64 FEM solution (resolution 2"),
+        method.contains("finest explicit f64 FEM solution (resolution 2"),
         "{method}"
     );
     let points = v["points"].as_array().unwrap();
@@ -559,6 +559,52 @@ fn bench_tradeoff_measures_error_against_wall_time_and_marks_the_pareto_front() 
     let variant = points[0]["script"].as_str().unwrap();
     let (code, _, err) = softc(&["run", variant, "--steps", "10"]);
     assert_eq!(code, 0, "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Issue 31 item 5: a study of static solves only called its first listed resolution the
+/// finest (with `--resolutions 1,2` the coarse mesh was the reference, error 0), and a
+/// one-point study printed its table, then failed on the plot (exit 1). The static variant
+/// solves one state at the script's end time (it solved all 4,000 of the script's `steps`).
+#[test]
+fn a_static_only_tradeoff_study_has_a_reference_and_a_plot() {
+    let dir = std::env::temp_dir().join(format!("softc-tradeoff-static-{}", std::process::id()));
+    let script = bench_variant(&dir, "static.soft", &[]);
+    for (resolutions, finest) in [("1,2", "resolution 2,"), ("1", "resolution 1,")] {
+        let out = dir.join(format!("study-{resolutions}"));
+        let (code, table, err) = softc(&[
+            "bench",
+            "--tradeoff",
+            script.to_str().unwrap(),
+            "--integrators",
+            "quasi_static",
+            "--precisions",
+            "f64",
+            "--resolutions",
+            resolutions,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 0, "{err}\n{table}");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("tradeoff.json")).unwrap())
+                .unwrap();
+        let method = v["reference"]["method"].as_str().unwrap();
+        assert!(
+            method.contains("finest quasi_static f64 FEM solution") && method.contains(finest),
+            "{method}"
+        );
+        for p in v["points"].as_array().unwrap() {
+            assert_eq!(p["steps"], 1, "one equilibrium state: {p}");
+            // The finest is the reference, exactly; the coarser one is not.
+            let exact =
+                p["resolution"].as_f64() == Some(if finest.contains('2') { 2.0 } else { 1.0 });
+            assert_eq!(p["error"].as_f64() == Some(0.0), exact, "{p}");
+        }
+        for f in ["tradeoff.png", "tradeoff.svg"] {
+            assert!(std::fs::metadata(out.join(f)).unwrap().len() > 1000, "{f}");
+        }
+    }
     std::fs::remove_dir_all(&dir).ok();
 }
 

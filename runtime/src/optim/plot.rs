@@ -1134,7 +1134,9 @@ struct Scatter {
 }
 
 /// Writes `<stem>.png` and `<stem>.svg`: a log-log scatter of `points`, coloured by group, with
-/// the highlighted points ringed and joined in order of x. Non-positive values are left out.
+/// the highlighted points ringed and joined in order of x. A y of exactly 0 (an error measured
+/// against the point itself) is drawn at the axis' floor, a decade below the smallest positive
+/// y, and labelled `(0)`; other non-positive or non-finite values are left out.
 pub fn write_scatter(
     stem: &Path,
     title: &str,
@@ -1142,10 +1144,30 @@ pub fn write_scatter(
     y_label: &str,
     points: &[ScatterPoint],
 ) -> Result<Vec<PathBuf>, String> {
+    let drawable = |p: &&ScatterPoint| p.x.is_finite() && p.x > 0.0 && p.y.is_finite();
+    let floor = points
+        .iter()
+        .filter(drawable)
+        .map(|p| p.y)
+        .filter(|&y| y > 0.0)
+        .fold(f64::INFINITY, f64::min);
+    let floor = if floor.is_finite() {
+        floor / 10.0
+    } else {
+        1e-16
+    };
     let points: Vec<ScatterPoint> = points
         .iter()
-        .filter(|p| p.x.is_finite() && p.y.is_finite() && p.x > 0.0 && p.y > 0.0)
-        .cloned()
+        .filter(drawable)
+        .filter(|p| p.y >= 0.0)
+        .map(|p| match p.y {
+            0.0 => ScatterPoint {
+                y: floor,
+                label: format!("{} (0)", p.label),
+                ..p.clone()
+            },
+            _ => p.clone(),
+        })
         .collect();
     if points.is_empty() {
         return Err("plot: no point with positive, finite coordinates to draw".into());
@@ -1278,6 +1300,14 @@ mod scatter_tests {
         assert!(std::fs::metadata(&files[0]).unwrap().len() > 1000);
         let none = write_scatter(&dir.join("n"), "t", "x", "y", &[]);
         assert!(none.is_err());
+        // One point whose error is 0 (the study's own reference): drawn at the floor.
+        let alone = ScatterPoint {
+            y: 0.0,
+            ..points[0].clone()
+        };
+        let files = write_scatter(&dir.join("one"), "t", "x", "y", &[alone]).unwrap();
+        let svg = std::fs::read_to_string(&files[1]).unwrap();
+        assert!(svg.contains("p1 (0)"), "{svg}");
         let _ = std::fs::remove_dir_all(dir);
     }
 }

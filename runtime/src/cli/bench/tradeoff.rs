@@ -140,7 +140,13 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
         .position(|(n, _)| *n == sweep.set)
         .ok_or_else(|| format!("the script has no node set `{}`", sweep.set))?;
     let configs = configs(sweep);
-    let duration = base.resolved.sim.duration.unwrap_or(0.0);
+    // The script's end time: its `duration`, or its fixed `dt` times its `steps`.
+    let sim = &base.resolved.sim;
+    let duration = match (sim.duration, sim.dt, sim.steps) {
+        (Some(d), _, _) => d,
+        (None, softc_compiler::driver::DtChoice::Given(dt), Some(n)) => dt * n as f64,
+        _ => 0.0,
+    };
     if duration <= 0.0 && sweep.integrators.contains(&Solver::ImplicitEuler) {
         return Err(format!(
             "{USAGE}the implicit_euler variant divides the script's `duration` into \
@@ -334,7 +340,8 @@ fn refined_mesh(
 }
 
 /// The variant's `sim` settings: its integrator, time step, precision and model.
-/// `duration`: the script's (the implicit steps divide it).
+/// `duration`: the script's end time (the implicit steps divide it; the static solve is of
+/// that one time), 0 where it has none.
 fn sim_settings(c: &Config, sweep: &Sweep, duration: f64) -> Vec<(String, String)> {
     let step = match c.solver {
         Solver::Explicit => ("dt".to_string(), format!("auto(safety: {})", c.safety)),
@@ -354,8 +361,18 @@ fn sim_settings(c: &Config, sweep: &Sweep, duration: f64) -> Vec<(String, String
             },
         ),
     ];
-    if c.solver == Solver::ImplicitEuler {
-        settings.push(("integrator".into(), "implicit_euler".into()));
+    match c.solver {
+        Solver::ImplicitEuler => {
+            settings.push(("integrator".into(), "implicit_euler".into()));
+            settings.push(("steps".into(), IMPLICIT_STEPS.to_string()));
+        }
+        // One state, at the end: the script's `steps` would be as many equilibrium states
+        // (4,000 solves of the benchmark beam for the one value measured).
+        Solver::QuasiStatic if duration > 0.0 => {
+            settings.push(("duration".into(), format!("{duration:e} s")));
+            settings.push(("steps".into(), "1".into()));
+        }
+        _ => {}
     }
     if c.springs {
         let alpha = sweep.springs.clone().unwrap_or_default();
@@ -429,27 +446,39 @@ fn measure(
     })
 }
 
-/// Richardson extrapolation over the f64 FEM resolution series of the baseline settings, with
-/// the order observed from the three finest; else the finest of them.
+/// Richardson extrapolation over the f64 FEM resolution series of one integrator (explicit at
+/// its first settings, else the quasi-static solves, else implicit Euler: whichever the sweep
+/// ran), with the order observed from the three finest; else the finest of them.
 fn reference(points: &[Point]) -> Reference {
-    let base = &points[0];
+    let accurate = |p: &Point| p.precision == "f64" && p.model == "fem";
+    let solver = ["explicit", "quasi_static", "implicit_euler"]
+        .into_iter()
+        .find(|s| points.iter().any(|p| accurate(p) && p.solver == *s));
+    // An explicit series keeps one safety and settle tolerance (the first listed).
+    let base = points
+        .iter()
+        .find(|p| accurate(p) && Some(p.solver.as_str()) == solver);
     let mut series: Vec<&Point> = points
         .iter()
-        .filter(|p| {
-            p.solver == "explicit"
-                && p.precision == "f64"
-                && p.model == "fem"
-                && p.safety == base.safety
-                && p.settle == base.settle
+        .filter(|p| match base {
+            Some(b) => {
+                accurate(p) && p.solver == b.solver && p.safety == b.safety && p.settle == b.settle
+            }
+            None => true,
         })
         .collect();
     series.sort_by(|a, b| a.resolution.total_cmp(&b.resolution));
     series.dedup_by(|a, b| a.resolution == b.resolution);
-    let finest = series.last().copied().unwrap_or(base);
+    let finest = series.last().copied().unwrap_or(&points[0]);
+    let what = match base {
+        Some(b) => format!("{} f64 FEM", b.solver),
+        // Only f32 or spring runs: the finest of them is all there is.
+        None => format!("{} {} {}", finest.solver, finest.precision, finest.model),
+    };
     let fallback = |why: &str| Reference {
         value: finest.value,
         method: format!(
-            "the finest f64 FEM solution (resolution {}, {} tets): {why}",
+            "the finest {what} solution (resolution {}, {} tets): {why}",
             finest.resolution, finest.tets
         ),
         order: None,
@@ -488,7 +517,7 @@ fn reference(points: &[Point]) -> Reference {
     Reference {
         value,
         method: format!(
-            "Richardson extrapolation of the f64 FEM solutions at resolutions {}, {}, {} \
+            "Richardson extrapolation of the {what} solutions at resolutions {}, {}, {} \
              (observed order {p:.2} in the cell size)",
             a.resolution, b.resolution, c.resolution
         ),
@@ -655,6 +684,34 @@ mod tests {
         let r = reference(&points);
         assert_eq!(r.value, 2.0);
         assert!(r.method.contains("finest"), "{r:?}");
+    }
+
+    /// Issue 31 item 5: a sweep of static solves only took its first listed resolution as
+    /// "the finest" (the coarsest, with --resolutions 1,1.5,2), so that mesh got error 0.
+    #[test]
+    fn a_static_only_sweep_is_measured_against_its_own_finest_series() {
+        let statics = |rs: &[f64]| -> Vec<Point> {
+            rs.iter()
+                .map(|&r| Point {
+                    solver: "quasi_static".into(),
+                    safety: 0.0,
+                    settle: 0.0,
+                    ..point(r, 2.0 + 3.0 / (r * r))
+                })
+                .collect()
+        };
+        // Three resolutions, listed coarse to fine: extrapolated.
+        let r = reference(&statics(&[1.0, 1.5, 2.0]));
+        assert!((r.value - 2.0).abs() < 1e-9, "{r:?}");
+        assert!(r.method.contains("quasi_static f64 FEM"), "{r:?}");
+        // Two, listed fine to coarse: the finest, not the first listed.
+        let r = reference(&statics(&[2.0, 1.0]));
+        assert_eq!(r.value, 2.0 + 3.0 / 4.0, "{r:?}");
+        assert!(r.method.contains("resolution 2,"), "{r:?}");
+        // Explicit runs are preferred where the sweep has them.
+        let mut mixed = statics(&[1.0, 1.5, 2.0]);
+        mixed.push(point(1.0, 7.0));
+        assert_eq!(reference(&mixed).value, 7.0);
     }
 
     #[test]
