@@ -48,6 +48,12 @@ def evaluate(path: str, params: Mapping[str, Any], compile_options: Mapping[str,
     return scene.run(params, **run_options)
 
 
+def _task_options(compile_options: Mapping[str, Any], cpus: float) -> Dict[str, Any]:
+    """A task's compile options: it runs on the CPUs Ray reserved for it (with one task per
+    core, softc's default of a thread per core would put every core's threads on each core)."""
+    return {"threads": max(1, int(cpus)), **compile_options}
+
+
 def map(  # noqa: A001 - the name the API promises
     path,
     param_dicts: Sequence[Mapping[str, Any]],
@@ -63,7 +69,8 @@ def map(  # noqa: A001 - the name the API promises
     :func:`softc.compile` (``backend``, ``precision``, ``threads``, ``adapter``,
     ``linear_solver``) and the run options (``steps``, ``dt``, ``inputs``; with ``grad``,
     ``checkpoint`` and ``memory_budget``). ``num_cpus``: CPUs Ray reserves per task (default
-    1, or ``threads`` when given). Ray is started locally if it is not running; call
+    1, or ``threads`` when given); a task runs on that many threads unless ``threads`` says
+    otherwise. Ray is started locally if it is not running; call
     ``ray.init(address=...)`` first to use a cluster. A failed run raises its
     :class:`softc.SimulationError` here (a compile error, :class:`softc.CompileError`).
     """
@@ -83,8 +90,9 @@ def map(  # noqa: A001 - the name the API promises
     if not ray.is_initialized():
         ray.init(ignore_reinit_error=True, log_to_driver=False)
     cpus = num_cpus if num_cpus is not None else float(compile_options.get("threads") or 1)
+    task_options = _task_options(compile_options, cpus)
     task = ray.remote(num_cpus=cpus, max_retries=0)(evaluate)
-    refs = [task.remote(path, dict(p), compile_options, run_options, grad) for p in param_dicts]
+    refs = [task.remote(path, dict(p), task_options, run_options, grad) for p in param_dicts]
     try:
         return ray.get(refs)
     except ray.exceptions.RayTaskError as e:

@@ -46,3 +46,15 @@ def test_unknown_options_and_scripts(local_ray):
         softc.ray.map(SCENES / "beam.soft", [{}], stepz=3)
     with pytest.raises(FileNotFoundError):
         softc.ray.map(SCENES / "nope.soft", [{}])
+
+
+def test_a_task_runs_on_the_cpus_ray_reserved_for_it():
+    # Issue 31 item 18: a task compiled with softc's default threads, one per core, so one
+    # task per core oversubscribed the machine.
+    assert softc.ray._task_options({}, 1.0) == {"threads": 1}
+    assert softc.ray._task_options({}, 0.5) == {"threads": 1}
+    assert softc.ray._task_options({}, 4.0) == {"threads": 4}
+    assert softc.ray._task_options({"threads": 2, "precision": "f32"}, 1.0) == {
+        "threads": 2,
+        "precision": "f32",
+    }

@@ -22,6 +22,8 @@ pub struct Cpu {
     /// The time loop compiled for the launches of a step (single-threaded steps only).
     step_loop: Option<softc_compiler::back::cranelift::StepLoop>,
     use_step_loop: bool,
+    /// One thread or all for the large launches run one by one (no thread count given).
+    launch_speed: LaunchSpeed,
 }
 
 /// How fast time loops ran on one thread and on several, per kind of step (its largest
@@ -41,15 +43,25 @@ type StepKind = (usize, usize, usize);
 /// thread and on all, each stretch's time per step is kept (a moving average), the faster
 /// choice runs, and every `PROBE_EVERY`-th stretch tries the other one again (the first four
 /// alternate, so that neither is judged by one cold stretch).
+/// A probe of the slower choice costs time when it confirms the faster one, so probes that
+/// confirm it come ever more rarely (every 16th stretch, then 32nd, … up to every 512th), and
+/// a probe that changes the choice brings them back to every 16th: on a machine shared with
+/// another run the many-thread probes cost little, and the choice still follows the load.
 #[derive(Default, Clone, Copy)]
 struct LoopSpeed {
     /// Seconds per step on one thread, on several.
     per_step: [Option<f64>; 2],
     stretches: u64,
+    /// Stretches between probes, and the stretch of the next probe.
+    interval: u64,
+    next_probe: u64,
+    /// The choice a probe running now questions (`Some(faster was many)`).
+    probing: Option<bool>,
 }
 
 impl LoopSpeed {
     const PROBE_EVERY: u64 = 16;
+    const PROBE_AT_MOST_EVERY: u64 = 512;
 
     /// Whether the next stretch runs on several threads.
     fn pick(&mut self) -> bool {
@@ -57,23 +69,85 @@ impl LoopSpeed {
         if self.stretches <= 4 {
             return self.stretches % 2 == 1;
         }
+        let Some(faster) = self.faster() else {
+            return self.per_step[1].is_none();
+        };
+        if self.interval == 0 {
+            self.interval = Self::PROBE_EVERY;
+            self.next_probe = self.stretches + self.interval;
+        }
+        if self.stretches >= self.next_probe {
+            self.probing = Some(faster);
+            self.next_probe = self.stretches + self.interval;
+            return !faster;
+        }
+        faster
+    }
+
+    /// Whether several threads are faster, once both have been measured.
+    fn faster(&self) -> Option<bool> {
         match self.per_step {
-            [_, None] => true,
-            [None, _] => false,
-            [Some(one), Some(many)] => {
-                let faster = many < one;
-                if self.stretches.is_multiple_of(Self::PROBE_EVERY) {
-                    !faster
-                } else {
-                    faster
-                }
-            }
+            [Some(one), Some(many)] => Some(many < one),
+            _ => None,
         }
     }
 
     fn record(&mut self, many: bool, seconds_per_step: f64) {
         let s = &mut self.per_step[many as usize];
-        *s = Some(s.map_or(seconds_per_step, |old| 0.7 * old + 0.3 * seconds_per_step));
+        // A probe's time replaces the probed choice's: what it had is as old as the probes
+        // are rare, and the load may have changed since.
+        *s = Some(match (*s, self.probing) {
+            (Some(old), None) => 0.7 * old + 0.3 * seconds_per_step,
+            _ => seconds_per_step,
+        });
+        if let Some(before) = self.probing.take() {
+            self.interval = if self.faster() == Some(before) {
+                (2 * self.interval).min(Self::PROBE_AT_MOST_EVERY)
+            } else {
+                Self::PROBE_EVERY
+            };
+            self.next_probe = self.stretches + self.interval;
+        }
+    }
+}
+
+/// The same choice for the launches that go one by one through the host (a backward pass's
+/// kernels, on a 10k mesh five launches of 50–500 µs per step): split over the launch pool's
+/// workers, or run on the calling thread. Judged by stretches of [`LaunchSpeed::STRETCH`]
+/// launches (their seconds per entity), so that a many-thread stretch is not judged by the
+/// wake-up of workers that slept through a single-thread one. Alone on a 2-core machine the
+/// split wins; beside another run, whose threads take the cores the workers wait on, one
+/// thread does (issue 31 item 18: two such runs at once took 3.0 s each against 1.85 s with
+/// one thread each).
+#[derive(Default)]
+struct LaunchSpeed {
+    speed: LoopSpeed,
+    many: bool,
+    launches: u32,
+    entities: usize,
+    seconds: f64,
+}
+
+impl LaunchSpeed {
+    const STRETCH: u32 = 64;
+
+    /// Whether this launch runs on several threads.
+    fn pick(&mut self) -> bool {
+        if self.launches == 0 {
+            self.many = self.speed.pick();
+        }
+        self.many
+    }
+
+    fn record(&mut self, entities: usize, seconds: f64) {
+        self.launches += 1;
+        self.entities += entities;
+        self.seconds += seconds;
+        if self.launches == Self::STRETCH {
+            let per_entity = self.seconds / self.entities.max(1) as f64;
+            self.speed.record(self.many, per_entity);
+            (self.launches, self.entities, self.seconds) = (0, 0, 0.0);
+        }
     }
 }
 
@@ -81,9 +155,28 @@ impl LoopSpeed {
 /// OS once: `available_parallelism` reads the cgroup files on every call (a few system calls),
 /// and a launch asked it each time — at 10k tets that cost the backward pass a third of its
 /// speed (f32 forward+backward ~3,400 steps/s, ~4,300 with `--threads 2`, which did not ask).
+/// `SOFTC_THREADS=N` sets it for every run of the process that gives no thread count (a sweep
+/// running one softc per core sets 1).
 fn launch_threads() -> usize {
     static THREADS: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
-    *THREADS.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get().min(8)))
+    *THREADS.get_or_init(|| {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get().min(8));
+        match std::env::var("SOFTC_THREADS") {
+            Err(_) => cores,
+            Ok(text) => threads_from_env(&text).unwrap_or_else(|| {
+                eprintln!(
+                    "softc: warning: SOFTC_THREADS={text} is not a positive whole number; \
+                     using {cores} threads"
+                );
+                cores
+            }),
+        }
+    })
+}
+
+/// A thread count from `SOFTC_THREADS`: a positive whole number.
+fn threads_from_env(text: &str) -> Option<usize> {
+    text.trim().parse::<usize>().ok().filter(|&n| n >= 1)
 }
 
 impl Cpu {
@@ -101,6 +194,7 @@ impl Cpu {
             scratch: Vec::new(),
             step_loop: None,
             use_step_loop: true,
+            launch_speed: LaunchSpeed::default(),
         })
     }
 
@@ -212,12 +306,24 @@ impl Backend for Cpu {
         for &id in &self.module.kernel(k).uniforms {
             self.scratch.push(u.get(id));
         }
-        let threads = self.threads_for(range.len());
+        let entities = range.len();
+        let mut threads = self.threads_for(entities);
+        // Measured, as the time loop's thread count is, where no count was given.
+        let auto = self.threads.is_none() && threads > 1;
+        if auto && !self.launch_speed.pick() {
+            threads = 1;
+        }
         let (Some(bufs), Some(topo)) = (self.buffers.as_mut(), self.topology.as_ref()) else {
             return Err("the backend is not prepared".into());
         };
+        let start = std::time::Instant::now();
         self.module
-            .run_parallel(k, bufs, topo, &self.scratch, range, threads)
+            .run_parallel(k, bufs, topo, &self.scratch, range, threads)?;
+        if auto {
+            self.launch_speed
+                .record(entities, start.elapsed().as_secs_f64());
+        }
+        Ok(())
     }
 
     /// Steps whose launches all run on one thread go through the compiled time loop: one call
@@ -296,5 +402,64 @@ impl Backend for Cpu {
             }
         }
         Ok(true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Feed `speed` stretches whose seconds per step are `one` on one thread and `many` on
+    /// several; returns how many of `n` stretches ran on several.
+    fn run_stretches(speed: &mut LoopSpeed, n: usize, one: f64, many: f64) -> usize {
+        let mut on_many = 0;
+        for _ in 0..n {
+            let m = speed.pick();
+            speed.record(m, if m { many } else { one });
+            on_many += m as usize;
+        }
+        on_many
+    }
+
+    #[test]
+    fn the_faster_thread_count_runs_and_probes_of_the_slower_grow_rare() {
+        let mut speed = LoopSpeed::default();
+        // Alone: several threads are faster, and run (probes of one thread aside).
+        let many = run_stretches(&mut speed, 1000, 2.0, 1.0);
+        assert!(many > 980, "{many} of 1000 on several threads");
+        // Beside another run: several threads are slower; after a few stretches to see it,
+        // one thread runs, and probes of several come at most every 512th stretch.
+        run_stretches(&mut speed, 100, 2.0, 5.0);
+        let many = run_stretches(&mut speed, 2048, 2.0, 5.0);
+        assert!(many <= 6, "{many} of 2048 probes on several threads");
+        // Alone again: a probe finds several threads faster, and they run again.
+        run_stretches(&mut speed, 600, 2.0, 1.0);
+        let many = run_stretches(&mut speed, 100, 2.0, 1.0);
+        assert!(many > 90, "{many} of 100 on several threads");
+    }
+
+    #[test]
+    fn a_launch_stretch_keeps_one_choice_for_all_its_launches() {
+        let mut launches = LaunchSpeed::default();
+        let mut choices = Vec::new();
+        for _ in 0..4 * LaunchSpeed::STRETCH {
+            let m = launches.pick();
+            choices.push(m);
+            launches.record(1000, if m { 1e-4 } else { 2e-4 });
+        }
+        for stretch in choices.chunks(LaunchSpeed::STRETCH as usize) {
+            assert!(stretch.iter().all(|&m| m == stretch[0]), "{stretch:?}");
+        }
+        // The first stretches alternate: both choices are measured.
+        assert_eq!(choices[0], !choices[LaunchSpeed::STRETCH as usize]);
+    }
+
+    #[test]
+    fn softc_threads_takes_a_positive_whole_number() {
+        assert_eq!(threads_from_env("1"), Some(1));
+        assert_eq!(threads_from_env(" 4 "), Some(4));
+        for bad in ["0", "-2", "two", "1.5", ""] {
+            assert_eq!(threads_from_env(bad), None, "{bad}");
+        }
     }
 }
