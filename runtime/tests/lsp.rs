@@ -12,7 +12,8 @@ const TIMEOUT: Duration = Duration::from_secs(60);
 
 struct Client {
     child: Child,
-    stdin: ChildStdin,
+    /// `None` once closed ([`Client::close_input`]).
+    stdin: Option<ChildStdin>,
     rx: mpsc::Receiver<Value>,
     next_id: i64,
     /// Notifications received while waiting for responses.
@@ -62,7 +63,7 @@ impl Client {
         });
         Client {
             child,
-            stdin,
+            stdin: Some(stdin),
             rx,
             next_id: 1,
             notifications: Vec::new(),
@@ -70,9 +71,15 @@ impl Client {
     }
 
     fn send_raw(&mut self, body: &[u8]) {
-        write!(self.stdin, "Content-Length: {}\r\n\r\n", body.len()).unwrap();
-        self.stdin.write_all(body).unwrap();
-        self.stdin.flush().unwrap();
+        let stdin = self.stdin.as_mut().expect("the input is open");
+        write!(stdin, "Content-Length: {}\r\n\r\n", body.len()).unwrap();
+        stdin.write_all(body).unwrap();
+        stdin.flush().unwrap();
+    }
+
+    /// Close the server's input (the editor went away).
+    fn close_input(&mut self) {
+        self.stdin = None;
     }
 
     fn send(&mut self, v: &Value) {
@@ -452,8 +459,9 @@ fn malformed_requests_get_errors_and_the_server_keeps_answering() {
     let r = c.next_response();
     assert_eq!(r["error"]["code"], -32600, "{r}");
     // A header without Content-Length.
-    c.stdin.write_all(b"Content-Type: nothing\r\n\r\n").unwrap();
-    c.stdin.flush().unwrap();
+    let stdin = c.stdin.as_mut().unwrap();
+    stdin.write_all(b"Content-Type: nothing\r\n\r\n").unwrap();
+    stdin.flush().unwrap();
     let r = c.next_response();
     assert_eq!(r["error"]["code"], -32600, "{r}");
 
@@ -612,6 +620,66 @@ fn exit_without_shutdown_is_status_1() {
             return;
         }
         assert!(Instant::now() < deadline, "softc lsp did not exit");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+/// Issue 31 item 7: functions that each call the previous one twice made the check of a
+/// document take minutes (2^n evaluations), wedging the server: it answered nothing else and
+/// did not exit when its input closed. Repeated calls are evaluated once, so 30 such levels
+/// (10^9 calls unshared) check at once; distinct arguments at every level are E0002 after a
+/// bounded number of evaluations.
+#[test]
+fn a_document_of_exponential_calls_does_not_wedge_the_server() {
+    let levels = |distinct: bool| {
+        let mut text = String::from("fn f0(a: length) -> length = a\n");
+        for i in 1..=30 {
+            let second = if distinct { "3 * a + 1 mm" } else { "a" };
+            let first = if distinct { "2 * a" } else { "a" };
+            text += &format!(
+                "fn f{i}(a: length) -> length = f{}({first}) + f{}({second})\n",
+                i - 1,
+                i - 1
+            );
+        }
+        text + "let reach = f30(1 mm)\n"
+    };
+    let mut c = Client::start();
+    c.initialize();
+    let (shared, distinct) = ("file:///shared.soft", "file:///distinct.soft");
+    let started = Instant::now();
+    c.open(shared, &levels(false));
+    c.open(distinct, &levels(true));
+    let found = c.diagnostics(shared);
+    assert!(found.iter().all(|d| d["code"] != "E0002"), "{found:?}");
+    let found = c.diagnostics(distinct);
+    assert!(
+        found
+            .iter()
+            .any(|d| d["code"] == "E0002" && d["message"].as_str().unwrap().contains("too complex")),
+        "{found:?}"
+    );
+    // The server still answers, and exits when its input closes.
+    let hover = c.result(
+        "textDocument/hover",
+        json!({"textDocument": {"uri": shared}, "position": pos(30, 5)}),
+    );
+    assert!(!hover.is_null());
+    eprintln!(
+        "both documents checked in {:.2} s",
+        started.elapsed().as_secs_f64()
+    );
+    c.close_input();
+    let deadline = Instant::now() + TIMEOUT;
+    loop {
+        if let Some(status) = c.child.try_wait().unwrap() {
+            assert_eq!(status.code(), Some(1), "end of input without shutdown");
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "softc lsp did not exit when its input closed"
+        );
         std::thread::sleep(Duration::from_millis(10));
     }
 }

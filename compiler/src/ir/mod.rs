@@ -587,6 +587,8 @@ impl Args {
 /// the builder's own table (see [`BuiltKernel`]).
 pub struct KernelBuilder {
     pub b: Builder,
+    /// Unique in the process: what a memo of lowered values is keyed by.
+    id: u64,
     args: Vec<ArgSource>,
     uniforms: Vec<String>,
     stores: Vec<Store>,
@@ -596,9 +598,16 @@ pub struct KernelBuilder {
 }
 
 impl KernelBuilder {
+    /// Unique among the builders of the process.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
     pub fn new(name: &str, domain: Domain, origin: &str) -> Self {
+        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         KernelBuilder {
             b: Builder::new(u32::MAX),
+            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             args: Vec::new(),
             uniforms: Vec::new(),
             stores: Vec::new(),

@@ -27,7 +27,7 @@ const WINDOW_SLACK: f64 = 1e-4;
 const WINDOW_SLACK_RELATIVE: f64 = 1e-6;
 
 /// A lowered value: a scalar or an array of values (vectors, matrices).
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub enum LVal {
     S(V),
     A(Vec<LVal>),
@@ -88,6 +88,22 @@ pub type Env = HashMap<String, LVal>;
 /// Inlining depth bound: the checker rejects cycles, this only guards against surprises.
 const MAX_INLINE: usize = 64;
 
+/// The most function calls and lets one lowering inlines (SPEC §13). Calls repeated with the
+/// same arguments are inlined once ([`ExprLowerer::inlined`]), so this bounds only definitions
+/// that expand to as many distinct values: 24 functions that each call the previous one twice
+/// with different arguments are 16 million.
+pub const MAX_INLINED: usize = 200_000;
+
+/// A call (or a let) already inlined into one kernel: the kernel builder, the definition, its
+/// bound arguments and the reduction variables bound where it was lowered.
+#[derive(PartialEq, Eq, Hash)]
+struct Inlined {
+    builder: u64,
+    name: String,
+    args: Vec<(String, LVal)>,
+    binders: Vec<(String, u32, bool)>,
+}
+
 pub struct ExprLowerer<'p, 'a> {
     pub program: &'p Program<'a>,
     /// Constants the scene fixes (e.g. `t_end`, `dt`), by name.
@@ -108,6 +124,12 @@ pub struct ExprLowerer<'p, 'a> {
     /// Reduction variables currently bound to an element (a mesh element index).
     element_binders: HashMap<String, u32>,
     depth: usize,
+    /// Calls and lets already inlined, with their values: the IR builder numbers equal
+    /// values alike, so a repeated call's value is the same and is not expanded again (a
+    /// definition calling another twice doubles the work at every level otherwise).
+    inlined: HashMap<Inlined, LVal>,
+    /// Definitions inlined so far (at most [`MAX_INLINED`]).
+    expansions: usize,
 }
 
 impl<'p, 'a> ExprLowerer<'p, 'a> {
@@ -122,6 +144,8 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             node_binders: HashMap::new(),
             element_binders: HashMap::new(),
             depth: 0,
+            inlined: HashMap::new(),
+            expansions: 0,
         }
     }
 
@@ -292,7 +316,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             .find(name)
             .ok_or_else(|| LowerError::new(format!("`{name}` has no value in a kernel")))?;
         match &item.kind {
-            ItemKind::Let(l) => self.inline(k, &Env::new(), &l.value),
+            ItemKind::Let(l) => self.inline(k, name, &Env::new(), &l.value),
             ItemKind::Param(p) => {
                 if field_set(item).is_some() {
                     let buffer = self.element_fields.get(name).ok_or_else(|| {
@@ -316,14 +340,53 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         }
     }
 
-    fn inline(&mut self, k: &mut KernelBuilder, env: &Env, e: &Expr) -> Result<LVal, LowerError> {
+    /// The value of definition `name` (a function's body `e` with its arguments bound in `env`,
+    /// or a let's value), inlined once per kernel and arguments.
+    fn inline(
+        &mut self,
+        k: &mut KernelBuilder,
+        name: &str,
+        env: &Env,
+        e: &Expr,
+    ) -> Result<LVal, LowerError> {
         if self.depth >= MAX_INLINE {
             return Err(LowerError::new("definitions nested too deeply"));
+        }
+        let mut args: Vec<(String, LVal)> =
+            env.iter().map(|(n, v)| (n.clone(), v.clone())).collect();
+        args.sort_by(|a, b| a.0.cmp(&b.0));
+        let mut binders: Vec<(String, u32, bool)> = (self.node_binders.iter())
+            .map(|(n, &i)| (n.clone(), i, false))
+            .chain(
+                self.element_binders
+                    .iter()
+                    .map(|(n, &i)| (n.clone(), i, true)),
+            )
+            .collect();
+        binders.sort();
+        let key = Inlined {
+            builder: k.id(),
+            name: name.to_string(),
+            args,
+            binders,
+        };
+        if let Some(v) = self.inlined.get(&key) {
+            return Ok(v.clone());
+        }
+        self.expansions += 1;
+        if self.expansions > MAX_INLINED {
+            return Err(LowerError::new(format!(
+                "the expression is too complex: its definitions expand to more than \
+                 {MAX_INLINED} calls with distinct arguments (here in `{name}`); simplify the \
+                 functions that call others several times"
+            )));
         }
         self.depth += 1;
         let r = self.lower(k, env, e);
         self.depth -= 1;
-        r
+        let v = r?;
+        self.inlined.insert(key, v.clone());
+        Ok(v)
     }
 
     fn binary(
@@ -474,7 +537,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 .map(|p| (p.name.name.as_str(), p.default.as_ref()))
                 .collect();
             let bound = self.bind(k, env, &params, args)?;
-            return self.inline(k, &bound, &f.body);
+            return self.inline(k, name, &bound, &f.body);
         }
         let vals: Vec<LVal> = args
             .iter()

@@ -1082,6 +1082,10 @@ impl Checker {
     }
 
     /// A call of a `fn` (the prelude's `lame_lambda` included) whose arguments are constants:
+    /// evaluated once per function and argument values ([`Checker::folded`]); at most
+    /// [`MAX_FOLDS`] evaluations with distinct arguments, beyond which the outermost call is
+    /// E0002 (SPEC §13).
+    ///
     /// its body evaluated with their values, so the call has a value like the same expression
     /// written inline, and a division by zero inside it is E0208 at the call (issue 20 item
     /// 16: `lame_lambda(E, 0.5)` passed the check and failed at run time with no location).
@@ -1117,6 +1121,73 @@ impl Checker {
         if values.iter().any(Option::is_none) || values.len() != f.params.len() {
             return plain;
         }
+        let mut bits = Vec::new();
+        for v in values.iter().flatten() {
+            value_bits(v, &mut bits);
+        }
+        let key = (gid, bits);
+        let folded = match self.folded.get(&key) {
+            Some(done) => done.clone(),
+            None => {
+                if self.folds >= MAX_FOLDS {
+                    self.folds_exhausted = true;
+                    return plain;
+                }
+                self.folds += 1;
+                let done = self.evaluate_call(&f, sig, values);
+                self.folded.insert(key, done.clone());
+                done
+            }
+        };
+        if self.fold_depth == 0 && std::mem::take(&mut self.folds_exhausted) {
+            self.err(
+                Diagnostic::error(
+                    "E0002",
+                    e.span,
+                    format!(
+                        "`{name}` is too complex to evaluate: its calls expand to more than \
+                         {MAX_FOLDS} calls of functions with distinct arguments"
+                    ),
+                )
+                .with_hint(
+                    "a function that calls another several times with different arguments \
+                     doubles the work at each level; compute the shared part once, in a `let`",
+                ),
+            );
+            return Typed::error();
+        }
+        if folded.divided_by_zero {
+            let shown: Vec<String> = f.params.iter().map(|p| p.name.name.clone()).collect();
+            self.err(
+                Diagnostic::error(
+                    "E0208",
+                    e.span,
+                    format!(
+                        "division by zero in `{name}({})` with these arguments",
+                        shown.join(", ")
+                    ),
+                )
+                .with_hint(format!(
+                    "`{name}` divides by an expression of its parameters that is 0 for these \
+                     values; change the arguments (e.g. Poisson's ratio ν < 0.5)"
+                )),
+            );
+            return Typed::error();
+        }
+        Typed {
+            value: folded.value,
+            ..plain
+        }
+    }
+
+    /// The body of `f` checked with its parameters bound to constant `values`.
+    fn evaluate_call(
+        &mut self,
+        f: &FnDecl,
+        sig: &super::Signature,
+        values: Vec<Option<Value>>,
+    ) -> Folded {
+        let mark = self.diags.len();
         // The body sees its parameters and the globals only, in a function's context.
         let scopes = std::mem::take(&mut self.scopes);
         let ctx = std::mem::take(&mut self.ctx);
@@ -1137,27 +1208,9 @@ impl Checker {
         self.scopes = scopes;
         let divided_by_zero = self.diags[mark..].iter().any(|d| d.code == "E0208");
         self.diags.truncate(mark);
-        if divided_by_zero {
-            let shown: Vec<String> = f.params.iter().map(|p| p.name.name.clone()).collect();
-            self.err(
-                Diagnostic::error(
-                    "E0208",
-                    e.span,
-                    format!(
-                        "division by zero in `{name}({})` with these arguments",
-                        shown.join(", ")
-                    ),
-                )
-                .with_hint(format!(
-                    "`{name}` divides by an expression of its parameters that is 0 for these \
-                     values; change the arguments (e.g. Poisson's ratio ν < 0.5)"
-                )),
-            );
-            return Typed::error();
-        }
-        Typed {
+        Folded {
             value: body.value,
-            ..plain
+            divided_by_zero,
         }
     }
 
@@ -1341,4 +1394,33 @@ pub(super) fn unit_suggestion(d: Dim) -> Option<String> {
 pub(super) fn with_article(noun: &str) -> String {
     let vowel = noun.starts_with(['a', 'e', 'i', 'o', 'u']);
     format!("{} {noun}", if vowel { "an" } else { "a" })
+}
+
+/// The most calls of functions with distinct constant arguments one check evaluates (SPEC
+/// §13): each costs a check of the function's body.
+pub(super) const MAX_FOLDS: usize = 200_000;
+
+/// What a constant call evaluated to.
+#[derive(Clone, Debug)]
+pub(super) struct Folded {
+    value: Option<Value>,
+    divided_by_zero: bool,
+}
+
+/// A value's exact bits, tagged by kind: a key for calls with equal arguments.
+fn value_bits(v: &Value, out: &mut Vec<u64>) {
+    match v {
+        Value::Num(x) => out.extend([0, x.to_bits()]),
+        Value::Bool(b) => out.extend([1, *b as u64]),
+        Value::Str(s) => {
+            out.extend([2, s.len() as u64]);
+            out.extend(s.bytes().map(u64::from));
+        }
+        Value::Array(items) => {
+            out.extend([3, items.len() as u64]);
+            for item in items {
+                value_bits(item, out);
+            }
+        }
+    }
 }

@@ -271,6 +271,14 @@ struct Checker {
     prelude_diags: usize,
     /// How deep constant calls are being folded (`fold_call`), to bound recursion.
     fold_depth: u32,
+    /// Constant calls folded, by function and argument values: a call repeated with the same
+    /// arguments is evaluated once (a function calling another twice doubles the work at
+    /// every level otherwise: 24 such lines took minutes).
+    folded: HashMap<(usize, Vec<u64>), expr::Folded>,
+    /// Calls evaluated so far (at most `expr::MAX_FOLDS`), and whether that was exceeded
+    /// inside the outermost call being folded.
+    folds: usize,
+    folds_exhausted: bool,
     globals: HashMap<String, usize>,
     syms: Vec<Global>,
     sigs: HashMap<usize, Signature>,
@@ -297,6 +305,9 @@ impl Checker {
             options,
             diags: Vec::new(),
             fold_depth: 0,
+            folded: HashMap::new(),
+            folds: 0,
+            folds_exhausted: false,
             prelude_diags: 0,
             globals: HashMap::new(),
             syms: Vec::new(),
