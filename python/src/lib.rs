@@ -12,7 +12,9 @@ use softc::devices::{BackendChoice, PrecisionChoice};
 use softc::embed::{LoadError, Model, Request, Settings};
 use softc::engine::statics::LinearSolver;
 use std::path::PathBuf;
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 create_exception!(
     softc,
@@ -198,9 +200,11 @@ impl NativeScene {
         Option<(Vec<f64>, Vec<f64>)>,
     )> {
         let path = self.path.display().to_string();
-        // Everything that touches the model runs with the GIL released (the lock is taken
-        // there: a guard cannot cross threads).
-        let outcome = py.detach(|| {
+        let interrupt = Arc::new(AtomicBool::new(false));
+        let stop = interrupt.clone();
+        // Everything that touches the model runs on a thread of its own, without the GIL (the
+        // lock is taken there: a guard cannot cross threads), while this one answers Ctrl-C.
+        let outcome = run_interruptibly(py, &interrupt, move || {
             let mut model = self.model.lock().unwrap_or_else(|p| p.into_inner());
             let grad = if grad {
                 if model.scene().loss.is_none() {
@@ -226,6 +230,7 @@ impl NativeScene {
                 dt,
                 grad,
                 keep_state,
+                interrupt: Some(stop),
             };
             let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                 model.run(&values, &request)
@@ -244,7 +249,7 @@ impl NativeScene {
                     )))
                 }
             }
-        });
+        })?;
         let outcome = match outcome {
             Ok(o) => o,
             Err(Failure::Value(m)) => return Err(PyValueError::new_err(m)),
@@ -254,6 +259,54 @@ impl NativeScene {
             .map_err(|e| SimulationError::new_err(e.to_string()))?;
         Ok((text, outcome.loss, outcome.gradients, outcome.state))
     }
+}
+
+/// Run `work` on a thread of its own without the GIL; this thread waits for it and checks
+/// for signals every 50 ms. On Ctrl-C (KeyboardInterrupt, or whatever the signal handler
+/// raises) it sets `interrupt`, which the engine polls at its checks, waits for the run to
+/// stop, and returns that exception: a long run stops within a fraction of a second instead
+/// of ignoring Ctrl-C until it ends, and the scene stays usable.
+fn run_interruptibly<T: Send>(
+    py: Python<'_>,
+    interrupt: &AtomicBool,
+    work: impl FnOnce() -> T + Send,
+) -> PyResult<T> {
+    let done = (std::sync::Mutex::new(false), std::sync::Condvar::new());
+    std::thread::scope(|s| {
+        let worker = s.spawn(|| {
+            let r = work();
+            *done.0.lock().unwrap_or_else(|e| e.into_inner()) = true;
+            done.1.notify_all();
+            r
+        });
+        let mut raised = None;
+        loop {
+            let finished = py.detach(|| {
+                let guard = done.0.lock().unwrap_or_else(|e| e.into_inner());
+                let (guard, _) = done
+                    .1
+                    .wait_timeout_while(guard, Duration::from_millis(50), |d| !*d)
+                    .unwrap_or_else(|e| e.into_inner());
+                *guard
+            });
+            if finished || worker.is_finished() {
+                break;
+            }
+            if raised.is_none()
+                && let Err(e) = py.check_signals()
+            {
+                interrupt.store(true, Ordering::Relaxed);
+                raised = Some(e);
+            }
+        }
+        let result = worker
+            .join()
+            .unwrap_or_else(|p| std::panic::resume_unwind(p));
+        match raised {
+            Some(e) => Err(e),
+            None => Ok(result),
+        }
+    })
 }
 
 impl NativeScene {

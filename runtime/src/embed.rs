@@ -88,6 +88,9 @@ pub struct Request {
     pub dt: Option<f64>,
     pub grad: Option<GradOptions>,
     pub keep_state: bool,
+    /// Set from another thread to stop the run at its next check (the error is
+    /// [`crate::engine::INTERRUPTED`]); the model stays usable.
+    pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
 }
 
 /// The outcome of a run.
@@ -349,6 +352,7 @@ impl Model {
         let name = crate::devices::Backend::name(&device);
         let mut sim = Simulation::new(&self.scene, device);
         sim.linear_solver = self.settings.linear_solver;
+        sim.interrupt = request.interrupt.clone();
         let result = (|| {
             if self.scene.lowered.statics.is_none() {
                 sim.stable_dt_estimate().map_err(|e| e.0)?;

@@ -629,9 +629,7 @@ impl<B: Backend> Simulation<'_, B> {
                                 self.finish_check(earlier, dt)?;
                             }
                         }
-                        if let Some(p) = &mut self.progress {
-                            p.update("forward", current, steps);
-                        }
+                        self.tick("forward", current, steps)?;
                     }
                 }
                 Action::Store { slot } => {
@@ -778,9 +776,7 @@ impl<B: Backend> Simulation<'_, B> {
                         {
                             health.push(self.finish_health(last, dt)?);
                         }
-                        if let Some(p) = &mut self.progress {
-                            p.update("backward", steps - step, steps - stop_at);
-                        }
+                        self.tick("backward", steps - step, steps - stop_at)?;
                     }
                     if step == stop_at {
                         if step == 0 {

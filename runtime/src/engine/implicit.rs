@@ -111,9 +111,7 @@ impl<B: Backend> Simulation<'_, B> {
             if gradient {
                 stored.push((x1, v1));
             }
-            if let Some(p) = &mut self.progress {
-                p.update("implicit", k + 1, steps);
-            }
+            self.tick("implicit", k + 1, steps)?;
         }
         let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
         let t_end = steps as f64 * h;
@@ -222,9 +220,7 @@ impl<B: Backend> Simulation<'_, B> {
                 lv[i] = if free { av[i] } else { 0.0 };
             }
             add_loss(self, k, &mut lx, &mut lv, &mut direct);
-            if let Some(p) = &mut self.progress {
-                p.update("backward", (steps - k) as u64, steps as u64);
-            }
+            self.tick("backward", (steps - k) as u64, steps as u64)?;
         }
         self.collect_gradients(direct)
     }

@@ -223,6 +223,9 @@ pub struct Simulation<'s, B: Backend> {
     pub csv: Vec<CsvOutput>,
     /// Progress of a long run on stderr (`softc run`), updated at the host's checks.
     pub progress: Option<crate::outputs::progress::Progress>,
+    /// Set from another thread to stop the run at its next check ([`INTERRUPTED`]): the
+    /// Python package's Ctrl-C, while the run holds no GIL.
+    pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
     /// The stable-step estimate, once computed (reused by `run`).
     estimate: Option<f64>,
     /// A quasi-static scene's first equilibrium from the previous solve: the next solve (an
@@ -264,6 +267,25 @@ pub(crate) struct PendingCheck {
 const CHECK_EVERY: u64 = 50;
 
 impl<'s, B: Backend> Simulation<'s, B> {
+    /// `done` of `total` steps of `phase` are done: the progress shown, and where a run stops
+    /// when it was interrupted.
+    pub(crate) fn tick(&mut self, phase: &str, done: u64, total: u64) -> Result<(), RunError> {
+        if let Some(p) = &mut self.progress {
+            p.update(phase, done, total);
+        }
+        self.check_interrupt()
+    }
+
+    /// [`INTERRUPTED`] once [`Simulation::interrupt`] is set.
+    pub(crate) fn check_interrupt(&self) -> Result<(), RunError> {
+        match &self.interrupt {
+            Some(flag) if flag.load(std::sync::atomic::Ordering::Relaxed) => {
+                Err(RunError(INTERRUPTED.into()))
+            }
+            _ => Ok(()),
+        }
+    }
+
     /// Bind a scene to a backend: buffers allocated and filled with the initial state.
     pub fn new(scene: &'s Scene, mut backend: B) -> Self {
         let m = &scene.lowered.module;
@@ -338,6 +360,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             vtk: None,
             csv: Vec::new(),
             progress: None,
+            interrupt: None,
             estimate: None,
             warm_start: None,
             linear_solver: statics::LinearSolver::Direct,
@@ -639,9 +662,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                     self.finish_check(earlier, dt)?;
                 }
             }
-            if let Some(p) = &mut self.progress {
-                p.update("forward", end, steps);
-            }
+            self.tick("forward", end, steps)?;
             step = end;
         }
         self.settle_check(&mut pending, dt)?;
@@ -1062,6 +1083,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
         }
     }
 }
+
+/// The error of a run stopped by [`Simulation::interrupt`].
+pub const INTERRUPTED: &str = "interrupted";
 
 /// What a failed state check found.
 #[derive(Debug, Clone, Copy)]

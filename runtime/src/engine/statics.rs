@@ -285,6 +285,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         floor: f64,
     ) -> Result<Newton, RunError> {
         let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        self.check_interrupt()?;
         let mut r = self.residual(t, load)?;
         if let Some(e) = self.inverted_element()? {
             return Ok(Newton::Failed {
@@ -309,6 +310,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 });
             }
             report.newton_iterations += 1;
+            // A large tangent's iteration takes seconds: an interrupt stops it here.
+            self.check_interrupt()?;
             // Inexact Newton: a matrix-free solve need only be as accurate as the step can
             // use, a fraction of the way from here to the tolerance — but no looser than
             // 1e-4, so the state Newton stops at is as close to the equilibrium as a direct
@@ -800,9 +803,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 }
                 return Err(e);
             }
-            if let Some(p) = &mut self.progress {
-                p.update("quasi-static", k, steps);
-            }
+            self.tick("quasi-static", k, steps)?;
             if !self.csv.is_empty() {
                 let x = self.backend.get(self.ids.x);
                 for c in &mut self.csv {
