@@ -141,13 +141,21 @@ impl Checker {
         self.ctx.state = true;
         let mut materials_used = false;
         let mut whole_mesh_use = false;
+        // The block's lets, for [`Checker::node_set_reduction`].
+        let sim_lets: HashMap<String, Expr> = stmts
+            .iter()
+            .filter_map(|st| match &st.kind {
+                StmtKind::Let(l) => Some((l.name.name.clone(), l.value.clone())),
+                _ => None,
+            })
+            .collect();
         for s in stmts {
             match &s.kind {
                 StmtKind::Assign { name, value } => {
                     if seen.get(name.name.as_str()) != Some(&name.span) {
                         continue; // duplicate, already reported
                     }
-                    self.check_sim_setting(name, value);
+                    self.check_sim_setting(name, value, &sim_lets);
                 }
                 StmtKind::Let(l) => {
                     let t = self.check_expr(&l.value);
@@ -187,12 +195,9 @@ impl Checker {
                     }
                     let t = self.check_expr(value);
                     let p = Ty::scalar(units::named_dim("pressure").unwrap());
-                    self.expect_type(
-                        &t,
-                        &p,
-                        value,
-                        &format!("the pressure of `{}`", chamber.name),
-                    );
+                    let what = format!("the pressure of `{}`", chamber.name);
+                    self.expect_type(&t, &p, value, &what);
+                    self.refuse_closed_loop(&t, value, &what, &sim_lets);
                 }
                 StmtKind::Use { material, set } => {
                     materials_used = true;
@@ -396,6 +401,95 @@ impl Checker {
         }
     }
 
+    /// A pressure or damping that reads the node state (a reduction such as `mean(n in tip)
+    /// x[n].z`, directly or through a `let` or a controller) is E0325: the simulation's kernels
+    /// cannot evaluate node-set reductions yet, and `softc run` failed on such a script
+    /// without a location (issue 31 item 6).
+    fn refuse_closed_loop(
+        &mut self,
+        t: &Typed,
+        value: &Expr,
+        what: &str,
+        sim_lets: &HashMap<String, Expr>,
+    ) {
+        if t.var != super::Var::State {
+            // A reduction of the rest positions only (`mean(n in tip) x0[n].z`) is constant,
+            // but the kernels cannot evaluate it either.
+            let mut seen = Vec::new();
+            if let Some(set) = self.node_set_reduction(value, sim_lets, &mut seen) {
+                let msg = format!(
+                    "{what} reduces over the set `{set}` (here or in a `let`, function or \
+                     controller it uses): the simulation's kernels cannot evaluate reductions \
+                     over node or element sets yet"
+                );
+                self.err(Diagnostic::error("E0325", value.span, msg).with_hint(
+                    "compute the value once and write it as a constant, or use the set in the \
+                     loss",
+                ));
+            }
+            return;
+        }
+        let msg = format!(
+            "{what} depends on the node state: closed-loop control (a reduction over a node set \
+             such as `mean(n in tip) x[n].z`, here or in a `let` or controller it uses) is not \
+             supported in the sim block yet"
+        );
+        self.err(Diagnostic::error("E0325", value.span, msg).with_hint(
+            "use the state in the loss; pressures and damping may depend on `t`, params and \
+             inputs (open-loop control, e.g. a controller of a target)",
+        ));
+    }
+
+    /// The node or element set a reduction in `e` runs over, following the names it uses into
+    /// the sim block's lets, global lets, functions and controllers (`seen` stops cycles).
+    fn node_set_reduction(
+        &self,
+        e: &Expr,
+        sim_lets: &HashMap<String, Expr>,
+        seen: &mut Vec<String>,
+    ) -> Option<String> {
+        let mut found = None;
+        let mut stack = vec![e.clone()];
+        while let Some(e) = stack.pop() {
+            let name = match &e.kind {
+                ExprKind::Reduce { domain, .. } => match &domain.kind {
+                    ExprKind::Name(set)
+                        if matches!(
+                            self.globals.get(&set.name).map(|&g| self.syms[g].kind),
+                            Some(SymKind::Nodes | SymKind::Elements)
+                        ) =>
+                    {
+                        found = Some(set.name.clone());
+                        break;
+                    }
+                    _ => None,
+                },
+                ExprKind::Name(id) => Some(id.name.clone()),
+                ExprKind::Call { callee, .. } => match &callee.kind {
+                    ExprKind::Name(id) => Some(id.name.clone()),
+                    _ => None,
+                },
+                _ => None,
+            };
+            if let Some(name) = name
+                && !seen.contains(&name)
+            {
+                seen.push(name.clone());
+                if let Some(v) = sim_lets.get(&name) {
+                    stack.push(v.clone());
+                } else if let Some(&g) = self.globals.get(&name) {
+                    match self.item(self.syms[g].prelude, self.syms[g].item).kind {
+                        ItemKind::Let(l) => stack.push(l.value),
+                        ItemKind::Fn(f) => stack.push(f.body),
+                        _ => {}
+                    }
+                }
+            }
+            e.for_each_child(|c| stack.push(c.clone()));
+        }
+        found
+    }
+
     fn check_window_param(&mut self, id: &Ident, span: Span, count: usize, width: f64) {
         let Some(&g) = self.globals.get(&id.name) else {
             return;
@@ -418,7 +512,7 @@ impl Checker {
         }
     }
 
-    fn check_sim_setting(&mut self, name: &Ident, value: &Expr) {
+    fn check_sim_setting(&mut self, name: &Ident, value: &Expr, sim_lets: &HashMap<String, Expr>) {
         let obj_setting = |want: Obj| move |t: &Typed| t.ty.is_error() || t.ty == Ty::Obj(want);
         match name.name.as_str() {
             "dt" | "steps" | "duration" => {}
@@ -454,6 +548,7 @@ impl Checker {
                     value,
                     "`damping` (β, thesis eq. 2.17)",
                 );
+                self.refuse_closed_loop(&t, value, "`damping`", sim_lets);
                 if t.num().is_some_and(|v| v < 0.0) {
                     self.err(Diagnostic::error(
                         "E0321",
