@@ -634,3 +634,79 @@ fn a_zero_load_static_solve_reports_a_small_relative_residual() {
         .fold(0.0, f64::max);
     assert!(moved < 1e-15, "moved {moved} m");
 }
+
+/// Issue 29, hostile case 1: static (and implicit) solves never checked the material: E = 0
+/// returned the rest state with "converged", E < 0 and ν = 0.7 unstable stationary points, all
+/// with exit 0. Now the solve refuses to start, naming the constants to check.
+#[test]
+fn static_and_implicit_solves_refuse_non_physical_materials() {
+    for (i, (constants, integrator)) in [
+        ("mu: 0 kPa, kappa: 0 MPa", "quasi_static"),
+        ("mu: -100 kPa, kappa: 1 MPa", "quasi_static"),
+        (
+            "mu: lame_mu(100 kPa, 0.7), kappa: bulk_modulus(100 kPa, 0.7)",
+            "quasi_static",
+        ),
+        (
+            "mu: lame_mu(100 kPa, -1.5), kappa: bulk_modulus(100 kPa, -1.5)",
+            "implicit_euler",
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let time = if integrator == "quasi_static" {
+            "duration = 1 s"
+        } else {
+            "dt = 10 ms\n  steps = 4"
+        };
+        let path = beam_script(
+            &format!("non_physical_{i}.soft"),
+            &format!("material rubber = neo_hookean({constants}, density: 1070 kg/m^3)"),
+            &format!(
+                "  integrator = {integrator}\n  {time}\n  pressure cavity = 3 kPa * ramp(t, 1 s)"
+            ),
+            "",
+        );
+        let scene = Scene::load(&path, &[]).unwrap();
+        let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+        let e = Simulation::new(&scene, cpu).run(None, None).unwrap_err().0;
+        assert!(
+            e.contains(&format!("the {integrator} solve cannot start"))
+                && e.contains("material constants are not physical"),
+            "{constants}: {e}"
+        );
+    }
+}
+
+/// Issue 29, hostile case 3: a body fixed at one node or along one line "solved" statically
+/// with exit 0 and an arbitrary rotation. The solve is refused, naming the free rotation.
+#[test]
+fn a_static_body_free_to_rotate_about_its_fixed_nodes_is_refused() {
+    let material = "material rubber = neo_hookean(mu: 100 kPa, kappa: 1 MPa, density: 1070 kg/m^3)";
+    for (i, (pin, said)) in [
+        ("x < 0.1 mm and y < 0.1 mm and z < 0.1 mm", "at one point"),
+        ("x < 0.1 mm and y < 0.1 mm", "lie on one line"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let path = scratch(&format!("pinned_{i}.soft"));
+        let text = format!(
+            "mesh body = load(\"{}/meshes/bench_1k.msh\")\n{material}\n\
+             chamber cavity = surface(body, \"cavity\")\n\
+             nodes pin = select(body, {pin})\n\
+             sim {{\n  integrator = quasi_static\n  duration = 1 s\n  fix pin\n  \
+             pressure cavity = 1 kPa * ramp(t, 1 s)\n}}\n",
+            root().display()
+        );
+        std::fs::write(&path, text).unwrap();
+        let scene = Scene::load(&path, &[]).unwrap();
+        let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+        let e = Simulation::new(&scene, cpu).run(None, None).unwrap_err().0;
+        assert!(
+            e.contains(said) && e.contains("rotate freely"),
+            "{pin}: {e}"
+        );
+    }
+}

@@ -235,6 +235,10 @@ pub struct Simulation<'s, B: Backend> {
     pub warm_start: Option<Vec<f64>>,
     /// How static and implicit solves solve their linear systems.
     pub linear_solver: statics::LinearSolver,
+    /// The params and inputs whose material passed [`Simulation::material_at_rest`] before a
+    /// static or implicit solve (an optimization's iterations do not check again unless they
+    /// change).
+    material_checked: Option<Vec<Option<f64>>>,
     /// The state (positions, velocities) at the last state check that passed, and its step:
     /// a blow-up is run again step by step from there to find where it went wrong.
     last_good: Option<(u64, Vec<f64>, Vec<f64>)>,
@@ -364,6 +368,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             estimate: None,
             warm_start: None,
             linear_solver: statics::LinearSolver::Direct,
+            material_checked: None,
             last_good: None,
             ids,
         };
@@ -964,6 +969,24 @@ impl<'s, B: Backend> Simulation<'s, B> {
         )
     }
 
+    /// Why the material constants are not physical, if they are not: the stiffness at the
+    /// current (rest) positions is not positive, by the Lanczos extremes of M⁻¹K.
+    pub(crate) fn material_at_rest(&mut self) -> Result<Option<String>, RunError> {
+        Ok(match self.stiffness_extremes()? {
+            Some((lowest, highest, _)) if highest <= 0.0 || lowest < -1e-2 * highest.abs() => {
+                Some(format!(
+                    "material constants are not physical: the stiffness at rest is not \
+                     positive (a deformation mode with ω² = {} /s², against {} /s² for the \
+                     stiffest); check the moduli (E > 0, μ > 0, a bulk modulus > 0) and \
+                     Poisson's ratio (−1 < ν < 0.5)",
+                    Sig(lowest.min(highest)),
+                    Sig(highest)
+                ))
+            }
+            _ => None,
+        })
+    }
+
     /// β·dt of the mass damping at step `step`: one step from the rest positions with
     /// velocity u and with 2u (the elastic forces are the same in both), the difference of the
     /// new velocities is (1 − β·dt)·u.
@@ -995,17 +1018,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // The stiffness at rest: not positive for non-physical material constants.
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
         self.backend.set(self.ids.x, &rest);
-        if let Ok(Some((lowest, highest, _))) = self.stiffness_extremes()
-            && (highest <= 0.0 || lowest < -1e-2 * highest.abs())
-        {
-            return format!(
-                "The material constants are not physical: the stiffness at rest is not \
-                 positive (a deformation mode with ω² = {} /s², against {highest} /s² \
-                 for the stiffest); check the moduli (E > 0, μ > 0, a bulk modulus > 0) and \
-                 Poisson's ratio (−1 < ν < 0.5). A smaller dt does not help",
-                Sig(lowest.min(highest)),
-                highest = Sig(highest)
-            );
+        if let Ok(Some(why)) = self.material_at_rest() {
+            return format!("The {why}. A smaller dt does not help");
         }
         // Mass damping: v ← (1 − β·dt)·v + …, unstable by itself for β·dt > 2 whatever the
         // elastic step.

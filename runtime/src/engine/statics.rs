@@ -712,6 +712,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
             ));
         }
         let static_solve = kind == "quasi_static";
+        if static_solve && let Some(why) = free_rotation(scene) {
+            return Err(RunError(why));
+        }
         let pattern = BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris, static_solve)
             .map_err(RunError)?;
         let krylov = match self.linear_solver {
@@ -735,6 +738,17 @@ impl<'s, B: Backend> Simulation<'s, B> {
         };
         let tangent = Tangent::new(pattern, self.backend.precision(), krylov)?;
         self.reset();
+        // Non-physical constants (E ≤ 0, ν out of (−1, 0.5)) have no stable equilibrium: a
+        // solve returned the rest state (E = 0) or an unstable stationary point with exit 0.
+        let trainable = self.uniforms.trainable_values();
+        if self.material_checked.as_ref() != Some(&trainable) {
+            if let Some(why) = self.material_at_rest()? {
+                return Err(RunError(format!(
+                    "the {kind} solve cannot start: the {why}"
+                )));
+            }
+            self.material_checked = Some(trainable);
+        }
         if gradient {
             self.zero_gradient_accumulators();
         }
@@ -941,4 +955,57 @@ impl<'s, B: Backend> Simulation<'s, B> {
             summary: run.summary,
         })
     }
+}
+
+/// Why a static solve of `scene` has no unique answer, if its fixed nodes leave a rotation
+/// free: they lie at one point or on one line, and the body can turn about it at no cost (a
+/// static solve returned an arbitrary rotation with exit 0). A body with no fixed node is a free
+/// body (its rigid modes are held by multipliers). Dynamics are fine: mass resists the turn.
+fn free_rotation(scene: &super::scene::Scene) -> Option<String> {
+    let nodes = &scene.mesh.nodes;
+    let fixed: Vec<usize> = (0..nodes.len()).filter(|&n| scene.fixed[n]).collect();
+    let &first = fixed.first()?;
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let norm = |a: [f64; 3]| (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    let size = {
+        let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+        for p in nodes {
+            for d in 0..3 {
+                lo[d] = lo[d].min(p[d]);
+                hi[d] = hi[d].max(p[d]);
+            }
+        }
+        norm(sub(hi, lo))
+    };
+    let tolerance = 1e-6 * size;
+    let p0 = nodes[first];
+    let (far, distance) = fixed
+        .iter()
+        .map(|&n| (n, norm(sub(nodes[n], p0))))
+        .fold((first, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+    let id = |n: usize| scene.mesh.node_id(n);
+    if distance <= tolerance {
+        return Some(format!(
+            "the fixed nodes hold the body at one point (node {}): it can rotate freely about \
+             it, and a static solve has no unique answer; fix a region or face that spans the \
+             body's support (three or more nodes not on one line)",
+            id(first)
+        ));
+    }
+    let axis = sub(nodes[far], p0).map(|c| c / distance);
+    let off_line = fixed.iter().any(|&n| {
+        let r = sub(nodes[n], p0);
+        let along = r[0] * axis[0] + r[1] * axis[1] + r[2] * axis[2];
+        norm(sub(r, axis.map(|c| c * along))) > tolerance
+    });
+    (!off_line).then(|| {
+        format!(
+            "the {} fixed nodes lie on one line (through nodes {} and {}): the body can rotate \
+             freely about it, and a static solve has no unique answer; fix a node off that line \
+             (a region or face that spans the body's support)",
+            fixed.len(),
+            id(first),
+            id(far)
+        )
+    })
 }
