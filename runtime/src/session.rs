@@ -275,11 +275,25 @@ pub fn vtk_every(scene: &Scene) -> Option<u64> {
     scene.resolved.sim.vtk_every
 }
 
-/// The warning for a run whose loss is taken `at end` while its final state still moves.
-pub fn steady_loss_moving(
+/// The warning for a run that ended without error but whose answer is doubtful: a static or
+/// implicit solve whose last state did not reach its residual (a load below what the precision
+/// resolves), or a run whose loss is taken `at end` while its final state still moves.
+pub fn run_warning(
     scene: &crate::engine::scene::Scene,
     summary: &crate::engine::RunSummary,
 ) -> Option<String> {
+    if let Some(solver) = &summary.solver
+        && !solver.converged
+    {
+        return Some(format!(
+            "warning: the {} solve did not resolve its last state: the residual is {} N, {:.1} % of its \
+             loads (`converged`: false) — the loads are at the round-off of the internal forces \
+             in this precision; use `precision = f64` or larger loads",
+            solver.kind,
+            crate::outputs::Sig(solver.residual_norm),
+            100.0 * solver.relative_residual
+        ));
+    }
     let loss = scene.loss.as_ref()?;
     let end = loss.window(summary.steps as f64 * summary.dt, summary.dt)
         == softc_compiler::driver::LossWindow::End;

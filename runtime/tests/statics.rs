@@ -710,3 +710,44 @@ fn a_static_body_free_to_rotate_about_its_fixed_nodes_is_refused() {
         );
     }
 }
+
+/// Issue 29, hostile case 2: an f32 static solve at 1 Pa stopped at the rest state (1/140 of
+/// the answer) and said `converged: true`. A load at the round-off of the f32 internal forces
+/// is now reported unresolved (and `softc run` warns); 3 kPa still converges in f32.
+#[test]
+fn an_f32_static_solve_of_a_load_it_cannot_resolve_says_so() {
+    let solve = |pressure: &str, precision: Precision| {
+        let path = beam_script(
+            &format!("f32_{}.soft", pressure.replace(' ', "")),
+            "material rubber = neo_hookean(mu: 100 kPa, kappa: 1 MPa, density: 1070 kg/m^3)",
+            &format!(
+                "  integrator = quasi_static\n  duration = 1 s\n  \
+                 pressure cavity = {pressure} * ramp(t, 1 s)"
+            ),
+            "",
+        );
+        let scene = Scene::load(&path, &[]).unwrap();
+        let cpu = Cpu::new(&scene.lowered.adjoint.module, precision, Some(1)).unwrap();
+        let summary = Simulation::new(&scene, cpu).run(None, None).unwrap();
+        let warning = softc::session::run_warning(&scene, &summary);
+        (summary.solver.unwrap(), warning)
+    };
+    let (f32_small, warning) = solve("1 Pa", Precision::F32);
+    assert!(!f32_small.converged, "{f32_small:?}");
+    assert!(f32_small.relative_residual > 0.5, "{f32_small:?}");
+    assert!(
+        warning.is_some_and(|w| w.contains("did not resolve") && w.contains("f64")),
+        "no warning"
+    );
+    let (f64_small, warning) = solve("1 Pa", Precision::F64);
+    assert!(
+        f64_small.converged && f64_small.relative_residual < 1e-6,
+        "{f64_small:?}"
+    );
+    assert!(warning.is_none());
+    let (f32_large, _) = solve("3 kPa", Precision::F32);
+    assert!(
+        f32_large.converged && f32_large.relative_residual < 1e-2,
+        "{f32_large:?}"
+    );
+}

@@ -453,7 +453,7 @@ fn train<B: Backend + Send>(
     }
     let csv = crate::session::csv_outputs(csv_args.csv.as_deref(), scene, trainer.state.dt, err)?;
     let summary = trainer.forward(&first_inputs, vtk, csv).map_err(|e| e.0)?;
-    if let Some(w) = crate::session::steady_loss_moving(scene, &summary) {
+    if let Some(w) = crate::session::run_warning(scene, &summary) {
         let _ = writeln!(err, "the optimized run: {w}");
     }
     let validation = trainer.validate().map_err(|e| e.0)?;

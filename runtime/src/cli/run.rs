@@ -467,7 +467,7 @@ pub fn run(args: RunArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             return 1;
         }
     };
-    if let Some(w) = crate::session::steady_loss_moving(&scene, &summary) {
+    if let Some(w) = crate::session::run_warning(&scene, &summary) {
         let _ = writeln!(err, "{}: {w}", args.file.display());
     }
     let mut json = summary_json(&scene, &summary, backend_name);
@@ -657,7 +657,7 @@ fn run_scenes(
                     Sig(summary.dt),
                     summary.wall_seconds
                 );
-                if let Some(w) = crate::session::steady_loss_moving(&scene, &summary) {
+                if let Some(w) = crate::session::run_warning(&scene, &summary) {
                     let _ = writeln!(err, "{}: scene {k}: {w}", args.file.display());
                 }
                 let mut json = summary_json(&scene, &summary, backend);
