@@ -529,7 +529,8 @@ fn a_material_with_a_field_outside_its_set_is_refused() {
 #[test]
 fn a_field_entry_inside_the_simulation_is_a_clear_error() {
     // `mu[e]` needs the set's elements, known only once the mesh is loaded: the loss has them,
-    // the simulation's kernels (compiled before) do not.
+    // the simulation's kernels (compiled before) do not. The checker says so at the expression
+    // (E0325).
     let path = field_variant(
         "field-in-pressure",
         &[(
@@ -539,7 +540,8 @@ fn a_field_entry_inside_the_simulation_is_a_clear_error() {
     );
     let e = Scene::load(Path::new(&path), &[]).unwrap_err();
     assert!(
-        e.0.contains("a reduction over the element set `near` is evaluated only in the loss"),
+        e.0.contains("field-in-pressure.soft:25:21: error[E0325]")
+            && e.0.contains("reduces over the set `near`"),
         "{}",
         e.0
     );
