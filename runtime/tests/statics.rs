@@ -751,3 +751,53 @@ fn an_f32_static_solve_of_a_load_it_cannot_resolve_says_so() {
         "{f32_large:?}"
     );
 }
+
+/// Issue 29, hostile case 5: implicit Euler gave up on a step whose Newton solve failed ("use
+/// a smaller dt"). A failing step is now retried in halves (down to 1/64 of the step) and the
+/// size grows back; the gradient follows the substeps taken. Here a step load of 25 kPa on a
+/// soft beam at dt = 50 ms needs them (it failed at step 1 before).
+#[test]
+fn implicit_euler_halves_a_step_newton_cannot_take_and_differentiates_the_substeps() {
+    let path = beam_script(
+        "implicit_substeps.soft",
+        "material rubber = neo_hookean(mu: 30 kPa, kappa: 0.3 MPa, density: 1070 kg/m^3)\n\
+         param p_peak: pressure = 25 kPa in [0 kPa, 50 kPa]",
+        "  integrator = implicit_euler\n  dt = 50 ms\n  duration = 0.5 s\n  \
+         pressure cavity = p_peak",
+        "loss = mean(n in tip) (x[n].z - x0[n].z)^2 at end",
+    );
+    let scene = Scene::load(&path, &[]).unwrap();
+    let run = |p: f64| {
+        let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+        let mut sim = Simulation::new(&scene, cpu);
+        sim.uniforms.set_named("param.p_peak", p);
+        let s = sim.run(None, None).unwrap();
+        (s.loss.unwrap(), s.solver.unwrap().rejected_load_steps)
+    };
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let report = Simulation::new(&scene, cpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    let solver = report.summary.solver.clone().unwrap();
+    assert!(solver.rejected_load_steps > 0, "no substeps: {solver:?}");
+    assert_eq!(report.summary.steps, 10);
+    // Which steps Newton fails on depends on the load; central differences are taken where
+    // both sides take the same substeps as the run.
+    let g = report.gradients["param.p_peak"];
+    let (_, rejected) = run(25e3);
+    let mut compared = false;
+    for h in [2.5e-3, 2.5e-4, 2.5e-5] {
+        let ((lo, r_lo), (hi, r_hi)) = (run(25e3 - h), run(25e3 + h));
+        if r_lo != rejected || r_hi != rejected {
+            continue;
+        }
+        let fd = (hi - lo) / (2.0 * h);
+        assert!(
+            ((g - fd) / fd).abs() < 1e-5,
+            "adjoint {g:e}, central differences {fd:e}"
+        );
+        compared = true;
+        break;
+    }
+    assert!(compared, "no step with the run's substeps on both sides");
+}

@@ -516,7 +516,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// The norm of the internal forces (N) of a small deformation: a rough displacement of
     /// 0.1 % of the mean edge length on every free node, at the rest positions and no loads.
     /// The force scale of a state whose loads vanish.
-    fn small_strain_forces(&mut self, t: f64) -> Result<f64, RunError> {
+    pub(super) fn small_strain_forces(&mut self, t: f64) -> Result<f64, RunError> {
         let mesh = &self.scene.mesh;
         let edge = |a: u32, b: u32| {
             let (p, q) = (mesh.nodes[a as usize], mesh.nodes[b as usize]);

@@ -168,7 +168,7 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
         let label = label(c);
         let variant = Variant {
             mesh: Some(mesh),
-            sim_settings: sim_settings(c, sweep, duration),
+            sim_settings: sim_settings(c, sweep, duration, sim.duration.is_some()),
         };
         let scene = Scene::load_with(&sweep.script, &sweep.overrides, Some(&variant))
             .map_err(|e| format!("{label}: {e}"))?;
@@ -342,7 +342,12 @@ fn refined_mesh(
 /// The variant's `sim` settings: its integrator, time step, precision and model.
 /// `duration`: the script's end time (the implicit steps divide it; the static solve is of
 /// that one time), 0 where it has none.
-fn sim_settings(c: &Config, sweep: &Sweep, duration: f64) -> Vec<(String, String)> {
+fn sim_settings(
+    c: &Config,
+    sweep: &Sweep,
+    duration: f64,
+    has_duration: bool,
+) -> Vec<(String, String)> {
     let step = match c.solver {
         Solver::Explicit => ("dt".to_string(), format!("auto(safety: {})", c.safety)),
         Solver::QuasiStatic => ("integrator".to_string(), "quasi_static".to_string()),
@@ -364,7 +369,10 @@ fn sim_settings(c: &Config, sweep: &Sweep, duration: f64) -> Vec<(String, String
     match c.solver {
         Solver::ImplicitEuler => {
             settings.push(("integrator".into(), "implicit_euler".into()));
-            settings.push(("steps".into(), IMPLICIT_STEPS.to_string()));
+            // A script's `steps` (it has no `duration` then) would count steps of the new dt.
+            if !has_duration {
+                settings.push(("steps".into(), IMPLICIT_STEPS.to_string()));
+            }
         }
         // One state, at the end: the script's `steps` would be as many equilibrium states
         // (4,000 solves of the benchmark beam for the one value measured).
