@@ -588,14 +588,20 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // round-off of the rest forces (a converged state read 1.0): it is measured against
         // the forces of a small deformation instead. Loads that are merely small keep their
         // own norm, so a load below what the precision resolves reads as unresolved.
-        let scale = if loads > 0.0 {
-            loads
-        } else {
-            self.small_strain_forces(t)?
+        let internal = self.small_strain_forces(t)?;
+        let scale = if loads > 0.0 { loads } else { internal };
+        // In f64 no lower than the round-off of the internal forces (positions carry ~1e-14
+        // of strain: 1e-11 of the forces of a 0.1 % deformation). A stiff insert (1 GPa in
+        // 0.1 MPa rubber) or ν → 0.5 makes those forces large against the loads: Newton chased
+        // their round-off and called the first load step a limit point. In f32 Newton's own
+        // round-off test decides (its round-off is close to small loads' forces).
+        let floor = match self.backend.precision() {
+            Precision::F64 => 1e-12 * internal,
+            Precision::F32 => 0.0,
         };
         Ok(Goal {
             scale,
-            tolerance: rtol * scale.max(f64::MIN_POSITIVE),
+            tolerance: (rtol * scale).max(floor).max(f64::MIN_POSITIVE),
         })
     }
 
