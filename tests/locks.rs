@@ -1,18 +1,10 @@
 //! One run per output folder (issue 20 item 2, issue 31 item 8): a run holds the folders it
 //! writes, and a second run may write neither into them nor anywhere below them.
 
-fn scratch(tag: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("softc-locks-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+use softc_tests::run_bench_1k;
 
-/// The 1k benchmark scene, run for a few steps with extra flags.
-fn run_bench_1k(extra: &[&str]) -> (i32, String, String) {
-    let script = softc_tests::root().join("examples/benchmark-1k.soft");
-    let mut args = vec!["run", script.to_str().unwrap(), "--steps", "5"];
-    args.extend_from_slice(extra);
-    softc_tests::softc(&args)
+fn scratch(tag: &str) -> std::path::PathBuf {
+    softc_tests::scratch("locks", tag)
 }
 
 #[test]

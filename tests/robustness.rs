@@ -4,6 +4,7 @@
 
 use proptest::prelude::*;
 use softc_compiler::sema::CheckOptions;
+use softc_tests::run_bench_1k;
 use std::time::{Duration, Instant};
 
 /// Check and format an input; both must return (diagnostics or a result), never panic.
@@ -239,17 +240,7 @@ fn the_binary_survives_pathological_input() {
 
 /// A scratch folder of this test process.
 fn scratch(tag: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("softc-hostile-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-/// The 1k benchmark scene, run for a few steps with extra flags.
-fn run_bench_1k(extra: &[&str]) -> (i32, String, String) {
-    let script = softc_tests::root().join("examples/benchmark-1k.soft");
-    let mut args = vec!["run", script.to_str().unwrap(), "--steps", "5"];
-    args.extend_from_slice(extra);
-    softc_tests::softc(&args)
+    softc_tests::scratch("hostile", tag)
 }
 
 #[test]

@@ -40,3 +40,18 @@ pub fn files_with_ext(dir: &Path, ext: &str) -> Vec<PathBuf> {
     v.sort();
     v
 }
+
+/// A scratch folder for test `tag` of the suite `suite`, unique to this process.
+pub fn scratch(suite: &str, tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("softc-{suite}-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The 1k benchmark scene, run for a few steps with extra flags.
+pub fn run_bench_1k(extra: &[&str]) -> (i32, String, String) {
+    let script = root().join("examples/benchmark-1k.soft");
+    let mut args = vec!["run", script.to_str().unwrap(), "--steps", "5"];
+    args.extend_from_slice(extra);
+    softc(&args)
+}
