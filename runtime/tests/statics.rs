@@ -829,3 +829,25 @@ fn a_stiff_insert_in_soft_rubber_solves_statically() {
     // The insert sits under the cavity: the beam still bends down (-0.15 mm measured).
     assert!(tip < -1e-4 && tip > -2e-4, "tip {tip} m");
 }
+
+/// The material check runs once per material values: an optimization whose trained param is a
+/// material constant is checked again when it changes (and one that trains pressures is not).
+#[test]
+fn the_material_check_follows_a_trained_material_constant() {
+    let path = beam_script(
+        "trained_mu.soft",
+        "param mu: pressure = 100 kPa\n\
+         material rubber = neo_hookean(mu: mu, kappa: 1 MPa, density: 1070 kg/m^3)",
+        "  integrator = quasi_static\n  duration = 1 s\n  pressure cavity = 1 kPa * ramp(t, 1 s)",
+        "",
+    );
+    let scene = Scene::load(&path, &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let mut sim = Simulation::new(&scene, cpu);
+    assert!(sim.run(None, None).is_ok());
+    sim.uniforms.set_named("param.mu", -100e3);
+    let e = sim.run(None, None).unwrap_err().0;
+    assert!(e.contains("material constants are not physical"), "{e}");
+    sim.uniforms.set_named("param.mu", 50e3);
+    assert!(sim.run(None, None).is_ok());
+}

@@ -216,17 +216,6 @@ impl Uniforms {
 
     /// The value of a uniform.
     #[inline]
-    /// The values of the params and inputs (`param.*`, `input.*`), in table order: what a
-    /// scene's materials can depend on besides constants.
-    pub fn trainable_values(&self) -> Vec<Option<f64>> {
-        self.names
-            .iter()
-            .zip(&self.values)
-            .filter(|(n, _)| n.starts_with("param.") || n.starts_with("input."))
-            .map(|(_, v)| *v)
-            .collect()
-    }
-
     pub fn get(&self, id: UniformId) -> f64 {
         match self.values.get(id.0 as usize) {
             Some(Some(v)) => *v,

@@ -235,9 +235,9 @@ pub struct Simulation<'s, B: Backend> {
     pub warm_start: Option<Vec<f64>>,
     /// How static and implicit solves solve their linear systems.
     pub linear_solver: statics::LinearSolver,
-    /// The params and inputs whose material passed [`Simulation::material_at_rest`] before a
-    /// static or implicit solve (an optimization's iterations do not check again unless they
-    /// change).
+    /// The material values ([`Simulation::material_values`]) that passed
+    /// [`Simulation::material_at_rest`] before a static or implicit solve (an optimization's
+    /// iterations do not check again unless they change).
     material_checked: Option<Vec<Option<f64>>>,
     /// The state (positions, velocities) at the last state check that passed, and its step:
     /// a blow-up is run again step by step from there to find where it went wrong.
@@ -985,6 +985,25 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             _ => None,
         })
+    }
+
+    /// What the material constants are made of: the uniforms the element force kernels read
+    /// and the entries of the per-element fields. An optimization of controller weights or
+    /// pressures does not change it, so its solves check the material once (60 force
+    /// evaluations with reorthogonalization: a second per solve on a 67k-dof mesh).
+    pub(crate) fn material_values(&self) -> Vec<Option<f64>> {
+        let module = &self.scene.lowered.adjoint.module;
+        let kernels = module.kernels.iter().take(self.scene.material_ranges.len());
+        let uniforms = kernels.flat_map(|k| k.uniforms());
+        let fields = self
+            .ids
+            .fields
+            .iter()
+            .flat_map(|(_, _, ids)| ids.iter().copied());
+        uniforms
+            .chain(fields)
+            .map(|id| self.uniforms.value(id))
+            .collect()
     }
 
     /// β·dt of the mass damping at step `step`: one step from the rest positions with

@@ -753,14 +753,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
         self.reset();
         // Non-physical constants (E ≤ 0, ν out of (−1, 0.5)) have no stable equilibrium: a
         // solve returned the rest state (E = 0) or an unstable stationary point with exit 0.
-        let trainable = self.uniforms.trainable_values();
-        if self.material_checked.as_ref() != Some(&trainable) {
+        let material = self.material_values();
+        if self.material_checked.as_ref() != Some(&material) {
             if let Some(why) = self.material_at_rest()? {
                 return Err(RunError(format!(
                     "the {kind} solve cannot start: the {why}"
                 )));
             }
-            self.material_checked = Some(trainable);
+            self.material_checked = Some(material);
         }
         if gradient {
             self.zero_gradient_accumulators();
