@@ -314,6 +314,26 @@ impl Core {
         if pollster::block_on(scope.pop()).is_some() {
             return Ok(None);
         }
+        // The copy kernels depend only on `len`: made once for it.
+        let (store, restore) = match copies {
+            Some((store, restore, made_for)) if made_for == len => (store, restore),
+            _ => self.state_copy_pipelines(len)?,
+        };
+        self.states = Some(DeviceStates {
+            chunks,
+            per_chunk,
+            slot_bytes,
+            slots,
+            len,
+            store,
+            restore,
+        });
+        Ok(Some(total))
+    }
+
+    /// Compile the kernels that copy a state of `len` positions and velocities into a device
+    /// slot (`store`) and out of it (`restore`); their pipeline indices.
+    fn state_copy_pipelines(&mut self, len: usize) -> Result<(usize, usize), String> {
         let real = match self.module.precision {
             Precision::F32 => "f32",
             Precision::F64 => "f64",
@@ -328,21 +348,6 @@ impl Core {
             },
             count: None,
         };
-        // The copy kernels depend only on `len`: made once for it.
-        if let Some((store, restore, made_for)) = copies
-            && made_for == len
-        {
-            self.states = Some(DeviceStates {
-                chunks,
-                per_chunk,
-                slot_bytes,
-                slots,
-                len,
-                store,
-                restore,
-            });
-            return Ok(Some(total));
-        }
         let first = self.pipelines.len();
         for (name, entries) in [
             (
@@ -398,16 +403,7 @@ impl Core {
         if let Some(e) = self.take_error() {
             return Err(e);
         }
-        self.states = Some(DeviceStates {
-            chunks,
-            per_chunk,
-            slot_bytes,
-            slots,
-            len,
-            store: first,
-            restore: first + 1,
-        });
-        Ok(Some(total))
+        Ok((first, first + 1))
     }
 
     /// Record a copy between the state buffers `x`, `v` (physical) and device slot `slot`:
