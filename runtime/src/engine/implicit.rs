@@ -74,7 +74,7 @@ impl<B: Backend> Simulation<'_, B> {
         // is so close to the loads of small deformations that Newton's own test (a step that
         // moves nothing beyond round-off) decides.
         let floor = match self.backend.precision() {
-            softc_compiler::back::Precision::F64 => 1e-12 * self.small_strain_forces(0.0)?,
+            softc_compiler::back::Precision::F64 => 1e-12 * self.force_scale(),
             softc_compiler::back::Precision::F32 => 0.0,
         };
         let rest = &scene.mesh.nodes;

@@ -236,9 +236,10 @@ pub struct Simulation<'s, B: Backend> {
     /// How static and implicit solves solve their linear systems.
     pub linear_solver: statics::LinearSolver,
     /// The material values ([`Simulation::material_values`]) that passed
-    /// [`Simulation::material_at_rest`] before a static or implicit solve (an optimization's
-    /// iterations do not check again unless they change).
-    material_checked: Option<Vec<Option<f64>>>,
+    /// [`Simulation::material_at_rest`] before a static or implicit solve, and the internal
+    /// forces of a small deformation with them (the force scale of round-off and of states
+    /// without loads): neither is computed again until the material changes.
+    material_checked: Option<(Vec<Option<f64>>, f64)>,
     /// The state (positions, velocities) at the last state check that passed, and its step:
     /// a blow-up is run again step by step from there to find where it went wrong.
     last_good: Option<(u64, Vec<f64>, Vec<f64>)>,

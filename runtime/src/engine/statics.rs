@@ -513,10 +513,18 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .sqrt())
     }
 
+    /// [`Simulation::small_strain_forces`] for the material of this solve (computed when
+    /// `start_solve` checked it).
+    pub(super) fn force_scale(&self) -> f64 {
+        self.material_checked
+            .as_ref()
+            .map_or(0.0, |(_, scale)| *scale)
+    }
+
     /// The norm of the internal forces (N) of a small deformation: a rough displacement of
     /// 0.1 % of the mean edge length on every free node, at the rest positions and no loads.
-    /// The force scale of a state whose loads vanish.
-    pub(super) fn small_strain_forces(&mut self, t: f64) -> Result<f64, RunError> {
+    /// The force scale of a state whose loads vanish, and of the forces' round-off.
+    fn small_strain_forces(&mut self) -> Result<f64, RunError> {
         let mesh = &self.scene.mesh;
         let edge = |a: u32, b: u32| {
             let (p, q) = (mesh.nodes[a as usize], mesh.nodes[b as usize]);
@@ -542,7 +550,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .collect();
         let x = self.backend.get(self.ids.x);
         self.backend.set(self.ids.x, &probe);
-        let r = self.residual(t, 0.0);
+        let r = self.residual(0.0, 0.0);
         self.backend.set(self.ids.x, &x);
         Ok(r?
             .iter()
@@ -588,7 +596,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // round-off of the rest forces (a converged state read 1.0): it is measured against
         // the forces of a small deformation instead. Loads that are merely small keep their
         // own norm, so a load below what the precision resolves reads as unresolved.
-        let internal = self.small_strain_forces(t)?;
+        let internal = self.force_scale();
         let scale = if loads > 0.0 { loads } else { internal };
         // In f64 no lower than the round-off of the internal forces (positions carry ~1e-14
         // of strain: 1e-11 of the forces of a 0.1 % deformation). A stiff insert (1 GPa in
@@ -754,13 +762,18 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // Non-physical constants (E ≤ 0, ν out of (−1, 0.5)) have no stable equilibrium: a
         // solve returned the rest state (E = 0) or an unstable stationary point with exit 0.
         let material = self.material_values();
-        if self.material_checked.as_ref() != Some(&material) {
+        if self
+            .material_checked
+            .as_ref()
+            .is_none_or(|(m, _)| *m != material)
+        {
             if let Some(why) = self.material_at_rest()? {
                 return Err(RunError(format!(
                     "the {kind} solve cannot start: the {why}"
                 )));
             }
-            self.material_checked = Some(material);
+            let scale = self.small_strain_forces()?;
+            self.material_checked = Some((material, scale));
         }
         if gradient {
             self.zero_gradient_accumulators();
