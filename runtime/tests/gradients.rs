@@ -527,10 +527,11 @@ fn a_material_with_a_field_outside_its_set_is_refused() {
 }
 
 #[test]
-fn a_field_entry_inside_the_simulation_is_a_clear_error() {
-    // `mu[e]` needs the set's elements, known only once the mesh is loaded: the loss has them,
-    // the simulation's kernels (compiled before) do not. The checker says so at the expression
-    // (E0325).
+fn a_field_reduction_in_a_pressure_is_a_sensor_with_exact_gradients() {
+    // `mean(e in near) mu[e]` needs the set's elements, known only once the mesh is loaded:
+    // the host evaluates it (a closed-loop sensor, here of params only), and each entry's
+    // gradient adds the path through the pressure to the one through the material (it was
+    // E0325 before closed-loop control).
     let path = field_variant(
         "field-in-pressure",
         &[(
@@ -538,13 +539,31 @@ fn a_field_entry_inside_the_simulation_is_a_clear_error() {
             "p0 * ramp(t, 1 ms) * mean(e in near) mu[e] / 20 kPa",
         )],
     );
-    let e = Scene::load(Path::new(&path), &[]).unwrap_err();
-    assert!(
-        e.0.contains("field-in-pressure.soft:25:21: error[E0325]")
-            && e.0.contains("reduces over the set `near`"),
-        "{}",
-        e.0
+    let scene = load(&path);
+    assert_eq!(scene.sensors.len(), 1);
+    let g = gradient(&scene, 60, &GradOptions::default());
+    // The same entries' gradients through the material alone (the pressure without the mean).
+    let plain = load(
+        root()
+            .join("runtime/tests/fixtures/grad/field.soft")
+            .to_str()
+            .unwrap(),
     );
+    let material_only = gradient(&plain, 60, &GradOptions::default());
+    for entry in ["param.mu.0", "param.mu.7"] {
+        let fd = central(&scene, 60, entry, 20.0);
+        let adj = g.gradients[entry];
+        assert!(
+            (adj - fd).abs() < 1e-6 * fd.abs(),
+            "{entry}: adjoint {adj:e}, central {fd:e}"
+        );
+        // The path through the pressure is a visible share of it.
+        let through_pressure = adj - material_only.gradients[entry];
+        assert!(
+            through_pressure.abs() > 1e-3 * fd.abs(),
+            "{entry}: through the pressure {through_pressure:e} of {adj:e}"
+        );
+    }
 }
 
 #[test]

@@ -4,7 +4,7 @@
 //! elements, the param and input slots, and the loss lowered over the node sets it reduces.
 //! The compiler does not read meshes: the caller provides one through [`MeshView`].
 
-use super::loss::{LossKernels, lower_loss};
+use super::loss::{LossKernels, SensorKernels, lower_loss, lower_sensors};
 use super::plan::uniform_name;
 use super::settings::{arg, call_parts};
 use super::{Resolved, const_scalar, const_values};
@@ -96,6 +96,8 @@ pub struct Bound {
     /// The params (source order), then the inputs.
     pub slots: Vec<ParamSlots>,
     pub loss: Option<LossKernels>,
+    /// Closed-loop control's sensors, one per scalar (uniform `sensor.I.C`).
+    pub sensors: Vec<SensorKernels>,
 }
 
 impl Bound {
@@ -151,6 +153,7 @@ impl Resolved {
             })
             .collect();
         let loss = lower_loss(&program, ast, &node_sets, &element_sets)?;
+        let sensors = lower_sensors(&program, ast, &kernels.sensors, &node_sets, &element_sets)?;
         Ok(Bound {
             order,
             material_ranges,
@@ -162,6 +165,7 @@ impl Resolved {
             fields,
             slots,
             loss,
+            sensors,
         })
     }
 

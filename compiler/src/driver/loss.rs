@@ -103,28 +103,14 @@ impl LossKernels {
     }
 }
 
-/// Lower the script's loss; `None` without one.
-pub(super) fn lower_loss(
-    program: &Program,
-    ast: &Script,
-    node_sets: &[(String, Vec<u32>)],
-    element_sets: &[(String, Vec<u32>)],
-) -> Result<Option<LossKernels>, String> {
-    let Some(decl) = ast.items.iter().find_map(|i| match &i.kind {
-        ItemKind::Loss(l) => Some(l),
-        _ => None,
-    }) else {
-        return Ok(None);
-    };
-    let mut lw = ExprLowerer::new(program);
-    lw.runtime_names = vec!["t_end", "dt"];
-    lw.node_sets = node_sets.iter().cloned().collect::<HashMap<_, _>>();
-    lw.element_sets = element_sets.iter().cloned().collect::<HashMap<_, _>>();
-    let mut k = KernelBuilder::new("loss", Domain::Single, "loss");
-    let v = lw
-        .lower(&mut k, &Env::new(), &decl.value)
-        .and_then(|v| v.scalar())
-        .map_err(|e| format!("the loss cannot be evaluated: {e}"))?;
+/// A scalar `v` of `k` (a host function of the state, params and time) as a function of its
+/// arguments, the same followed by its derivative with respect to each argument, and what
+/// each argument reads.
+fn host_function(
+    mut k: KernelBuilder,
+    v: V,
+    what: &str,
+) -> Result<(Func, Func, Vec<LossArg>), String> {
     k.b.func.outputs.push(v);
     let (srcs, mut func) = k.into_parts();
     func.n_args = srcs.sources.len() as u32;
@@ -156,9 +142,116 @@ pub(super) fn lower_loss(
         .iter()
         .map(|s| match srcs.uniform_name(s) {
             Some(n) => Ok(LossArg::of(n)),
-            None => Err(format!("the loss reads {s:?}")),
+            None => Err(format!("{what} reads {s:?}")),
         })
         .collect::<Result<_, _>>()?;
+    Ok((func, grad, args))
+}
+
+/// One scalar of a sensor of closed-loop control (a reduction over a node or element set that
+/// a pressure or damping reads, [`crate::lower::expr::ExprLowerer::sensors`]): the kernels
+/// read it as the uniform `uniform`, the host evaluates it at each state a step starts from
+/// (or each static iterate) and differentiates it for the tangent and the adjoint.
+#[derive(Debug, Clone)]
+pub struct SensorKernels {
+    /// `sensor.I.C`.
+    pub uniform: String,
+    /// Where the reduction is written (for messages).
+    pub span: crate::front::ast::Span,
+    /// Its value from its arguments, and the value followed by the derivatives.
+    pub func: Func,
+    pub grad: Func,
+    pub args: Vec<LossArg>,
+}
+
+impl SensorKernels {
+    /// Whether it reads node velocities.
+    pub fn reads_velocity(&self) -> bool {
+        self.args.iter().any(|a| matches!(a, LossArg::V { .. }))
+    }
+}
+
+/// Lower the scene's sensors over the mesh's sets, one per scalar of each.
+pub(super) fn lower_sensors(
+    program: &Program,
+    ast: &Script,
+    sensors: &[crate::front::ast::Expr],
+    node_sets: &[(String, Vec<u32>)],
+    element_sets: &[(String, Vec<u32>)],
+) -> Result<Vec<SensorKernels>, String> {
+    let sim_lets: HashMap<_, _> = (ast.sim_block().iter())
+        .filter_map(|s| match &s.kind {
+            crate::front::ast::StmtKind::Let(l) => Some((l.name.name.clone(), l.value.clone())),
+            _ => None,
+        })
+        .collect();
+    let mut out = Vec::new();
+    for (i, e) in sensors.iter().enumerate() {
+        let mut lw = ExprLowerer::new(program);
+        lw.runtime_names = vec!["t_end", "dt"];
+        lw.sim_lets = sim_lets.clone();
+        lw.node_sets = node_sets.iter().cloned().collect();
+        lw.element_sets = element_sets.iter().cloned().collect();
+        let mut probe = KernelBuilder::new("sensor", Domain::Single, "sensor");
+        let value = lw
+            .lower(&mut probe, &Env::new(), e)
+            .map_err(|err| format!("a sensor of the sim block cannot be evaluated: {err}"))?;
+        let n = crate::lower::expr::flatten(&value).len();
+        for c in 0..n {
+            // One function per scalar, each from a fresh lowering (its own arguments).
+            let mut lw = ExprLowerer::new(program);
+            lw.runtime_names = vec!["t_end", "dt"];
+            lw.sim_lets = sim_lets.clone();
+            lw.node_sets = node_sets.iter().cloned().collect();
+            lw.element_sets = element_sets.iter().cloned().collect();
+            let mut k = KernelBuilder::new("sensor", Domain::Single, "sensor");
+            let value = lw
+                .lower(&mut k, &Env::new(), e)
+                .map_err(|err| format!("a sensor of the sim block cannot be evaluated: {err}"))?;
+            let v = crate::lower::expr::flatten(&value)[c];
+            let (func, grad, args) = host_function(k, v, "a sensor")?;
+            if args.contains(&LossArg::TEnd) {
+                return Err(
+                    "a reduction that a pressure or damping reads cannot read `t_end`: \
+                            closed-loop control measures the state as it runs"
+                        .into(),
+                );
+            }
+            out.push(SensorKernels {
+                uniform: crate::lower::expr::sensor_uniform(i, c),
+                span: e.span,
+                func,
+                grad,
+                args,
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Lower the script's loss; `None` without one.
+pub(super) fn lower_loss(
+    program: &Program,
+    ast: &Script,
+    node_sets: &[(String, Vec<u32>)],
+    element_sets: &[(String, Vec<u32>)],
+) -> Result<Option<LossKernels>, String> {
+    let Some(decl) = ast.items.iter().find_map(|i| match &i.kind {
+        ItemKind::Loss(l) => Some(l),
+        _ => None,
+    }) else {
+        return Ok(None);
+    };
+    let mut lw = ExprLowerer::new(program);
+    lw.runtime_names = vec!["t_end", "dt"];
+    lw.node_sets = node_sets.iter().cloned().collect::<HashMap<_, _>>();
+    lw.element_sets = element_sets.iter().cloned().collect::<HashMap<_, _>>();
+    let mut k = KernelBuilder::new("loss", Domain::Single, "loss");
+    let v = lw
+        .lower(&mut k, &Env::new(), &decl.value)
+        .and_then(|v| v.scalar())
+        .map_err(|e| format!("the loss cannot be evaluated: {e}"))?;
+    let (func, grad, args) = host_function(k, v, "the loss")?;
     let window = match &decl.when {
         LossWhen::Default | LossWhen::AtEnd(_) => None,
         LossWhen::Over { from, to, .. } => {

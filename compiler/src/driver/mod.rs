@@ -14,7 +14,7 @@ pub mod settings;
 pub mod variant;
 
 pub use bind::{Bound, FieldSlots, MeshView, ParamSlots, SlotKind};
-pub use loss::{LossArg, LossKernels, LossWindow};
+pub use loss::{LossArg, LossKernels, LossWindow, SensorKernels};
 pub use plan::{
     InputDecl, InputSource, LrScheduleSpec, NormalizeSpec, OptimizeSpec, OptimizerSpec,
     StopCondition,

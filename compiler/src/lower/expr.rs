@@ -68,6 +68,43 @@ impl<'a> Program<'a> {
     pub fn find(&self, name: &str) -> Option<&'a Item> {
         self.by_name.get(name).copied()
     }
+
+    /// The declared node sets (`false`) and element sets (`true`), by name.
+    pub fn sets(&self) -> Vec<(&'a str, bool)> {
+        let mut sets: Vec<_> = (self.by_name.iter())
+            .filter_map(|(&name, item)| match &item.kind {
+                ItemKind::Decl {
+                    kind: DeclKind::Nodes,
+                    ..
+                } => Some((name, false)),
+                ItemKind::Decl {
+                    kind: DeclKind::Elements,
+                    ..
+                } => Some((name, true)),
+                _ => None,
+            })
+            .collect();
+        sets.sort();
+        sets
+    }
+
+    /// Whether `e` is a reduction over a declared node or element set.
+    pub fn is_set_reduction(&self, e: &Expr) -> Option<&'a str> {
+        let ExprKind::Reduce { domain, .. } = &e.kind else {
+            return None;
+        };
+        let ExprKind::Name(set) = &domain.kind else {
+            return None;
+        };
+        match self.find(&set.name)?.kind {
+            ItemKind::Decl {
+                kind: DeclKind::Nodes | DeclKind::Elements,
+                ref name,
+                ..
+            } => Some(name.name.as_str()),
+            _ => None,
+        }
+    }
 }
 
 pub fn item_name(i: &Item) -> Option<&str> {
@@ -84,6 +121,22 @@ pub fn item_name(i: &Item) -> Option<&str> {
 
 /// Local bindings (function parameters, template parameters, invariants, reduction variables).
 pub type Env = HashMap<String, LVal>;
+
+/// The uniform of component `c` of sensor `index` ([`ExprLowerer::sensors`]).
+pub fn sensor_uniform(index: usize, c: usize) -> String {
+    format!("sensor.{index}.{c}")
+}
+
+/// `v` with its scalars replaced, in order, by `f(0)`, `f(1)`, …
+fn relabel(v: &LVal, next: &mut usize, f: &mut impl FnMut(usize) -> V) -> LVal {
+    match v {
+        LVal::S(_) => {
+            *next += 1;
+            LVal::S(f(*next - 1))
+        }
+        LVal::A(items) => LVal::A(items.iter().map(|i| relabel(i, next, f)).collect()),
+    }
+}
 
 /// Inlining depth bound: the checker rejects cycles, this only guards against surprises.
 const MAX_INLINE: usize = 64;
@@ -130,6 +183,17 @@ pub struct ExprLowerer<'p, 'a> {
     inlined: HashMap<Inlined, LVal>,
     /// Definitions inlined so far (at most [`MAX_INLINED`]).
     expansions: usize,
+    /// The sim block's lets, visible in the sim block's expressions and the lets' values.
+    pub sim_lets: HashMap<String, Expr>,
+    /// Whether names resolve through [`ExprLowerer::sim_lets`] here (not inside a function
+    /// body or a global let).
+    in_sim_scope: bool,
+    /// Closed-loop control: where `Some`, a reduction over a node or element set (which a
+    /// simulation kernel cannot evaluate: it runs per entity, before the mesh is known)
+    /// becomes the uniforms `sensor.I.C`, I the reduction's index in this list and C the
+    /// component; the host evaluates the reduction at the state a step starts from (or at a
+    /// static iterate) and sets them ([`crate::driver::SensorKernels`]).
+    pub sensors: Option<Vec<Expr>>,
 }
 
 impl<'p, 'a> ExprLowerer<'p, 'a> {
@@ -146,7 +210,50 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             depth: 0,
             inlined: HashMap::new(),
             expansions: 0,
+            sim_lets: HashMap::new(),
+            in_sim_scope: true,
+            sensors: None,
         }
+    }
+
+    /// The uniforms of the sensor `e` (a reduction over a set, [`ExprLowerer::sensors`]), in
+    /// the shape of its value.
+    fn sensor(&mut self, k: &mut KernelBuilder, e: &Expr, set: &str) -> Result<LVal, LowerError> {
+        // The value's shape: the reduction lowered with every set holding one entity, in a
+        // scratch kernel and with no local bindings — a reduction that reads a function's
+        // arguments cannot be evaluated apart from the kernel (the checker reports it).
+        let mut probe = ExprLowerer::new(self.program);
+        probe.sim_lets = self.sim_lets.clone();
+        probe.in_sim_scope = self.in_sim_scope;
+        for (name, elements) in self.program.sets() {
+            let sets = if elements {
+                &mut probe.element_sets
+            } else {
+                &mut probe.node_sets
+            };
+            sets.insert(name.to_string(), vec![0]);
+        }
+        let mut scratch = KernelBuilder::new("sensor", crate::ir::Domain::Single, "sensor");
+        let shape = probe.lower(&mut scratch, &Env::new(), e).map_err(|err| {
+            LowerError::new(format!(
+                "the reduction over `{set}` in the sim block cannot be evaluated by the host \
+                 ({}): it may read the node state, params, inputs, `t` and lets, not the \
+                 arguments of the function or controller it is in",
+                err.message
+            ))
+        })?;
+        let sensors = self.sensors.as_mut().expect("sensor mode");
+        let index = match sensors.iter().position(|s| s == e) {
+            Some(i) => i,
+            None => {
+                sensors.push(e.clone());
+                sensors.len() - 1
+            }
+        };
+        let mut next = 0;
+        Ok(relabel(&shape, &mut next, &mut |c| {
+            k.uniform(&sensor_uniform(index, c))
+        }))
     }
 
     pub fn lower(
@@ -286,7 +393,16 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 var,
                 domain,
                 body,
-            } => self.reduce(k, env, *op, var, domain, body),
+            } => {
+                if self.sensors.is_some()
+                    && let Some(set) = self.program.is_set_reduction(e)
+                    && !self.node_sets.contains_key(set)
+                    && !self.element_sets.contains_key(set)
+                {
+                    return self.sensor(k, e, set);
+                }
+                self.reduce(k, env, *op, var, domain, body)
+            }
             ExprKind::Call { callee, args } => {
                 let ExprKind::Name(f) = &callee.kind else {
                     return Err(LowerError::new("only named functions can be called"));
@@ -311,12 +427,17 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             "pi" => return Ok(LVal::S(k.b.constant(std::f64::consts::PI))),
             _ => {}
         }
+        if self.in_sim_scope
+            && let Some(value) = self.sim_lets.get(name).cloned()
+        {
+            return self.inline(k, &format!("sim.{name}"), &Env::new(), &value);
+        }
         let item = self
             .program
             .find(name)
             .ok_or_else(|| LowerError::new(format!("`{name}` has no value in a kernel")))?;
         match &item.kind {
-            ItemKind::Let(l) => self.inline(k, name, &Env::new(), &l.value),
+            ItemKind::Let(l) => self.inline_global(k, name, &Env::new(), &l.value),
             ItemKind::Param(p) => {
                 if field_set(item).is_some() {
                     let buffer = self.element_fields.get(name).ok_or_else(|| {
@@ -338,6 +459,21 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 "`{name}` has no value in a kernel"
             ))),
         }
+    }
+
+    /// [`ExprLowerer::inline`] of a global definition: the sim block's lets are out of scope
+    /// in its body.
+    fn inline_global(
+        &mut self,
+        k: &mut KernelBuilder,
+        name: &str,
+        env: &Env,
+        e: &Expr,
+    ) -> Result<LVal, LowerError> {
+        let scope = std::mem::replace(&mut self.in_sim_scope, false);
+        let r = self.inline(k, name, env, e);
+        self.in_sim_scope = scope;
+        r
     }
 
     /// The value of definition `name` (a function's body `e` with its arguments bound in `env`,
@@ -537,7 +673,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 .map(|p| (p.name.name.as_str(), p.default.as_ref()))
                 .collect();
             let bound = self.bind(k, env, &params, args)?;
-            return self.inline(k, name, &bound, &f.body);
+            return self.inline_global(k, name, &bound, &f.body);
         }
         let vals: Vec<LVal> = args
             .iter()

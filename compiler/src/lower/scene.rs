@@ -47,6 +47,43 @@ pub struct SceneModule {
     pub buffers: SceneBuffers,
     /// `integrator = quasi_static`: the equilibrium solve's kernels.
     pub statics: Option<StaticKernels>,
+    /// Closed-loop control: the reductions over node or element sets that pressures and
+    /// damping read; the kernels read sensor `i` as the uniforms `sensor.i.C`
+    /// ([`ExprLowerer::sensors`]).
+    pub sensors: Vec<Expr>,
+}
+
+/// The sim block's scope for its expressions: its lets, and the sensors found so far.
+struct SimScope {
+    lets: std::collections::HashMap<String, Expr>,
+    sensors: Vec<Expr>,
+}
+
+impl SimScope {
+    fn of(script: &Script) -> Self {
+        let lets = (script.sim_block().iter())
+            .filter_map(|s| match &s.kind {
+                StmtKind::Let(l) => Some((l.name.name.clone(), l.value.clone())),
+                _ => None,
+            })
+            .collect();
+        SimScope {
+            lets,
+            sensors: Vec::new(),
+        }
+    }
+
+    /// A lowerer of the block's expressions; [`SimScope::keep`] takes its sensors back.
+    fn lowerer<'p, 'a>(&mut self, program: &'p Program<'a>) -> ExprLowerer<'p, 'a> {
+        let mut lw = ExprLowerer::new(program);
+        lw.sim_lets = self.lets.clone();
+        lw.sensors = Some(std::mem::take(&mut self.sensors));
+        lw
+    }
+
+    fn keep(&mut self, lw: ExprLowerer) {
+        self.sensors = lw.sensors.unwrap_or_default();
+    }
 }
 
 /// The ids of the buffers the host fills or reads (resolved once, when the scene is lowered).
@@ -148,6 +185,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
             .push(matches!(model, ForceModel::Fem) && !material_is_isochoric(program, m)?);
     }
 
+    let mut scope = SimScope::of(script);
     let mut chambers = Vec::new();
     let tri_force = module.buffer(
         "tri_force",
@@ -164,6 +202,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
                 &chamber.name,
                 value,
                 quasi_static,
+                &mut scope,
             )?);
             chambers.push(chamber.name.clone());
         }
@@ -184,7 +223,13 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
             StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), false)?;
         (adjoint, Some(statics))
     } else if integrator == "implicit_euler" {
-        let node = implicit_euler_kernel(program, &mut module, script, !chambers.is_empty())?;
+        let node = implicit_euler_kernel(
+            program,
+            &mut module,
+            script,
+            !chambers.is_empty(),
+            &mut scope,
+        )?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         simplify_module(&mut module);
@@ -213,7 +258,13 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
             StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), true)?;
         (adjoint, Some(statics))
     } else {
-        let node = node_kernel(program, &mut module, script, !chambers.is_empty())?;
+        let node = node_kernel(
+            program,
+            &mut module,
+            script,
+            !chambers.is_empty(),
+            &mut scope,
+        )?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         simplify_module(&mut module);
@@ -244,6 +295,7 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
         material_fields: fields_of,
         diagnostics,
         statics,
+        sensors: scope.sensors,
     })
 }
 
@@ -402,15 +454,17 @@ impl MatrixFree {
                 (false, Some(pair)) => pair,
                 (false, None) => return Err(LowerError::new("a chamber kernel without tri_force")),
             };
-            let built = directional_derivative(m, k, &[(x, direction)], &[(force, out)])
-                .map_err(LowerError::new)?;
+            let built =
+                directional_derivative(m, k, &[(x, direction)], &[(force, out)], &["sensor."])
+                    .map_err(LowerError::new)?;
             products.push(m.push_kernel(built));
         }
         let mut directions = vec![(x, direction), (elem_force, elem_dir)];
         directions.extend(tri_force.zip(tri_dir));
         let node = materials + chambers;
-        let built = directional_derivative(m, node, &directions, &[(residual, product)])
-            .map_err(LowerError::new)?;
+        let built =
+            directional_derivative(m, node, &directions, &[(residual, product)], &["sensor."])
+                .map_err(LowerError::new)?;
         let node_product = m.push_kernel(built);
         let mut blocks = Vec::new();
         for k in 0..materials + chambers {
@@ -532,14 +586,17 @@ fn pressure_kernel(
     chamber: &str,
     pressure: &Expr,
     load_factor: bool,
+    scope: &mut SimScope,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
     let mut k = KernelBuilder::new(
         &format!("pressure_{chamber}"),
         Domain::Triangle,
         &format!("pressure {chamber}"),
     );
-    let mut lw = ExprLowerer::new(program);
-    let mut p = lw.lower(&mut k, &Env::new(), pressure)?.scalar()?;
+    let mut lw = scope.lowerer(program);
+    let p = lw.lower(&mut k, &Env::new(), pressure);
+    scope.keep(lw);
+    let mut p = p?.scalar()?;
     if load_factor {
         let load = k.uniform("load");
         p = k.b.mul(load, p);
@@ -577,6 +634,22 @@ fn pressure_kernel(
     Ok(k.finish())
 }
 
+/// The `damping` rate in kernel `k` (it may follow a schedule or, closed-loop, a sensor).
+fn damping_rate(
+    program: &Program,
+    script: &Script,
+    k: &mut KernelBuilder,
+    scope: &mut SimScope,
+) -> Result<Option<V>, LowerError> {
+    let Some(e) = script.sim_setting("damping") else {
+        return Ok(None);
+    };
+    let mut lw = scope.lowerer(program);
+    let beta = lw.lower(k, &Env::new(), e);
+    scope.keep(lw);
+    Ok(Some(beta?.scalar()?))
+}
+
 /// Semi-implicit Euler (thesis eq. 2.2 with mass damping eq. 2.17):
 /// v' = (v + dt·(F/m − β·v + g))·(1 − fixed), x' = x + dt·v', F the gathered element and
 /// pressure forces. Writes the next state into separate buffers: no state is overwritten
@@ -586,6 +659,7 @@ fn node_kernel(
     module: &mut Module,
     script: &Script,
     pressure: bool,
+    scope: &mut SimScope,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
     let x = module.buffer("x", Domain::Node, 3, "node positions, m");
     let v = module.buffer("v", Domain::Node, 3, "node velocities, m/s");
@@ -596,13 +670,9 @@ fn node_kernel(
     let elem_force = module.buffer_named("elem_force").expect("declared");
     let tri_force = module.buffer_named("tri_force");
     let mut k = KernelBuilder::new("integrate", Domain::Node, "sim");
+    let beta = damping_rate(program, script, &mut k, scope)?;
     let mut lw = ExprLowerer::new(program);
-    let damping = script.sim_setting("damping");
     let gravity = script.sim_setting("gravity");
-    let beta = match damping {
-        Some(e) => Some(lw.lower(&mut k, &Env::new(), e)?.scalar()?),
-        None => None,
-    };
     // Gravity acts on the physical mass: with `mass_scaling = s` the scaled inertia m·s
     // meets the force m·g, an acceleration g/s (the steady state does not depend on s).
     let scaling = match script.sim_setting("mass_scaling") {
@@ -732,6 +802,7 @@ fn implicit_euler_kernel(
     module: &mut Module,
     script: &Script,
     pressure: bool,
+    scope: &mut SimScope,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
     let x = module.buffer(
         "x",
@@ -765,11 +836,8 @@ fn implicit_euler_kernel(
     let elem_force = module.buffer_named("elem_force").expect("declared");
     let tri_force = module.buffer_named("tri_force");
     let mut k = KernelBuilder::new("implicit_euler", Domain::Node, "sim");
+    let beta = damping_rate(program, script, &mut k, scope)?;
     let mut lw = ExprLowerer::new(program);
-    let beta = match script.sim_setting("damping") {
-        Some(e) => Some(lw.lower(&mut k, &Env::new(), e)?.scalar()?),
-        None => None,
-    };
     let scaling = match script.sim_setting("mass_scaling") {
         Some(e) => constant(program, e, "mass_scaling")?,
         None => 1.0,

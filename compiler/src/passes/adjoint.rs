@@ -14,6 +14,7 @@
 //! | `Corner` `B[node k]` | partial `adj_B@G[self][k]` | `Gather` over this domain (CSR) |
 //! | `Gather` of `B` (node kernel) | `adjg_B@G[node]` | `Corner` in B's domain |
 //! | `Uniform` `param.*` | `grad@G[self] += …` | the host, summed in entity order |
+//! | `Uniform` `sensor.*` | `grad_sensor@G[self] += …` | the host, per reverse step |
 //! | `Own` `param.F[self]` (a per-element param) | `grad_param.F[self] += …` | the host, per entity |
 //!
 //! (`G` names the group of forward kernels that write the same buffer over disjoint entity
@@ -43,6 +44,9 @@ pub struct Adjoint {
     pub state: Vec<AdjointState>,
     /// Where the partial derivatives with respect to each param uniform accumulate.
     pub params: Vec<ParamGradient>,
+    /// Where those with respect to each sensor uniform (closed-loop control) accumulate, for
+    /// one reverse step: the host reads and zeroes them after each.
+    pub sensors: Vec<ParamGradient>,
     /// Per-element params (buffers `param.NAME` the step reads but never writes): where the
     /// derivative with respect to each entity's value accumulates.
     pub fields: Vec<FieldGradient>,
@@ -187,16 +191,23 @@ pub fn adjoint(
             .map(|s| module.buffers[s.buffer.0 as usize].name.clone())
             .unwrap_or_else(|| k.name.clone())
     };
+    // Params accumulate over the steps; sensors (closed-loop control's `sensor.*`, which
+    // the host sets per step) in accumulators of their own, which the host reads and zeroes
+    // at every reverse step.
     let is_param = |u: UniformId| module.uniform_name(u).starts_with("param.");
-    let mut group_params: BTreeMap<String, Vec<UniformId>> = BTreeMap::new();
+    let is_sensor = |u: UniformId| module.uniform_name(u).starts_with("sensor.");
+    let mut group_params: BTreeMap<(String, bool), Vec<UniformId>> = BTreeMap::new();
     for k in &module.kernels {
-        let g = group_params.entry(group_of(k)).or_default();
         for a in &k.args {
             if let ArgSource::Uniform(u) = a
-                && is_param(*u)
-                && !g.contains(u)
+                && (is_param(*u) || is_sensor(*u))
             {
-                g.push(*u);
+                let g = group_params
+                    .entry((group_of(k), is_sensor(*u)))
+                    .or_default();
+                if !g.contains(u) {
+                    g.push(*u);
+                }
             }
         }
     }
@@ -204,6 +215,7 @@ pub fn adjoint(
     let mut contributions: BTreeMap<BufferId, Vec<Contribution>> = BTreeMap::new();
     let mut reverse = Vec::new();
     let mut params = Vec::new();
+    let mut sensors = Vec::new();
     let mut fields: Vec<FieldGradient> = Vec::new();
     for (ki, k) in module.kernels.iter().enumerate().rev() {
         let active_stores: Vec<_> = k.stores.iter().filter(|s| active(s.buffer)).collect();
@@ -333,24 +345,27 @@ pub fn adjoint(
                         k.name, m.buffers[buffer.0 as usize].name
                     ));
                 }
-                ArgSource::Uniform(u) if is_param(*u) => {
-                    let ids = &group_params[&group];
+                ArgSource::Uniform(u) if is_param(*u) || is_sensor(*u) => {
+                    let sensor = is_sensor(*u);
+                    let ids = &group_params[&(group.clone(), sensor)];
                     let c = ids.iter().position(|n| n == u).expect("collected") as u32;
                     let names: Vec<&str> = ids.iter().map(|&id| module.uniform_name(id)).collect();
+                    let (name, doc) = match sensor {
+                        false => (format!("grad@{group}"), "∂L/∂param summed over steps"),
+                        true => (format!("grad_sensor@{group}"), "∂L/∂sensor of one step"),
+                    };
                     let buffer = m.buffer(
-                        &format!("grad@{group}"),
+                        &name,
                         k.domain,
                         ids.len() as u32,
-                        &format!(
-                            "∂L/∂param summed over steps, per entity ({})",
-                            names.join(", ")
-                        ),
+                        &format!("{doc}, per entity ({})", names.join(", ")),
                     );
-                    if !params
+                    let list = if sensor { &mut sensors } else { &mut params };
+                    if !list
                         .iter()
                         .any(|p: &ParamGradient| p.buffer == buffer && p.uniform == *u)
                     {
-                        params.push(ParamGradient {
+                        list.push(ParamGradient {
                             uniform: *u,
                             name: module.uniform_name(*u).to_string(),
                             buffer,
@@ -416,6 +431,7 @@ pub fn adjoint(
         reverse,
         state: states,
         params,
+        sensors,
         fields,
         needs_forward,
     })

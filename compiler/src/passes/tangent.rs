@@ -149,12 +149,15 @@ pub fn force_jacobian(
 /// component), for each `(s, t)` of `outputs` (declared by the caller, as wide as `s`). With
 /// `x` ↦ a direction, an element kernel's forces give J_e·v; a node kernel that gathers
 /// forces, with the forces ↦ those products, gives the assembled product — the tangent
-/// stiffness times a vector without the matrix.
+/// stiffness times a vector without the matrix. A uniform named `u` varies as the uniform
+/// `dir.u` where `u` starts with one of `uniform_prefixes` (closed-loop control's sensors,
+/// whose dependence on the state the host adds through those directions).
 pub fn directional_derivative(
     module: &mut Module,
     kernel: usize,
     directions: &[(BufferId, BufferId)],
     outputs: &[(BufferId, BufferId)],
+    uniform_prefixes: &[&str],
 ) -> Result<BuiltKernel, String> {
     let k = module.kernels[kernel].clone();
     for &(s, t) in outputs {
@@ -208,12 +211,20 @@ pub fn directional_derivative(
             ArgSource::Uniform(_) => return None,
         })
     };
-    let seeds: Vec<_> = k
+    let mut seeds: Vec<_> = k
         .args
         .iter()
         .zip(&args)
         .filter_map(|(a, &v)| direction_of(a).map(|d| (v, kb.load(d))))
         .collect();
+    for (a, &v) in k.args.iter().zip(&args) {
+        if let ArgSource::Uniform(u) = a {
+            let name = module.uniform_name(*u).to_string();
+            if uniform_prefixes.iter().any(|p| name.starts_with(p)) {
+                seeds.push((v, kb.uniform(&format!("dir.{name}"))));
+            }
+        }
+    }
     let tan = ad::tangent(&mut kb.b, upto, &seeds);
     let zero = kb.b.constant(0.0);
     for s in &k.stores {

@@ -18,6 +18,9 @@ pub(super) struct SimInfo {
     pub windows: Vec<(f64, Span)>,
     pub pressured: Vec<String>,
     pub seen: bool,
+    /// The integrator solves for the state (`implicit_euler`, `quasi_static`): closed-loop
+    /// sensors are evaluated at its iterates, which have positions only.
+    pub solves_state: Option<&'static str>,
 }
 
 /// Largest number of entries of a fixed-shape value (params, inputs, lets).

@@ -30,6 +30,14 @@ impl Checker {
             n.name == "integrator"
                 && matches!(&v.kind, ExprKind::Name(i) if i.name == "quasi_static")
         });
+        self.sim.solves_state = assigns.iter().find_map(|(n, v)| match &v.kind {
+            ExprKind::Name(i) if n.name == "integrator" => match i.name.as_str() {
+                "quasi_static" => Some("quasi_static"),
+                "implicit_euler" => Some("implicit_euler"),
+                _ => None,
+            },
+            _ => None,
+        });
         let mut dt = None;
         let mut steps = None;
         self.push_scope();
@@ -197,7 +205,7 @@ impl Checker {
                     let p = Ty::scalar(units::named_dim("pressure").unwrap());
                     let what = format!("the pressure of `{}`", chamber.name);
                     self.expect_type(&t, &p, value, &what);
-                    self.refuse_closed_loop(&t, value, &what, &sim_lets);
+                    self.check_closed_loop(value, &what, &sim_lets);
                 }
                 StmtKind::Use { material, set } => {
                     materials_used = true;
@@ -401,93 +409,130 @@ impl Checker {
         }
     }
 
-    /// A pressure or damping that reads the node state (a reduction such as `mean(n in tip)
-    /// x[n].z`, directly or through a `let` or a controller) is E0325: the simulation's kernels
-    /// cannot evaluate node-set reductions yet, and `softc run` failed on such a script
-    /// without a location (issue 31 item 6).
-    fn refuse_closed_loop(
-        &mut self,
-        t: &Typed,
-        value: &Expr,
-        what: &str,
-        sim_lets: &HashMap<String, Expr>,
-    ) {
-        if t.var != super::Var::State {
-            // A reduction of the rest positions only (`mean(n in tip) x0[n].z`) is constant,
-            // but the kernels cannot evaluate it either.
-            let mut seen = Vec::new();
-            if let Some(set) = self.node_set_reduction(value, sim_lets, &mut seen) {
-                let msg = format!(
-                    "{what} reduces over the set `{set}` (here or in a `let`, function or \
-                     controller it uses): the simulation's kernels cannot evaluate reductions \
-                     over node or element sets yet"
-                );
-                self.err(Diagnostic::error("E0325", value.span, msg).with_hint(
-                    "compute the value once and write it as a constant, or use the set in the \
-                     loss",
-                ));
-            }
-            return;
+    /// Closed-loop control: a pressure or damping may read reductions over node or element
+    /// sets (`mean(n in tip) x[n].z`, directly or through a `let`, function or controller);
+    /// the host evaluates each as a sensor at the state a step starts from (or at a static
+    /// or implicit iterate). E0325 where a reduction cannot be evaluated apart from the
+    /// kernel: it reads an argument of the function or controller it is in (or the variable
+    /// of an enclosing reduction over a range), or the velocities `v` where the integrator
+    /// solves for positions.
+    fn check_closed_loop(&mut self, value: &Expr, what: &str, sim_lets: &HashMap<String, Expr>) {
+        let mut seen = Vec::new();
+        let mut problems = Vec::new();
+        self.sensor_problems(value, sim_lets, &[], &mut seen, &mut problems);
+        if let Some((set, why)) = problems.into_iter().next() {
+            let msg = format!(
+                "{what} reads a reduction over the set `{set}` (here or in a `let`, function or \
+                 controller it uses) that cannot be evaluated as a sensor of closed-loop \
+                 control: {why}"
+            );
+            self.err(Diagnostic::error("E0325", value.span, msg).with_hint(
+                "write the reduction with the state, params, inputs, `t` and lets only (e.g. \
+                 `controller err(goal: length) = goal - tip_z()` with `controller tip_z() = \
+                 mean(n in tip) x[n].z`)",
+            ));
         }
-        let msg = format!(
-            "{what} depends on the node state: closed-loop control (a reduction over a node set \
-             such as `mean(n in tip) x[n].z`, here or in a `let` or controller it uses) is not \
-             supported in the sim block yet"
-        );
-        self.err(Diagnostic::error("E0325", value.span, msg).with_hint(
-            "use the state in the loss; pressures and damping may depend on `t`, params and \
-             inputs (open-loop control, e.g. a controller of a target)",
-        ));
     }
 
-    /// The node or element set a reduction in `e` runs over, following the names it uses into
-    /// the sim block's lets, global lets, functions and controllers (`seen` stops cycles).
-    fn node_set_reduction(
+    /// The reductions over sets in `e` that cannot be sensors, following the names it uses
+    /// into the sim block's lets, global lets, functions and controllers; `locals` are the
+    /// names bound around `e` (arguments of the function it is in, range variables).
+    fn sensor_problems(
         &self,
         e: &Expr,
         sim_lets: &HashMap<String, Expr>,
+        locals: &[String],
         seen: &mut Vec<String>,
-    ) -> Option<String> {
-        let mut found = None;
-        let mut stack = vec![e.clone()];
-        while let Some(e) = stack.pop() {
-            let name = match &e.kind {
-                ExprKind::Reduce { domain, .. } => match &domain.kind {
-                    ExprKind::Name(set)
-                        if matches!(
-                            self.globals.get(&set.name).map(|&g| self.syms[g].kind),
-                            Some(SymKind::Nodes | SymKind::Elements)
-                        ) =>
-                    {
-                        found = Some(set.name.clone());
-                        break;
-                    }
-                    _ => None,
-                },
-                ExprKind::Name(id) => Some(id.name.clone()),
-                ExprKind::Call { callee, .. } => match &callee.kind {
-                    ExprKind::Name(id) => Some(id.name.clone()),
-                    _ => None,
-                },
-                _ => None,
-            };
-            if let Some(name) = name
-                && !seen.contains(&name)
+        problems: &mut Vec<(String, String)>,
+    ) {
+        let set_of = |domain: &Expr| match &domain.kind {
+            ExprKind::Name(set)
+                if matches!(
+                    self.globals.get(&set.name).map(|&g| self.syms[g].kind),
+                    Some(SymKind::Nodes | SymKind::Elements)
+                ) =>
             {
-                seen.push(name.clone());
-                if let Some(v) = sim_lets.get(&name) {
-                    stack.push(v.clone());
-                } else if let Some(&g) = self.globals.get(&name) {
-                    match self.item(self.syms[g].prelude, self.syms[g].item).kind {
-                        ItemKind::Let(l) => stack.push(l.value),
-                        ItemKind::Fn(f) => stack.push(f.body),
-                        _ => {}
+                Some(set.name.clone())
+            }
+            _ => None,
+        };
+        match &e.kind {
+            ExprKind::Reduce {
+                var, domain, body, ..
+            } => {
+                if let Some(set) = set_of(domain) {
+                    let mut names = Vec::new();
+                    free_names(body, &mut names);
+                    if let Some(local) = names.iter().find(|n| locals.contains(n)) {
+                        problems.push((
+                            set,
+                            format!(
+                                "it reads `{local}`, which is bound outside the reduction (an \
+                                 argument of the function or controller it is in, or an \
+                                 enclosing reduction's variable), and the host evaluates it \
+                                 apart from the kernel"
+                            ),
+                        ));
+                    } else if let Some(integrator) = self.sim.solves_state
+                        && names.iter().any(|n| n == "v")
+                    {
+                        problems.push((
+                            set,
+                            format!(
+                                "it reads the velocities `v`, and `integrator = {integrator}` \
+                                 evaluates sensors at the positions it solves for; read \
+                                 positions (`x`, `x0`) only"
+                            ),
+                        ));
                     }
+                    // What the body calls is evaluated with it.
+                    let mut inner = locals.to_vec();
+                    inner.push(var.name.clone());
+                    self.sensor_problems(body, sim_lets, &inner, seen, problems);
+                } else {
+                    self.sensor_problems(domain, sim_lets, locals, seen, problems);
+                    let mut inner = locals.to_vec();
+                    inner.push(var.name.clone());
+                    self.sensor_problems(body, sim_lets, &inner, seen, problems);
+                }
+                return;
+            }
+            ExprKind::Name(id) => self.follow(&id.name, sim_lets, locals, seen, problems),
+            ExprKind::Call { callee, .. } => {
+                if let ExprKind::Name(id) = &callee.kind {
+                    self.follow(&id.name, sim_lets, locals, seen, problems);
                 }
             }
-            e.for_each_child(|c| stack.push(c.clone()));
+            _ => {}
         }
-        found
+        e.for_each_child(|c| self.sensor_problems(c, sim_lets, locals, seen, problems));
+    }
+
+    /// [`Checker::sensor_problems`] in the definition a name refers to.
+    fn follow(
+        &self,
+        name: &str,
+        sim_lets: &HashMap<String, Expr>,
+        locals: &[String],
+        seen: &mut Vec<String>,
+        problems: &mut Vec<(String, String)>,
+    ) {
+        if locals.iter().any(|l| l == name) || seen.iter().any(|s| s == name) {
+            return;
+        }
+        seen.push(name.to_string());
+        if let Some(v) = sim_lets.get(name) {
+            self.sensor_problems(v, sim_lets, &[], seen, problems);
+        } else if let Some(&g) = self.globals.get(name) {
+            match self.item(self.syms[g].prelude, self.syms[g].item).kind {
+                ItemKind::Let(l) => self.sensor_problems(&l.value, sim_lets, &[], seen, problems),
+                ItemKind::Fn(f) => {
+                    let args: Vec<String> = f.params.iter().map(|p| p.name.name.clone()).collect();
+                    self.sensor_problems(&f.body, sim_lets, &args, seen, problems);
+                }
+                _ => {}
+            }
+        }
     }
 
     fn check_window_param(&mut self, id: &Ident, span: Span, count: usize, width: f64) {
@@ -548,7 +593,7 @@ impl Checker {
                     value,
                     "`damping` (β, thesis eq. 2.17)",
                 );
-                self.refuse_closed_loop(&t, value, "`damping`", sim_lets);
+                self.check_closed_loop(value, "`damping`", sim_lets);
                 if t.num().is_some_and(|v| v < 0.0) {
                     self.err(Diagnostic::error(
                         "E0321",
@@ -686,5 +731,27 @@ fn is_window_index(idx: &Expr, sp: Span, lets: &HashMap<String, Expr>, depth: us
             .get(&n.name)
             .is_some_and(|v| is_window_index(v, sp, lets, depth + 1)),
         _ => false,
+    }
+}
+
+/// The names `e` reads that it does not bind itself (reduction variables).
+fn free_names(e: &Expr, out: &mut Vec<String>) {
+    match &e.kind {
+        ExprKind::Name(id) => out.push(id.name.clone()),
+        ExprKind::Reduce {
+            var, domain, body, ..
+        } => {
+            free_names(domain, out);
+            let mut inner = Vec::new();
+            free_names(body, &mut inner);
+            out.extend(inner.into_iter().filter(|n| *n != var.name));
+        }
+        ExprKind::Call { args, .. } => {
+            // A callee is a global; its arguments are read here.
+            for a in args {
+                free_names(&a.value, out);
+            }
+        }
+        _ => e.for_each_child(|c| free_names(c, out)),
     }
 }

@@ -184,7 +184,10 @@ impl<B: Backend> Simulation<'_, B> {
                 v: self.ids.v,
             }),
         };
-        if to > from && self.backend.run_stepped(&stepped).map_err(RunError)? {
+        if to > from
+            && !self.has_sensors()
+            && self.backend.run_stepped(&stepped).map_err(RunError)?
+        {
             return Ok(());
         }
         for k in from..to {
@@ -227,7 +230,7 @@ impl<B: Backend> Simulation<'_, B> {
                 v: self.ids.v,
             }),
         };
-        if n > 0 && self.backend.run_stepped(&stepped).map_err(RunError)? {
+        if n > 0 && !self.has_sensors() && self.backend.run_stepped(&stepped).map_err(RunError)? {
             return Ok(());
         }
         for j in 0..n {
@@ -290,7 +293,9 @@ impl<B: Backend> Simulation<'_, B> {
     /// The buffers where the param derivatives accumulate (`grad@…`, `grad_param.…`).
     pub(super) fn gradient_accumulators(&self) -> Vec<softc_compiler::ir::BufferId> {
         let adj = &self.scene.lowered.adjoint;
-        let mut b: Vec<_> = adj.params.iter().map(|p| p.buffer).collect();
+        let mut b: Vec<_> = (adj.params.iter().chain(&adj.sensors))
+            .map(|p| p.buffer)
+            .collect();
         b.extend(adj.fields.iter().map(|f| f.buffer));
         b.sort();
         b.dedup();
@@ -374,6 +379,7 @@ impl<B: Backend> Simulation<'_, B> {
     fn reverse_step(&mut self, k: u64, dt: f64) -> Result<(), RunError> {
         let adj = &self.scene.lowered.adjoint;
         self.uniforms.set(self.ids.t, k as f64 * dt);
+        self.set_sensors()?;
         if adj.needs_forward {
             self.run_force_kernels()?;
         }
@@ -695,7 +701,7 @@ impl<B: Backend> Simulation<'_, B> {
             // On the device, with no loss terms on the way, "restore state k, reverse step
             // k" down to the next health sample runs as the time loop (the store-all
             // schedule's backward pass).
-            if on_device && loss.window == LossWindow::End {
+            if on_device && loss.window == LossWindow::End && !self.has_sensors() {
                 let from = match action {
                     Action::Reverse { step } if step == current => Some(step),
                     Action::Restore { slot } if device_steps[slot] == Some(slot as u64) => {
@@ -759,6 +765,8 @@ impl<B: Backend> Simulation<'_, B> {
                     if !reversed {
                         self.reverse_step(step, dt)?;
                     }
+                    // Through the sensors the step read at its start state (closed loop).
+                    self.add_sensor_adjoint(&mut direct);
                     if step >= 1 && loss.window != LossWindow::End {
                         let t = step as f64 * dt;
                         if loss.in_window(t, dt) {

@@ -308,7 +308,9 @@ impl<B: Backend> Simulation<'_, B> {
                 .transposed_solve(tangent, report, &g)
                 .map_err(|e| RunError(format!("the backward pass at t = {} s: {e}", Sig(to.t))))?;
             self.backend.set(adj.state[0].adj_next, &mu);
+            self.take_sensor_adjoints();
             self.run_reverse_kernels()?;
+            self.add_sensor_param_gradients(&mut direct);
             let ax = self.backend.get(adj.state[1].adj);
             let av = self.backend.get(adj.state[2].adj);
             for i in 0..n {

@@ -34,11 +34,19 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// K·v at the current positions (and uniforms, as the last residual set them).
     fn tangent_product(&mut self, v: &[f64]) -> Result<Vec<f64>, String> {
         let mf = &self.static_kernels().map_err(|e| e.0)?.matrix_free;
+        // Closed loop: each sensor moves as Bᵀv, which adds A Bᵀ v to the product.
+        if self.has_sensors() {
+            let moves: Vec<f64> = (self.sensor_gradients().iter())
+                .map(|g| g.x.iter().map(|&(i, d)| d * v[i]).sum())
+                .collect();
+            self.set_sensor_directions(&moves);
+        }
         self.backend.set(mf.direction, v);
         self.run_per_force_kernel(&mf.element_products, &mf.chamber_products)?;
         let nodes = 0..self.scene.mesh.nodes.len();
         self.backend.run(mf.node_product, nodes, &self.uniforms)?;
         let mut kv = self.backend.get(mf.product);
+        self.set_sensor_directions(&vec![0.0; self.scene.sensors.len()]);
         self.free_only(&mut kv, -1.0);
         self.device_check()?;
         Ok(kv)
@@ -50,9 +58,21 @@ impl<'s, B: Backend> Simulation<'s, B> {
     fn tangent_transpose_product(&mut self, v: &[f64]) -> Result<Vec<f64>, String> {
         let state = &self.scene.lowered.adjoint.state[0];
         self.backend.set(state.adj_next, v);
+        self.take_sensor_adjoints();
         self.run_reverse_kernels().map_err(|e| e.0)?;
         let mut ktv = self.backend.get(state.adj);
         self.free_only(&mut ktv, -1.0);
+        // Closed loop: Kᵀv − B Aᵀv, Aᵀv = vᵀ ∂r/∂sensor from the sensor accumulators.
+        if self.has_sensors() {
+            let atv = self.take_sensor_adjoints();
+            for (g, c) in self.sensor_gradients().iter().zip(atv) {
+                for &(i, d) in &g.x {
+                    if !self.scene.fixed[i / 3] {
+                        ktv[i] -= d * c;
+                    }
+                }
+            }
+        }
         self.device_check()?;
         Ok(ktv)
     }

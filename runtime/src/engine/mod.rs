@@ -13,6 +13,7 @@ pub mod loss;
 mod matrix_free;
 pub mod profile;
 pub mod scene;
+mod sensors;
 mod stable_dt;
 pub mod statics;
 
@@ -303,6 +304,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let (t, dt) = (uniforms.intern("t"), uniforms.intern("dt"));
         uniforms.set(t, 0.0);
         uniforms.set(dt, 0.0);
+        // Closed-loop sensors and their tangent directions: set before any kernel reads
+        // them (a sensor at each step's or iterate's state; a direction where a product asks).
+        for s in &scene.sensors {
+            for name in [s.uniform.clone(), format!("dir.{}", s.uniform)] {
+                let id = uniforms.intern(&name);
+                uniforms.set(id, 0.0);
+            }
+        }
         let fields = scene
             .fields
             .iter()
@@ -500,7 +509,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// Steps `from..to` with no host work between them: in one call of the backend's compiled
     /// time loop where it has one, else one by one (the same bits either way).
     fn advance(&mut self, from: u64, to: u64, dt: f64) -> Result<(), RunError> {
-        if to > from + 1 {
+        // Sensors are evaluated by the host at every step: no compiled time loop.
+        if to > from + 1 && !self.has_sensors() {
             let (launches, swaps) = self.step_plan();
             let ran = self
                 .backend
@@ -521,6 +531,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// One step from state `step` to `step + 1`.
     fn step(&mut self, step: u64, dt: f64) -> Result<(), RunError> {
         self.uniforms.set(self.ids.t, step as f64 * dt);
+        self.set_sensors()?;
         self.run_force_kernels()?;
         let node_kernel = self.scene.material_ranges.len() + self.scene.chamber_ranges.len();
         self.backend

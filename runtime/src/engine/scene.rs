@@ -69,6 +69,8 @@ pub struct Scene {
     pub slots: Vec<ParamSlots>,
     /// The compiled loss, `None` without one.
     pub loss: Option<LossKernels>,
+    /// Closed-loop control's sensors ([`super::sensors`]), one per scalar.
+    pub sensors: Vec<softc_compiler::driver::SensorKernels>,
     pub dt: DtChoice,
     pub steps: Option<u64>,
     pub duration: Option<f64>,
@@ -167,6 +169,7 @@ impl Scene {
             fields: bound.fields,
             slots: bound.slots,
             loss: bound.loss,
+            sensors: bound.sensors,
             dt: resolved.sim.dt,
             steps: resolved.sim.steps,
             duration: resolved.sim.duration,

@@ -181,6 +181,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         self.uniforms.set(self.ids.t, t);
         let load_id = self.uniforms.intern("load");
         self.uniforms.set(load_id, load);
+        // Closed loop: the load at this iterate reads the sensors there.
+        self.set_sensors()?;
         self.run_force_kernels()?;
         let node_kernel = self.scene.material_ranges.len() + self.scene.chamber_ranges.len();
         self.backend
@@ -421,11 +423,20 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.factor_tangent(tangent, report)?;
             fresh = true;
         }
+        let (a, b) = match self.has_sensors() {
+            true => self.closed_loop_terms()?,
+            false => Default::default(),
+        };
         let Linear::Direct { lu, .. } = &tangent.linear else {
             unreachable!("checked above");
         };
-        let mut dx = tangent.pattern.restrict(r);
-        lu.solve(&mut dx);
+        // Closed loop: K_eff = K − A Bᵀ (A = ∂r/∂sensor, B = ∂sensor/∂x), by Woodbury.
+        let restrict = |v: &Vec<f64>| tangent.pattern.restrict(v);
+        let (a, b): (Vec<_>, Vec<_>) = (
+            a.iter().map(restrict).collect(),
+            b.iter().map(restrict).collect(),
+        );
+        let dx = super::sensors::woodbury(|y| lu.solve(y), &a, &b, &tangent.pattern.restrict(r))?;
         Ok((tangent.pattern.extend(&dx), fresh))
     }
 
@@ -467,11 +478,25 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.abandon_krylov(tangent, report)?;
         }
         self.factor_tangent(tangent, report)?;
+        let (a, b) = match self.has_sensors() {
+            true => self.closed_loop_terms()?,
+            false => Default::default(),
+        };
         let Linear::Direct { lu, .. } = &tangent.linear else {
             unreachable!("a direct solver");
         };
-        let mut mu = tangent.pattern.restrict(g);
-        lu.solve_transpose(&mut mu);
+        // Closed loop: K_effᵀ = Kᵀ − B Aᵀ.
+        let restrict = |v: &Vec<f64>| tangent.pattern.restrict(v);
+        let (a, b): (Vec<_>, Vec<_>) = (
+            a.iter().map(restrict).collect(),
+            b.iter().map(restrict).collect(),
+        );
+        let mu = super::sensors::woodbury(
+            |y| lu.solve_transpose(y),
+            &b,
+            &a,
+            &tangent.pattern.restrict(g),
+        )?;
         Ok(tangent.pattern.extend(&mu))
     }
 
@@ -943,7 +968,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
         })?;
         let state = &adj.state[0];
         self.backend.set(state.adj_next, &mu);
+        self.take_sensor_adjoints();
         self.run_reverse_kernels()?;
+        self.add_sensor_param_gradients(direct);
         Ok(value)
     }
 
