@@ -149,3 +149,24 @@ fn gpu_closed_loop_run_and_gradient_agree_with_the_cpu() {
         );
     }
 }
+
+#[test]
+fn the_reference_oracle_runs_the_same_closed_loop() {
+    // The oracle evaluates the sim block's lets and the node-set reductions itself, on the
+    // AST, at each step's start state: its positions equal the compiled kernels' to round-off.
+    let scene = load("explicit.soft", &[]);
+    let oracle = softc::reference::run(&scene, None, None).unwrap();
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let compiled = Simulation::new(&scene, cpu).run(None, None).unwrap();
+    let scale = (scene.mesh.nodes.iter().zip(&compiled.x))
+        .map(|(a, b)| (0..3).map(|d| (a[d] - b[d]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    let worst = (oracle.x.iter().zip(&compiled.x))
+        .map(|(a, b)| (0..3).map(|d| (a[d] - b[d]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    assert!(scale > 1e-6, "the beam moves: {scale:e} m");
+    assert!(
+        worst < 1e-9 * scale,
+        "oracle and kernels differ by {worst:e} m (displacements {scale:e} m)"
+    );
+}

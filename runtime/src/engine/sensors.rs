@@ -74,7 +74,7 @@ impl<B: Backend> Simulation<'_, B> {
         if !self.has_sensors() {
             return Ok(());
         }
-        let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
+        let (x, v) = self.sensed_state();
         let t = self.uniforms.get(self.ids.t);
         for s in &self.scene.sensors {
             let value = interp::eval(&s.func, &self.sensor_args(s, &x, &v, t))[0];
@@ -93,6 +93,16 @@ impl<B: Backend> Simulation<'_, B> {
         Ok(())
     }
 
+    /// The positions, and the velocities where a sensor reads them (else empty): read back
+    /// from the device at every step of a closed-loop run.
+    fn sensed_state(&self) -> (Vec<f64>, Vec<f64>) {
+        let v = match self.scene.sensors.iter().any(SensorKernels::reads_velocity) {
+            true => self.backend.get(self.ids.v),
+            false => Vec::new(),
+        };
+        (self.backend.get(self.ids.x), v)
+    }
+
     /// `line:column` of a sensor's reduction in the script.
     fn sensor_location(&self, s: &SensorKernels) -> String {
         let upto = &self.scene.source[..s.span.start.min(self.scene.source.len())];
@@ -103,7 +113,7 @@ impl<B: Backend> Simulation<'_, B> {
 
     /// Each sensor's derivative at the current state and time.
     pub(super) fn sensor_gradients(&self) -> Vec<SensorGradient> {
-        let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
+        let (x, v) = self.sensed_state();
         let t = self.uniforms.get(self.ids.t);
         self.scene
             .sensors

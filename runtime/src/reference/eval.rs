@@ -133,6 +133,23 @@ pub struct Evaluator<'a> {
     /// How many field values were read (to tell per-element material constants apart).
     pub field_reads: usize,
     depth: usize,
+    /// The sim block's lets (in scope in its expressions, not in functions or global lets).
+    pub sim_lets: HashMap<&'a str, &'a Expr>,
+    sim_scope: bool,
+    /// Closed-loop control: the node state reductions over node sets read (positions,
+    /// velocities, rest positions), and the sets.
+    pub state: Option<NodeState>,
+    pub node_sets: HashMap<String, Vec<u32>>,
+    /// Reduction variables bound to a node.
+    node_binders: Vec<(String, usize)>,
+}
+
+/// The node state a closed-loop expression reads (3 per node).
+#[derive(Clone, Debug, Default)]
+pub struct NodeState {
+    pub x: Vec<[f64; 3]>,
+    pub v: Vec<[f64; 3]>,
+    pub x0: Vec<[f64; 3]>,
 }
 
 fn item_name(i: &Item) -> Option<&str> {
@@ -169,7 +186,42 @@ impl<'a> Evaluator<'a> {
             fields: HashMap::new(),
             field_reads: 0,
             depth: 0,
+            sim_lets: HashMap::new(),
+            sim_scope: true,
+            state: None,
+            node_sets: HashMap::new(),
+            node_binders: Vec::new(),
         }
+    }
+
+    /// Evaluate a global definition's body: the sim block's lets are out of its scope.
+    fn global(&mut self, env: &Scope, e: &'a Expr) -> Result<Val, String> {
+        let scope = std::mem::replace(&mut self.sim_scope, false);
+        let r = self.nested(env, e);
+        self.sim_scope = scope;
+        r
+    }
+
+    /// `x[n]`, `v[n]` or `x0[n]` of a node bound by a reduction over a node set.
+    fn node_value(&self, env: &Scope, base: &Expr, indices: &[Expr]) -> Option<Val> {
+        let (ExprKind::Name(b), [index]) = (&base.kind, indices) else {
+            return None;
+        };
+        let ExprKind::Name(n) = &index.kind else {
+            return None;
+        };
+        if env.get(&b.name).is_some() {
+            return None;
+        }
+        let &(_, node) = self.node_binders.iter().rev().find(|(v, _)| *v == n.name)?;
+        let state = self.state.as_ref()?;
+        let p = match b.name.as_str() {
+            "x" => state.x[node],
+            "v" => state.v[node],
+            "x0" => state.x0[node],
+            _ => return None,
+        };
+        Some(Val::A(p.iter().map(|&c| num(c)).collect()))
     }
 
     /// Declare a per-element param: `entries[e]` is the entry of element `e` (kernel order).
@@ -254,6 +306,9 @@ impl<'a> Evaluator<'a> {
                     .ok_or_else(|| format!("`.{}` of a vector shorter than 3", field.name))
             }
             ExprKind::Index { base, indices } => {
+                if let Some(v) = self.node_value(env, base, indices) {
+                    return Ok(v);
+                }
                 let mut v = self.eval(env, base)?;
                 for ie in indices {
                     let i = self.eval(env, ie)?.scalar()?.v;
@@ -279,6 +334,11 @@ impl<'a> Evaluator<'a> {
                 domain,
                 body,
             } => {
+                if let ExprKind::Name(set) = &domain.kind
+                    && let Some(nodes) = self.node_sets.get(&set.name).cloned()
+                {
+                    return self.node_reduction(env, *op, &var.name, &nodes, body);
+                }
                 let ExprKind::Binary {
                     op: BinOp::Range,
                     lhs,
@@ -286,7 +346,8 @@ impl<'a> Evaluator<'a> {
                 } = &domain.kind
                 else {
                     return Err(
-                        "a reduction over a node or element set has no value in the simulation"
+                        "the reference oracle evaluates reductions over node sets and ranges \
+                         in the simulation, not over element sets"
                             .into(),
                     );
                 };
@@ -327,6 +388,43 @@ impl<'a> Evaluator<'a> {
         }
     }
 
+    /// A reduction over the nodes of a set (in the set's order) of the current node state.
+    fn node_reduction(
+        &mut self,
+        env: &Scope,
+        op: ReduceOp,
+        var: &str,
+        nodes: &[u32],
+        body: &'a Expr,
+    ) -> Result<Val, String> {
+        if self.state.is_none() {
+            return Err("a reduction over a node set needs the node state".into());
+        }
+        let mut acc: Option<Val> = None;
+        for &node in nodes {
+            self.node_binders.push((var.to_string(), node as usize));
+            let term = self.eval(env, body);
+            self.node_binders.pop();
+            let term = term?;
+            acc = Some(match acc {
+                None => term,
+                Some(a) => zip(&a, &term, &mut |x, y| match op {
+                    ReduceOp::Sum | ReduceOp::Mean => x + y,
+                    ReduceOp::Max => x.max(y),
+                    ReduceOp::Min => x.min(y),
+                })?,
+            });
+        }
+        Ok(match (acc, op) {
+            (None, _) => num(0.0),
+            (Some(a), ReduceOp::Mean) => {
+                let inv = Dual::constant(1.0 / nodes.len() as f64);
+                a.map(&mut |x| x * inv)
+            }
+            (Some(a), _) => a,
+        })
+    }
+
     fn nested(&mut self, env: &Scope, e: &'a Expr) -> Result<Val, String> {
         if self.depth >= MAX_DEPTH {
             return Err("definitions nested too deeply".into());
@@ -347,11 +445,16 @@ impl<'a> Evaluator<'a> {
             "pi" => return Ok(num(std::f64::consts::PI)),
             _ => {}
         }
+        if self.sim_scope
+            && let Some(&e) = self.sim_lets.get(name)
+        {
+            return self.nested(&Scope::root(), e);
+        }
         let item = self
             .find(name)
             .ok_or_else(|| format!("`{name}` has no value in the simulation"))?;
         match &item.kind {
-            ItemKind::Let(l) => self.nested(&Scope::root(), &l.value),
+            ItemKind::Let(l) => self.global(&Scope::root(), &l.value),
             ItemKind::Param(p) => {
                 if p.ty.shape.iter().any(|s| matches!(s, ShapeItem::Set(_))) {
                     let Some(e) = self.element else {
@@ -447,7 +550,7 @@ impl<'a> Evaluator<'a> {
             && let ItemKind::Fn(f) = &item.kind
         {
             let bound = self.bind(env, &f.params, args)?;
-            return self.nested(&bound, &f.body);
+            return self.global(&bound, &f.body);
         }
         let vals: Vec<Val> = args
             .iter()

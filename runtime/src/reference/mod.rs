@@ -16,6 +16,9 @@
 //! - follower pressure: p(t)/6 · (x1 − x0) × (x2 − x0) on each corner of each chamber triangle;
 //! - semi-implicit Euler: v' = (v + dt·(F/m − β·v + g))·(1 − fixed), x' = x + dt·v'.
 //!
+//! Closed-loop control: pressures and damping that read reductions over node sets evaluate
+//! them here too, by the same tree walk over the state each step starts from.
+//!
 //! Every step is checked: an inverted element (J ≤ 0) or a non-finite position stops the run
 //! with the step, the time and the element or node. `dt = auto` is resolved by its own power
 //! iteration on M⁻¹K (K·u from central differences of its own forces).
@@ -104,6 +107,13 @@ impl<'a> Reference<'a> {
         let syntax = scene.resolved.syntax();
         let prelude = softc_compiler::driver::Resolved::prelude_syntax();
         let mut ev = Evaluator::new(syntax, prelude, &scene.uniforms);
+        // Closed-loop control: the sim block's lets and the node sets its reductions read.
+        for s in syntax.sim_block() {
+            if let StmtKind::Let(l) = &s.kind {
+                ev.sim_lets.insert(l.name.name.as_str(), &l.value);
+            }
+        }
+        ev.node_sets = scene.node_sets.iter().cloned().collect();
         let n_tets = scene.mesh.tets.len();
         for f in &scene.fields {
             let mut entries = vec![None; n_tets];
@@ -526,6 +536,15 @@ impl<'a> Reference<'a> {
         let t = step as f64 * dt;
         self.ev.t = t;
         self.ev.dt = dt;
+        if !scene.sensors.is_empty() {
+            // Closed loop: pressures and damping read the state this step starts from.
+            let rows = |p: &[Vec3]| p.iter().map(|p| [p[0], p[1], p[2]]).collect();
+            self.ev.state = Some(eval::NodeState {
+                x: rows(&st.x),
+                v: rows(&st.v),
+                x0: scene.mesh.nodes.clone(),
+            });
+        }
         match self.internal_forces(&st.x, &mut st.f_el) {
             Ok(()) => {}
             Err(InvertedOr::Inverted(e, j)) => {
