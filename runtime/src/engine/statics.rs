@@ -276,8 +276,30 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(())
     }
 
-    /// Newton's method at time `t` and load factor `load` from the current positions.
+    /// Newton's method at time `t` and load factor `load` from the current positions. A free
+    /// body's equilibrium is then moved rigidly to the pose that best matches its rest shape
+    /// (least squares over the nodes): a convention that does not depend on the path Newton
+    /// took, and keeps a symmetric body's answer symmetric.
     pub(super) fn newton(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        t: f64,
+        load: f64,
+        tolerance: f64,
+        floor: f64,
+    ) -> Result<Newton, RunError> {
+        let outcome = self.newton_iterations(tangent, report, t, load, tolerance, floor)?;
+        if tangent.pattern.rigid && matches!(outcome, Newton::Converged { .. }) {
+            let x = self.backend.get(self.ids.x);
+            let aligned = crate::solvers::sparse::align_to(&self.scene.mesh.nodes, &x);
+            self.backend.set(self.ids.x, &aligned);
+            self.residual(t, load)?;
+        }
+        Ok(outcome)
+    }
+
+    fn newton_iterations(
         &mut self,
         tangent: &mut Tangent,
         report: &mut SolverReport,
@@ -427,6 +449,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
             true => self.closed_loop_terms()?,
             false => Default::default(),
         };
+        let x = match tangent.pattern.rigid {
+            true => self.backend.get(self.ids.x),
+            false => Vec::new(),
+        };
         let Linear::Direct { lu, .. } = &tangent.linear else {
             unreachable!("checked above");
         };
@@ -436,8 +462,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
             a.iter().map(restrict).collect(),
             b.iter().map(restrict).collect(),
         );
-        let dx = super::sensors::woodbury(|y| lu.solve(y), &a, &b, &tangent.pattern.restrict(r))?;
-        Ok((tangent.pattern.extend(&dx), fresh))
+        let mut r = r.to_vec();
+        tangent.pattern.remove_rigid_motion(&x, &mut r);
+        let dx = super::sensors::woodbury(|y| lu.solve(y), &a, &b, &tangent.pattern.restrict(&r))?;
+        let mut dx = tangent.pattern.extend(&dx);
+        // A free body: the step without rigid motion (the pinned support's is arbitrary).
+        tangent.pattern.remove_rigid_motion(&x, &mut dx);
+        Ok((dx, fresh))
     }
 
     /// GMRES did not converge (block Jacobi is too weak for this tangent): the rest of the
@@ -482,9 +513,19 @@ impl<'s, B: Backend> Simulation<'s, B> {
             true => self.closed_loop_terms()?,
             false => Default::default(),
         };
+        let x = match tangent.pattern.rigid {
+            true => self.backend.get(self.ids.x),
+            false => Vec::new(),
+        };
         let Linear::Direct { lu, .. } = &tangent.linear else {
             unreachable!("a direct solver");
         };
+        // A free body: the sensitivity without the part the pose convention takes (the
+        // pinned dofs' adjoint is then 0, as their step is).
+        let mut g = g.to_vec();
+        tangent
+            .pattern
+            .pose_free_sensitivity(&self.scene.mesh.nodes, &x, &mut g);
         // Closed loop: K_effᵀ = Kᵀ − B Aᵀ.
         let restrict = |v: &Vec<f64>| tangent.pattern.restrict(v);
         let (a, b): (Vec<_>, Vec<_>) = (
@@ -495,7 +536,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             |y| lu.solve_transpose(y),
             &b,
             &a,
-            &tangent.pattern.restrict(g),
+            &tangent.pattern.restrict(&g),
         )?;
         Ok(tangent.pattern.extend(&mu))
     }
@@ -761,8 +802,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if static_solve && let Some(why) = free_rotation(scene) {
             return Err(RunError(why));
         }
-        let pattern = BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris, static_solve)
-            .map_err(RunError)?;
+        let pattern = BlockPattern::new(
+            &scene.fixed,
+            &scene.mesh.tets,
+            &scene.tris,
+            static_solve,
+            &scene.mesh.nodes,
+        )
+        .map_err(RunError)?;
         let krylov = match self.linear_solver {
             LinearSolver::Direct => false,
             LinearSolver::Krylov if pattern.rigid => {

@@ -9,6 +9,16 @@
 //! eliminated: their rows and columns are not in the matrix. The symbolic factorization
 //! (fill-reducing ordering, elimination structure) is computed once; each Newton step only
 //! refactors numerically.
+//!
+//! A body with no fixed node (a free body under balanced loads) has a tangent that is
+//! singular along its six rigid modes. Six of its degrees of freedom are pinned (a statically
+//! determinate "3-2-1" support: all of one node, two of a far node, one of a third off their
+//! line) — identity rows and columns in the same pattern, no dense row — and each solution is
+//! made free of rigid motion afterwards by projection ([`BlockPattern::remove_rigid_motion`]).
+//! Balanced loads put no reaction on such a support, so the step is the one the six
+//! constraints Σ Δx = 0, Σ (x − x̄) × Δx = 0 define; the matrix keeps the stiffness's symmetry
+//! (Cholesky where it is definite) and its fill. (Six Lagrange multipliers, the former
+//! approach, are six dense rows and columns: their fill made a 15.6k-dof sphere unsolvable.)
 
 use faer::Side;
 use faer::linalg::solvers::Solve;
@@ -22,15 +32,11 @@ const NONE: u32 = u32::MAX;
 pub struct BlockPattern {
     /// Free degrees of freedom (3 per free node).
     pub n: usize,
-    /// A body without fixed nodes: 6 Lagrange multipliers hold its mean translation and
-    /// rotation (the matrix is n + 6 square, symmetric indefinite).
+    /// A body without fixed nodes: six dofs are pinned and solutions are made free of rigid
+    /// motion (see the module's docs).
     pub rigid: bool,
-    /// Per free dof, its node and component.
-    free: Vec<(u32, u8)>,
-    /// Per free dof j, the position of entry (n, j): the constraint rows n..n+6 follow it.
-    con_row: Vec<u32>,
-    /// The position of entry (0, n): the constraint columns, n entries each.
-    con_col: usize,
+    /// The pinned dofs of a free body (six), else empty.
+    pinned: Vec<u32>,
     /// Per free dof, the position of its diagonal entry.
     diag: Vec<u32>,
     /// `node·3 + d` → free dof index, or [`NONE`] for a fixed node.
@@ -46,17 +52,18 @@ pub struct BlockPattern {
 }
 
 impl BlockPattern {
-    /// `hold_rigid_modes`: a static solve, where a body with no fixed node gets the 6
-    /// constraints (an implicit step's inertia already makes its matrix regular).
+    /// `hold_rigid_modes`: a static solve, where a body with no fixed node has its rigid
+    /// modes held (an implicit step's inertia already makes its matrix regular); `rest`: the
+    /// node positions the pinned dofs are chosen by.
     pub fn new(
         fixed: &[bool],
         tets: &[[u32; 4]],
         tris: &[[u32; 3]],
         hold_rigid_modes: bool,
+        rest: &[[f64; 3]],
     ) -> Result<Self, String> {
         let n_nodes = fixed.len();
         let rigid = hold_rigid_modes && fixed.iter().all(|f| !f);
-        let extra = if rigid { 6 } else { 0 };
         let mut dof = vec![NONE; 3 * n_nodes];
         let mut n = 0u32;
         for (node, &f) in fixed.iter().enumerate() {
@@ -91,8 +98,7 @@ impl BlockPattern {
         let mut col_ptr = Vec::with_capacity(n as usize + 1);
         let mut row_idx = Vec::new();
         let mut col_start = vec![0usize; n_nodes];
-        let mut free = Vec::new();
-        let mut con_row = Vec::new();
+        let mut free: Vec<(u32, u8)> = Vec::new();
         col_ptr.push(0);
         for b in 0..n_nodes {
             if fixed[b] {
@@ -106,15 +112,8 @@ impl BlockPattern {
                     }
                 }
                 free.push((b as u32, db as u8));
-                con_row.push(row_idx.len() as u32);
-                row_idx.extend((0..extra).map(|c| n as usize + c));
                 col_ptr.push(row_idx.len());
             }
-        }
-        let con_col = row_idx.len();
-        for _ in 0..extra {
-            row_idx.extend(0..n as usize);
-            col_ptr.push(row_idx.len());
         }
         if row_idx.len() >= NONE as usize {
             return Err(format!(
@@ -128,7 +127,7 @@ impl BlockPattern {
             }
             let list = &nbrs[b as usize];
             let k = list.binary_search(&a).expect("neighbours are linked");
-            (col_start[b as usize] + db * (3 * list.len() + extra) + 3 * k + da) as u32
+            (col_start[b as usize] + db * 3 * list.len() + 3 * k + da) as u32
         };
         let positions = |nodes: &[u32]| {
             let m = 3 * nodes.len();
@@ -147,12 +146,15 @@ impl BlockPattern {
             .iter()
             .map(|&(b, d)| position(b, d as usize, b, d as usize))
             .collect();
+        let pinned = if rigid {
+            three_two_one(rest)?.into_iter().map(|i| dof[i]).collect()
+        } else {
+            Vec::new()
+        };
         Ok(BlockPattern {
             n: n as usize,
             rigid,
-            free,
-            con_row,
-            con_col,
+            pinned,
             diag,
             dof,
             col_ptr,
@@ -174,12 +176,13 @@ impl BlockPattern {
         (d != NONE).then_some(d as usize)
     }
 
-    /// The matrix's order: the free dofs, and the multipliers of a free body.
+    /// The matrix's order: the free dofs.
     pub fn size(&self) -> usize {
-        self.n + if self.rigid { 6 } else { 0 }
+        self.n
     }
 
-    /// Free-dof entries of a node-major vector (3 per node), zeros for the multipliers.
+    /// Free-dof entries of a node-major vector (3 per node), zeros at a free body's pinned
+    /// dofs.
     pub fn restrict(&self, full: &[f64]) -> Vec<f64> {
         let mut out = vec![0.0; self.size()];
         for (i, &d) in self.dof.iter().enumerate() {
@@ -187,7 +190,38 @@ impl BlockPattern {
                 out[d as usize] = full[i];
             }
         }
+        for &p in &self.pinned {
+            out[p as usize] = 0.0;
+        }
         out
+    }
+
+    /// Remove the rigid motion from a node-major vector `v` of a free body at positions `x`:
+    /// `v − R (RᵀR)⁻¹ Rᵀ v`, R the three translations and the three rotations about the
+    /// centroid. A Newton step so has no mean translation or rotation; a right-hand side so
+    /// has no part the pinned support would take as a reaction. Nothing for a body that is
+    /// not free.
+    pub fn remove_rigid_motion(&self, x: &[f64], v: &mut [f64]) {
+        if !self.rigid {
+            return;
+        }
+        let modes = rigid_modes(x);
+        let mut gram = [[0.0; 6]; 6];
+        let mut rhs = [0.0; 6];
+        for (i, a) in modes.iter().enumerate() {
+            rhs[i] = dot(a, v);
+            for (j, b) in modes.iter().enumerate() {
+                gram[i][j] = dot(a, b);
+            }
+        }
+        let Some(c) = solve6(gram, rhs) else {
+            return;
+        };
+        for (mode, c) in modes.iter().zip(c) {
+            for (vi, mi) in v.iter_mut().zip(mode) {
+                *vi -= c * mi;
+            }
+        }
     }
 
     /// A node-major vector (3 per node, 0 at fixed nodes) from free-dof entries.
@@ -202,10 +236,37 @@ impl BlockPattern {
     /// chamber triangles' (triangle × 81) and the nodes' own (node × 9: an implicit step's
     /// inertia; empty for a static solve), summed entity by entity in kernel order.
     ///
-    /// A free body's constraint rows hold Σ Δx_i = 0 and Σ (x_i − x̄) × Δx_i = 0 at the
-    /// positions `x`: no mean translation or rotation in a Newton step. They are scaled to the
-    /// stiffness's diagonal so the factorization stays well conditioned; their right-hand side
-    /// is 0, so the scale does not change the solution.
+    /// The sensitivity ∂L/∂x of a free body's equilibrium at positions `x` as its adjoint
+    /// needs it: the equilibrium is posed by [`align_to`] its rest shape `rest`, so its
+    /// derivative dx keeps Σ dx = 0 and Σ dx × (X − X̄) = 0 (C(X)ᵀ dx = 0, C the rigid modes
+    /// at rest) while a solve gives it up to a rigid motion R(x)·a; then g·dx = ĝ·dx_any with
+    /// ĝ = g − C (RᵀC)⁻¹ Rᵀ g. Nothing for a body that is not free.
+    pub fn pose_free_sensitivity(&self, rest: &[[f64; 3]], x: &[f64], g: &mut [f64]) {
+        if !self.rigid {
+            return;
+        }
+        let flat: Vec<f64> = rest.iter().flatten().copied().collect();
+        let (r, c) = (rigid_modes(x), rigid_modes(&flat));
+        let mut rc = [[0.0; 6]; 6];
+        let mut rg = [0.0; 6];
+        for i in 0..6 {
+            rg[i] = dot(&r[i], g);
+            for j in 0..6 {
+                rc[i][j] = dot(&r[i], &c[j]);
+            }
+        }
+        let Some(a) = solve6(rc, rg) else {
+            return;
+        };
+        for (cj, aj) in c.iter().zip(a) {
+            for (gi, ci) in g.iter_mut().zip(cj) {
+                *gi -= aj * ci;
+            }
+        }
+    }
+
+    /// A free body's pinned dofs get identity rows and columns, scaled to the stiffness's
+    /// mean diagonal so the factorization stays well conditioned (their right-hand side is 0).
     pub fn assemble(
         &self,
         elem_jac: &[f64],
@@ -227,48 +288,189 @@ impl BlockPattern {
                 }
             }
         }
+        let _ = x;
         if self.rigid {
-            self.fill_constraints(x, values);
+            self.pin(values);
         }
     }
 }
 
 impl BlockPattern {
-    fn fill_constraints(&self, x: &[f64], values: &mut [f64]) {
-        let m = self.free.len().max(1) as f64;
+    fn pin(&self, values: &mut [f64]) {
         let scale = self
             .diag
             .iter()
             .map(|&p| values[p as usize].abs())
             .sum::<f64>()
-            / m;
-        let mut centre = [0.0; 3];
-        for &(node, d) in self.free.iter() {
-            centre[d as usize] += x[3 * node as usize + d as usize] / (m / 3.0);
-        }
-        let size = self
-            .free
-            .iter()
-            .map(|&(node, d)| (x[3 * node as usize + d as usize] - centre[d as usize]).abs())
-            .fold(0.0f64, f64::max)
-            .max(f64::MIN_POSITIVE);
-        for (j, &(node, d)) in self.free.iter().enumerate() {
-            let r = |c: usize| (x[3 * node as usize + c] - centre[c]) / size;
-            let d = d as usize;
-            // Row c < 3: translation along c. Row 3 + c: (e_c × r)·Δx, the rotation about c.
-            let mut row = [0.0; 6];
-            row[d] = 1.0;
-            let (r0, r1, r2) = (r(0), r(1), r(2));
-            let rot = [[0.0, -r2, r1], [r2, 0.0, -r0], [-r1, r0, 0.0]];
-            for c in 0..3 {
-                row[3 + c] = rot[c][d];
-            }
-            for (c, v) in row.iter().enumerate() {
-                values[self.con_row[j] as usize + c] = scale * v;
-                values[self.con_col + c * self.n + j] = scale * v;
+            / self.diag.len().max(1) as f64;
+        let is_pinned = |d: usize| self.pinned.contains(&(d as u32));
+        for col in 0..self.n {
+            let col_pinned = is_pinned(col);
+            let range = self.col_ptr[col]..self.col_ptr[col + 1];
+            for (value, &row) in values[range.clone()].iter_mut().zip(&self.row_idx[range]) {
+                if col_pinned || is_pinned(row) {
+                    *value = if row == col { scale } else { 0.0 };
+                }
             }
         }
     }
+}
+
+/// Positions `x` (node-major) moved rigidly to the pose that best matches `rest` in least
+/// squares: the centroids coincide and the rotation is the Kabsch solution (the SVD of the
+/// cross-covariance, a proper rotation).
+pub fn align_to(rest: &[[f64; 3]], x: &[f64]) -> Vec<f64> {
+    use nalgebra::{Matrix3, Vector3};
+    let n = rest.len().max(1) as f64;
+    let mut cx = Vector3::zeros();
+    let mut cr = Vector3::zeros();
+    for (p, q) in x.chunks(3).zip(rest) {
+        cx += Vector3::new(p[0], p[1], p[2]) / n;
+        cr += Vector3::new(q[0], q[1], q[2]) / n;
+    }
+    let mut h = Matrix3::zeros();
+    for (p, q) in x.chunks(3).zip(rest) {
+        let a = Vector3::new(p[0], p[1], p[2]) - cx;
+        let b = Vector3::new(q[0], q[1], q[2]) - cr;
+        h += a * b.transpose();
+    }
+    let svd = h.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return x.to_vec();
+    };
+    let mut d = Matrix3::identity();
+    if (vt.transpose() * u.transpose()).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    // The rotation taking x's centred positions onto rest's.
+    let q = vt.transpose() * d * u.transpose();
+    x.chunks(3)
+        .flat_map(|p| {
+            let y = q * (Vector3::new(p[0], p[1], p[2]) - cx) + cr;
+            [y[0], y[1], y[2]]
+        })
+        .collect()
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// The six rigid modes at positions `x` (node-major): translations along x, y, z, and
+/// rotations about the axes through the centroid, scaled by the body's size.
+fn rigid_modes(x: &[f64]) -> Vec<Vec<f64>> {
+    let n = x.len() / 3;
+    let mut centre = [0.0; 3];
+    for p in x.chunks(3) {
+        for d in 0..3 {
+            centre[d] += p[d] / n as f64;
+        }
+    }
+    let size = x
+        .chunks(3)
+        .flat_map(|p| (0..3).map(move |d| (p[d] - centre[d]).abs()))
+        .fold(0.0f64, f64::max)
+        .max(f64::MIN_POSITIVE);
+    let mut modes = vec![vec![0.0; x.len()]; 6];
+    for (i, p) in x.chunks(3).enumerate() {
+        let r = [0, 1, 2].map(|d| (p[d] - centre[d]) / size);
+        for d in 0..3 {
+            modes[d][3 * i + d] = 1.0;
+        }
+        // e_c × r for the rotation about axis c.
+        let rot = [[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]];
+        for c in 0..3 {
+            for d in 0..3 {
+                modes[3 + c][3 * i + d] = rot[d][c];
+            }
+        }
+    }
+    modes
+}
+
+/// Solve a 6×6 system by Gaussian elimination with partial pivoting.
+fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
+    for col in 0..6 {
+        let p = (col..6).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[p][col] == 0.0 {
+            return None;
+        }
+        a.swap(col, p);
+        b.swap(col, p);
+        for row in col + 1..6 {
+            let f = a[row][col] / a[col][col];
+            let pivot = a[col];
+            for (x, y) in a[row].iter_mut().zip(pivot).skip(col) {
+                *x -= f * y;
+            }
+            b[row] -= f * b[col];
+        }
+    }
+    for col in (0..6).rev() {
+        let s: f64 = (col + 1..6).map(|k| a[col][k] * b[k]).sum();
+        b[col] = (b[col] - s) / a[col][col];
+    }
+    Some(b)
+}
+
+/// A statically determinate support of a free body (node-major dof indices `3·node + d`): all
+/// three dofs of the node nearest the centroid's opposite corner (`a`), the two dofs of the
+/// node farthest from it (`b`) across the line ab, and the one dof of the node farthest from
+/// that line (`c`) along the normal of the plane abc. It fixes the six rigid modes and puts no
+/// force on a balanced load.
+fn three_two_one(rest: &[[f64; 3]]) -> Result<Vec<usize>, String> {
+    let sub = |p: &[f64; 3], q: &[f64; 3]| [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
+    let norm = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    let farthest = |from: &dyn Fn(&[f64; 3]) -> f64| {
+        (0..rest.len())
+            .max_by(|&i, &j| from(&rest[i]).total_cmp(&from(&rest[j])))
+            .unwrap_or(0)
+    };
+    let centre = {
+        let mut c = [0.0; 3];
+        for p in rest {
+            for d in 0..3 {
+                c[d] += p[d] / rest.len().max(1) as f64;
+            }
+        }
+        c
+    };
+    let a = farthest(&|p| norm(sub(p, &centre)));
+    let b = farthest(&|p| norm(sub(p, &rest[a])));
+    let ab = sub(&rest[b], &rest[a]);
+    let lab = norm(ab);
+    let off_line = |p: &[f64; 3]| {
+        let ap = sub(p, &rest[a]);
+        let t =
+            (ap[0] * ab[0] + ap[1] * ab[1] + ap[2] * ab[2]) / (lab * lab).max(f64::MIN_POSITIVE);
+        norm([ap[0] - t * ab[0], ap[1] - t * ab[1], ap[2] - t * ab[2]])
+    };
+    let c = farthest(&off_line);
+    if lab == 0.0 || off_line(&rest[c]) <= 1e-6 * lab {
+        return Err(
+            "a body with no fixed node must span a volume (its nodes lie on one line)".into(),
+        );
+    }
+    // b: the two components least aligned with ab (ab itself stays free).
+    let mut axes = [0usize, 1, 2];
+    axes.sort_by(|&i, &j| ab[i].abs().total_cmp(&ab[j].abs()));
+    let ac = sub(&rest[c], &rest[a]);
+    let normal = [
+        ab[1] * ac[2] - ab[2] * ac[1],
+        ab[2] * ac[0] - ab[0] * ac[2],
+        ab[0] * ac[1] - ab[1] * ac[0],
+    ];
+    let along = (0..3)
+        .max_by(|&i, &j| normal[i].abs().total_cmp(&normal[j].abs()))
+        .unwrap_or(2);
+    Ok(vec![
+        3 * a,
+        3 * a + 1,
+        3 * a + 2,
+        3 * b + axes[0],
+        3 * b + axes[1],
+        3 * c + along,
+    ])
 }
 
 /// The factorization of the assembled tangent: Cholesky (LLᵀ) when it is symmetric positive
@@ -284,7 +486,8 @@ pub struct SparseSolver {
     symbolic_llt: Option<SymbolicLlt<usize>>,
     symbolic_lu: Option<SymbolicLu<usize>>,
     factor: Option<Factor>,
-    /// Whether the matrix can be positive definite (not with a free body's multipliers).
+    /// Whether the matrix can be positive definite (always, since a free body's rigid modes
+    /// are pinned rather than held by multipliers).
     may_be_definite: bool,
 }
 
@@ -326,7 +529,7 @@ impl SparseSolver {
             symbolic_llt: None,
             symbolic_lu: None,
             factor: None,
-            may_be_definite: !p.rigid,
+            may_be_definite: true,
         })
     }
 
@@ -386,6 +589,75 @@ impl SparseSolver {
         match self.factor.as_ref().expect("factored") {
             Factor::Llt(f) => f.solve_in_place(rhs),
             Factor::Lu(f) => f.solve_transpose_in_place(rhs),
+        }
+    }
+}
+
+#[cfg(test)]
+mod rigid_tests {
+    use super::*;
+
+    fn rest() -> Vec<[f64; 3]> {
+        vec![
+            [0.0, 0.0, 0.0],
+            [2.0, 0.1, 0.0],
+            [0.2, 1.5, 0.3],
+            [0.1, 0.2, 1.0],
+            [1.0, 1.0, 1.0],
+        ]
+    }
+
+    #[test]
+    fn align_to_undoes_a_rigid_motion() {
+        let rest = rest();
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        // A rotation about z and a translation.
+        let moved: Vec<f64> = rest
+            .iter()
+            .flat_map(|p| {
+                [
+                    c * p[0] - s * p[1] + 5.0,
+                    s * p[0] + c * p[1] - 2.0,
+                    p[2] + 1.0,
+                ]
+            })
+            .collect();
+        let back = align_to(&rest, &moved);
+        for (a, b) in back.chunks(3).zip(&rest) {
+            for d in 0..3 {
+                assert!((a[d] - b[d]).abs() < 1e-12, "{a:?} vs {b:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_support_pins_six_distinct_dofs_of_three_nodes() {
+        let pins = three_two_one(&rest()).unwrap();
+        let mut sorted = pins.clone();
+        sorted.sort();
+        sorted.dedup();
+        assert_eq!(sorted.len(), 6);
+        let nodes: std::collections::BTreeSet<_> = pins.iter().map(|p| p / 3).collect();
+        assert_eq!(nodes.len(), 3);
+        // Nodes on one line have no determinate support.
+        let line: Vec<[f64; 3]> = (0..4).map(|i| [i as f64, 0.0, 0.0]).collect();
+        assert!(three_two_one(&line).is_err());
+    }
+
+    #[test]
+    fn the_pose_free_sensitivity_has_no_part_along_the_rigid_modes_at_the_state() {
+        let rest = rest();
+        let pattern =
+            BlockPattern::new(&[false; 5], &[[0, 1, 2, 3], [1, 2, 3, 4]], &[], true, &rest)
+                .unwrap();
+        let x: Vec<f64> = rest
+            .iter()
+            .flat_map(|p| [p[0] * 1.01, p[1], p[2] + 0.02 * p[0]])
+            .collect();
+        let mut g: Vec<f64> = (0..15).map(|i| (i as f64 * 0.7).sin()).collect();
+        pattern.pose_free_sensitivity(&rest, &x, &mut g);
+        for mode in rigid_modes(&x) {
+            assert!(dot(&mode, &g).abs() < 1e-12, "{}", dot(&mode, &g));
         }
     }
 }
