@@ -185,29 +185,24 @@ pub(super) fn lower_sensors(
             _ => None,
         })
         .collect();
-    let mut out = Vec::new();
-    for (i, e) in sensors.iter().enumerate() {
+    // A sensor lowered into a fresh function (each scalar gets its own: its own arguments).
+    let lower = |e: &crate::front::ast::Expr| {
         let mut lw = ExprLowerer::new(program);
         lw.runtime_names = vec!["t_end", "dt"];
         lw.sim_lets = sim_lets.clone();
         lw.node_sets = node_sets.iter().cloned().collect();
         lw.element_sets = element_sets.iter().cloned().collect();
-        let mut probe = KernelBuilder::new("sensor", Domain::Single, "sensor");
+        let mut k = KernelBuilder::new("sensor", Domain::Single, "sensor");
         let value = lw
-            .lower(&mut probe, &Env::new(), e)
+            .lower(&mut k, &Env::new(), e)
             .map_err(|err| format!("a sensor of the sim block cannot be evaluated: {err}"))?;
-        let n = crate::lower::expr::flatten(&value).len();
+        Ok::<_, String>((k, value))
+    };
+    let mut out = Vec::new();
+    for (i, e) in sensors.iter().enumerate() {
+        let n = crate::lower::expr::flatten(&lower(e)?.1).len();
         for c in 0..n {
-            // One function per scalar, each from a fresh lowering (its own arguments).
-            let mut lw = ExprLowerer::new(program);
-            lw.runtime_names = vec!["t_end", "dt"];
-            lw.sim_lets = sim_lets.clone();
-            lw.node_sets = node_sets.iter().cloned().collect();
-            lw.element_sets = element_sets.iter().cloned().collect();
-            let mut k = KernelBuilder::new("sensor", Domain::Single, "sensor");
-            let value = lw
-                .lower(&mut k, &Env::new(), e)
-                .map_err(|err| format!("a sensor of the sim block cannot be evaluated: {err}"))?;
+            let (k, value) = lower(e)?;
             let v = crate::lower::expr::flatten(&value)[c];
             let (func, grad, args) = host_function(k, v, "a sensor")?;
             if args.contains(&LossArg::TEnd) {

@@ -103,6 +103,9 @@ impl GradientReport {
     }
 }
 
+/// A buffer and its length (entries).
+pub(super) type BufferLen = (softc_compiler::ir::BufferId, usize);
+
 /// Positions and velocities copied to the host.
 type HostState = (Vec<f64>, Vec<f64>);
 
@@ -327,14 +330,8 @@ impl<B: Backend> Simulation<'_, B> {
             .filter(|k| k.starts_with("param."))
             .map(|k| (k.clone(), 0.0))
             .collect();
-        let mut cache = BTreeMap::new();
-        for p in &adj.params {
-            let width = adj.module.buffers[p.buffer.0 as usize].width as usize;
-            let data = cache
-                .entry(p.buffer)
-                .or_insert_with(|| self.backend.get(p.buffer));
-            let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
-            *gradients.entry(p.name.clone()).or_insert(0.0) += sum;
+        for (name, sum) in self.accumulator_sums(&adj.params).0 {
+            *gradients.entry(name).or_insert(0.0) += sum;
         }
         // Per-element params: each element's accumulator is the derivative of its entry.
         for f in &adj.fields {
@@ -357,6 +354,27 @@ impl<B: Backend> Simulation<'_, B> {
             *gradients.entry(name).or_insert(0.0) += d;
         }
         Ok(gradients)
+    }
+
+    /// Each accumulator's sum over its entities (in entity order), by uniform name; and the
+    /// buffers read, with their lengths.
+    pub(super) fn accumulator_sums(
+        &self,
+        list: &[softc_compiler::passes::adjoint::ParamGradient],
+    ) -> (Vec<(String, f64)>, Vec<BufferLen>) {
+        let adj = &self.scene.lowered.adjoint;
+        let mut cache: BTreeMap<_, Vec<f64>> = BTreeMap::new();
+        let mut sums = Vec::with_capacity(list.len());
+        for p in list {
+            let width = adj.module.buffers[p.buffer.0 as usize].width as usize;
+            let data = cache
+                .entry(p.buffer)
+                .or_insert_with(|| self.backend.get(p.buffer));
+            let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
+            sums.push((p.name.clone(), sum));
+        }
+        let read = cache.into_iter().map(|(b, d)| (b, d.len())).collect();
+        (sums, read)
     }
 
     /// The adjoint kernels of one reverse step, in order, each over its forward kernel's

@@ -142,21 +142,15 @@ impl<B: Backend> Simulation<'_, B> {
     /// ∂L/∂sensor from the adjoint kernels' sensor accumulators (entities summed in order), in
     /// [`Scene::sensors`](super::scene::Scene) order; the accumulators are zeroed.
     pub(super) fn take_sensor_adjoints(&mut self) -> Vec<f64> {
-        let adj = &self.scene.lowered.adjoint;
         let mut out = vec![0.0; self.scene.sensors.len()];
-        let mut buffers: BTreeMap<_, Vec<f64>> = BTreeMap::new();
-        for p in &adj.sensors {
-            let width = adj.module.buffers[p.buffer.0 as usize].width as usize;
-            let data = buffers
-                .entry(p.buffer)
-                .or_insert_with(|| self.backend.get(p.buffer));
-            let sum: f64 = data.iter().skip(p.component as usize).step_by(width).sum();
-            if let Some(i) = self.scene.sensors.iter().position(|s| s.uniform == p.name) {
+        let (sums, read) = self.accumulator_sums(&self.scene.lowered.adjoint.sensors);
+        for (name, sum) in sums {
+            if let Some(i) = self.scene.sensors.iter().position(|s| s.uniform == name) {
                 out[i] += sum;
             }
         }
-        for (b, data) in buffers {
-            self.backend.set(b, &vec![0.0; data.len()]);
+        for (b, len) in read {
+            self.backend.set(b, &vec![0.0; len]);
         }
         out
     }

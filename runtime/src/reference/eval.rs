@@ -60,6 +60,18 @@ fn truth(b: bool) -> Dual {
     Dual::constant(if b { 1.0 } else { 0.0 })
 }
 
+/// A reduction's running value with one more term.
+fn combine(acc: Option<Val>, term: Val, op: ReduceOp) -> Result<Val, String> {
+    match acc {
+        None => Ok(term),
+        Some(a) => zip(&a, &term, &mut |x, y| match op {
+            ReduceOp::Sum | ReduceOp::Mean => x + y,
+            ReduceOp::Max => x.max(y),
+            ReduceOp::Min => x.min(y),
+        }),
+    }
+}
+
 /// Elementwise with scalar broadcast.
 fn zip(a: &Val, b: &Val, f: &mut dyn FnMut(Dual, Dual) -> Dual) -> Result<Val, String> {
     Ok(match (a, b) {
@@ -360,14 +372,7 @@ impl<'a> Evaluator<'a> {
                         parent: Some(env),
                     };
                     let term = self.eval(&inner, body)?;
-                    acc = Some(match acc {
-                        None => term,
-                        Some(a) => zip(&a, &term, &mut |x, y| match op {
-                            ReduceOp::Sum | ReduceOp::Mean => x + y,
-                            ReduceOp::Max => x.max(y),
-                            ReduceOp::Min => x.min(y),
-                        })?,
-                    });
+                    acc = Some(combine(acc, term, *op)?);
                 }
                 let n = (hi - lo).max(0) as f64;
                 Ok(match (acc, op) {
@@ -405,15 +410,7 @@ impl<'a> Evaluator<'a> {
             self.node_binders.push((var.to_string(), node as usize));
             let term = self.eval(env, body);
             self.node_binders.pop();
-            let term = term?;
-            acc = Some(match acc {
-                None => term,
-                Some(a) => zip(&a, &term, &mut |x, y| match op {
-                    ReduceOp::Sum | ReduceOp::Mean => x + y,
-                    ReduceOp::Max => x.max(y),
-                    ReduceOp::Min => x.min(y),
-                })?,
-            });
+            acc = Some(combine(acc, term?, op)?);
         }
         Ok(match (acc, op) {
             (None, _) => num(0.0),
