@@ -196,6 +196,18 @@ impl BlockPattern {
         out
     }
 
+    /// K·v for the matrix with these values (the pattern's order), over the free dofs.
+    pub fn multiply(&self, values: &[f64], v: &[f64]) -> Vec<f64> {
+        let mut out = vec![0.0; self.size()];
+        for (col, &vc) in v.iter().enumerate().take(self.size()) {
+            let range = self.col_ptr[col]..self.col_ptr[col + 1];
+            for (a, &row) in values[range.clone()].iter().zip(&self.row_idx[range]) {
+                out[row] += a * vc;
+            }
+        }
+        out
+    }
+
     /// Remove the rigid motion from a node-major vector `v` of a free body at positions `x`:
     /// `v − R (RᵀR)⁻¹ Rᵀ v`, R the three translations and the three rotations about the
     /// centroid. A Newton step so has no mean translation or rotation; a right-hand side so
@@ -605,6 +617,33 @@ mod rigid_tests {
             [0.1, 0.2, 1.0],
             [1.0, 1.0, 1.0],
         ]
+    }
+
+    #[test]
+    fn multiply_is_the_product_with_the_matrix_the_values_fill() {
+        let pattern = BlockPattern::new(
+            &[false; 5],
+            &[[0, 1, 2, 3], [1, 2, 3, 4]],
+            &[],
+            false,
+            &rest(),
+        )
+        .unwrap();
+        let values: Vec<f64> = (0..pattern.nnz())
+            .map(|k| (k as f64 * 0.37).cos())
+            .collect();
+        let v: Vec<f64> = (0..15).map(|i| (i as f64 * 1.3).sin()).collect();
+        // The dense matrix entry by entry from the CSC arrays.
+        let mut dense = vec![vec![0.0; 15]; 15];
+        for (col, bounds) in pattern.col_ptr.windows(2).enumerate() {
+            for k in bounds[0]..bounds[1] {
+                dense[pattern.row_idx[k]][col] += values[k];
+            }
+        }
+        let product = pattern.multiply(&values, &v);
+        for (row, p) in dense.iter().zip(&product) {
+            assert!((dot(row, &v) - p).abs() < 1e-12);
+        }
     }
 
     #[test]
