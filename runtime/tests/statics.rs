@@ -568,7 +568,11 @@ fn static_and_implicit_runs_report_their_progress() {
         (
             &static_path,
             false,
-            &["quasi-static step 1/3", "quasi-static step 3/3"][..],
+            &[
+                "quasi-static step 1/3",
+                "quasi-static step 3/3",
+                "Newton iteration 1, residual",
+            ][..],
         ),
         (
             &implicit_path,

@@ -21,6 +21,7 @@
 use super::loss::{Loss, LossWindow};
 use super::{RunError, RunSummary, Simulation};
 use crate::devices::Backend;
+use crate::outputs::Sig;
 use crate::solvers::sparse::{BlockPattern, SparseSolver};
 use softc_compiler::back::Precision;
 use softc_compiler::driver::LossArg;
@@ -417,8 +418,21 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 });
             }
             report.newton_iterations += 1;
-            // A large tangent's iteration takes seconds: an interrupt stops it here.
+            // A large tangent's iteration takes seconds: an interrupt stops it here, and the
+            // progress says where the solve is (issue 29 item 7).
             self.check_interrupt()?;
+            if let Some(p) = &mut self.progress {
+                p.note(&format!(
+                    "at t = {} s, {:.1} % of its loads: Newton iteration {}, residual {} N \
+                     (goal {} N), {} factorizations so far",
+                    Sig(t),
+                    100.0 * load,
+                    it + 1,
+                    Sig(r_norm),
+                    Sig(tolerance),
+                    report.factorizations
+                ));
+            }
             // Inexact Newton: a matrix-free solve need only be as accurate as the step can
             // use, a fraction of the way from here to the tolerance — but no looser than
             // 1e-4, so the state Newton stops at is as close to the equilibrium as a direct

@@ -113,6 +113,36 @@ impl Progress {
     }
 }
 
+impl Progress {
+    /// What the run is doing within a step (a static solve's load step and Newton iteration):
+    /// a log line at most every `every` (after `show_after`), or the bar's message.
+    pub fn note(&mut self, detail: &str) {
+        let elapsed = self.start.elapsed();
+        if elapsed < self.show_after {
+            return;
+        }
+        match &mut self.log {
+            Some(out) => {
+                if self.last_line.is_some_and(|t| t.elapsed() < self.every) {
+                    return;
+                }
+                self.last_line = Some(Instant::now());
+                let _ = writeln!(
+                    out,
+                    "{}: {detail}, {:.0} s elapsed",
+                    self.label,
+                    elapsed.as_secs_f64()
+                );
+            }
+            None => {
+                if let Some((b, phase)) = &self.bar {
+                    b.set_message(format!("{} ({phase}: {detail})", self.label));
+                }
+            }
+        }
+    }
+}
+
 /// A time left in the unit a reader takes in at a glance: `42 s`, `12 min`, `3.4 h`,
 /// `5.2 days`, `1.3 years` (a run of 10⁹ static steps should not read `42368149 s`).
 fn human(seconds: f64) -> String {
