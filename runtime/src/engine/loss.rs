@@ -107,19 +107,14 @@ impl<'s> Loss<'s> {
         self.kernels
             .args
             .iter()
-            .map(|a| match a {
-                LossArg::X { node, d } => x[3 * node + d],
-                LossArg::V { node, d } => v[3 * node + d],
-                LossArg::X0 { node, d } => scene.mesh.nodes[*node][*d],
-                LossArg::T => t,
-                LossArg::TEnd => self.t_end,
-                LossArg::Dt => self.dt,
-                LossArg::Uniform(_) => ids
-                    .next()
-                    .copied()
-                    .flatten()
-                    .and_then(|id| uniforms.value(id))
-                    .unwrap_or(f64::NAN),
+            .map(|a| {
+                host_arg(a, scene, (x, v), [t, self.t_end, self.dt], |_| {
+                    ids.next()
+                        .copied()
+                        .flatten()
+                        .and_then(|id| uniforms.value(id))
+                        .unwrap_or(f64::NAN)
+                })
             })
             .collect()
     }
@@ -131,6 +126,26 @@ impl<'s> Loss<'s> {
             // Half a step of slack so a window end that is a multiple of dt is included.
             LossWindow::Over { from, to } => t >= from - 0.5 * dt && t <= to + 0.5 * dt,
         }
+    }
+}
+
+/// The value of one argument of a host function (the loss, a closed-loop sensor) at the
+/// state (`x`, `v`) and `times` = [t, t_end, dt]; `uniform` gives a param's or input's value.
+pub(super) fn host_arg(
+    a: &LossArg,
+    scene: &Scene,
+    (x, v): (&[f64], &[f64]),
+    [t, t_end, dt]: [f64; 3],
+    uniform: impl FnOnce(&str) -> f64,
+) -> f64 {
+    match a {
+        LossArg::X { node, d } => x[3 * node + d],
+        LossArg::V { node, d } => v[3 * node + d],
+        LossArg::X0 { node, d } => scene.mesh.nodes[*node][*d],
+        LossArg::T => t,
+        LossArg::TEnd => t_end,
+        LossArg::Dt => dt,
+        LossArg::Uniform(name) => uniform(name),
     }
 }
 

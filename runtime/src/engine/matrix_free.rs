@@ -32,11 +32,16 @@ impl<'s, B: Backend> Simulation<'s, B> {
     }
 
     /// K·v at the current positions (and uniforms, as the last residual set them).
-    fn tangent_product(&mut self, v: &[f64]) -> Result<Vec<f64>, String> {
+    /// `sensors`: the closed-loop sensors' derivatives at this state (empty without).
+    fn tangent_product(
+        &mut self,
+        v: &[f64],
+        sensors: &[super::sensors::SensorGradient],
+    ) -> Result<Vec<f64>, String> {
         let mf = &self.static_kernels().map_err(|e| e.0)?.matrix_free;
         // Closed loop: each sensor moves as Bᵀv, which adds A Bᵀ v to the product.
         if self.has_sensors() {
-            let moves: Vec<f64> = (self.sensor_gradients().iter())
+            let moves: Vec<f64> = (sensors.iter())
                 .map(|g| g.x.iter().map(|&(i, d)| d * v[i]).sum())
                 .collect();
             self.set_sensor_directions(&moves);
@@ -55,7 +60,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// Kᵀ·v at the current state: the adjoint kernels with ∂L/∂residual = v give
     /// (∂r/∂x)ᵀ·v as ∂L/∂x. (They also add to the param accumulators: the caller restores
     /// those.)
-    fn tangent_transpose_product(&mut self, v: &[f64]) -> Result<Vec<f64>, String> {
+    fn tangent_transpose_product(
+        &mut self,
+        v: &[f64],
+        sensors: &[super::sensors::SensorGradient],
+    ) -> Result<Vec<f64>, String> {
         let state = &self.scene.lowered.adjoint.state[0];
         self.backend.set(state.adj_next, v);
         self.take_sensor_adjoints();
@@ -65,7 +74,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // Closed loop: Kᵀv − B Aᵀv, Aᵀv = vᵀ ∂r/∂sensor from the sensor accumulators.
         if self.has_sensors() {
             let atv = self.take_sensor_adjoints();
-            for (g, c) in self.sensor_gradients().iter().zip(atv) {
+            for (g, c) in sensors.iter().zip(atv) {
                 for &(i, d) in &g.x {
                     if !self.scene.fixed[i / 3] {
                         ktv[i] -= d * c;
@@ -184,6 +193,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         };
         let mut rhs = rhs.to_vec();
         self.free_only(&mut rhs, 1.0);
+        // The sensors' derivatives hold for the whole solve (the state does not move).
+        let sensors = match self.has_sensors() {
+            true => self.sensor_gradients(),
+            false => Vec::new(),
+        };
         let saved = if transpose {
             Some(self.param_accumulators())
         } else {
@@ -192,12 +206,17 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let solved = if transpose {
             gmres(
                 &rhs,
-                |v| self.tangent_transpose_product(v),
+                |v| self.tangent_transpose_product(v, &sensors),
                 precondition,
                 limits,
             )
         } else {
-            gmres(&rhs, |v| self.tangent_product(v), precondition, limits)
+            gmres(
+                &rhs,
+                |v| self.tangent_product(v, &sensors),
+                precondition,
+                limits,
+            )
         };
         if let Some(saved) = saved {
             for (b, data) in saved {

@@ -53,17 +53,13 @@ impl<B: Backend> Simulation<'_, B> {
 
     /// The arguments of a sensor at the state (`x`, `v`) and time `t`.
     fn sensor_args(&self, s: &SensorKernels, x: &[f64], v: &[f64], t: f64) -> Vec<f64> {
-        s.args
-            .iter()
-            .map(|a| match a {
-                LossArg::X { node, d } => x[3 * node + d],
-                LossArg::V { node, d } => v[3 * node + d],
-                LossArg::X0 { node, d } => self.scene.mesh.nodes[*node][*d],
-                LossArg::T => t,
-                LossArg::Dt => self.uniforms.get(self.ids.dt),
-                // Refused when the scene is bound: a sensor has no run to end.
-                LossArg::TEnd => f64::NAN,
-                LossArg::Uniform(name) => self.uniforms.named(name).unwrap_or(f64::NAN),
+        // `t_end` is refused when the scene is bound: a sensor has no run to end.
+        let times = [t, f64::NAN, self.uniforms.get(self.ids.dt)];
+        (s.args.iter())
+            .map(|a| {
+                super::loss::host_arg(a, self.scene, (x, v), times, |name| {
+                    self.uniforms.named(name).unwrap_or(f64::NAN)
+                })
             })
             .collect()
     }
@@ -273,7 +269,7 @@ pub(super) fn woodbury(
         })
         .collect();
     let mut c: Vec<f64> = v.iter().map(|vi| dot(vi, &y)).collect();
-    solve_dense(&mut s, &mut c).ok_or_else(|| {
+    crate::solvers::dense::solve(&mut s, &mut c).ok_or_else(|| {
         "the closed-loop tangent is singular: the controller's feedback cancels the stiffness \
          along some displacement (lower the feedback gain)"
             .to_string()
@@ -284,39 +280,6 @@ pub(super) fn woodbury(
         }
     }
     Ok(y)
-}
-
-/// Solve the small dense system `a x = b` in place (b becomes x) by Gaussian elimination with
-/// partial pivoting; `None` when `a` is singular to round-off.
-fn solve_dense(a: &mut [Vec<f64>], b: &mut [f64]) -> Option<()> {
-    let n = b.len();
-    let scale = a
-        .iter()
-        .flatten()
-        .fold(0.0f64, |m, x| m.max(x.abs()))
-        .max(f64::MIN_POSITIVE);
-    for col in 0..n {
-        let pivot = (col..n).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[pivot][col].abs() <= 1e-14 * scale {
-            return None;
-        }
-        a.swap(col, pivot);
-        b.swap(col, pivot);
-        let (upper, lower) = a.split_at_mut(col + 1);
-        let pivot_row = &upper[col];
-        for (i, row) in lower.iter_mut().enumerate() {
-            let f = row[col] / pivot_row[col];
-            for (x, p) in row[col..].iter_mut().zip(&pivot_row[col..]) {
-                *x -= f * p;
-            }
-            b[col + 1 + i] -= f * b[col];
-        }
-    }
-    for col in (0..n).rev() {
-        let s: f64 = (col + 1..n).map(|k| a[col][k] * b[k]).sum();
-        b[col] = (b[col] - s) / a[col][col];
-    }
-    Some(())
 }
 
 #[cfg(test)]

@@ -291,11 +291,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             None => Vec::new(),
         };
-        let x = self.backend.get(self.ids.x);
         let Linear::Direct { values, .. } = &mut tangent.linear else {
             return Err("internal error: a matrix-free solve has no tangent to assemble".into());
         };
-        tangent.pattern.assemble(&elem, &tri, &node, &x, values);
+        tangent.pattern.assemble(&elem, &tri, &node, values);
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
             return Err(format!(
                 "the tangent stiffness has a non-finite entry (entry {i})"

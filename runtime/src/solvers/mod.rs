@@ -1,5 +1,7 @@
 //! Linear algebra for the implicit solvers: the assembled tangent's sparsity pattern and its
-//! sparse direct factorization, and restarted GMRES for matrix-free solves.
+//! sparse direct factorization, restarted GMRES for matrix-free solves, and small dense
+//! systems.
 
+pub mod dense;
 pub mod krylov;
 pub mod sparse;

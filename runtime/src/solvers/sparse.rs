@@ -218,22 +218,7 @@ impl BlockPattern {
             return;
         }
         let modes = rigid_modes(x);
-        let mut gram = [[0.0; 6]; 6];
-        let mut rhs = [0.0; 6];
-        for (i, a) in modes.iter().enumerate() {
-            rhs[i] = dot(a, v);
-            for (j, b) in modes.iter().enumerate() {
-                gram[i][j] = dot(a, b);
-            }
-        }
-        let Some(c) = solve6(gram, rhs) else {
-            return;
-        };
-        for (mode, c) in modes.iter().zip(c) {
-            for (vi, mi) in v.iter_mut().zip(mode) {
-                *vi -= c * mi;
-            }
-        }
+        project_out(&modes, &modes, v);
     }
 
     /// A node-major vector (3 per node, 0 at fixed nodes) from free-dof entries.
@@ -244,10 +229,6 @@ impl BlockPattern {
             .collect()
     }
 
-    /// The stiffness K = −∂residual/∂x from the element Jacobians (element × 144, ∂f/∂x), the
-    /// chamber triangles' (triangle × 81) and the nodes' own (node × 9: an implicit step's
-    /// inertia; empty for a static solve), summed entity by entity in kernel order.
-    ///
     /// The sensitivity ∂L/∂x of a free body's equilibrium at positions `x` as its adjoint
     /// needs it: the equilibrium is posed by [`align_to`] its rest shape `rest`, so its
     /// derivative dx keeps Σ dx = 0 and Σ dx × (X − X̄) = 0 (C(X)ᵀ dx = 0, C the rigid modes
@@ -258,25 +239,13 @@ impl BlockPattern {
             return;
         }
         let flat: Vec<f64> = rest.iter().flatten().copied().collect();
-        let (r, c) = (rigid_modes(x), rigid_modes(&flat));
-        let mut rc = [[0.0; 6]; 6];
-        let mut rg = [0.0; 6];
-        for i in 0..6 {
-            rg[i] = dot(&r[i], g);
-            for j in 0..6 {
-                rc[i][j] = dot(&r[i], &c[j]);
-            }
-        }
-        let Some(a) = solve6(rc, rg) else {
-            return;
-        };
-        for (cj, aj) in c.iter().zip(a) {
-            for (gi, ci) in g.iter_mut().zip(cj) {
-                *gi -= aj * ci;
-            }
-        }
+        project_out(&rigid_modes(x), &rigid_modes(&flat), g);
     }
 
+    /// The stiffness K = −∂residual/∂x from the element Jacobians (element × 144, ∂f/∂x), the
+    /// chamber triangles' (triangle × 81) and the nodes' own (node × 9: an implicit step's
+    /// inertia; empty for a static solve), summed entity by entity in kernel order.
+    ///
     /// A free body's pinned dofs get identity rows and columns, scaled to the stiffness's
     /// mean diagonal so the factorization stays well conditioned (their right-hand side is 0).
     pub fn assemble(
@@ -284,7 +253,6 @@ impl BlockPattern {
         elem_jac: &[f64],
         tri_jac: &[f64],
         node_jac: &[f64],
-        x: &[f64],
         values: &mut Vec<f64>,
     ) {
         values.clear();
@@ -300,7 +268,6 @@ impl BlockPattern {
                 }
             }
         }
-        let _ = x;
         if self.rigid {
             self.pin(values);
         }
@@ -400,29 +367,23 @@ fn rigid_modes(x: &[f64]) -> Vec<Vec<f64>> {
     modes
 }
 
-/// Solve a 6×6 system by Gaussian elimination with partial pivoting.
-fn solve6(mut a: [[f64; 6]; 6], mut b: [f64; 6]) -> Option<[f64; 6]> {
-    for col in 0..6 {
-        let p = (col..6).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
-        if a[p][col] == 0.0 {
-            return None;
-        }
-        a.swap(col, p);
-        b.swap(col, p);
-        for row in col + 1..6 {
-            let f = a[row][col] / a[col][col];
-            let pivot = a[col];
-            for (x, y) in a[row].iter_mut().zip(pivot).skip(col) {
-                *x -= f * y;
-            }
-            b[row] -= f * b[col];
+/// `v − C (RᵀC)⁻¹ Rᵀ v` (the columns of R and C given as vectors): the part of `v` that R's
+/// columns do not see, along C's. With C = R the orthogonal projection off R. Unchanged where
+/// RᵀC is singular.
+fn project_out(r: &[Vec<f64>], c: &[Vec<f64>], v: &mut [f64]) {
+    let mut rc: Vec<Vec<f64>> = r
+        .iter()
+        .map(|ri| c.iter().map(|cj| dot(ri, cj)).collect())
+        .collect();
+    let mut coefficients: Vec<f64> = r.iter().map(|ri| dot(ri, v)).collect();
+    if crate::solvers::dense::solve(&mut rc, &mut coefficients).is_none() {
+        return;
+    }
+    for (cj, aj) in c.iter().zip(coefficients) {
+        for (vi, ci) in v.iter_mut().zip(cj) {
+            *vi -= aj * ci;
         }
     }
-    for col in (0..6).rev() {
-        let s: f64 = (col + 1..6).map(|k| a[col][k] * b[k]).sum();
-        b[col] = (b[col] - s) / a[col][col];
-    }
-    Some(b)
 }
 
 /// A statically determinate support of a free body (node-major dof indices `3·node + d`): all
