@@ -123,15 +123,16 @@ def compile(
     precision: Optional[str] = None,
     threads: Optional[int] = None,
     adapter: Optional[str] = None,
-    linear_solver: str = "direct",
+    linear_solver: str = "auto",
 ) -> "Scene":
     """Compile a ``.soft`` script for a device.
 
     ``backend``: ``"cpu"`` (Cranelift, default), ``"gpu"`` (WGSL through wgpu) or ``"interp"``
     (the kernel-IR interpreter). ``precision``: ``"f32"`` or ``"f64"`` (default: the script's
     ``precision``, else f64 on the cpu and f32 on the gpu). ``threads``: worker threads of the
-    cpu backend. ``adapter``: part of a GPU adapter's name. ``linear_solver``: ``"direct"`` or
-    ``"krylov"`` for static and implicit solves. Raises :class:`CompileError` with
+    cpu backend. ``adapter``: part of a GPU adapter's name. ``linear_solver``: ``"auto"``
+    (default: ``"direct"`` up to 60,000 free dofs, ``"amg"`` beyond), ``"direct"``, ``"amg"``
+    or ``"krylov"`` for static and implicit solves. Raises :class:`CompileError` with
     ``.diagnostics`` when the script has errors.
     """
     path = os.fspath(path)

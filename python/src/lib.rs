@@ -317,9 +317,9 @@ impl NativeScene {
 }
 
 /// Compile a script: `backend` cpu, interp or gpu; `precision` f32/f64 (None: the script's,
-/// else the backend's default); `linear_solver` direct or krylov.
+/// else the backend's default); `linear_solver` auto, direct, amg or krylov.
 #[pyfunction]
-#[pyo3(signature = (path, backend="cpu", precision=None, threads=None, adapter=None, linear_solver="direct"))]
+#[pyo3(signature = (path, backend="cpu", precision=None, threads=None, adapter=None, linear_solver="auto"))]
 fn compile(
     py: Python<'_>,
     path: PathBuf,

@@ -34,7 +34,7 @@ impl Default for Settings {
             precision: None,
             adapter: None,
             threads: None,
-            linear_solver: LinearSolver::Direct,
+            linear_solver: LinearSolver::Auto,
         }
     }
 }

@@ -34,7 +34,7 @@ pub struct RunArgs {
     /// assembles the sparse tangent and factors it on the host; `krylov` runs matrix-free GMRES
     /// on tangent products computed by the backend's kernels (block-Jacobi preconditioned; far
     /// slower on the shipped scenes, but no matrix in memory).
-    #[arg(long, value_enum, default_value_t = LinearSolver::Direct)]
+    #[arg(long, value_enum, default_value_t = LinearSolver::Auto)]
     pub linear_solver: LinearSolver,
     /// Worker threads of the cpu backend (default: stretches of steps of 8,000+ entities are
     /// timed on one thread and on all cores and run on the faster; single launches of 8,000+
@@ -256,7 +256,8 @@ fn check_scene_flags(args: &RunArgs, scene: &Scene, dt: Option<f64>) -> Result<(
 /// why, so that a run does not quietly differ from what was asked (issue 31 item 12).
 fn warn_ignored_flags(args: &RunArgs, scene: &Scene, err: &mut dyn Write) {
     let statics = scene.lowered.statics.as_ref();
-    if args.linear_solver != LinearSolver::Direct && statics.is_none() {
+    let chosen = !matches!(args.linear_solver, LinearSolver::Direct | LinearSolver::Auto);
+    if chosen && statics.is_none() {
         let _ = writeln!(
             err,
             "softc: warning: --linear-solver has no effect: {} runs explicit steps, which solve \

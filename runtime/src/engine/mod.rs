@@ -377,7 +377,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             interrupt: None,
             estimate: None,
             warm_start: None,
-            linear_solver: statics::LinearSolver::Direct,
+            linear_solver: statics::LinearSolver::Auto,
             material_checked: None,
             last_good: None,
             ids,

@@ -22,6 +22,7 @@ use super::loss::{Loss, LossWindow};
 use super::{RunError, RunSummary, Simulation};
 use crate::devices::Backend;
 use crate::outputs::Sig;
+use crate::solvers::amg::MultigridSolver;
 use crate::solvers::sparse::{BlockPattern, SparseSolver};
 use softc_compiler::back::Precision;
 use softc_compiler::driver::LossArg;
@@ -45,6 +46,9 @@ const REUSE_WORTH: usize = 10;
 /// Continuation increments (as a fraction of a state's load path) below which the solve gives
 /// up: no equilibrium beyond.
 const MIN_INCREMENT: f64 = 1.0 / 4096.0;
+/// `--linear-solver auto` factors tangents up to this many free dofs and solves larger ones by
+/// multigrid-preconditioned conjugate gradients (measured, `softc bench --solvers --amg`).
+pub const AUTO_MULTIGRID_DOFS: usize = 60_000;
 
 /// What the solver did, for the JSON summary.
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -58,7 +62,8 @@ pub struct SolverReport {
     pub rejected_load_steps: u64,
     pub newton_iterations: u64,
     pub factorizations: u64,
-    /// The last factorization: `cholesky` (symmetric positive definite) or `lu`.
+    /// The last factorization: `cholesky` (symmetric positive definite) or `lu`; for `amg`
+    /// the Krylov method of the last solve (`cg`, or `gmres` for a non-symmetric tangent).
     pub factorization: &'static str,
     /// ‖residual‖ (N) of the last state, and relative to its applied load (to the internal
     /// forces of a 0.1 % deformation where the loads vanish).
@@ -69,26 +74,39 @@ pub struct SolverReport {
     pub nonzeros: usize,
     pub assembly_seconds: f64,
     pub factor_seconds: f64,
-    /// How Newton's linear systems were solved: `direct` (assembled, factored) or `krylov`
-    /// (matrix-free GMRES on the device's tangent products).
+    /// How Newton's linear systems were solved: `direct` (assembled, factored), `amg`
+    /// (assembled, multigrid-preconditioned CG) or `krylov` (matrix-free GMRES on the
+    /// device's tangent products).
     pub linear_solver: &'static str,
     /// GMRES iterations and tangent products, over all solves (`krylov` only).
     pub krylov_iterations: u64,
     pub krylov_products: u64,
-    /// The last linear solve's relative residual (`krylov` only).
+    /// The last linear solve's relative residual (`krylov` and `amg`).
     pub linear_relative_residual: f64,
+    /// Multigrid hierarchies built (`amg` only), their levels and operator complexity (the
+    /// hierarchy's nonzeros over the tangent's).
+    pub multigrid_setups: u64,
+    pub multigrid_levels: usize,
+    pub operator_complexity: f64,
 }
 
 /// How a static or implicit solve solves its linear systems ([`Simulation::linear_solver`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum LinearSolver {
     /// Assemble the sparse tangent and factor it (faer), on every backend (the GPU computes
-    /// the element Jacobians, the host factors). The default: measured on the benchmark
-    /// scenes it is 200–500× faster than the matrix-free solve (`softc bench --solvers
-    /// --krylov`), whose block-Jacobi preconditioner leaves thousands of GMRES iterations per
-    /// solve.
-    #[default]
+    /// the element Jacobians, the host factors). Measured on the benchmark scenes it is
+    /// 200–500× faster than the matrix-free solve (`softc bench --solvers --krylov`), whose
+    /// block-Jacobi preconditioner leaves thousands of GMRES iterations per solve.
     Direct,
+    /// Conjugate gradients (GMRES where the tangent is not symmetric) on the assembled tangent,
+    /// preconditioned by smoothed-aggregation algebraic multigrid with the rigid-body modes as
+    /// its near-null space: memory and time about linear in the mesh, for meshes too large to
+    /// factor.
+    Amg,
+    /// `direct` up to [`AUTO_MULTIGRID_DOFS`] free dofs, `amg` beyond (measured: `softc bench
+    /// --solvers`). The default.
+    #[default]
+    Auto,
     /// Matrix-free GMRES with a block-Jacobi preconditioner on the backend's tangent products:
     /// no matrix in memory, no Jacobian read back from a GPU. Falls back to the direct solver
     /// when GMRES does not converge; a body with no fixed node needs the direct solver.
@@ -111,6 +129,11 @@ pub(super) struct Tangent {
 }
 
 enum Linear {
+    /// The assembled tangent, solved by multigrid-preconditioned Krylov iterations.
+    Multigrid {
+        solver: Box<MultigridSolver>,
+        values: Vec<f64>,
+    },
     /// The assembled tangent and its factorization.
     Direct {
         lu: Box<SparseSolver>,
@@ -127,15 +150,24 @@ enum Linear {
 }
 
 impl Tangent {
+    /// The tangent's solver for `choice` (resolved: not `auto`).
     pub(super) fn new(
         pattern: BlockPattern,
         precision: Precision,
-        krylov: bool,
+        choice: LinearSolver,
     ) -> Result<Self, RunError> {
-        let linear = if krylov {
-            Linear::Krylov
-        } else {
-            Linear::direct(&pattern, precision).map_err(RunError)?
+        let linear = match choice {
+            LinearSolver::Krylov => Linear::Krylov,
+            LinearSolver::Amg => Linear::Multigrid {
+                solver: Box::new(
+                    MultigridSolver::new(&pattern, symmetry_tolerance(precision))
+                        .map_err(RunError)?,
+                ),
+                values: Vec::new(),
+            },
+            LinearSolver::Direct | LinearSolver::Auto => {
+                Linear::direct(&pattern, precision).map_err(RunError)?
+            }
         };
         Ok(Tangent { pattern, linear })
     }
@@ -143,17 +175,21 @@ impl Tangent {
 
 impl Linear {
     fn direct(pattern: &BlockPattern, precision: Precision) -> Result<Self, String> {
-        // Entries computed in f32 are symmetric only to f32 round-off.
-        let symmetry = match precision {
-            Precision::F64 => 1e-10,
-            Precision::F32 => 1e-5,
-        };
         Ok(Linear::Direct {
-            lu: Box::new(SparseSolver::new(pattern, symmetry)?),
+            lu: Box::new(SparseSolver::new(pattern, symmetry_tolerance(precision))?),
             values: Vec::new(),
             factored: false,
             reused_iterations: 0,
         })
+    }
+}
+
+/// How far from symmetric (relative to the largest entry) a tangent may be and still be
+/// treated as symmetric: entries computed in f32 are symmetric only to f32 round-off.
+fn symmetry_tolerance(precision: Precision) -> f64 {
+    match precision {
+        Precision::F64 => 1e-10,
+        Precision::F32 => 1e-5,
     }
 }
 
@@ -291,8 +327,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             None => Vec::new(),
         };
-        let Linear::Direct { values, .. } = &mut tangent.linear else {
-            return Err("internal error: a matrix-free solve has no tangent to assemble".into());
+        let values = match &mut tangent.linear {
+            Linear::Direct { values, .. } | Linear::Multigrid { values, .. } => values,
+            Linear::Krylov => {
+                return Err(
+                    "internal error: a matrix-free solve has no tangent to assemble".into(),
+                );
+            }
         };
         tangent.pattern.assemble(&elem, &tri, &node, values);
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
@@ -555,6 +596,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let mut r = r.to_vec();
         tangent.pattern.remove_rigid_motion(&x, &mut r);
         let rhs = tangent.pattern.restrict(&r);
+        if let Linear::Multigrid { .. } = tangent.linear {
+            self.assemble_tangent(tangent, report)?;
+            let positions = self.backend.get(self.ids.x);
+            let mut dx = self.multigrid_solve(tangent, report, &positions, &rhs, (&a, &b), rtol, false)?;
+            dx = tangent.pattern.extend(&dx);
+            tangent.pattern.remove_rigid_motion(&x, &mut dx);
+            return Ok((dx, true));
+        }
         // Reuse while it stays cheap (the preconditioner degrades as the state moves away from
         // the factored one).
         let (factored, reusable) = match tangent.linear {
@@ -563,7 +612,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 reused_iterations,
                 ..
             } => (factored, reused_iterations <= REUSE_WORTH),
-            Linear::Krylov => (false, false),
+            Linear::Krylov | Linear::Multigrid { .. } => (false, false),
         };
         // While steps contract well, the last factorization's chord step; when one did not,
         // the Newton step of the current tangent with that factorization as GMRES's
@@ -591,6 +640,55 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // A free body: the step without rigid motion (the pinned support's is arbitrary).
         tangent.pattern.remove_rigid_motion(&x, &mut dx);
         Ok((dx, fresh))
+    }
+
+    /// K_eff y = rhs (K_effᵀ with `transposed`) by the multigrid solver, on the tangent as
+    /// last assembled; `closed_loop` the columns (U, W) of K_eff = K − U Wᵀ (swapped by the
+    /// caller for the transpose), restricted to the free dofs.
+    #[allow(clippy::too_many_arguments)]
+    fn multigrid_solve(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        positions: &[f64],
+        rhs: &[f64],
+        closed_loop: (&[Vec<f64>], &[Vec<f64>]),
+        rtol: f64,
+        transposed: bool,
+    ) -> Result<Vec<f64>, String> {
+        let start = Instant::now();
+        let Linear::Multigrid { solver, values } = &mut tangent.linear else {
+            return Err("internal error: not a multigrid solve".into());
+        };
+        let solve = solver.solve(
+            &tangent.pattern,
+            values,
+            positions,
+            rhs,
+            closed_loop,
+            rtol,
+            transposed,
+        )?;
+        report.factor_seconds += start.elapsed().as_secs_f64();
+        report.multigrid_setups += solve.setups as u64;
+        report.krylov_iterations += solve.stats.iterations as u64;
+        report.krylov_products += solve.stats.products as u64;
+        report.linear_relative_residual = solve.stats.relative_residual;
+        if let Some((complexity, levels)) = solver.shape() {
+            report.multigrid_levels = levels;
+            report.operator_complexity = complexity;
+        }
+        report.factorization = solve.method;
+        if !solve.stats.converged {
+            return Err(format!(
+                "the multigrid-preconditioned {} solve did not converge ({} iterations, \
+                 relative residual {}); try `--linear-solver direct`",
+                solve.method,
+                solve.stats.iterations,
+                Sig(solve.stats.relative_residual)
+            ));
+        }
+        Ok(solve.x)
     }
 
     /// GMRES did not converge (block Jacobi is too weak for this tangent): the rest of the
@@ -651,6 +749,17 @@ impl<'s, B: Backend> Simulation<'s, B> {
             b.iter().map(restrict).collect(),
         );
         let rhs = tangent.pattern.restrict(&g);
+        if let Linear::Multigrid { .. } = tangent.linear {
+            self.assemble_tangent(tangent, report)?;
+            let positions = self.backend.get(self.ids.x);
+            // Gradients want the adjoint to the accuracy of a direct solve.
+            let rtol = match self.backend.precision() {
+                Precision::F64 => 1e-11,
+                Precision::F32 => 1e-6,
+            };
+            let mu = self.multigrid_solve(tangent, report, &positions, &rhs, (&b, &a), rtol, true)?;
+            return Ok(tangent.pattern.extend(&mu));
+        }
         // A fresh factorization at this state: reusing Newton's last one as GMRES's
         // preconditioner to the accuracy gradients need cost more than it saved (controller
         // study: 22.1 s against 17.3 s).
@@ -931,8 +1040,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
             &scene.mesh.nodes,
         )
         .map_err(RunError)?;
-        let krylov = match self.linear_solver {
-            LinearSolver::Direct => false,
+        let choice = match self.linear_solver {
+            LinearSolver::Auto if pattern.size() > AUTO_MULTIGRID_DOFS => LinearSolver::Amg,
+            LinearSolver::Auto => LinearSolver::Direct,
             LinearSolver::Krylov if pattern.rigid => {
                 return Err(RunError(
                     "the matrix-free linear solver cannot hold a free body's rigid modes (this \
@@ -940,17 +1050,24 @@ impl<'s, B: Backend> Simulation<'s, B> {
                         .into(),
                 ));
             }
-            LinearSolver::Krylov => true,
+            other => other,
         };
         let report = SolverReport {
             kind,
             states: steps,
             dofs: pattern.n,
-            nonzeros: if krylov { 0 } else { pattern.nnz() },
-            linear_solver: if krylov { "krylov" } else { "direct" },
+            nonzeros: match choice {
+                LinearSolver::Krylov => 0,
+                _ => pattern.nnz(),
+            },
+            linear_solver: match choice {
+                LinearSolver::Krylov => "krylov",
+                LinearSolver::Amg => "amg",
+                _ => "direct",
+            },
             ..Default::default()
         };
-        let tangent = Tangent::new(pattern, self.backend.precision(), krylov)?;
+        let tangent = Tangent::new(pattern, self.backend.precision(), choice)?;
         self.reset();
         // Non-physical constants (E ≤ 0, ν out of (−1, 0.5)) have no stable equilibrium: a
         // solve returned the rest state (E = 0) or an unstable stationary point with exit 0.

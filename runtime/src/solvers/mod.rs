@@ -2,6 +2,7 @@
 //! sparse direct factorization, restarted GMRES for matrix-free solves, and small dense
 //! systems.
 
+pub mod amg;
 pub mod dense;
 pub mod krylov;
 pub mod sparse;

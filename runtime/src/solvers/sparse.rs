@@ -275,6 +275,63 @@ impl BlockPattern {
 }
 
 impl BlockPattern {
+    /// Per entry, the position of its transpose (the pattern is structurally symmetric).
+    pub fn transpose_map(&self) -> Result<Vec<usize>, String> {
+        // Entry k is (row_idx[k], column j); its transpose is (j, row_idx[k]).
+        let mut transpose = vec![0usize; self.row_idx.len()];
+        for j in 0..self.n {
+            for (k, &i) in self
+                .row_idx
+                .iter()
+                .enumerate()
+                .take(self.col_ptr[j + 1])
+                .skip(self.col_ptr[j])
+            {
+                let col = &self.row_idx[self.col_ptr[i]..self.col_ptr[i + 1]];
+                let at = col
+                    .binary_search(&j)
+                    .map_err(|_| "the tangent's pattern is not symmetric".to_string())?;
+                transpose[k] = self.col_ptr[i] + at;
+            }
+        }
+        Ok(transpose)
+    }
+
+    /// The matrix with these values (the pattern's order) by rows — or its transpose with
+    /// `transposed` — for the multigrid solver. `transpose` is [`BlockPattern::transpose_map`].
+    pub fn to_csr(
+        &self,
+        values: &[f64],
+        transpose: &[usize],
+        transposed: bool,
+    ) -> crate::solvers::amg::Csr {
+        // Column j of the CSC arrays lists row j of the transpose; the pattern's symmetry
+        // makes the same arrays row j of the matrix once each value is taken from its mirror.
+        let val = match transposed {
+            true => values.to_vec(),
+            false => transpose.iter().map(|&t| values[t]).collect(),
+        };
+        crate::solvers::amg::Csr {
+            rows: self.n,
+            cols: self.n,
+            ptr: self.col_ptr.clone(),
+            idx: self.row_idx.iter().map(|&i| i as u32).collect(),
+            val,
+        }
+    }
+
+    /// The six rigid-body modes at positions `x` (node-major) over the free dofs (zero at a
+    /// free body's pinned ones): the near-null space of the stiffness, which a multigrid
+    /// hierarchy must represent on its coarse levels.
+    pub fn near_null_space(&self, x: &[f64]) -> Vec<Vec<f64>> {
+        rigid_modes(x).iter().map(|m| self.restrict(m)).collect()
+    }
+
+    /// The free dofs grouped by node (three each): `blocks[i]..blocks[i + 1]`.
+    pub fn node_blocks(&self) -> Vec<usize> {
+        (0..=self.n / 3).map(|i| 3 * i).collect()
+    }
+
     fn pin(&self, values: &mut [f64]) {
         let scale = self
             .diag
@@ -329,6 +386,16 @@ pub fn align_to(rest: &[[f64; 3]], x: &[f64]) -> Vec<f64> {
             [y[0], y[1], y[2]]
         })
         .collect()
+}
+
+/// Whether `values` form a symmetric matrix to `relative` round-off of their largest entry.
+pub fn symmetric(transpose: &[usize], relative: f64, values: &[f64]) -> bool {
+    let scale = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let tol = relative * scale;
+    values
+        .iter()
+        .zip(transpose)
+        .all(|(v, &t)| (v - values[t]).abs() <= tol)
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {
@@ -478,26 +545,9 @@ impl SparseSolver {
             None,
             p.row_idx.clone(),
         );
-        // Entry k is (row_idx[k], column j); its transpose is (j, row_idx[k]).
-        let mut transpose = vec![0usize; p.row_idx.len()];
-        for j in 0..p.n {
-            for (k, &i) in p
-                .row_idx
-                .iter()
-                .enumerate()
-                .take(p.col_ptr[j + 1])
-                .skip(p.col_ptr[j])
-            {
-                let col = &p.row_idx[p.col_ptr[i]..p.col_ptr[i + 1]];
-                let at = col
-                    .binary_search(&j)
-                    .map_err(|_| "the tangent's pattern is not symmetric".to_string())?;
-                transpose[k] = p.col_ptr[i] + at;
-            }
-        }
         Ok(SparseSolver {
             symbolic,
-            transpose,
+            transpose: p.transpose_map()?,
             symmetry,
             symbolic_llt: None,
             symbolic_lu: None,
@@ -506,14 +556,8 @@ impl SparseSolver {
         })
     }
 
-    /// Whether the values form a symmetric matrix (to round-off).
     fn symmetric(&self, values: &[f64]) -> bool {
-        let scale = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        let tol = self.symmetry * scale;
-        values
-            .iter()
-            .zip(&self.transpose)
-            .all(|(v, &t)| (v - values[t]).abs() <= tol)
+        symmetric(&self.transpose, self.symmetry, values)
     }
 
     /// Factor the matrix with these values (the pattern's order). Returns which
