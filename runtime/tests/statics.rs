@@ -5,7 +5,7 @@
 
 use softc::devices::cpu::Cpu;
 use softc::engine::Simulation;
-use softc::engine::adjoint::GradOptions;
+use softc::engine::adjoint::{GradOptions, GradientReport};
 use softc::engine::scene::Scene;
 use softc_compiler::back::Precision;
 use std::path::{Path, PathBuf};
@@ -401,6 +401,13 @@ fn a_free_body_under_balanced_loads_is_solved_and_unbalanced_ones_are_refused() 
     assert!(c[0] > 0.0 && (c[0] - c[1]).abs() < 1e-6 * c[0] && (c[0] - c[2]).abs() < 1e-6 * c[0]);
     let worst = worst_against_central_differences(&scene, &report.gradients, &[("param.p", 4e3)]);
     assert!(worst < 1e-6, "worst relative difference {worst:e}");
+    // Multigrid on the pinned support: the same pose and gradient.
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let mut sim = Simulation::new(&scene, cpu);
+    sim.linear_solver = softc::engine::statics::LinearSolver::Amg;
+    let amg = sim.gradient(None, None, &GradOptions::default()).unwrap();
+    assert_eq!(amg.summary.solver.clone().unwrap().linear_solver, "amg");
+    assert_same_solution(&scene, &report, &amg, "amg");
 
     let heavy = script("free_gravity.soft", "  gravity = [0, 0, -9.81] m/s^2\n");
     let cpu = Cpu::new(&heavy.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
@@ -411,15 +418,25 @@ fn a_free_body_under_balanced_loads_is_solved_and_unbalanced_ones_are_refused() 
     );
 }
 
-/// The matrix-free solver (GMRES on the tangent products the compiled kernels compute,
-/// block-Jacobi preconditioned: what the GPU backend runs) finds the direct solver's states and
-/// gradients, for a static path of states and for backward Euler steps, every param kind.
+/// The iterative linear solvers find the direct solver's states and gradients, for a static
+/// path of states and for backward Euler steps, every param kind: the matrix-free one (GMRES on
+/// the tangent products the compiled kernels compute, block-Jacobi preconditioned: what the GPU
+/// backend runs) and the multigrid one (CG on the assembled tangent preconditioned by
+/// smoothed-aggregation AMG; GMRES for the closed loop's non-symmetric tangent).
 #[test]
-fn the_matrix_free_solver_agrees_with_the_direct_one() {
+fn the_iterative_solvers_agree_with_the_direct_one() {
     use softc::engine::statics::LinearSolver;
-    for path in [
-        root().join("runtime/tests/fixtures/grad/static.soft"),
-        all_kinds_implicit("all_kinds_implicit_krylov.soft"),
+    let closed_loop = root().join("runtime/tests/fixtures/closed_loop/static.soft");
+    for (path, solvers) in [
+        (
+            root().join("runtime/tests/fixtures/grad/static.soft"),
+            &[LinearSolver::Krylov, LinearSolver::Amg][..],
+        ),
+        (
+            all_kinds_implicit("all_kinds_implicit_krylov.soft"),
+            &[LinearSolver::Krylov, LinearSolver::Amg][..],
+        ),
+        (closed_loop, &[LinearSolver::Amg][..]),
     ] {
         let scene = Scene::load(&path, &[]).unwrap();
         let solve = |linear: LinearSolver| {
@@ -428,36 +445,56 @@ fn the_matrix_free_solver_agrees_with_the_direct_one() {
             sim.linear_solver = linear;
             sim.gradient(None, None, &GradOptions::default()).unwrap()
         };
-        let (direct, krylov) = (solve(LinearSolver::Direct), solve(LinearSolver::Krylov));
-        let report = krylov.summary.solver.clone().unwrap();
-        eprintln!("{}: {report:?}", path.display());
-        assert_eq!(report.linear_solver, "krylov");
-        assert_eq!(report.factorizations, 0);
-        assert!(report.converged && report.krylov_iterations > 0);
-        assert_eq!(direct.summary.solver.unwrap().linear_solver, "direct");
-        let scale = direct
-            .summary
-            .x
-            .iter()
-            .zip(&scene.mesh.nodes)
-            .map(|(x, x0)| (0..3).map(|d| (x[d] - x0[d]).abs()).fold(0.0, f64::max))
-            .fold(0.0, f64::max);
-        let moved = direct
-            .summary
-            .x
-            .iter()
-            .zip(&krylov.summary.x)
-            .map(|(a, b)| (0..3).map(|d| (a[d] - b[d]).abs()).fold(0.0, f64::max))
-            .fold(0.0, f64::max);
-        assert!(
-            moved <= 1e-8 * scale,
-            "states differ by {moved:e} (scale {scale:e})"
-        );
-        for (name, d) in &direct.gradients {
-            let k = krylov.gradients[name];
-            let rel = (k - d).abs() / d.abs().max(1e-300);
-            assert!(rel < 1e-6, "{name}: krylov {k:e}, direct {d:e}");
+        let direct = solve(LinearSolver::Direct);
+        assert_eq!(direct.summary.solver.clone().unwrap().linear_solver, "direct");
+        for &linear in solvers {
+            let iterative = solve(linear);
+            let report = iterative.summary.solver.clone().unwrap();
+            eprintln!("{}: {report:?}", path.display());
+            let name = match linear {
+                LinearSolver::Krylov => "krylov",
+                _ => "amg",
+            };
+            assert_eq!(report.linear_solver, name);
+            assert_eq!(report.factorizations, 0);
+            assert!(report.converged && report.krylov_iterations > 0);
+            if linear == LinearSolver::Amg {
+                assert!(report.multigrid_setups >= 1 && report.multigrid_levels >= 1);
+            }
+            assert_same_solution(&scene, &direct, &iterative, name);
         }
+    }
+}
+
+/// States within 1e-8 of the largest displacement, gradients within 1e-6 relative.
+fn assert_same_solution(
+    scene: &Scene,
+    direct: &GradientReport,
+    other: &GradientReport,
+    name: &str,
+) {
+    let scale = direct
+        .summary
+        .x
+        .iter()
+        .zip(&scene.mesh.nodes)
+        .map(|(x, x0)| (0..3).map(|d| (x[d] - x0[d]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    let moved = direct
+        .summary
+        .x
+        .iter()
+        .zip(&other.summary.x)
+        .map(|(a, b)| (0..3).map(|d| (a[d] - b[d]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    assert!(
+        moved <= 1e-8 * scale,
+        "{name}: states differ by {moved:e} (scale {scale:e})"
+    );
+    for (param, d) in &direct.gradients {
+        let k = other.gradients[param];
+        let rel = (k - d).abs() / d.abs().max(1e-300);
+        assert!(rel < 1e-6, "{param}: {name} {k:e}, direct {d:e}");
     }
 }
 
