@@ -80,6 +80,10 @@ pub struct BenchArgs {
     /// solver (GMRES on the kernels' tangent products, `--linear-solver krylov`).
     #[arg(long, requires = "solvers")]
     pub krylov: bool,
+    /// With --solvers: also the static solve, its gradient and the implicit steps by
+    /// multigrid-preconditioned conjugate gradients (`--linear-solver amg`).
+    #[arg(long, requires = "solvers")]
+    pub amg: bool,
     /// With --tradeoff: the output, a node set and an axis (mean displacement).
     #[arg(
         long,

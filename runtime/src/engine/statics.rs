@@ -462,15 +462,22 @@ impl<'s, B: Backend> Simulation<'s, B> {
             // progress says where the solve is (issue 29 item 7).
             self.check_interrupt()?;
             if let Some(p) = &mut self.progress {
+                let work = match report.linear_solver {
+                    "amg" => format!(
+                        "{} multigrid setups and {} CG iterations",
+                        report.multigrid_setups, report.krylov_iterations
+                    ),
+                    "krylov" => format!("{} GMRES iterations", report.krylov_iterations),
+                    _ => format!("{} factorizations", report.factorizations),
+                };
                 p.note(&format!(
                     "at t = {} s, {:.1} % of its loads: Newton iteration {}, residual {} N \
-                     (goal {} N), {} factorizations so far",
+                     (goal {} N), {work} so far",
                     Sig(t),
                     100.0 * load,
                     it + 1,
                     Sig(r_norm),
                     Sig(tolerance),
-                    report.factorizations
                 ));
             }
             // Inexact Newton: a matrix-free solve need only be as accurate as the step can

@@ -5,7 +5,8 @@
 //! gradient (d loss / d p_peak by one transposed solve), and the same 0.16 s of dynamics by 40
 //! backward Euler steps of 4 ms (100× the scene's explicit step). With `--krylov` the static
 //! solve and the implicit steps run again matrix-free (GMRES on the kernels' tangent products),
-//! on the cpu backend so the two linear solvers compare on one device. A row reports the wall time (median of `--repeats` after a warm-up), Newton
+//! on the cpu backend so the two linear solvers compare on one device; with `--amg` the static
+//! solve, its gradient and the implicit steps run again by multigrid-preconditioned CG. A row reports the wall time (median of `--repeats` after a warm-up), Newton
 //! iterations, factorizations or GMRES iterations and where the time goes, the tangent's size,
 //! and the growth of peak resident memory during one solve.
 
@@ -32,8 +33,10 @@ pub struct SolverRow {
     pub newton_iterations: u64,
     pub factorizations: u64,
     pub factorization: String,
-    /// GMRES iterations (matrix-free rows).
+    /// GMRES iterations (matrix-free rows), CG or GMRES iterations (multigrid rows).
     pub krylov_iterations: u64,
+    /// Multigrid hierarchies built (multigrid rows).
+    pub multigrid_setups: u64,
     pub assembly_seconds: f64,
     pub factor_seconds: f64,
     pub tip_mean_z: f64,
@@ -110,6 +113,7 @@ fn measure(
         factorizations: report.factorizations,
         factorization: report.factorization.to_string(),
         krylov_iterations: report.krylov_iterations,
+        multigrid_setups: report.multigrid_setups,
         assembly_seconds: report.assembly_seconds,
         factor_seconds: report.factor_seconds,
         tip_mean_z: tip_mean_z(scene, &summary.x)?,
@@ -163,6 +167,14 @@ pub fn bench_size(size: &str, args: &BenchArgs) -> Result<Vec<SolverRow>, String
             krylov,
         )?);
     }
+    if args.amg {
+        let amg = LinearSolver::Amg;
+        rows.extend([
+            measure(args, size, "quasi_static amg", &statics, false, amg)?,
+            measure(args, size, "quasi_static+grad amg", &statics, true, amg)?,
+            measure(args, size, "implicit x40 amg", &implicit, false, amg)?,
+        ]);
+    }
     Ok(rows)
 }
 
@@ -173,7 +185,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
     }
     let _ = writeln!(
         out,
-        "{:<5} {:<19} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>7} {:>9} {:>9} {:>9} {:>14} {:>10}",
+        "{:<5} {:<21} {:>7} {:>7} {:>9} {:>9} {:>7} {:>7} {:>7} {:>9} {:>9} {:>9} {:>14} {:>10}",
         "size",
         "solver",
         "tets",
@@ -182,7 +194,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
         "wall_s",
         "newton",
         "factor",
-        "gmres",
+        "krylov",
         "assemb_s",
         "factor_s",
         "compile_s",
@@ -192,7 +204,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
     for r in &rows {
         let _ = writeln!(
             out,
-            "{:<5} {:<19} {:>7} {:>7} {:>9} {:>9.3} {:>7} {:>7} {:>7} {:>9.3} {:>9.3} {:>9.3} {:>14.6e} {:>10}",
+            "{:<5} {:<21} {:>7} {:>7} {:>9} {:>9.3} {:>7} {:>7} {:>7} {:>9.3} {:>9.3} {:>9.3} {:>14.6e} {:>10}",
             r.size,
             r.solver,
             r.elements,
@@ -200,7 +212,7 @@ pub fn run(args: &BenchArgs, sizes: &[&str], out: &mut dyn Write) -> Result<(), 
             r.nonzeros,
             r.wall_seconds,
             r.newton_iterations,
-            r.factorizations,
+            r.factorizations + r.multigrid_setups,
             r.krylov_iterations,
             r.assembly_seconds,
             r.factor_seconds,
