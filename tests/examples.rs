@@ -787,10 +787,11 @@ fn a_static_optimization_resumes_bit_for_bit_with_its_warm_starts() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `--linear-solver krylov` solves a static path of states and its gradient matrix-free, to
-/// what the default direct solver finds; the JSON names the solver and its GMRES iterations.
+/// `--linear-solver krylov` solves a static path of states and its gradient matrix-free, and
+/// `amg` by multigrid-preconditioned CG, to what the direct solver finds; the JSON names the
+/// solver and its iterations. The default (`auto`) factors a tangent this small.
 #[test]
-fn the_linear_solver_flag_selects_the_matrix_free_solve() {
+fn the_linear_solver_flag_selects_the_iterative_solves() {
     let dir = std::env::temp_dir().join(format!("softc-linear-solver-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let script = root().join("runtime/tests/fixtures/grad/static.soft");
@@ -808,21 +809,27 @@ fn the_linear_solver_flag_selects_the_matrix_free_solve() {
         assert_eq!(code, 0, "{err}");
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap()
     };
-    let (direct, krylov) = (solve("direct"), solve("krylov"));
+    let direct = solve("direct");
     assert_eq!(direct["solver"]["linear_solver"], "direct");
-    assert_eq!(krylov["solver"]["linear_solver"], "krylov");
-    assert!(krylov["solver"]["krylov_iterations"].as_u64().unwrap() > 0);
-    assert_eq!(krylov["solver"]["factorizations"].as_u64().unwrap(), 0);
-    let (a, b) = (
-        direct["loss"].as_f64().unwrap(),
-        krylov["loss"].as_f64().unwrap(),
-    );
-    assert!(((a - b) / a).abs() < 1e-8, "direct {a}, krylov {b}");
-    let (ga, gb) = (
-        direct["gradients"]["p0"].as_f64().unwrap(),
-        krylov["gradients"]["p0"].as_f64().unwrap(),
-    );
-    assert!(((ga - gb) / ga).abs() < 1e-6, "direct {ga}, krylov {gb}");
+    assert_eq!(solve("auto")["solver"]["linear_solver"], "direct");
+    for name in ["krylov", "amg"] {
+        let other = solve(name);
+        assert_eq!(other["solver"]["linear_solver"], name);
+        assert!(other["solver"]["krylov_iterations"].as_u64().unwrap() > 0);
+        assert_eq!(other["solver"]["factorizations"].as_u64().unwrap(), 0);
+        let (a, b) = (
+            direct["loss"].as_f64().unwrap(),
+            other["loss"].as_f64().unwrap(),
+        );
+        assert!(((a - b) / a).abs() < 1e-8, "direct {a}, {name} {b}");
+        let (ga, gb) = (
+            direct["gradients"]["p0"].as_f64().unwrap(),
+            other["gradients"]["p0"].as_f64().unwrap(),
+        );
+        assert!(((ga - gb) / ga).abs() < 1e-6, "direct {ga}, {name} {gb}");
+    }
+    let amg = &solve("amg")["solver"];
+    assert!(amg["multigrid_setups"].as_u64().unwrap() >= 1, "{amg}");
     let (code, _, err) = softc(&["run", script.to_str().unwrap(), "--linear-solver", "lu"]);
     assert_eq!(code, 2, "{err}");
     std::fs::remove_dir_all(&dir).ok();

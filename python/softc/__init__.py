@@ -131,7 +131,7 @@ def compile(
     (the kernel-IR interpreter). ``precision``: ``"f32"`` or ``"f64"`` (default: the script's
     ``precision``, else f64 on the cpu and f32 on the gpu). ``threads``: worker threads of the
     cpu backend. ``adapter``: part of a GPU adapter's name. ``linear_solver``: ``"auto"``
-    (default: ``"direct"`` up to 60,000 free dofs, ``"amg"`` beyond), ``"direct"``, ``"amg"``
+    (default: ``"direct"`` up to 100,000 free dofs, ``"amg"`` beyond), ``"direct"``, ``"amg"``
     or ``"krylov"`` for static and implicit solves. Raises :class:`CompileError` with
     ``.diagnostics`` when the script has errors.
     """

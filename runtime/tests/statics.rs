@@ -446,7 +446,10 @@ fn the_iterative_solvers_agree_with_the_direct_one() {
             sim.gradient(None, None, &GradOptions::default()).unwrap()
         };
         let direct = solve(LinearSolver::Direct);
-        assert_eq!(direct.summary.solver.clone().unwrap().linear_solver, "direct");
+        assert_eq!(
+            direct.summary.solver.clone().unwrap().linear_solver,
+            "direct"
+        );
         for &linear in solvers {
             let iterative = solve(linear);
             let report = iterative.summary.solver.clone().unwrap();
@@ -893,4 +896,20 @@ fn the_material_check_follows_a_trained_material_constant() {
     assert!(e.contains("material constants are not physical"), "{e}");
     sim.uniforms.set_named("param.mu", 50e3);
     assert!(sim.run(None, None).is_ok());
+}
+
+/// `--linear-solver auto` (the default) factors a tangent up to the threshold and solves a
+/// larger one by multigrid; an explicit choice stays what it is.
+#[test]
+fn auto_factors_small_tangents_and_uses_multigrid_beyond_the_threshold() {
+    use softc::engine::statics::{AUTO_MULTIGRID_DOFS, LinearSolver};
+    assert_eq!(LinearSolver::default(), LinearSolver::Auto);
+    let auto = LinearSolver::Auto;
+    assert_eq!(auto.resolve(AUTO_MULTIGRID_DOFS), LinearSolver::Direct);
+    assert_eq!(auto.resolve(AUTO_MULTIGRID_DOFS + 1), LinearSolver::Amg);
+    assert_eq!(
+        LinearSolver::Direct.resolve(10 * AUTO_MULTIGRID_DOFS),
+        LinearSolver::Direct
+    );
+    assert_eq!(LinearSolver::Amg.resolve(9), LinearSolver::Amg);
 }

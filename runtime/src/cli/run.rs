@@ -30,10 +30,13 @@ pub struct RunArgs {
     /// name such as `vulkan`); default: a discrete GPU, else integrated, else software.
     #[arg(long, value_name = "NAME")]
     pub adapter: Option<String>,
-    /// How static and implicit solves solve Newton's linear systems: `direct` (default)
-    /// assembles the sparse tangent and factors it on the host; `krylov` runs matrix-free GMRES
-    /// on tangent products computed by the backend's kernels (block-Jacobi preconditioned; far
-    /// slower on the shipped scenes, but no matrix in memory).
+    /// How static and implicit solves solve Newton's linear systems: `auto` (default) is
+    /// `direct` up to 100,000 free dofs and `amg` beyond; `direct` assembles the sparse
+    /// tangent and factors it on the host; `amg` solves the assembled tangent by conjugate
+    /// gradients preconditioned by algebraic multigrid (memory about linear in the mesh);
+    /// `krylov` runs matrix-free GMRES on tangent products computed by the backend's kernels
+    /// (block-Jacobi preconditioned; far slower on the shipped scenes, but no matrix in
+    /// memory).
     #[arg(long, value_enum, default_value_t = LinearSolver::Auto)]
     pub linear_solver: LinearSolver,
     /// Worker threads of the cpu backend (default: stretches of steps of 8,000+ entities are
@@ -256,7 +259,10 @@ fn check_scene_flags(args: &RunArgs, scene: &Scene, dt: Option<f64>) -> Result<(
 /// why, so that a run does not quietly differ from what was asked (issue 31 item 12).
 fn warn_ignored_flags(args: &RunArgs, scene: &Scene, err: &mut dyn Write) {
     let statics = scene.lowered.statics.as_ref();
-    let chosen = !matches!(args.linear_solver, LinearSolver::Direct | LinearSolver::Auto);
+    let chosen = !matches!(
+        args.linear_solver,
+        LinearSolver::Direct | LinearSolver::Auto
+    );
     if chosen && statics.is_none() {
         let _ = writeln!(
             err,

@@ -48,7 +48,7 @@ const REUSE_WORTH: usize = 10;
 const MIN_INCREMENT: f64 = 1.0 / 4096.0;
 /// `--linear-solver auto` factors tangents up to this many free dofs and solves larger ones by
 /// multigrid-preconditioned conjugate gradients (measured, `softc bench --solvers --amg`).
-pub const AUTO_MULTIGRID_DOFS: usize = 60_000;
+pub const AUTO_MULTIGRID_DOFS: usize = 100_000;
 
 /// What the solver did, for the JSON summary.
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -111,6 +111,17 @@ pub enum LinearSolver {
     /// no matrix in memory, no Jacobian read back from a GPU. Falls back to the direct solver
     /// when GMRES does not converge; a body with no fixed node needs the direct solver.
     Krylov,
+}
+
+impl LinearSolver {
+    /// The solver `auto` stands for on a tangent of `dofs` free dofs (others: themselves).
+    pub fn resolve(self, dofs: usize) -> LinearSolver {
+        match self {
+            LinearSolver::Auto if dofs > AUTO_MULTIGRID_DOFS => LinearSolver::Amg,
+            LinearSolver::Auto => LinearSolver::Direct,
+            other => other,
+        }
+    }
 }
 
 /// A finished quasi-static run.
@@ -606,7 +617,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if let Linear::Multigrid { .. } = tangent.linear {
             self.assemble_tangent(tangent, report)?;
             let positions = self.backend.get(self.ids.x);
-            let mut dx = self.multigrid_solve(tangent, report, &positions, &rhs, (&a, &b), rtol, false)?;
+            // A direction that reduces the linearized residual tenfold is worth a line search.
+            let accuracy = (rtol, 0.1);
+            let mut dx =
+                self.multigrid_solve(tangent, report, &positions, &rhs, (&a, &b), accuracy, false)?;
             dx = tangent.pattern.extend(&dx);
             tangent.pattern.remove_rigid_motion(&x, &mut dx);
             return Ok((dx, true));
@@ -651,7 +665,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
 
     /// K_eff y = rhs (K_effᵀ with `transposed`) by the multigrid solver, on the tangent as
     /// last assembled; `closed_loop` the columns (U, W) of K_eff = K − U Wᵀ (swapped by the
-    /// caller for the transpose), restricted to the free dofs.
+    /// caller for the transpose), restricted to the free dofs. `(rtol, usable)`: the relative
+    /// residual aimed at, and the largest one accepted when the Krylov solve stops short.
     #[allow(clippy::too_many_arguments)]
     fn multigrid_solve(
         &mut self,
@@ -660,7 +675,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         positions: &[f64],
         rhs: &[f64],
         closed_loop: (&[Vec<f64>], &[Vec<f64>]),
-        rtol: f64,
+        (rtol, usable): (f64, f64),
         transposed: bool,
     ) -> Result<Vec<f64>, String> {
         let start = Instant::now();
@@ -673,7 +688,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             positions,
             rhs,
             closed_loop,
-            rtol,
+            (rtol, usable),
             transposed,
         )?;
         report.factor_seconds += start.elapsed().as_secs_f64();
@@ -686,7 +701,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             report.operator_complexity = complexity;
         }
         report.factorization = solve.method;
-        if !solve.stats.converged {
+        if !(solve.stats.relative_residual <= usable) {
             return Err(format!(
                 "the multigrid-preconditioned {} solve did not converge ({} iterations, \
                  relative residual {}); try `--linear-solver direct`",
@@ -759,12 +774,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if let Linear::Multigrid { .. } = tangent.linear {
             self.assemble_tangent(tangent, report)?;
             let positions = self.backend.get(self.ids.x);
-            // Gradients want the adjoint to the accuracy of a direct solve.
-            let rtol = match self.backend.precision() {
-                Precision::F64 => 1e-11,
-                Precision::F32 => 1e-6,
+            // Gradients want the adjoint to about the accuracy of a direct solve; GMRES may
+            // stall a little short of the goal at the products' round-off.
+            let accuracy = match self.backend.precision() {
+                Precision::F64 => (1e-11, 1e-8),
+                Precision::F32 => (1e-6, 1e-3),
             };
-            let mu = self.multigrid_solve(tangent, report, &positions, &rhs, (&b, &a), rtol, true)?;
+            let mu =
+                self.multigrid_solve(tangent, report, &positions, &rhs, (&b, &a), accuracy, true)?;
             return Ok(tangent.pattern.extend(&mu));
         }
         // A fresh factorization at this state: reusing Newton's last one as GMRES's
@@ -1047,9 +1064,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             &scene.mesh.nodes,
         )
         .map_err(RunError)?;
-        let choice = match self.linear_solver {
-            LinearSolver::Auto if pattern.size() > AUTO_MULTIGRID_DOFS => LinearSolver::Amg,
-            LinearSolver::Auto => LinearSolver::Direct,
+        let choice = match self.linear_solver.resolve(pattern.size()) {
             LinearSolver::Krylov if pattern.rigid => {
                 return Err(RunError(
                     "the matrix-free linear solver cannot hold a free body's rigid modes (this \
