@@ -275,10 +275,36 @@ pub fn vtk_every(scene: &Scene) -> Option<u64> {
     scene.resolved.sim.vtk_every
 }
 
-/// The warning for a run that ended without error but whose answer is doubtful: a static or
-/// implicit solve whose last state did not reach its residual (a load below what the precision
-/// resolves), or a run whose loss is taken `at end` while its final state still moves.
+/// The warning for a run that ended without error but whose answer is doubtful or rests on
+/// a convention: a static body held at one point or along one line (free to rotate: the
+/// answer is the one without that rotation), a static or implicit solve whose last state did
+/// not reach its residual (a load below what the precision resolves), or a run whose loss is
+/// taken `at end` while its final state still moves.
 pub fn run_warning(
+    scene: &crate::engine::scene::Scene,
+    summary: &crate::engine::RunSummary,
+) -> Option<String> {
+    let held = summary
+        .solver
+        .as_ref()
+        .filter(|s| matches!(s.free_motion_kind, Some("point" | "line")))
+        .and_then(|s| s.free_motion.as_deref())
+        .map(|m| {
+            format!(
+                "warning: the body is free to rotate ({m}); the static solve held that \
+                 rotation and posed the equilibrium to best match the rest shape about the \
+                 fixed nodes. Fix a region that spans the body's support (three or more nodes \
+                 not on one line) if the body is meant to be held"
+            )
+        });
+    let other = doubtful(scene, summary);
+    match (held, other) {
+        (Some(a), Some(b)) => Some(format!("{a}\n{b}")),
+        (a, b) => a.or(b),
+    }
+}
+
+fn doubtful(
     scene: &crate::engine::scene::Scene,
     summary: &crate::engine::RunSummary,
 ) -> Option<String> {

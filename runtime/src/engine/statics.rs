@@ -23,7 +23,7 @@ use super::{RunError, RunSummary, Simulation};
 use crate::devices::Backend;
 use crate::outputs::Sig;
 use crate::solvers::amg::MultigridSolver;
-use crate::solvers::sparse::{BlockPattern, SparseSolver};
+use crate::solvers::sparse::{BlockPattern, FreeMotion, SparseSolver};
 use softc_compiler::back::Precision;
 use softc_compiler::driver::LossArg;
 use softc_compiler::driver::StaticKernels;
@@ -71,6 +71,11 @@ pub struct SolverReport {
     pub relative_residual: f64,
     pub converged: bool,
     pub dofs: usize,
+    /// The rigid motions the fixed nodes leave free (a static solve), which the solve holds
+    /// and poses the answer against: `null` for a body held against all of them.
+    pub free_motion: Option<String>,
+    /// Which: `all` (no fixed node), `point` or `line`.
+    pub free_motion_kind: Option<&'static str>,
     pub nonzeros: usize,
     pub assembly_seconds: f64,
     pub factor_seconds: f64,
@@ -427,7 +432,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let outcome = self.newton_iterations(tangent, report, t, load, tolerance, floor)?;
         if tangent.pattern.rigid && matches!(outcome, Newton::Converged { .. }) {
             let x = self.backend.get(self.ids.x);
-            let aligned = crate::solvers::sparse::align_to(&self.scene.mesh.nodes, &x);
+            let aligned = tangent.pattern.align(&self.scene.mesh.nodes, &x);
             self.backend.set(self.ids.x, &aligned);
             self.residual(t, load)?;
         }
@@ -1009,29 +1014,55 @@ impl<'s, B: Backend> Simulation<'s, B> {
     /// A body with no fixed node is in equilibrium only under loads with no net force (a
     /// closed pressurised cavity): refuse others before Newton fails on them. The loads at
     /// rest, where the elastic forces vanish, at the end time.
-    fn require_balanced_loads(&mut self, t_end: f64) -> Result<(), RunError> {
+    fn require_balanced_loads(
+        &mut self,
+        t_end: f64,
+        motion: Option<FreeMotion>,
+    ) -> Result<(), RunError> {
+        let Some(motion) = motion else {
+            return Ok(());
+        };
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
         self.backend.set(self.ids.x, &rest);
         let r = self.residual(t_end, 1.0)?;
-        let mut net = [0.0f64; 3];
-        let mut total = 0.0f64;
-        for f in r.chunks(3) {
-            for d in 0..3 {
-                net[d] += f[d];
-                total += f[d].abs();
+        // The work of the loads along each free motion, against the largest it could be.
+        let (mut worst, mut unbalanced) = (0.0f64, Vec::new());
+        for mode in motion.modes(&rest) {
+            let work: f64 = mode.iter().zip(&r).map(|(m, f)| m * f).sum();
+            let scale: f64 = mode.iter().zip(&r).map(|(m, f)| (m * f).abs()).sum();
+            unbalanced.push(work);
+            worst = worst.max(work.abs() / scale.max(f64::MIN_POSITIVE));
+        }
+        if worst <= 1e-6 {
+            return Ok(());
+        }
+        let what = match motion {
+            FreeMotion::Rigid => {
+                let mut net = [0.0f64; 3];
+                for f in r.chunks(3) {
+                    for d in 0..3 {
+                        net[d] += f[d];
+                    }
+                }
+                if net.iter().all(|&c| c == 0.0) {
+                    "a net moment".to_string()
+                } else {
+                    format!(
+                        "a net force of [{:.3e}, {:.3e}, {:.3e}] N",
+                        net[0], net[1], net[2]
+                    )
+                }
             }
-        }
-        let net_norm = (net[0] * net[0] + net[1] * net[1] + net[2] * net[2]).sqrt();
-        if net_norm > 1e-6 * total {
-            return Err(RunError(format!(
-                "this body has no fixed node, and its loads at t = {t_end} s do not balance: a \
-                 net force of [{:.3e}, {:.3e}, {:.3e}] N (gravity, or a pressure on an open \
-                 surface) has no static equilibrium. Fix a region (`fix REGION` in the sim \
-                 block), or simulate the motion with `integrator = implicit_euler`",
-                net[0], net[1], net[2]
-            )));
-        }
-        Ok(())
+            _ => "a net moment about it".to_string(),
+        };
+        Err(RunError(format!(
+            "this body is free to move rigidly ({}), and its loads at t = {t_end} s do not \
+             balance along that motion: {what} (gravity, or a pressure on an open surface) has \
+             no static equilibrium. Fix a region that holds the body (`fix REGION` in the sim \
+             block: three or more nodes not on one line), or simulate the motion with \
+             `integrator = implicit_euler`",
+            free_motion_description(self.scene, Some(motion))
+        )))
     }
 
     /// What a static or implicit run sets up: the spacing `h` of its states, the loss, the
@@ -1053,9 +1084,6 @@ impl<'s, B: Backend> Simulation<'s, B> {
             ));
         }
         let static_solve = kind == "quasi_static";
-        if static_solve && let Some(why) = free_rotation(scene) {
-            return Err(RunError(why));
-        }
         let pattern = BlockPattern::new(
             &scene.fixed,
             &scene.mesh.tets,
@@ -1066,11 +1094,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         .map_err(RunError)?;
         let choice = match self.linear_solver.resolve(pattern.size()) {
             LinearSolver::Krylov if pattern.rigid => {
-                return Err(RunError(
-                    "the matrix-free linear solver cannot hold a free body's rigid modes (this \
-                     body has no fixed node): use the direct solver (`--linear-solver direct`)"
-                        .into(),
-                ));
+                return Err(RunError(format!(
+                    "the matrix-free linear solver cannot hold a body's free rigid motions \
+                     ({}): use the direct solver (`--linear-solver direct`)",
+                    free_motion_description(scene, pattern.free_motion)
+                )));
             }
             other => other,
         };
@@ -1078,6 +1106,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
             kind,
             states: steps,
             dofs: pattern.n,
+            free_motion: pattern
+                .free_motion
+                .map(|_| free_motion_description(scene, pattern.free_motion)),
+            free_motion_kind: pattern.free_motion.map(|m| match m {
+                FreeMotion::Rigid => "all",
+                FreeMotion::AboutPoint { .. } => "point",
+                FreeMotion::AboutLine { .. } => "line",
+            }),
             nonzeros: match choice {
                 LinearSolver::Krylov => 0,
                 _ => pattern.nnz(),
@@ -1142,9 +1178,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         }
         let (loss, mut tangent, mut report) =
             self.start_solve("quasi_static", h, steps, gradient)?;
-        if tangent.pattern.rigid {
-            self.require_balanced_loads(t_end)?;
-        }
+        self.require_balanced_loads(t_end, tangent.pattern.free_motion)?;
         let mut direct = BTreeMap::new();
         let mut loss_sum = 0.0;
         let mut end_value = None;
@@ -1317,55 +1351,22 @@ impl<'s, B: Backend> Simulation<'s, B> {
     }
 }
 
-/// Why a static solve of `scene` has no unique answer, if its fixed nodes leave a rotation
-/// free: they lie at one point or on one line, and the body can turn about it at no cost (a
-/// static solve returned an arbitrary rotation with exit 0). A body with no fixed node is a free
-/// body (its rigid modes are held by multipliers). Dynamics are fine: mass resists the turn.
-fn free_rotation(scene: &super::scene::Scene) -> Option<String> {
-    let nodes = &scene.mesh.nodes;
-    let fixed: Vec<usize> = (0..nodes.len()).filter(|&n| scene.fixed[n]).collect();
-    let &first = fixed.first()?;
-    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let norm = |a: [f64; 3]| (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
-    let size = {
-        let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-        for p in nodes {
-            for d in 0..3 {
-                lo[d] = lo[d].min(p[d]);
-                hi[d] = hi[d].max(p[d]);
-            }
-        }
-        norm(sub(hi, lo))
-    };
-    let tolerance = 1e-6 * size;
-    let p0 = nodes[first];
-    let (far, distance) = fixed
-        .iter()
-        .map(|&n| (n, norm(sub(nodes[n], p0))))
-        .fold((first, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+/// What rigid motion a body is free to make, in a user's terms.
+fn free_motion_description(scene: &super::scene::Scene, motion: Option<FreeMotion>) -> String {
     let id = |n: usize| scene.mesh.node_id(n);
-    if distance <= tolerance {
-        return Some(format!(
-            "the fixed nodes hold the body at one point (node {}): it can rotate freely about \
-             it, and a static solve has no unique answer; fix a region or face that spans the \
-             body's support (three or more nodes not on one line)",
-            id(first)
-        ));
+    match motion {
+        None => "none".into(),
+        Some(FreeMotion::Rigid) => "it has no fixed node: three translations and three \
+                                   rotations"
+            .into(),
+        Some(FreeMotion::AboutPoint { node, .. }) => format!(
+            "the fixed nodes hold it at one point, node {}: three rotations about it",
+            id(node)
+        ),
+        Some(FreeMotion::AboutLine { ends, .. }) => format!(
+            "the fixed nodes lie on one line, through nodes {} and {}: the rotation about it",
+            id(ends.0),
+            id(ends.1)
+        ),
     }
-    let axis = sub(nodes[far], p0).map(|c| c / distance);
-    let off_line = fixed.iter().any(|&n| {
-        let r = sub(nodes[n], p0);
-        let along = r[0] * axis[0] + r[1] * axis[1] + r[2] * axis[2];
-        norm(sub(r, axis.map(|c| c * along))) > tolerance
-    });
-    (!off_line).then(|| {
-        format!(
-            "the {} fixed nodes lie on one line (through nodes {} and {}): the body can rotate \
-             freely about it, and a static solve has no unique answer; fix a node off that line \
-             (a region or face that spans the body's support)",
-            fixed.len(),
-            id(first),
-            id(far)
-        )
-    })
 }

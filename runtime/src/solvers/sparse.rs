@@ -32,9 +32,12 @@ const NONE: u32 = u32::MAX;
 pub struct BlockPattern {
     /// Free degrees of freedom (3 per free node).
     pub n: usize,
-    /// A body without fixed nodes: six dofs are pinned and solutions are made free of rigid
-    /// motion (see the module's docs).
+    /// A body free to move rigidly (no fixed node, or fixed nodes at one point or on one
+    /// line): as many dofs as it has free rigid motions are pinned and solutions are made
+    /// free of those motions (see the module's docs).
     pub rigid: bool,
+    /// Which rigid motions the fixed nodes leave free (`None`: none, or not held).
+    pub free_motion: Option<FreeMotion>,
     /// The pinned dofs of a free body (six), else empty.
     pinned: Vec<u32>,
     /// Per free dof, the position of its diagonal entry.
@@ -63,7 +66,11 @@ impl BlockPattern {
         rest: &[[f64; 3]],
     ) -> Result<Self, String> {
         let n_nodes = fixed.len();
-        let rigid = hold_rigid_modes && fixed.iter().all(|f| !f);
+        let free_motion = match hold_rigid_modes {
+            true => FreeMotion::of(fixed, rest),
+            false => None,
+        };
+        let rigid = free_motion.is_some();
         let mut dof = vec![NONE; 3 * n_nodes];
         let mut n = 0u32;
         for (node, &f) in fixed.iter().enumerate() {
@@ -146,14 +153,14 @@ impl BlockPattern {
             .iter()
             .map(|&(b, d)| position(b, d as usize, b, d as usize))
             .collect();
-        let pinned = if rigid {
-            three_two_one(rest)?.into_iter().map(|i| dof[i]).collect()
-        } else {
-            Vec::new()
+        let pinned = match &free_motion {
+            Some(motion) => motion.support(rest)?.into_iter().map(|i| dof[i]).collect(),
+            None => Vec::new(),
         };
         Ok(BlockPattern {
             n: n as usize,
             rigid,
+            free_motion,
             pinned,
             diag,
             dof,
@@ -214,11 +221,25 @@ impl BlockPattern {
     /// has no part the pinned support would take as a reaction. Nothing for a body that is
     /// not free.
     pub fn remove_rigid_motion(&self, x: &[f64], v: &mut [f64]) {
-        if !self.rigid {
+        let Some(motion) = &self.free_motion else {
             return;
-        }
-        let modes = rigid_modes(x);
+        };
+        let modes = motion.modes(x);
         project_out(&modes, &modes, v);
+    }
+
+    /// Positions `x` (node-major) moved by the free rigid motion to the pose that best
+    /// matches `rest` in least squares ([`align_to`]; about the fixed point or line where the
+    /// body is held there). Unchanged for a body with no free motion.
+    pub fn align(&self, rest: &[[f64; 3]], x: &[f64]) -> Vec<f64> {
+        match &self.free_motion {
+            Some(FreeMotion::Rigid) => align_to(rest, x),
+            Some(FreeMotion::AboutPoint { centre, .. }) => rotate_about(rest, x, *centre),
+            Some(FreeMotion::AboutLine { point, axis, .. }) => {
+                turn_about_axis(rest, x, *point, *axis)
+            }
+            None => x.to_vec(),
+        }
     }
 
     /// A node-major vector (3 per node, 0 at fixed nodes) from free-dof entries.
@@ -235,11 +256,11 @@ impl BlockPattern {
     /// at rest) while a solve gives it up to a rigid motion R(x)·a; then g·dx = ĝ·dx_any with
     /// ĝ = g − C (RᵀC)⁻¹ Rᵀ g. Nothing for a body that is not free.
     pub fn pose_free_sensitivity(&self, rest: &[[f64; 3]], x: &[f64], g: &mut [f64]) {
-        if !self.rigid {
+        let Some(motion) = &self.free_motion else {
             return;
-        }
+        };
         let flat: Vec<f64> = rest.iter().flatten().copied().collect();
-        project_out(&rigid_modes(x), &rigid_modes(&flat), g);
+        project_out(&motion.modes(x), &motion.modes(&flat), g);
     }
 
     /// The stiffness K = −∂residual/∂x from the element Jacobians (element × 144, ∂f/∂x), the
@@ -384,6 +405,211 @@ pub fn align_to(rest: &[[f64; 3]], x: &[f64]) -> Vec<f64> {
         .flat_map(|p| {
             let y = q * (Vector3::new(p[0], p[1], p[2]) - cx) + cr;
             [y[0], y[1], y[2]]
+        })
+        .collect()
+}
+
+/// The rigid motions a static body's fixed nodes leave free.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FreeMotion {
+    /// No fixed node: all six rigid motions.
+    Rigid,
+    /// The fixed nodes are at one point (`node`, index into the mesh): three rotations about it.
+    AboutPoint { centre: [f64; 3], node: usize },
+    /// The fixed nodes lie on one line (through nodes `ends`): the rotation about it.
+    AboutLine {
+        point: [f64; 3],
+        axis: [f64; 3],
+        ends: (usize, usize),
+    },
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot3(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn norm3(a: [f64; 3]) -> f64 {
+    dot3(a, a).sqrt()
+}
+
+/// The index of a vector's largest component (in magnitude).
+fn largest_axis(v: [f64; 3]) -> usize {
+    (0..3)
+        .max_by(|&i, &j| v[i].abs().total_cmp(&v[j].abs()))
+        .unwrap_or(2)
+}
+
+impl FreeMotion {
+    /// The rigid motions `fixed` (per node) leaves free at rest positions `rest`: all of them
+    /// without a fixed node, the rotations about a point or a line where the fixed nodes are
+    /// there (to 1e-6 of the body's size), else none.
+    pub fn of(fixed: &[bool], rest: &[[f64; 3]]) -> Option<FreeMotion> {
+        let held: Vec<usize> = (0..fixed.len()).filter(|&n| fixed[n]).collect();
+        let Some(&first) = held.first() else {
+            return Some(FreeMotion::Rigid);
+        };
+        let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+        for p in rest {
+            for d in 0..3 {
+                lo[d] = lo[d].min(p[d]);
+                hi[d] = hi[d].max(p[d]);
+            }
+        }
+        let tolerance = 1e-6 * norm3(sub(hi, lo));
+        let p0 = rest[first];
+        let (far, distance) = held
+            .iter()
+            .map(|&n| (n, norm3(sub(rest[n], p0))))
+            .fold((first, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+        if distance <= tolerance {
+            return Some(FreeMotion::AboutPoint {
+                centre: p0,
+                node: first,
+            });
+        }
+        let axis = sub(rest[far], p0).map(|c| c / distance);
+        let off_line = held.iter().any(|&n| {
+            let r = sub(rest[n], p0);
+            norm3(sub(r, axis.map(|c| c * dot3(r, axis)))) > tolerance
+        });
+        (!off_line).then_some(FreeMotion::AboutLine {
+            point: p0,
+            axis,
+            ends: (first, far),
+        })
+    }
+
+    /// The free motions as velocity fields at positions `x` (node-major), scaled by the
+    /// body's size.
+    pub fn modes(&self, x: &[f64]) -> Vec<Vec<f64>> {
+        let rotations = |centre: [f64; 3], axes: &[[f64; 3]]| {
+            let size = x
+                .chunks(3)
+                .map(|p| norm3(sub([p[0], p[1], p[2]], centre)))
+                .fold(0.0f64, f64::max)
+                .max(f64::MIN_POSITIVE);
+            axes.iter()
+                .map(|&axis| {
+                    x.chunks(3)
+                        .flat_map(|p| {
+                            let r = sub([p[0], p[1], p[2]], centre).map(|c| c / size);
+                            cross(axis, r)
+                        })
+                        .collect()
+                })
+                .collect()
+        };
+        match *self {
+            FreeMotion::Rigid => rigid_modes(x),
+            FreeMotion::AboutPoint { centre, .. } => {
+                rotations(centre, &[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+            }
+            FreeMotion::AboutLine { point, axis, .. } => rotations(point, &[axis]),
+        }
+    }
+
+    /// A statically determinate support of the free motions (node-major dofs `3·node + d`),
+    /// which puts no force on loads those motions do no work against.
+    fn support(&self, rest: &[[f64; 3]]) -> Result<Vec<usize>, String> {
+        let farthest = |from: &dyn Fn([f64; 3]) -> f64| {
+            (0..rest.len())
+                .max_by(|&i, &j| from(rest[i]).total_cmp(&from(rest[j])))
+                .unwrap_or(0)
+        };
+        match *self {
+            FreeMotion::Rigid => three_two_one(rest),
+            FreeMotion::AboutPoint { centre, .. } => {
+                // b: the node farthest from the centre, held across the line to it (its two
+                // components least aligned with that line); c: the node farthest from that
+                // line, held along the normal of the plane through the three.
+                let b = farthest(&|p| norm3(sub(p, centre)));
+                let cb = sub(rest[b], centre);
+                let off = |p: [f64; 3]| norm3(cross(sub(p, centre), cb)) / norm3(cb).max(1e-300);
+                let c = farthest(&off);
+                if norm3(cb) == 0.0 || off(rest[c]) <= 1e-6 * norm3(cb) {
+                    return Err("a body held at one point must span a volume".into());
+                }
+                let mut axes = [0usize, 1, 2];
+                axes.sort_by(|&i, &j| cb[i].abs().total_cmp(&cb[j].abs()));
+                let normal = cross(cb, sub(rest[c], centre));
+                Ok(vec![
+                    3 * b + axes[0],
+                    3 * b + axes[1],
+                    3 * c + largest_axis(normal),
+                ])
+            }
+            FreeMotion::AboutLine { point, axis, .. } => {
+                // The node farthest from the line, held along its motion about it.
+                let off = |p: [f64; 3]| norm3(cross(axis, sub(p, point)));
+                let e = farthest(&off);
+                if off(rest[e]) == 0.0 {
+                    return Err("a body held along a line must reach off it".into());
+                }
+                Ok(vec![3 * e + largest_axis(cross(axis, sub(rest[e], point)))])
+            }
+        }
+    }
+}
+
+/// Positions `x` rotated about `centre` (which stays) to the pose that best matches `rest`
+/// in least squares (Kabsch about a fixed point).
+fn rotate_about(rest: &[[f64; 3]], x: &[f64], centre: [f64; 3]) -> Vec<f64> {
+    use nalgebra::{Matrix3, Vector3};
+    let c = Vector3::from(centre);
+    let mut h = Matrix3::zeros();
+    for (p, q) in x.chunks(3).zip(rest) {
+        h += (Vector3::new(p[0], p[1], p[2]) - c) * (Vector3::from(*q) - c).transpose();
+    }
+    let svd = h.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return x.to_vec();
+    };
+    let mut d = Matrix3::identity();
+    if (vt.transpose() * u.transpose()).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let q = vt.transpose() * d * u.transpose();
+    x.chunks(3)
+        .flat_map(|p| {
+            let y = q * (Vector3::new(p[0], p[1], p[2]) - c) + c;
+            [y[0], y[1], y[2]]
+        })
+        .collect()
+}
+
+/// Positions `x` turned about the line through `point` along the unit `axis` by the angle
+/// that best matches `rest` in least squares: θ = atan2(Σ v·(a×u), Σ v·u⊥) for u = x − p,
+/// v = X − p.
+fn turn_about_axis(rest: &[[f64; 3]], x: &[f64], point: [f64; 3], axis: [f64; 3]) -> Vec<f64> {
+    let (mut c, mut s) = (0.0, 0.0);
+    for (p, q) in x.chunks(3).zip(rest) {
+        let u = sub([p[0], p[1], p[2]], point);
+        let v = sub(*q, point);
+        let u_perp = sub(u, axis.map(|a| a * dot3(u, axis)));
+        c += dot3(v, u_perp);
+        s += dot3(v, cross(axis, u));
+    }
+    let theta = s.atan2(c);
+    let (sin, cos) = theta.sin_cos();
+    x.chunks(3)
+        .flat_map(|p| {
+            let u = sub([p[0], p[1], p[2]], point);
+            let along = dot3(u, axis);
+            let w = cross(axis, u);
+            [0, 1, 2]
+                .map(|d| point[d] + axis[d] * along + cos * (u[d] - axis[d] * along) + sin * w[d])
         })
         .collect()
 }
@@ -670,6 +896,58 @@ mod rigid_tests {
         for (a, b) in back.chunks(3).zip(&rest) {
             for d in 0..3 {
                 assert!((a[d] - b[d]).abs() < 1e-12, "{a:?} vs {b:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn fixed_nodes_at_a_point_or_on_a_line_leave_rotations_that_their_support_holds() {
+        let rest = rest();
+        let mut fixed = [false; 5];
+        fixed[0] = true;
+        let point = FreeMotion::of(&fixed, &rest).unwrap();
+        assert!(matches!(point, FreeMotion::AboutPoint { node: 0, .. }));
+        fixed[3] = true;
+        let line = FreeMotion::of(&fixed, &rest).unwrap();
+        assert!(matches!(line, FreeMotion::AboutLine { ends: (0, 3), .. }));
+        fixed[1] = true;
+        assert_eq!(FreeMotion::of(&fixed, &rest), None);
+        assert_eq!(FreeMotion::of(&[false; 5], &rest), Some(FreeMotion::Rigid));
+        let flat: Vec<f64> = rest.iter().flatten().copied().collect();
+        for (motion, count) in [(point, 3), (line, 1), (FreeMotion::Rigid, 6)] {
+            let pins = motion.support(&rest).unwrap();
+            assert_eq!(pins.len(), count);
+            // The pinned dofs see every free motion: the modes restricted to them are
+            // independent (a nonsingular square matrix).
+            let modes = motion.modes(&flat);
+            let mut m: Vec<Vec<f64>> = pins
+                .iter()
+                .map(|&p| modes.iter().map(|mode| mode[p]).collect())
+                .collect();
+            let mut b = vec![1.0; count];
+            assert!(
+                crate::solvers::dense::solve(&mut m, &mut b).is_some(),
+                "{motion:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_pose_about_a_point_or_a_line_undoes_a_rotation_about_it() {
+        let rest = rest();
+        let (c, s) = (0.4f64.cos(), 0.4f64.sin());
+        // A rotation about the z axis through node 0 (the origin).
+        let turned: Vec<f64> = rest
+            .iter()
+            .flat_map(|p| [c * p[0] - s * p[1], s * p[0] + c * p[1], p[2]])
+            .collect();
+        let back_line = turn_about_axis(&rest, &turned, [0.0; 3], [0.0, 0.0, 1.0]);
+        let back_point = rotate_about(&rest, &turned, [0.0; 3]);
+        for back in [back_line, back_point] {
+            for (a, b) in back.chunks(3).zip(&rest) {
+                for d in 0..3 {
+                    assert!((a[d] - b[d]).abs() < 1e-12, "{a:?} vs {b:?}");
+                }
             }
         }
     }
