@@ -706,7 +706,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
             report.operator_complexity = complexity;
         }
         report.factorization = solve.method;
-        if !(solve.stats.relative_residual <= usable) {
+        // (A NaN residual is not usable either.)
+        if solve.stats.relative_residual.partial_cmp(&usable) == Some(std::cmp::Ordering::Greater)
+            || solve.stats.relative_residual.is_nan()
+        {
             return Err(format!(
                 "the multigrid-preconditioned {} solve did not converge ({} iterations, \
                  relative residual {}); try `--linear-solver direct`",

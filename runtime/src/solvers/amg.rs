@@ -498,9 +498,9 @@ fn smooth(t: &Csr, at: &Csr, diag_inv: &[f64], omega: f64) -> Csr {
     let mut idx = Vec::with_capacity(at.nnz());
     let mut val = Vec::with_capacity(at.nnz());
     let mut slot = vec![usize::MAX; t.cols];
-    for row in 0..t.rows {
+    for (row, &d_inv) in diag_inv.iter().enumerate().take(t.rows) {
         let start = idx.len();
-        let scale = omega * diag_inv[row];
+        let scale = omega * d_inv;
         for k in at.ptr[row]..at.ptr[row + 1] {
             let c = at.idx[k] as usize;
             slot[c] = idx.len();
@@ -536,9 +536,7 @@ fn aggregate(a: &Csr, blocks: &[usize], theta: f64) -> Vec<usize> {
     let n_blocks = blocks.len() - 1;
     let mut block_of = vec![0u32; a.rows];
     for b in 0..n_blocks {
-        for d in blocks[b]..blocks[b + 1] {
-            block_of[d] = b as u32;
-        }
+        block_of[blocks[b]..blocks[b + 1]].fill(b as u32);
     }
     // Squared Frobenius norms of the blocks of each block row.
     let mut diag_norm = vec![0.0f64; n_blocks];
@@ -592,10 +590,10 @@ fn aggregate(a: &Csr, blocks: &[usize], theta: f64) -> Vec<usize> {
     }
     let first_pass = agg.clone();
     for b in 0..n_blocks {
-        if agg[b] == FREE {
-            if let Some(&c) = strong[b].iter().find(|&&c| first_pass[c as usize] != FREE) {
-                agg[b] = first_pass[c as usize];
-            }
+        if agg[b] == FREE
+            && let Some(&c) = strong[b].iter().find(|&&c| first_pass[c as usize] != FREE)
+        {
+            agg[b] = first_pass[c as usize];
         }
     }
     for b in 0..n_blocks {
@@ -732,7 +730,10 @@ pub fn pcg(
         stats.products += 1;
         let ap = apply(&p);
         let pap = dot(&p, &ap);
-        if !(pap > 0.0) || !(rz > 0.0) {
+        // Not positive (or NaN): the operator or the preconditioner is not definite.
+        if pap.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+            || rz.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)
+        {
             break;
         }
         let alpha = rz / pap;
@@ -851,8 +852,8 @@ mod tests {
         let inv = dm.try_inverse().unwrap();
         // Shape-function gradients.
         let mut grad = [Vector3::zeros(); 4];
-        for a in 1..4 {
-            grad[a] = inv.row(a - 1).transpose();
+        for (a, g) in grad.iter_mut().enumerate().skip(1) {
+            *g = inv.row(a - 1).transpose();
         }
         grad[0] = -(grad[1] + grad[2] + grad[3]);
         let (lambda, mu) = (1.0, 1.0);
