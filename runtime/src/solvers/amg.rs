@@ -873,19 +873,8 @@ mod tests {
     }
 
     fn rigid_modes(pos: &[[f64; 3]]) -> Vec<Vec<f64>> {
-        let mut modes = vec![vec![0.0; 3 * pos.len()]; 6];
-        for (i, p) in pos.iter().enumerate() {
-            for d in 0..3 {
-                modes[d][3 * i + d] = 1.0;
-            }
-            let rot = [[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]];
-            for c in 0..3 {
-                for d in 0..3 {
-                    modes[3 + c][3 * i + d] = rot[d][c];
-                }
-            }
-        }
-        modes
+        let flat: Vec<f64> = pos.iter().flatten().copied().collect();
+        crate::solvers::sparse::rigid_modes(&flat)
     }
 
     fn solve(n: usize) -> (KrylovStats, usize, f64) {

@@ -377,7 +377,7 @@ impl BlockPattern {
 /// squares: the centroids coincide and the rotation is the Kabsch solution (the SVD of the
 /// cross-covariance, a proper rotation).
 pub fn align_to(rest: &[[f64; 3]], x: &[f64]) -> Vec<f64> {
-    use nalgebra::{Matrix3, Vector3};
+    use nalgebra::Vector3;
     let n = rest.len().max(1) as f64;
     let mut cx = Vector3::zeros();
     let mut cr = Vector3::zeros();
@@ -385,11 +385,21 @@ pub fn align_to(rest: &[[f64; 3]], x: &[f64]) -> Vec<f64> {
         cx += Vector3::new(p[0], p[1], p[2]) / n;
         cr += Vector3::new(q[0], q[1], q[2]) / n;
     }
+    kabsch(rest, x, cx, cr)
+}
+
+/// Positions `x` rotated about `from` and moved to `to`, by the proper rotation that best maps
+/// x − from onto rest − to in least squares (Kabsch: the SVD of the cross-covariance).
+fn kabsch(
+    rest: &[[f64; 3]],
+    x: &[f64],
+    from: nalgebra::Vector3<f64>,
+    to: nalgebra::Vector3<f64>,
+) -> Vec<f64> {
+    use nalgebra::{Matrix3, Vector3};
     let mut h = Matrix3::zeros();
     for (p, q) in x.chunks(3).zip(rest) {
-        let a = Vector3::new(p[0], p[1], p[2]) - cx;
-        let b = Vector3::new(q[0], q[1], q[2]) - cr;
-        h += a * b.transpose();
+        h += (Vector3::new(p[0], p[1], p[2]) - from) * (Vector3::from(*q) - to).transpose();
     }
     let svd = h.svd(true, true);
     let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
@@ -399,11 +409,10 @@ pub fn align_to(rest: &[[f64; 3]], x: &[f64]) -> Vec<f64> {
     if (vt.transpose() * u.transpose()).determinant() < 0.0 {
         d[(2, 2)] = -1.0;
     }
-    // The rotation taking x's centred positions onto rest's.
     let q = vt.transpose() * d * u.transpose();
     x.chunks(3)
         .flat_map(|p| {
-            let y = q * (Vector3::new(p[0], p[1], p[2]) - cx) + cr;
+            let y = q * (Vector3::new(p[0], p[1], p[2]) - from) + to;
             [y[0], y[1], y[2]]
         })
         .collect()
@@ -566,27 +575,8 @@ impl FreeMotion {
 /// Positions `x` rotated about `centre` (which stays) to the pose that best matches `rest`
 /// in least squares (Kabsch about a fixed point).
 fn rotate_about(rest: &[[f64; 3]], x: &[f64], centre: [f64; 3]) -> Vec<f64> {
-    use nalgebra::{Matrix3, Vector3};
-    let c = Vector3::from(centre);
-    let mut h = Matrix3::zeros();
-    for (p, q) in x.chunks(3).zip(rest) {
-        h += (Vector3::new(p[0], p[1], p[2]) - c) * (Vector3::from(*q) - c).transpose();
-    }
-    let svd = h.svd(true, true);
-    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
-        return x.to_vec();
-    };
-    let mut d = Matrix3::identity();
-    if (vt.transpose() * u.transpose()).determinant() < 0.0 {
-        d[(2, 2)] = -1.0;
-    }
-    let q = vt.transpose() * d * u.transpose();
-    x.chunks(3)
-        .flat_map(|p| {
-            let y = q * (Vector3::new(p[0], p[1], p[2]) - c) + c;
-            [y[0], y[1], y[2]]
-        })
-        .collect()
+    let c = nalgebra::Vector3::from(centre);
+    kabsch(rest, x, c, c)
 }
 
 /// Positions `x` turned about the line through `point` along the unit `axis` by the angle
@@ -630,7 +620,7 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 /// The six rigid modes at positions `x` (node-major): translations along x, y, z, and
 /// rotations about the axes through the centroid, scaled by the body's size.
-fn rigid_modes(x: &[f64]) -> Vec<Vec<f64>> {
+pub(crate) fn rigid_modes(x: &[f64]) -> Vec<Vec<f64>> {
     let n = x.len() / 3;
     let mut centre = [0.0; 3];
     for p in x.chunks(3) {
