@@ -600,7 +600,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             if stats.relative_residual < 0.5 {
                 return Ok((dx, true));
             }
-            self.abandon_krylov(tangent, report)?;
+            self.abandon_iterative(tangent, report)?;
         }
         let (a, b) = match self.has_sensors() {
             true => self.closed_loop_terms()?,
@@ -622,13 +622,19 @@ impl<'s, B: Backend> Simulation<'s, B> {
         if let Linear::Multigrid { .. } = tangent.linear {
             self.assemble_tangent(tangent, report)?;
             let positions = self.backend.get(self.ids.x);
-            // A direction that reduces the linearized residual tenfold is worth a line search.
-            let accuracy = (rtol, 0.1);
-            let mut dx =
-                self.multigrid_solve(tangent, report, &positions, &rhs, (&a, &b), accuracy, false)?;
-            dx = tangent.pattern.extend(&dx);
-            tangent.pattern.remove_rigid_motion(&x, &mut dx);
-            return Ok((dx, true));
+            // A direction that reduces the linearized residual a hundredfold is worth a line
+            // search; a tangent multigrid cannot solve that well (indefinite, near a limit
+            // point) is factored for the rest of the solve.
+            let accuracy = (rtol, 1e-2);
+            let solve = (&a[..], &b[..]);
+            match self.multigrid_solve(tangent, report, &positions, &rhs, solve, accuracy, false) {
+                Ok(dx) => {
+                    let mut dx = tangent.pattern.extend(&dx);
+                    tangent.pattern.remove_rigid_motion(&x, &mut dx);
+                    return Ok((dx, true));
+                }
+                Err(_) => self.abandon_iterative(tangent, report)?,
+            }
         }
         // Reuse while it stays cheap (the preconditioner degrades as the state moves away from
         // the factored one).
@@ -721,17 +727,21 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(solve.x)
     }
 
-    /// GMRES did not converge (block Jacobi is too weak for this tangent): the rest of the
-    /// solve assembles and factors instead — slower per step on a GPU, but an answer, where a
-    /// failed linear solve would read as a failed Newton step and end the continuation at a
-    /// load the body can carry.
-    fn abandon_krylov(
+    /// An iterative solve did not converge (block Jacobi too weak for this tangent, or a
+    /// tangent multigrid cannot precondition: indefinite near a limit point): the rest of the
+    /// solve assembles and factors instead — slower per step, and memory that grows faster
+    /// with the mesh, but an answer, where a failed linear solve would read as a failed Newton
+    /// step and end the continuation at a load the body can carry.
+    fn abandon_iterative(
         &mut self,
         tangent: &mut Tangent,
         report: &mut SolverReport,
     ) -> Result<(), String> {
+        report.linear_solver = match tangent.linear {
+            Linear::Multigrid { .. } => "amg, then direct",
+            _ => "krylov, then direct",
+        };
         tangent.linear = Linear::direct(&tangent.pattern, self.backend.precision())?;
-        report.linear_solver = "krylov, then direct";
         report.nonzeros = tangent.pattern.nnz();
         Ok(())
     }
@@ -756,7 +766,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             if stats.converged || stats.relative_residual < usable {
                 return Ok(mu);
             }
-            self.abandon_krylov(tangent, report)?;
+            self.abandon_iterative(tangent, report)?;
         }
         let (a, b) = match self.has_sensors() {
             true => self.closed_loop_terms()?,
@@ -788,9 +798,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 Precision::F64 => (1e-11, 1e-8),
                 Precision::F32 => (1e-6, 1e-3),
             };
-            let mu =
-                self.multigrid_solve(tangent, report, &positions, &rhs, (&b, &a), accuracy, true)?;
-            return Ok(tangent.pattern.extend(&mu));
+            let solve = (&b[..], &a[..]);
+            match self.multigrid_solve(tangent, report, &positions, &rhs, solve, accuracy, true) {
+                Ok(mu) => return Ok(tangent.pattern.extend(&mu)),
+                Err(_) => self.abandon_iterative(tangent, report)?,
+            }
         }
         // A fresh factorization at this state: reusing Newton's last one as GMRES's
         // preconditioner to the accuracy gradients need cost more than it saved (controller

@@ -313,7 +313,7 @@ pub struct MultigridSolve {
 }
 
 /// Krylov iterations a multigrid-preconditioned solve may take.
-const MAX_MULTIGRID_ITERATIONS: usize = 1000;
+const MAX_MULTIGRID_ITERATIONS: usize = 500;
 
 impl MultigridSolver {
     pub fn new(pattern: &super::sparse::BlockPattern, symmetry: f64) -> Result<Self, String> {
