@@ -430,7 +430,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         floor: f64,
     ) -> Result<Newton, RunError> {
         let outcome = self.newton_iterations(tangent, report, t, load, tolerance, floor)?;
-        if tangent.pattern.rigid && matches!(outcome, Newton::Converged { .. }) {
+        if tangent.pattern.rigid() && matches!(outcome, Newton::Converged { .. }) {
             let x = self.backend.get(self.ids.x);
             let aligned = tangent.pattern.align(&self.scene.mesh.nodes, &x);
             self.backend.set(self.ids.x, &aligned);
@@ -606,7 +606,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             true => self.closed_loop_terms()?,
             false => Default::default(),
         };
-        let x = match tangent.pattern.rigid {
+        let x = match tangent.pattern.rigid() {
             true => self.backend.get(self.ids.x),
             false => Vec::new(),
         };
@@ -712,10 +712,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
             report.operator_complexity = complexity;
         }
         report.factorization = solve.method;
-        // (A NaN residual is not usable either.)
-        if solve.stats.relative_residual.partial_cmp(&usable) == Some(std::cmp::Ordering::Greater)
-            || solve.stats.relative_residual.is_nan()
-        {
+        let usable = solve.stats.relative_residual <= usable; // (false for NaN)
+        if !usable {
             return Err(format!(
                 "the multigrid-preconditioned {} solve did not converge ({} iterations, \
                  relative residual {}); try `--linear-solver direct`",
@@ -772,7 +770,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             true => self.closed_loop_terms()?,
             false => Default::default(),
         };
-        let x = match tangent.pattern.rigid {
+        let x = match tangent.pattern.rigid() {
             true => self.backend.get(self.ids.x),
             false => Vec::new(),
         };
@@ -1108,7 +1106,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         )
         .map_err(RunError)?;
         let choice = match self.linear_solver.resolve(pattern.size()) {
-            LinearSolver::Krylov if pattern.rigid => {
+            LinearSolver::Krylov if pattern.rigid() => {
                 return Err(RunError(format!(
                     "the matrix-free linear solver cannot hold a body's free rigid motions \
                      ({}): use the direct solver (`--linear-solver direct`)",
@@ -1124,11 +1122,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             free_motion: pattern
                 .free_motion
                 .map(|_| free_motion_description(scene, pattern.free_motion)),
-            free_motion_kind: pattern.free_motion.map(|m| match m {
-                FreeMotion::Rigid => "all",
-                FreeMotion::AboutPoint { .. } => "point",
-                FreeMotion::AboutLine { .. } => "line",
-            }),
+            free_motion_kind: pattern.free_motion.map(|m| m.kind()),
             nonzeros: match choice {
                 LinearSolver::Krylov => 0,
                 _ => pattern.nnz(),

@@ -173,12 +173,7 @@ impl Hierarchy {
     /// Build the hierarchy of `a` (square), whose unknowns come in blocks (`blocks[i]` ..
     /// `blocks[i + 1]`: a node's three dofs), with the near-null space `modes` (vectors over
     /// the unknowns: the rigid-body modes for elasticity).
-    pub fn new(
-        a: Csr,
-        blocks: Vec<usize>,
-        modes: Vec<Vec<f64>>,
-        options: AmgOptions,
-    ) -> Result<Self, String> {
+    pub fn new(a: Csr, blocks: Vec<usize>, modes: Vec<Vec<f64>>, options: AmgOptions) -> Self {
         let fine_nnz = a.nnz().max(1) as f64;
         let mut levels = Vec::new();
         let mut a = a;
@@ -209,8 +204,7 @@ impl Hierarchy {
             modes = coarse_modes;
         }
         let n = a.rows;
-        let dense = faer::Mat::<f64>::from_fn(n, n, |_, _| 0.0);
-        let mut dense = dense;
+        let mut dense = faer::Mat::<f64>::zeros(n, n);
         for row in 0..n {
             for k in a.ptr[row]..a.ptr[row + 1] {
                 dense[(row, a.idx[k] as usize)] += a.val[k];
@@ -218,13 +212,13 @@ impl Hierarchy {
         }
         let coarse = dense.partial_piv_lu();
         let total: usize = levels.iter().map(|l| l.a.nnz()).sum::<usize>() + a.nnz();
-        Ok(Hierarchy {
+        Hierarchy {
             levels,
             coarse,
             coarse_n: n,
             last: a,
             operator_complexity: total as f64 / fine_nnz,
-        })
+        }
     }
 
     /// Levels, the coarsest included.
@@ -359,7 +353,7 @@ impl MultigridSolver {
         let mut fresh = match self.hierarchy.as_mut() {
             Some(h) if reusable && h.depth() > 1 => !h.update_finest(csr),
             _ => {
-                self.build(pattern, csr, x, transposed && !symmetric)?;
+                self.build(pattern, csr, x, transposed && !symmetric);
                 setups += 1;
                 true
             }
@@ -381,7 +375,7 @@ impl MultigridSolver {
                 });
             }
             let csr = self.hierarchy.take().expect("built").matrix().clone();
-            self.build(pattern, csr, x, transposed && !symmetric)?;
+            self.build(pattern, csr, x, transposed && !symmetric);
             setups += 1;
             fresh = true;
         }
@@ -393,16 +387,16 @@ impl MultigridSolver {
         csr: Csr,
         x: &[f64],
         transposed: bool,
-    ) -> Result<(), String> {
+    ) {
+        // The old hierarchy goes before the new one is built (memory).
         self.hierarchy = None;
         self.hierarchy = Some(Hierarchy::new(
             csr,
             pattern.node_blocks(),
             pattern.near_null_space(x),
             AmgOptions::default(),
-        )?);
+        ));
         self.transposed = transposed;
-        Ok(())
     }
 }
 
@@ -884,7 +878,7 @@ mod tests {
             coarsest: 100,
             ..Default::default()
         };
-        let h = Hierarchy::new(a.clone(), blocks, rigid_modes(&pos), options).unwrap();
+        let h = Hierarchy::new(a.clone(), blocks, rigid_modes(&pos), options);
         let b: Vec<f64> = (0..a.rows)
             .map(|i| ((i * 7919 % 13) as f64) - 6.0)
             .collect();

@@ -32,11 +32,9 @@ const NONE: u32 = u32::MAX;
 pub struct BlockPattern {
     /// Free degrees of freedom (3 per free node).
     pub n: usize,
-    /// A body free to move rigidly (no fixed node, or fixed nodes at one point or on one
-    /// line): as many dofs as it has free rigid motions are pinned and solutions are made
-    /// free of those motions (see the module's docs).
-    pub rigid: bool,
-    /// Which rigid motions the fixed nodes leave free (`None`: none, or not held).
+    /// Which rigid motions the fixed nodes leave free (`None`: none, or not held). As many
+    /// dofs as there are such motions are pinned and solutions are made free of those motions
+    /// (see the module's docs).
     pub free_motion: Option<FreeMotion>,
     /// The pinned dofs of a free body (six), else empty.
     pinned: Vec<u32>,
@@ -70,7 +68,6 @@ impl BlockPattern {
             true => FreeMotion::of(fixed, rest),
             false => None,
         };
-        let rigid = free_motion.is_some();
         let mut dof = vec![NONE; 3 * n_nodes];
         let mut n = 0u32;
         for (node, &f) in fixed.iter().enumerate() {
@@ -159,7 +156,6 @@ impl BlockPattern {
         };
         Ok(BlockPattern {
             n: n as usize,
-            rigid,
             free_motion,
             pinned,
             diag,
@@ -170,6 +166,12 @@ impl BlockPattern {
             tri_pos,
             node_pos,
         })
+    }
+
+    /// Whether the body is free to move rigidly (no fixed node, or fixed nodes at one point or
+    /// on one line) and the solve holds those motions.
+    pub fn rigid(&self) -> bool {
+        self.free_motion.is_some()
     }
 
     /// Nonzeros of the matrix.
@@ -289,7 +291,7 @@ impl BlockPattern {
                 }
             }
         }
-        if self.rigid {
+        if self.rigid() {
             self.pin(values);
         }
     }
@@ -461,6 +463,15 @@ fn largest_axis(v: [f64; 3]) -> usize {
 }
 
 impl FreeMotion {
+    /// Its name in the JSON (`free_motion_kind`).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            FreeMotion::Rigid => "all",
+            FreeMotion::AboutPoint { .. } => "point",
+            FreeMotion::AboutLine { .. } => "line",
+        }
+    }
+
     /// The rigid motions `fixed` (per node) leaves free at rest positions `rest`: all of them
     /// without a fixed node, the rotations about a point or a line where the fixed nodes are
     /// there (to 1e-6 of the body's size), else none.
