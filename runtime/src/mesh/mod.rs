@@ -42,7 +42,9 @@ pub mod writers;
 use std::path::Path;
 
 pub use error::{MeshError, MeshErrorKind};
-pub use model::{BoundaryFace, LengthUnit, LoadReport, Mesh, PhysicalName, signed_volume};
+pub use model::{
+    BoundaryFace, LengthUnit, LoadReport, Mesh, MidEdges, PhysicalName, signed_volume,
+};
 pub use precompute::{Edge, NodeElementCsr, Precomputed, SurfaceTris};
 pub use quality::QualityReport;
 pub use validate::{IssueKind, MeshIssue, Severity, check_selection, has_errors};

@@ -136,6 +136,38 @@ pub struct Mesh {
     pub report: LoadReport,
     /// The file's numbers of nodes, tets and triangles, for messages.
     pub ids: FileIds,
+    /// The mid-edge nodes of quadratic (10-node) tetrahedra and of their 6-node surface
+    /// triangles; `None` for a linear mesh. `tets` and `tris` stay the corners, so everything
+    /// that works on corners (orientation, faces, validation of the straight-sided shape) is
+    /// unchanged.
+    pub mid_edges: Option<MidEdges>,
+}
+
+/// The mid-edge nodes of a quadratic mesh, in VTK's node order (`VTK_QUADRATIC_TETRA`, type
+/// 24; gmsh's 10-node tet swaps the last two).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MidEdges {
+    /// Per tet, the nodes on its edges [`QUAD_TET_EDGES`] (0-1, 1-2, 0-2, 0-3, 1-3, 2-3).
+    pub tets: Vec<[u32; 6]>,
+    /// Per tagged triangle, the nodes on its edges 0-1, 1-2, 2-0.
+    pub tris: Vec<[u32; 3]>,
+}
+
+/// The edges of a 10-node tet in the order of its mid-edge nodes 4–9 (VTK's order).
+pub const QUAD_TET_EDGES: [[usize; 2]; 6] = [[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]];
+/// The edges of a 6-node triangle in the order of its mid-edge nodes 3–5.
+pub const QUAD_TRI_EDGES: [[usize; 2]; 3] = [[0, 1], [1, 2], [2, 0]];
+
+/// The mid-edge nodes of a tet after its corners 2 and 3 are swapped (reorientation).
+pub fn swap_mids_23(m: [u32; 6]) -> [u32; 6] {
+    // Edges 0-1, 1-2, 0-2, 0-3, 1-3, 2-3 become 0-1, 1-3, 0-3, 0-2, 1-2, 3-2.
+    [m[0], m[4], m[3], m[2], m[1], m[5]]
+}
+
+/// The mid-edge nodes of a triangle after its corners 1 and 2 are swapped (rewinding).
+pub fn swap_tri_mids_12(m: [u32; 3]) -> [u32; 3] {
+    // Edges 0-1, 1-2, 2-0 become 0-2, 2-1, 1-0.
+    [m[2], m[1], m[0]]
 }
 
 /// A boundary face of the tet mesh, oriented with its normal pointing out of the solid.
@@ -308,6 +340,11 @@ impl Mesh {
         for t in &mut self.tets {
             t.swap(2, 3);
         }
+        if let Some(q) = &mut self.mid_edges {
+            for m in &mut q.tets {
+                *m = swap_mids_23(*m);
+            }
+        }
         let n = self.tets.len();
         self.report.reoriented_tets += n;
         n
@@ -374,12 +411,15 @@ impl Mesh {
     pub fn orient_surfaces(&mut self) -> usize {
         let map = self.boundary_face_map();
         let mut n = 0;
-        for tri in &mut self.tris {
+        for (f, tri) in self.tris.iter_mut().enumerate() {
             if let Some(bf) = map.get(&sorted3(*tri)) {
                 // Inward winding is the reverse of the outward boundary face.
                 let inward = [bf.nodes[0], bf.nodes[2], bf.nodes[1]];
                 if !same_cyclic(*tri, inward) {
                     *tri = [tri[0], tri[2], tri[1]];
+                    if let Some(q) = &mut self.mid_edges {
+                        q.tris[f] = swap_tri_mids_12(q.tris[f]);
+                    }
                     n += 1;
                 }
             }
@@ -441,6 +481,84 @@ impl Mesh {
             .collect()
     }
 
+    /// The mid-edge nodes of the triangles carrying surface tag `tag` (in [`Mesh::surface`]'s
+    /// order); empty for a linear mesh.
+    pub fn surface_mids(&self, tag: i32) -> Vec<[u32; 3]> {
+        let Some(q) = &self.mid_edges else {
+            return Vec::new();
+        };
+        q.tris
+            .iter()
+            .zip(&self.tri_tags)
+            .filter(|(_, t)| **t == tag)
+            .map(|(m, _)| *m)
+            .collect()
+    }
+
+    /// Whether the mesh has 10-node tets.
+    pub fn is_quadratic(&self) -> bool {
+        self.mid_edges.is_some()
+    }
+
+    /// The mesh with a straight-sided mid-edge node on every edge: each edge shared by tets or
+    /// tagged triangles gets one node, at its midpoint, appended after the existing nodes in
+    /// the order of the sorted edge keys (deterministic). A named node set gains the mid-edge
+    /// node of every edge whose two ends it holds. A mesh that is already quadratic is
+    /// returned as it is.
+    pub fn with_mid_edges(&self) -> Mesh {
+        if self.is_quadratic() {
+            return self.clone();
+        }
+        let mut edges: Vec<[u32; 2]> = Vec::with_capacity(self.tets.len() * 6);
+        let key = |a: u32, b: u32| [a.min(b), a.max(b)];
+        for t in &self.tets {
+            for e in QUAD_TET_EDGES {
+                edges.push(key(t[e[0]], t[e[1]]));
+            }
+        }
+        for t in &self.tris {
+            for e in QUAD_TRI_EDGES {
+                edges.push(key(t[e[0]], t[e[1]]));
+            }
+        }
+        edges.sort_unstable();
+        edges.dedup();
+        let first = self.nodes.len() as u32;
+        let mid = |a: u32, b: u32| first + edges.binary_search(&key(a, b)).unwrap() as u32;
+        let mut out = self.clone();
+        for e in &edges {
+            let (p, q) = (self.nodes[e[0] as usize], self.nodes[e[1] as usize]);
+            out.nodes
+                .push([0.5 * (p[0] + q[0]), 0.5 * (p[1] + q[1]), 0.5 * (p[2] + q[2])]);
+        }
+        if !out.ids.nodes.is_empty() {
+            let next = out.ids.nodes.iter().copied().max().unwrap_or(0) + 1;
+            out.ids.nodes.extend((0..edges.len() as i64).map(|i| next + i));
+        }
+        let tets = self
+            .tets
+            .iter()
+            .map(|t| QUAD_TET_EDGES.map(|e| mid(t[e[0]], t[e[1]])))
+            .collect();
+        let tris = self
+            .tris
+            .iter()
+            .map(|t| QUAD_TRI_EDGES.map(|e| mid(t[e[0]], t[e[1]])))
+            .collect();
+        for set in out.node_sets.values_mut() {
+            let held: std::collections::BTreeSet<u32> = set.iter().copied().collect();
+            for (i, e) in edges.iter().enumerate() {
+                if held.contains(&e[0]) && held.contains(&e[1]) {
+                    set.push(first + i as u32);
+                }
+            }
+            set.sort_unstable();
+            set.dedup();
+        }
+        out.mid_edges = Some(MidEdges { tets, tris });
+        out
+    }
+
     /// Resolve a surface given by name or number (`"cavity"` or `"2"`), with an error that
     /// lists the surfaces the mesh has.
     pub fn resolve_surface(&self, name_or_tag: &str) -> Result<i32, String> {
@@ -498,6 +616,7 @@ impl Mesh {
     /// Nodes of the surface with tag `tag`, sorted and unique.
     pub fn surface_nodes(&self, tag: i32) -> Vec<u32> {
         let mut n: Vec<u32> = self.surface(tag).into_iter().flatten().collect();
+        n.extend(self.surface_mids(tag).into_iter().flatten());
         n.sort_unstable();
         n.dedup();
         n

@@ -161,6 +161,8 @@ impl RawMesh {
             element_sets,
             report: Default::default(),
             ids,
+            // Quadratic elements in files: read by the gmsh reader (issue 30).
+            mid_edges: None,
         };
         mesh.report.ignored_elements = self.ignored;
         mesh.orient_tets();
