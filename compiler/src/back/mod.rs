@@ -10,7 +10,7 @@
 pub mod cranelift;
 pub mod wgsl;
 
-use crate::ir::Domain;
+use crate::ir::{Domain, ElementOrder};
 
 /// The floating-point type of every value and buffer of a compiled module.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -41,6 +41,7 @@ impl std::fmt::Display for Precision {
 /// Mesh connectivity as the generated code reads it, validated on construction.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Topology {
+    order: ElementOrder,
     n_nodes: usize,
     elem_conn: Vec<u32>,
     tri_conn: Vec<u32>,
@@ -48,11 +49,11 @@ pub struct Topology {
     node_elem_entries: Vec<u32>,
     node_tri_offsets: Vec<u32>,
     node_tri_entries: Vec<u32>,
-    /// Each entry of `node_elem_entries` as one index `element · 4 + corner`: the row of a
-    /// per-corner buffer (element × 4·stride) the incidence reads, one load for the CPU's
+    /// Each entry of `node_elem_entries` as one index `element · nc + corner` (nc = 4, or 10
+    /// for quadratic tets): the row of a per-corner buffer (element × nc·stride) the incidence reads, one load for the CPU's
     /// gather loops instead of two and a multiply.
     node_elem_slots: Vec<u32>,
-    /// Likewise `triangle · 3 + corner` for `node_tri_entries`.
+    /// Likewise `triangle · nc + corner` for `node_tri_entries` (nc = 3 or 6).
     node_tri_slots: Vec<u32>,
 }
 
@@ -130,19 +131,35 @@ pub fn node_csr(n_nodes: usize, conn: &[u32], nc: usize) -> (Vec<u32>, Vec<u32>)
 }
 
 impl Topology {
-    /// Connectivity of `n_nodes` nodes, tets (`elem_conn`, 4 per element) and chamber
+    /// Connectivity of `n_nodes` nodes, linear tets (`elem_conn`, 4 per element) and chamber
     /// triangles (`tri_conn`, 3 per triangle); builds both node CSR lists.
     pub fn new(n_nodes: usize, elem_conn: Vec<u32>, tri_conn: Vec<u32>) -> Result<Self, String> {
-        check_conn(n_nodes, &elem_conn, 4, "element")?;
-        check_conn(n_nodes, &tri_conn, 3, "triangle")?;
-        let (node_elem_offsets, node_elem_entries) = node_csr(n_nodes, &elem_conn, 4);
-        let (node_tri_offsets, node_tri_entries) = node_csr(n_nodes, &tri_conn, 3);
+        Topology::of_order(ElementOrder::Linear, n_nodes, elem_conn, tri_conn)
+    }
+
+    /// As [`Topology::new`] for elements of `order` (quadratic: 10 nodes per element, 6 per
+    /// triangle).
+    pub fn of_order(
+        order: ElementOrder,
+        n_nodes: usize,
+        elem_conn: Vec<u32>,
+        tri_conn: Vec<u32>,
+    ) -> Result<Self, String> {
+        let (ne, nt) = (
+            order.element_nodes() as usize,
+            order.triangle_nodes() as usize,
+        );
+        check_conn(n_nodes, &elem_conn, ne, "element")?;
+        check_conn(n_nodes, &tri_conn, nt, "triangle")?;
+        let (node_elem_offsets, node_elem_entries) = node_csr(n_nodes, &elem_conn, ne);
+        let (node_tri_offsets, node_tri_entries) = node_csr(n_nodes, &tri_conn, nt);
         Ok(Topology {
+            order,
             n_nodes,
             elem_conn,
             tri_conn,
-            node_elem_slots: slots(&node_elem_entries, 4),
-            node_tri_slots: slots(&node_tri_entries, 3),
+            node_elem_slots: slots(&node_elem_entries, ne as u32),
+            node_tri_slots: slots(&node_tri_entries, nt as u32),
             node_elem_offsets,
             node_elem_entries,
             node_tri_offsets,
@@ -153,29 +170,35 @@ impl Topology {
     /// Connectivity with CSR lists given by the caller (any order of incidences per node;
     /// gathers sum in that order). Each entry must name an incidence of its node.
     pub fn with_csr(
+        order: ElementOrder,
         n_nodes: usize,
         elem_conn: Vec<u32>,
         tri_conn: Vec<u32>,
         node_elem: (Vec<u32>, Vec<u32>),
         node_tri: (Vec<u32>, Vec<u32>),
     ) -> Result<Self, String> {
-        check_conn(n_nodes, &elem_conn, 4, "element")?;
-        check_conn(n_nodes, &tri_conn, 3, "triangle")?;
+        let (ne, nt) = (
+            order.element_nodes() as usize,
+            order.triangle_nodes() as usize,
+        );
+        check_conn(n_nodes, &elem_conn, ne, "element")?;
+        check_conn(n_nodes, &tri_conn, nt, "triangle")?;
         check_csr(
             n_nodes,
             &elem_conn,
-            4,
+            ne,
             &node_elem.0,
             &node_elem.1,
             "element",
         )?;
-        check_csr(n_nodes, &tri_conn, 3, &node_tri.0, &node_tri.1, "triangle")?;
+        check_csr(n_nodes, &tri_conn, nt, &node_tri.0, &node_tri.1, "triangle")?;
         Ok(Topology {
+            order,
             n_nodes,
             elem_conn,
             tri_conn,
-            node_elem_slots: slots(&node_elem.1, 4),
-            node_tri_slots: slots(&node_tri.1, 3),
+            node_elem_slots: slots(&node_elem.1, ne as u32),
+            node_tri_slots: slots(&node_tri.1, nt as u32),
             node_elem_offsets: node_elem.0,
             node_elem_entries: node_elem.1,
             node_tri_offsets: node_tri.0,
@@ -186,11 +209,16 @@ impl Topology {
     /// How many entities a domain has.
     pub fn count(&self, d: Domain) -> usize {
         match d {
-            Domain::Element => self.elem_conn.len() / 4,
-            Domain::Triangle => self.tri_conn.len() / 3,
+            Domain::Element => self.elem_conn.len() / self.order.element_nodes() as usize,
+            Domain::Triangle => self.tri_conn.len() / self.order.triangle_nodes() as usize,
             Domain::Node => self.n_nodes,
             Domain::Single => 1,
         }
+    }
+
+    /// The elements' order (the corners per element and per triangle).
+    pub fn order(&self) -> ElementOrder {
+        self.order
     }
 
     pub fn elem_conn(&self) -> &[u32] {
@@ -211,12 +239,12 @@ impl Topology {
         (&self.node_tri_offsets, &self.node_tri_entries)
     }
 
-    /// The node→element entries as `element · 4 + corner`.
+    /// The node→element entries as `element · nc + corner`.
     pub fn node_elem_slots(&self) -> &[u32] {
         &self.node_elem_slots
     }
 
-    /// The node→triangle entries as `triangle · 3 + corner`.
+    /// The node→triangle entries as `triangle · nc + corner`.
     pub fn node_tri_slots(&self) -> &[u32] {
         &self.node_tri_slots
     }

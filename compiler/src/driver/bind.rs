@@ -29,6 +29,11 @@ pub trait MeshView {
     fn surface(&self, tag: i32) -> Vec<[u32; 3]>;
     /// The nodes of a tagged surface, sorted, unique.
     fn surface_nodes(&self, tag: i32) -> Vec<u32>;
+    /// The mid-edge nodes (edges 0-1, 1-2, 2-0) of [`MeshView::surface`]'s triangles, in its
+    /// order; empty for a linear mesh.
+    fn surface_mids(&self, _tag: i32) -> Vec<[u32; 3]> {
+        Vec::new()
+    }
     fn node_set(&self, name: &str) -> Option<&[u32]>;
     fn element_set(&self, name: &str) -> Option<&[u32]>;
     /// The mesh file's number of tet `e`, what messages call it (default: `e + 1`).
@@ -86,6 +91,9 @@ pub struct Bound {
     pub material_of: Vec<usize>,
     /// Chamber triangles per chamber, in kernel order.
     pub chamber_tris: Vec<Vec<[u32; 3]>>,
+    /// Quadratic scenes: the mid-edge nodes of each chamber's triangles (empty lists for a
+    /// linear one).
+    pub chamber_mids: Vec<Vec<[u32; 3]>>,
     pub fixed: Vec<bool>,
     /// Every declared node set with its nodes.
     pub node_sets: Vec<(String, Vec<u32>)>,
@@ -115,7 +123,8 @@ impl Resolved {
         let program = self.lowering_program();
         let ast = &self.syntax;
         let material_of = assign_materials(&program, ast, mesh, kernels)?;
-        let chamber_tris = chambers(&program, ast, mesh, kernels)?;
+        let (chamber_tris, chamber_mids): (Vec<_>, Vec<_>) =
+            chambers(&program, ast, mesh, kernels)?.into_iter().unzip();
         let fixed = fixed_nodes(&program, ast, mesh)?;
         let node_sets = all_node_sets(&program, ast, mesh)?;
         let element_sets = all_element_sets(&program, ast, mesh)?;
@@ -159,6 +168,7 @@ impl Resolved {
             material_ranges,
             material_of: sorted,
             chamber_tris,
+            chamber_mids,
             fixed,
             node_sets,
             element_sets,
@@ -473,7 +483,8 @@ fn chambers(
     ast: &Script,
     mesh: &dyn MeshView,
     kernels: &SceneModule,
-) -> Fail<Vec<Vec<[u32; 3]>>> {
+) -> Fail<Vec<(Vec<[u32; 3]>, Vec<[u32; 3]>)>> {
+    let quadratic = kernels.module.order == crate::ir::ElementOrder::Quadratic;
     kernels
         .chambers
         .iter()
@@ -493,7 +504,15 @@ fn chambers(
                     None => return Err(format!("chamber `{c}` names no surface")),
                 },
             };
-            Ok(mesh.surface(tag))
+            let tris = mesh.surface(tag);
+            let mids = if quadratic { mesh.surface_mids(tag) } else { Vec::new() };
+            if quadratic && mids.len() != tris.len() {
+                return Err(format!(
+                    "chamber `{c}`: the mesh has no mid-edge nodes on its triangles; a \
+                     quadratic scene (`order: 2`) needs a mesh with them"
+                ));
+            }
+            Ok((tris, mids))
         })
         .collect()
 }

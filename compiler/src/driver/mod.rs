@@ -26,6 +26,7 @@ pub use variant::Variant;
 
 // What the runtime needs of the compiler's other layers, in one place.
 pub use crate::lower::fem::{REST_SHAPE_WIDTH, rest_shape};
+pub use crate::lower::quadratic::quadratic_rest_shape;
 pub use crate::lower::scene::{ImplicitStep, MatrixFree, SceneModule, StaticKernels};
 pub use crate::lower::springs::TET_EDGES;
 pub use crate::sema::ParamInfo;
@@ -169,6 +170,9 @@ pub struct MeshDecl {
     pub path: PathBuf,
     /// Metres per file unit.
     pub unit: f64,
+    /// The element order the script asks for (`load(…, order: 2)`): a linear mesh gets
+    /// straight-sided mid-edge nodes when it is 2.
+    pub order: crate::ir::ElementOrder,
     /// The byte span of the path's string literal in the script, when it is one.
     pub span: Option<(usize, usize)>,
 }

@@ -288,6 +288,7 @@ pub(super) fn mesh_decl(
         path: base.join(&written),
         written,
         unit,
+        order: crate::lower::scene::element_order(ast),
         span,
     })
 }

@@ -488,6 +488,41 @@ impl Kernel {
     }
 }
 
+/// The elements of a scene: linear (4-node tets, 3-node chamber triangles) or quadratic
+/// (10-node tets, 6-node triangles; corners first, then the mid-edge nodes in VTK's order).
+/// A module is generated for one order; [`Domain::Element`] and [`Domain::Triangle`] entities
+/// have that order's corners.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ElementOrder {
+    #[default]
+    Linear,
+    Quadratic,
+}
+
+impl ElementOrder {
+    /// Nodes per element.
+    pub fn element_nodes(self) -> u32 {
+        match self {
+            ElementOrder::Linear => 4,
+            ElementOrder::Quadratic => 10,
+        }
+    }
+    /// Nodes per chamber triangle.
+    pub fn triangle_nodes(self) -> u32 {
+        match self {
+            ElementOrder::Linear => 3,
+            ElementOrder::Quadratic => 6,
+        }
+    }
+    /// 1 or 2.
+    pub fn degree(self) -> u32 {
+        match self {
+            ElementOrder::Linear => 1,
+            ElementOrder::Quadratic => 2,
+        }
+    }
+}
+
 /// A scene's kernels and the buffers they share.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Module {
@@ -496,9 +531,20 @@ pub struct Module {
     /// The name of each uniform the kernels read, indexed by [`UniformId`] (for printing,
     /// generated code and the edges that take values by name).
     pub uniforms: Vec<String>,
+    /// The order of the elements and chamber triangles the kernels run over.
+    pub order: ElementOrder,
 }
 
 impl Module {
+    /// Nodes per entity of a domain with connectivity (elements and chamber triangles).
+    pub fn corners(&self, d: Domain) -> Option<u32> {
+        match d {
+            Domain::Element => Some(self.order.element_nodes()),
+            Domain::Triangle => Some(self.order.triangle_nodes()),
+            Domain::Node | Domain::Single => None,
+        }
+    }
+
     /// The id of the uniform `name`, added to the table if new.
     pub fn uniform(&mut self, name: &str) -> UniformId {
         if let Some(id) = self.uniform_named(name) {

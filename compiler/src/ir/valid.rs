@@ -2,15 +2,6 @@
 
 use super::{ArgSource, Domain, Inst, Kernel, Module};
 
-/// Nodes per entity of a domain with connectivity.
-pub(crate) fn corners(d: Domain) -> Option<u32> {
-    match d {
-        Domain::Element => Some(4),
-        Domain::Triangle => Some(3),
-        Domain::Node | Domain::Single => None,
-    }
-}
-
 /// Check that a kernel is well formed against its module: every access it makes stays inside
 /// buffers laid out as `Module::buffers` says. The run-time checks (buffer lengths, entity
 /// ranges, connectivity) then make the generated code memory safe.
@@ -55,7 +46,7 @@ pub fn validate_kernel(m: &Module, k: &Kernel) -> Result<(), String> {
                 corner,
                 component,
             } => {
-                let Some(nc) = corners(k.domain) else {
+                let Some(nc) = m.corners(k.domain) else {
                     return err(format!(
                         "argument {i}: corner loads need an element or triangle kernel"
                     ));
@@ -90,7 +81,7 @@ pub fn validate_kernel(m: &Module, k: &Kernel) -> Result<(), String> {
                 if k.domain != Domain::Node {
                     return err(format!("argument {i}: gathers need a node kernel"));
                 }
-                let Some(nc) = corners(*over) else {
+                let Some(nc) = m.corners(*over) else {
                     return err(format!(
                         "argument {i}: gathers run over elements or triangles"
                     ));

@@ -137,19 +137,30 @@ pub struct FemBuffers {
 
 impl FemBuffers {
     pub fn declare(m: &mut Module) -> Self {
-        FemBuffers {
-            x: m.buffer("x", Domain::Node, 3, "node positions, m"),
-            rest_shape: m.buffer(
+        let corners = m.order.element_nodes();
+        let rest_shape = match m.order {
+            crate::ir::ElementOrder::Linear => m.buffer(
                 "rest_shape",
                 Domain::Element,
                 REST_SHAPE_WIDTH,
                 "Dm^-1 Dm^-T (G00 G01 G02 G11 G12 G22, 1/m^2) and det Dm^-1 (1/m^3)",
             ),
+            crate::ir::ElementOrder::Quadratic => m.buffer(
+                "rest_shape",
+                Domain::Element,
+                4 * super::quadratic::REST_PER_POINT,
+                "per quadrature point: Dm^-1 Dm^-T (G00 G01 G02 G11 G12 G22, 1/m^2), \
+                 det Dm^-1 (1/m^3) and its volume w*det Dm (m^3)",
+            ),
+        };
+        FemBuffers {
+            x: m.buffer("x", Domain::Node, 3, "node positions, m"),
+            rest_shape,
             vol0: m.buffer("vol0", Domain::Element, 1, "rest volume, m^3"),
             force: m.buffer(
                 "elem_force",
                 Domain::Element,
-                12,
+                3 * corners,
                 "internal force per corner, N",
             ),
             energy: m.buffer("elem_energy", Domain::Element, 1, "strain energy V0*W, J"),
@@ -202,6 +213,9 @@ fn element_kernel(
     material: &str,
     diagnostics: bool,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
+    if module.order == crate::ir::ElementOrder::Quadratic {
+        return super::quadratic::element_kernel(program, module, material, diagnostics);
+    }
     let bufs = FemBuffers::declare(module);
     let fields = declare_fields(program, module, material)?;
     let (name, origin) = if diagnostics {
@@ -287,7 +301,7 @@ fn transpose(a: &[[V; 3]; 3]) -> [[V; 3]; 3] {
 /// material at edge matrix `ds`, from the rest shape G = Dm⁻¹·Dm⁻ᵀ (`g`) and d = det Dm⁻¹
 /// (the module docs give the identities).
 #[allow(clippy::too_many_arguments)]
-fn energy_and_forces(
+pub(super) fn energy_and_forces(
     program: &Program,
     k: &mut KernelBuilder,
     material: &str,
@@ -407,6 +421,17 @@ fn energy_and_forces(
         }
     }
     Ok((w, h, j))
+}
+
+/// The inverse of a 3×3 matrix of determinant `det` (≠ 0), row-major.
+pub(super) fn inverse3(m: &[[f64; 3]; 3], det: f64) -> [[f64; 3]; 3] {
+    let c = |r: usize, col: usize| {
+        let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
+        let (c1, c2) = ((col + 1) % 3, (col + 2) % 3);
+        m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]
+    };
+    // inverse = cofactorᵀ / det
+    [0, 1, 2].map(|r| [0, 1, 2].map(|col| c(col, r) / det))
 }
 
 /// The values a strain energy may read: I1 = tr(FᵀF), the isochoric Ī1, Ī2, and J.

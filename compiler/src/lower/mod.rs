@@ -3,6 +3,7 @@
 
 pub mod expr;
 pub mod fem;
+pub mod quadratic;
 pub mod scene;
 pub mod springs;
 

@@ -11,7 +11,7 @@ use super::fem::{
 };
 use super::springs::{SpringBuffers, spring_force_kernel};
 use crate::front::ast::*;
-use crate::ir::{ArgSource, BufferId, CmpOp, Domain, KernelBuilder, Module, V};
+use crate::ir::{ArgSource, BufferId, CmpOp, Domain, ElementOrder, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
 use crate::passes::simplify::simplify_module;
 use crate::passes::tangent::{JacobianPart, directional_derivative, force_jacobian};
@@ -129,6 +129,31 @@ impl SceneBuffers {
     }
 }
 
+/// The element order a checked script's mesh declaration asks for: `load(…, order: 2)` is
+/// quadratic, anything else (no `order`, `order: 1`) linear.
+pub fn element_order(script: &Script) -> ElementOrder {
+    let order = script.items.iter().find_map(|i| match &i.kind {
+        ItemKind::Decl {
+            kind: DeclKind::Mesh,
+            value,
+            ..
+        } => match &value.kind {
+            ExprKind::Call { args, .. } => args
+                .iter()
+                .find(|a| a.name.as_ref().is_some_and(|n| n.name == "order"))
+                .map(|a| &a.value),
+            _ => None,
+        },
+        _ => None,
+    });
+    match order.map(|e| &e.kind) {
+        Some(ExprKind::Number { value, unit: None, .. }) if *value == 2.0 => {
+            ElementOrder::Quadratic
+        }
+        _ => ElementOrder::Linear,
+    }
+}
+
 /// Lower the scene described by a checked script.
 pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, LowerError> {
     if !script
@@ -157,9 +182,18 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
             )));
         }
     }
-    let mut module = Module::default();
+    let mut module = Module {
+        order: element_order(script),
+        ..Module::default()
+    };
     let materials = scene_materials(script)?;
     let model = force_model(script)?;
+    if module.order == ElementOrder::Quadratic && !matches!(model, ForceModel::Fem) {
+        return Err(LowerError::new(
+            "the spring mesh works on linear tetrahedra: use `model = fem` with `order: 2`, \
+             or load the mesh with `order: 1`",
+        ));
+    }
     // The spring mesh declares its own buffers (no rest shape, no elem_energy).
     let x_buf = match model {
         ForceModel::Fem => FemBuffers::declare(&mut module).x,
@@ -190,13 +224,14 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
     let tri_force = module.buffer(
         "tri_force",
         Domain::Triangle,
-        9,
+        3 * module.order.triangle_nodes(),
         "pressure force per triangle corner, N",
     );
     for s in sim {
         if let StmtKind::Pressure { chamber, value } = &s.kind {
             module.push_kernel(pressure_kernel(
                 program,
+                module.order,
                 x_buf,
                 tri_force,
                 &chamber.name,
@@ -436,14 +471,14 @@ impl MatrixFree {
         let elem_dir = m.buffer(
             "elem_force_dir",
             Domain::Element,
-            12,
+            3 * m.order.element_nodes(),
             "(∂elem_force/∂x)·v per element, N",
         );
         let tri_dir = tri_force.map(|_| {
             m.buffer(
                 "tri_force_dir",
                 Domain::Triangle,
-                9,
+                3 * m.order.triangle_nodes(),
                 "(∂tri_force/∂x)·v per chamber triangle, N",
             )
         });
@@ -579,8 +614,10 @@ fn force_model(script: &Script) -> Result<ForceModel<'_>, LowerError> {
 /// Follower pressure load (thesis eq. 2.15): each corner of a chamber triangle gets
 /// p·A·n/3 = p/6 · (x1 − x0) × (x2 − x0), with triangles wound so the normal points into
 /// the solid. The pressure expression is evaluated in the kernel (it depends on `t` and params).
+#[allow(clippy::too_many_arguments)]
 fn pressure_kernel(
     program: &Program,
+    order: ElementOrder,
     x_buf: crate::ir::BufferId,
     tri_force: crate::ir::BufferId,
     chamber: &str,
@@ -600,6 +637,10 @@ fn pressure_kernel(
     if load_factor {
         let load = k.uniform("load");
         p = k.b.mul(load, p);
+    }
+    if order == ElementOrder::Quadratic {
+        super::quadratic::store_pressure_forces(&mut k, x_buf, tri_force, p);
+        return Ok(k.finish());
     }
     let xs: Vec<[V; 3]> = (0..3)
         .map(|c| {

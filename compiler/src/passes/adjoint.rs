@@ -111,13 +111,6 @@ enum Contribution {
     Corner { partial: BufferId, stride: u32 },
 }
 
-fn corners(d: Domain) -> u32 {
-    match d {
-        Domain::Element => 4,
-        Domain::Triangle => 3,
-        _ => 1,
-    }
-}
 
 /// Build the adjoint of a step made of `module`'s kernels run in order. `state` names the
 /// (state, next state) buffer pairs: the step reads the first and writes the second. `scale`
@@ -268,14 +261,8 @@ pub fn adjoint(
                     component,
                 } if differentiable(*buffer) => {
                     let w = m.buffers[buffer.0 as usize].width;
-                    let p = partial(
-                        &mut m,
-                        "adj",
-                        *buffer,
-                        &group,
-                        k.domain,
-                        corners(k.domain) * w,
-                    );
+                    let width = m.corners(k.domain).unwrap_or(1) * w;
+                    let p = partial(&mut m, "adj", *buffer, &group, k.domain, width);
                     add_contribution(
                         &mut contributions,
                         *buffer,

@@ -18,14 +18,6 @@
 
 use crate::ir::{ArgSource, BufferId, BuiltKernel, Domain, KernelBuilder, Module, ad};
 
-/// The corners of an entity of `d`.
-fn corners(d: Domain) -> u32 {
-    match d {
-        Domain::Element => 4,
-        Domain::Triangle => 3,
-        _ => 1,
-    }
-}
 
 /// Which entries of a force Jacobian a kernel stores.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -60,7 +52,7 @@ pub fn force_jacobian(
     part: JacobianPart,
 ) -> Result<BuiltKernel, String> {
     let k = module.kernels[kernel].clone();
-    let n = 3 * corners(k.domain);
+    let n = 3 * module.corners(k.domain).unwrap_or(1);
     if module.buffers[force.0 as usize].width != n {
         return Err(format!(
             "kernel `{}`: the force buffer has {} components, not 3 per corner",

@@ -325,9 +325,34 @@ impl Checker {
                 Typed::of(ty, t.var.max(w.var))
             }
             "load" => {
-                let Some(s) = self.bind(name, sp, &[("path", true), ("unit", false)], args) else {
+                let Some(s) = self.bind(
+                    name,
+                    sp,
+                    &[("path", true), ("unit", false), ("order", false)],
+                    args,
+                ) else {
                     return Typed::error();
                 };
+                if let Some(o) = s[2] {
+                    let t = self.check_expr(o);
+                    if self.expect_type(&t, &Ty::int(), o, "`order`")
+                        && self.expect_const(&t, o, "the element order")
+                        && !matches!(t.num(), Some(v) if v == 1.0 || v == 2.0)
+                        && t.num().is_some()
+                    {
+                        self.err(
+                            Diagnostic::error(
+                                "E0321",
+                                o.span,
+                                "the element order must be 1 or 2",
+                            )
+                            .with_hint(
+                                "`order: 1` for linear (4-node) tetrahedra, `order: 2` for \
+                                 quadratic (10-node) ones",
+                            ),
+                        );
+                    }
+                }
                 let mut unit = 1e-3;
                 if let Some(u) = s[1] {
                     let t = self.check_expr(u);

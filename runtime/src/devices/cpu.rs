@@ -237,11 +237,12 @@ impl Backend for Cpu {
     }
 
     fn prepare(&mut self, scene: &Scene) -> Result<(), String> {
-        let elem: Vec<u32> = scene.mesh.tets.iter().flatten().copied().collect();
-        let tri: Vec<u32> = scene.tris.iter().flatten().copied().collect();
+        let elem = scene.elem_conn();
+        let tri = scene.tri_conn();
         // The scene's own incidence lists, laid out for the generated code (not rebuilt).
         let flat = |c: &crate::engine::scene::Csr| (c.offsets.clone(), c.flat_entries());
         let topology = Topology::with_csr(
+            scene.order(),
             scene.mesh.nodes.len(),
             elem,
             tri,

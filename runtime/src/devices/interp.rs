@@ -11,8 +11,9 @@ use std::ops::Range;
 struct HostState {
     buffers: Vec<Vec<f64>>,
     widths: Vec<usize>,
-    tets: Vec<[u32; 4]>,
-    tris: Vec<[u32; 3]>,
+    /// Element and triangle nodes as the kernels read them, and how many each has.
+    elems: (Vec<u32>, usize),
+    tris: (Vec<u32>, usize),
     node_elements: Csr,
     node_tris: Csr,
 }
@@ -52,8 +53,8 @@ fn arg_value(k: &Kernel, a: &ArgSource, e: usize, st: &HostState, u: &Uniforms) 
             component,
         } => {
             let node = match k.domain {
-                Domain::Element => st.tets[e][*corner as usize],
-                _ => st.tris[e][*corner as usize],
+                Domain::Element => st.elems.0[e * st.elems.1 + *corner as usize],
+                _ => st.tris.0[e * st.tris.1 + *corner as usize],
             };
             st.get(*buffer, node as usize, *component)
         }
@@ -101,8 +102,8 @@ impl Backend for Interpreter {
                 .iter()
                 .map(|b| b.width as usize)
                 .collect(),
-            tets: scene.mesh.tets.clone(),
-            tris: scene.tris.clone(),
+            elems: (scene.elem_conn(), scene.order().element_nodes() as usize),
+            tris: (scene.tri_conn(), scene.order().triangle_nodes() as usize),
             node_elements: scene.node_elements.clone(),
             node_tris: scene.node_tris.clone(),
         };

@@ -113,23 +113,28 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let nodes = self.scene.mesh.nodes.len();
         let mut blocks = vec![[0.0f64; 9]; nodes];
         let elem = self.backend.get(mf.elem_dblock);
-        let tets = &self.scene.mesh.tets;
-        for (e, corners) in tets.iter().enumerate() {
-            for (c, &node) in corners.iter().enumerate() {
-                for i in 0..9 {
-                    blocks[node as usize][i] -= elem[e * 36 + c * 9 + i];
-                }
-            }
-        }
-        if let Some(tri_dblock) = mf.tri_dblock {
-            let tri = self.backend.get(tri_dblock);
-            for (t, corners) in self.scene.tris.iter().enumerate() {
+        let order = self.scene.order();
+        let mut subtract = |conn: &[u32], nc: usize, dblocks: &[f64]| {
+            for (e, corners) in conn.chunks(nc).enumerate() {
                 for (c, &node) in corners.iter().enumerate() {
                     for i in 0..9 {
-                        blocks[node as usize][i] -= tri[t * 27 + c * 9 + i];
+                        blocks[node as usize][i] -= dblocks[(e * nc + c) * 9 + i];
                     }
                 }
             }
+        };
+        subtract(
+            &self.scene.elem_conn(),
+            order.element_nodes() as usize,
+            &elem,
+        );
+        if let Some(tri_dblock) = mf.tri_dblock {
+            let tri = self.backend.get(tri_dblock);
+            subtract(
+                &self.scene.tri_conn(),
+                order.triangle_nodes() as usize,
+                &tri,
+            );
         }
         if let Some(step) = &statics.implicit {
             self.backend

@@ -355,15 +355,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 .collect(),
         );
         fill(Some(bufs.vol0), scene.pre.rest_volume.clone());
-        fill(
-            bufs.rest_shape,
-            scene
-                .pre
-                .dm_inv
-                .iter()
-                .flat_map(softc_compiler::driver::rest_shape)
-                .collect(),
-        );
+        if bufs.rest_shape.is_some() {
+            fill(bufs.rest_shape, scene.rest_shape.clone());
+        }
         if bufs.edge_l0.is_some() {
             fill(bufs.edge_l0, edge_rest_lengths(scene));
         }

@@ -12,6 +12,8 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use softc_compiler::ir::ElementOrder;
+
 pub use softc_compiler::driver::{DtChoice, FieldSlots as FieldParam};
 
 /// Why a scene could not be built; the message is ready to print.
@@ -50,10 +52,14 @@ pub struct Scene {
     /// Nodes in metres, tets grouped by material (kernel order).
     pub mesh: Mesh,
     pub pre: Precomputed,
+    /// The `rest_shape` buffer (FEM): per element, or per quadrature point of a quadratic one.
+    pub rest_shape: Vec<f64>,
     /// Element range of each material, in `lowered.materials` order.
     pub material_ranges: Vec<Range<usize>>,
     /// Chamber triangles, concatenated in `lowered.chambers` order.
     pub tris: Vec<[u32; 3]>,
+    /// Quadratic scenes: the mid-edge nodes of `tris` (edges 0-1, 1-2, 2-0); empty otherwise.
+    pub tri_mids: Vec<[u32; 3]>,
     pub chamber_ranges: Vec<Range<usize>>,
     pub node_elements: Csr,
     pub node_tris: Csr,
@@ -128,12 +134,26 @@ impl Scene {
             .mesh(&resolved.mesh.path, resolved.mesh.unit)
             .map_err(|e| SceneError(e.to_string()))?)
         .clone();
+        let quadratic = lowered.module.order == ElementOrder::Quadratic;
+        if quadratic {
+            // Straight-sided mid-edge nodes where the file has none.
+            mesh = mesh.with_mid_edges();
+        } else if mesh.is_quadratic() {
+            return Err(LoadFailure::Other(SceneError(format!(
+                "`{}` has quadratic (10-node) tetrahedra; load it with `order: 2`, or convert \
+                 it to linear ones with `softc mesh convert --order 1`",
+                resolved.mesh.written.display()
+            ))));
+        }
         let bound: Bound = resolved.bind(&lowered, &mesh).map_err(SceneError)?;
         let uniforms = resolved.initial_uniforms(&bound, overrides);
         // The kernels' element order (the file's element numbers follow, for messages).
         mesh.ids.tets = bound.order.iter().map(|&e| mesh.tet_id(e)).collect();
         mesh.tets = bound.order.iter().map(|&e| mesh.tets[e]).collect();
         mesh.tet_tags = bound.order.iter().map(|&e| mesh.tet_tags[e]).collect();
+        if let Some(q) = &mut mesh.mid_edges {
+            q.tets = bound.order.iter().map(|&e| q.tets[e]).collect();
+        }
         let rho: Vec<f64> = bound
             .material_of
             .iter()
@@ -150,16 +170,31 @@ impl Scene {
             tris.extend(t);
             chamber_ranges.push(start..tris.len());
         }
-        let node_elements = pre.node_elements.clone();
-        let node_tris = Csr::build(mesh.nodes.len(), tris.iter());
+        let rest_shape = rest_shape_rows(&mesh, &pre)?;
+        let tri_mids: Vec<[u32; 3]> = bound.chamber_mids.into_iter().flatten().collect();
+        let (node_elements, node_tris) = if quadratic {
+            let conn = element_nodes(&mesh);
+            let tri_conn = triangle_nodes(&tris, &tri_mids);
+            (
+                Csr::build(mesh.nodes.len(), conn.chunks(10)),
+                Csr::build(mesh.nodes.len(), tri_conn.chunks(6)),
+            )
+        } else {
+            (
+                pre.node_elements.clone(),
+                Csr::build(mesh.nodes.len(), tris.iter()),
+            )
+        };
         Ok(Scene {
             script: path.to_path_buf(),
             source: resolved.source.clone(),
             lowered,
             mesh,
             pre,
+            rest_shape,
             material_ranges: bound.material_ranges,
             tris,
+            tri_mids,
             chamber_ranges,
             node_elements,
             node_tris,
@@ -179,6 +214,22 @@ impl Scene {
         })
     }
 
+    /// The order of the scene's elements.
+    pub fn order(&self) -> ElementOrder {
+        self.lowered.module.order
+    }
+
+    /// The elements' nodes as the kernels read them: 4 corners per element, or 10 nodes (the
+    /// corners, then the mid-edge nodes) for quadratic ones.
+    pub fn elem_conn(&self) -> Vec<u32> {
+        element_nodes(&self.mesh)
+    }
+
+    /// The chamber triangles' nodes as the kernels read them: 3 per triangle, or 6.
+    pub fn tri_conn(&self) -> Vec<u32> {
+        triangle_nodes(&self.tris, &self.tri_mids)
+    }
+
     /// The number of steps for a time step `dt`.
     pub fn steps_for(&self, dt: f64) -> u64 {
         self.resolved.sim.steps_for(dt)
@@ -188,4 +239,55 @@ impl Scene {
     pub fn slots_of(&self, name: &str) -> Option<&ParamSlots> {
         self.slots.iter().find(|s| s.name == name)
     }
+}
+
+/// A mesh's elements as the kernels read them: the corners, then (quadratic) the mid-edge nodes.
+fn element_nodes(mesh: &Mesh) -> Vec<u32> {
+    match &mesh.mid_edges {
+        None => mesh.tets.iter().flatten().copied().collect(),
+        Some(q) => mesh
+            .tets
+            .iter()
+            .zip(&q.tets)
+            .flat_map(|(c, m)| c.iter().chain(m).copied())
+            .collect(),
+    }
+}
+
+/// Chamber triangles as the kernels read them: the corners, then any mid-edge nodes.
+fn triangle_nodes(tris: &[[u32; 3]], mids: &[[u32; 3]]) -> Vec<u32> {
+    if mids.is_empty() {
+        return tris.iter().flatten().copied().collect();
+    }
+    tris.iter()
+        .zip(mids)
+        .flat_map(|(c, m)| c.iter().chain(m).copied())
+        .collect()
+}
+
+/// The `rest_shape` buffer's rows: per linear element G = Dm⁻¹·Dm⁻ᵀ and det Dm⁻¹; per
+/// quadratic one the same at each quadrature point and the point's volume. An error names a
+/// curved element whose Jacobian is not positive at a quadrature point.
+fn rest_shape_rows(mesh: &Mesh, pre: &Precomputed) -> Result<Vec<f64>, SceneError> {
+    let Some(q) = &mesh.mid_edges else {
+        return Ok(pre
+            .dm_inv
+            .iter()
+            .flat_map(softc_compiler::driver::rest_shape)
+            .collect());
+    };
+    let mut rows = Vec::new();
+    for (e, (c, m)) in mesh.tets.iter().zip(&q.tets).enumerate() {
+        let x: [[f64; 3]; 10] =
+            std::array::from_fn(|a| mesh.nodes[if a < 4 { c[a] } else { m[a - 4] } as usize]);
+        let row = softc_compiler::driver::quadratic_rest_shape(&x).ok_or_else(|| {
+            SceneError(format!(
+                "element {} is inverted or degenerate at a quadrature point (its mid-edge nodes \
+                 are too far from its edges' midpoints); fix the mesh or load it with `order: 1`",
+                mesh.tet_id(e)
+            ))
+        })?;
+        rows.extend(row);
+    }
+    Ok(rows)
 }

@@ -11,11 +11,12 @@ impl<B: Backend> Simulation<'_, B> {
         self.run_element_kernels()?;
         let ef = self.backend.get(self.ids.elem_force);
         let n = self.scene.mesh.nodes.len();
+        let width = 3 * self.scene.order().element_nodes() as usize;
         let mut f = vec![0.0; 3 * n];
         for (node, fnode) in f.chunks_mut(3).enumerate() {
             for &(e, c) in self.scene.node_elements.of(node) {
                 for (d, fd) in fnode.iter_mut().enumerate() {
-                    *fd += ef[12 * e as usize + 3 * c as usize + d];
+                    *fd += ef[width * e as usize + 3 * c as usize + d];
                 }
             }
         }

@@ -1097,10 +1097,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
             ));
         }
         let static_solve = kind == "quasi_static";
+        let order = scene.order();
         let pattern = BlockPattern::new(
             &scene.fixed,
-            &scene.mesh.tets,
-            &scene.tris,
+            (&scene.elem_conn(), order.element_nodes() as usize),
+            (&scene.tri_conn(), order.triangle_nodes() as usize),
             static_solve,
             &scene.mesh.nodes,
         )

@@ -104,6 +104,9 @@ impl softc_compiler::driver::MeshView for super::Mesh {
     fn surface_nodes(&self, tag: i32) -> Vec<u32> {
         super::Mesh::surface_nodes(self, tag)
     }
+    fn surface_mids(&self, tag: i32) -> Vec<[u32; 3]> {
+        super::Mesh::surface_mids(self, tag)
+    }
     fn node_set(&self, name: &str) -> Option<&[u32]> {
         self.node_sets.get(name).map(Vec::as_slice)
     }

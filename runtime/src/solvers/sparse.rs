@@ -44,9 +44,10 @@ pub struct BlockPattern {
     dof: Vec<u32>,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
-    /// Per element, the value index of its Jacobian's entry `i·12 + j` ([`NONE`]: fixed).
+    /// Per element, the value index of its Jacobian's entry `i·3n + j` (n its nodes; [`NONE`]:
+    /// fixed).
     elem_pos: Vec<u32>,
-    /// Per chamber triangle, the value index of entry `i·9 + j`.
+    /// Per chamber triangle, the value index of entry `i·3n + j`.
     tri_pos: Vec<u32>,
     /// Per node, the value index of entry `i·3 + j` of its diagonal block.
     node_pos: Vec<u32>,
@@ -55,11 +56,13 @@ pub struct BlockPattern {
 impl BlockPattern {
     /// `hold_rigid_modes`: a static solve, where a body with no fixed node has its rigid
     /// modes held (an implicit step's inertia already makes its matrix regular); `rest`: the
-    /// node positions the pinned dofs are chosen by.
+    /// node positions the pinned dofs are chosen by. `elems` and `tris` are the connectivity
+    /// as the kernels read it (`elem_nodes` and `tri_nodes` per entity: 4 and 3, or 10 and 6
+    /// for quadratic elements).
     pub fn new(
         fixed: &[bool],
-        tets: &[[u32; 4]],
-        tris: &[[u32; 3]],
+        (elems, elem_nodes): (&[u32], usize),
+        (tris, tri_nodes): (&[u32], usize),
         hold_rigid_modes: bool,
         rest: &[[f64; 3]],
     ) -> Result<Self, String> {
@@ -92,8 +95,8 @@ impl BlockPattern {
                 }
             }
         };
-        tets.iter().for_each(|t| link(t));
-        tris.iter().for_each(|t| link(t));
+        elems.chunks(elem_nodes).for_each(&mut link);
+        tris.chunks(tri_nodes).for_each(&mut link);
         for l in &mut nbrs {
             l.sort_unstable();
             l.dedup();
@@ -143,8 +146,8 @@ impl BlockPattern {
             }
             out
         };
-        let elem_pos = tets.iter().flat_map(|t| positions(t)).collect();
-        let tri_pos = tris.iter().flat_map(|t| positions(t)).collect();
+        let elem_pos = elems.chunks(elem_nodes).flat_map(positions).collect();
+        let tri_pos = tris.chunks(tri_nodes).flat_map(positions).collect();
         let node_pos = (0..n_nodes as u32).flat_map(|n| positions(&[n])).collect();
         let diag = free
             .iter()
@@ -265,8 +268,8 @@ impl BlockPattern {
         project_out(&motion.modes(x), &motion.modes(&flat), g);
     }
 
-    /// The stiffness K = −∂residual/∂x from the element Jacobians (element × 144, ∂f/∂x), the
-    /// chamber triangles' (triangle × 81) and the nodes' own (node × 9: an implicit step's
+    /// The stiffness K = −∂residual/∂x from the element Jacobians (element × (3n)², ∂f/∂x, n
+    /// its nodes), the chamber triangles' (triangle × (3n)²) and the nodes' own (node × 9: an implicit step's
     /// inertia; empty for a static solve), summed entity by entity in kernel order.
     ///
     /// A free body's pinned dofs get identity rows and columns, scaled to the stiffness's
@@ -855,8 +858,8 @@ mod rigid_tests {
     fn multiply_is_the_product_with_the_matrix_the_values_fill() {
         let pattern = BlockPattern::new(
             &[false; 5],
-            &[[0, 1, 2, 3], [1, 2, 3, 4]],
-            &[],
+            (&[0, 1, 2, 3, 1, 2, 3, 4], 4),
+            (&[], 3),
             false,
             &rest(),
         )
@@ -971,7 +974,13 @@ mod rigid_tests {
     fn the_pose_free_sensitivity_has_no_part_along_the_rigid_modes_at_the_state() {
         let rest = rest();
         let pattern =
-            BlockPattern::new(&[false; 5], &[[0, 1, 2, 3], [1, 2, 3, 4]], &[], true, &rest)
+            BlockPattern::new(
+                &[false; 5],
+                (&[0, 1, 2, 3, 1, 2, 3, 4], 4),
+                (&[], 3),
+                true,
+                &rest,
+            )
                 .unwrap();
         let x: Vec<f64> = rest
             .iter()

@@ -19,7 +19,7 @@ use super::KernelCtx;
 use super::libm::Lib;
 use super::schedule::Step;
 use crate::back::Precision;
-use crate::ir::valid::{corners, validate_kernel};
+use crate::ir::valid::validate_kernel;
 use crate::ir::{ArgSource, BinOp, CmpOp, Domain, Inst, Kernel, Module, UnOp, UniformId};
 use cranelift_codegen::ir::condcodes::{FloatCC, IntCC};
 use cranelift_codegen::ir::{
@@ -448,7 +448,7 @@ impl Translator<'_> {
         let mut nodes: HashMap<(u32, u32), Value> = HashMap::new();
         // This iteration's connectivity row (first lane's entity), computed once.
         let mut conn_row: Option<Value> = None;
-        let nc = corners(k.domain).unwrap_or(1) as usize;
+        let nc = m.corners(k.domain).unwrap_or(1) as usize;
         // Store units: `lanes` consecutive components of a buffer stored once each go as one
         // transpose and one vector store per lane; the others one by one, lane by lane.
         let units = store_units(m, k, lanes as usize);

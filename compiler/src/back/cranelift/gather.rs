@@ -70,7 +70,7 @@ impl Translator<'_> {
             // Per-corner rows (width = corners × stride, every gather of the domain's
             // buffers): the incidence's slot `entity · corners + corner` times the stride is
             // the row, one load per incidence. Otherwise the `(entity, corner)` pair.
-            let corners = if *over == Domain::Element { 4 } else { 3 };
+            let corners = m.corners(*over).unwrap_or(1);
             let per_corner = args.iter().all(|&a| match &k.args[a] {
                 ArgSource::Gather { buffer, stride, .. } => {
                     m.buffers[buffer.0 as usize].width == corners * stride

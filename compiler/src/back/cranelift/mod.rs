@@ -172,6 +172,8 @@ impl Default for Options {
 /// A module's kernels compiled to native code.
 pub struct CpuModule {
     precision: Precision,
+    /// The order of the elements the kernels were generated for.
+    order: crate::ir::ElementOrder,
     kernels: Vec<CompiledKernel>,
     /// `(domain, width)` of each buffer.
     layout: Vec<(Domain, u32)>,
@@ -350,6 +352,7 @@ impl CpuModule {
             .collect();
         Ok(CpuModule {
             precision,
+            order: module.order,
             kernels,
             layout: module.buffers.iter().map(|b| (b.domain, b.width)).collect(),
             names: module.buffers.iter().map(|b| b.name.clone()).collect(),
@@ -500,6 +503,13 @@ impl CpuModule {
             return Err(format!(
                 "buffers are {} but the module was compiled for {}",
                 buffers.precision, self.precision
+            ));
+        }
+        if topology.order() != self.order {
+            return Err(format!(
+                "the connectivity has {:?} elements but the module was compiled for {:?}",
+                topology.order(),
+                self.order
             ));
         }
         if buffers.data.len() != self.layout.len() {

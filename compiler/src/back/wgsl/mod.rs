@@ -442,14 +442,6 @@ fn ident(name: &str, taken: &mut BTreeSet<String>) -> String {
     s
 }
 
-fn corners(d: Domain) -> Option<u32> {
-    match d {
-        Domain::Element => Some(4),
-        Domain::Triangle => Some(3),
-        _ => None,
-    }
-}
-
 /// A constant as a `real` literal (f32 constants are rounded to f32 first, so the literal is
 /// exactly the value the f32 code computes with).
 fn literal(c: f64, p: Precision) -> String {
@@ -1078,7 +1070,7 @@ fn emit_body(
             corners_used.insert(*corner);
         }
     }
-    if let Some(nc) = corners(k.domain) {
+    if let Some(nc) = module.corners(k.domain) {
         let conn = if k.domain == Domain::Element {
             "elem_conn"
         } else {

@@ -454,7 +454,15 @@ impl Gpu {
         let ne = Csr::build(n_nodes, tets.iter());
         let nt = Csr::build(n_nodes, tris.iter());
         let core = self.core.get_mut();
-        core.allocate(n_nodes, tets, tris, &ne, &nt)?;
+        let elem: Vec<u32> = tets.iter().flatten().copied().collect();
+        let tri: Vec<u32> = tris.iter().flatten().copied().collect();
+        core.allocate(
+            n_nodes,
+            (&elem, tets.len()),
+            (&tri, tris.len()),
+            &ne,
+            &nt,
+        )?;
         self.slot = (0..core.buffer_count).collect();
         Ok(())
     }
@@ -474,8 +482,8 @@ impl Backend for Gpu {
         core.check_scene(scene)?;
         core.allocate(
             scene.mesh.nodes.len(),
-            &scene.mesh.tets,
-            &scene.tris,
+            (&scene.elem_conn(), scene.mesh.tets.len()),
+            (&scene.tri_conn(), scene.tris.len()),
             &scene.node_elements,
             &scene.node_tris,
         )?;
@@ -702,8 +710,8 @@ impl Backend for GpuScene {
         if core.topo.is_empty() {
             core.allocate(
                 scene.mesh.nodes.len(),
-                &scene.mesh.tets,
-                &scene.tris,
+                (&scene.elem_conn(), scene.mesh.tets.len()),
+                (&scene.tri_conn(), scene.tris.len()),
                 &scene.node_elements,
                 &scene.node_tris,
             )?;

@@ -347,14 +347,14 @@ impl Core {
     pub(super) fn allocate(
         &mut self,
         n_nodes: usize,
-        tets: &[[u32; 4]],
-        tris: &[[u32; 3]],
+        (elem, n_elems): (&[u32], usize),
+        (tri, n_tris): (&[u32], usize),
         node_elements: &Csr,
         node_tris: &Csr,
     ) -> Result<(), String> {
         let max = self.device.limits().max_storage_buffer_binding_size;
         let size = self.module.precision.size() as u64;
-        let counts = [tets.len(), tris.len(), n_nodes];
+        let counts = [n_elems, n_tris, n_nodes];
         let mut buffers = Vec::new();
         let mut lens = Vec::new();
         for b in &self.layout {
@@ -376,13 +376,11 @@ impl Core {
             lens.push(n);
         }
         let flat = |v: &[u32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
-        let elem: Vec<u32> = tets.iter().flatten().copied().collect();
-        let tri: Vec<u32> = tris.iter().flatten().copied().collect();
         let mut topo = Vec::new();
         for t in TopoArray::ALL {
             let data = match t {
-                TopoArray::ElemConn => flat(&elem),
-                TopoArray::TriConn => flat(&tri),
+                TopoArray::ElemConn => flat(elem),
+                TopoArray::TriConn => flat(tri),
                 TopoArray::NodeElemOffsets => flat(&node_elements.offsets),
                 TopoArray::NodeElemEntries => flat(&node_elements.flat_entries()),
                 TopoArray::NodeTriOffsets => flat(&node_tris.offsets),
