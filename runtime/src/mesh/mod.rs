@@ -33,6 +33,7 @@ pub mod mesher;
 pub mod model;
 pub mod precompute;
 pub mod probe;
+pub mod quadratic;
 pub mod quality;
 pub mod readers;
 pub mod renumber;

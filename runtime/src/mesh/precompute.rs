@@ -36,11 +36,17 @@ pub struct Precomputed {
     /// Rest volume per tet, m³.
     pub rest_volume: Vec<f64>,
     /// Smallest altitude per tet, `3V / (largest face area)`, m — the element length of the
-    /// explicit stable-time-step estimate `dt ≈ h_min / c_d`.
+    /// explicit stable-time-step estimate `dt ≈ h_min / c_d`. For a quadratic (10-node) tet,
+    /// half its corner tet's smallest altitude: the mid-edge nodes halve the distance between
+    /// nodes, and with it the element length the stable step scales with.
     pub min_altitude: Vec<f64>,
     /// `Dm⁻¹` per tet, row-major, with `Dm = [x1−x0, x2−x0, x3−x0]` (columns).
     pub dm_inv: Vec<[[f64; 3]; 3]>,
-    /// Lumped mass per node, kg: `ρ_e·V_e/4` from each adjacent tet.
+    /// Lumped mass per node, kg: `ρ_e·V_e/4` from each adjacent tet. For a quadratic mesh,
+    /// HRZ lumping (row sums give 10-node tets negative corner masses): each element's
+    /// consistent-mass diagonal `∫ρNₐ² dV` (integrated exactly, curved elements included),
+    /// scaled so that the element's masses sum to `ρ_e·V_e` (its isoparametric volume) —
+    /// corners `6/216·ρV` and mid-edge nodes `32/216·ρV` on a straight-sided tet.
     pub mass: Vec<f64>,
     /// Node → element adjacency.
     pub node_elements: NodeElementCsr,
@@ -130,11 +136,30 @@ impl Precomputed {
                 .map(|f| norm(super::model::area_vector(p[f[0]], p[f[1]], p[f[2]])))
                 .fold(0.0, f64::max);
             rest_volume.push(v);
-            min_altitude.push(3.0 * v / amax);
             dm_inv.push(inv);
-            let m = density[e] * v / 4.0;
-            for &n in &mesh.tets[e] {
-                mass[n as usize] += m;
+            if let Some(q) = &mesh.mid_edges {
+                let mids = q
+                    .tets
+                    .get(e)
+                    .filter(|m| m.iter().all(|&n| (n as usize) < nn));
+                let Some(m) = mids else {
+                    return Err(MeshError::parse(format!(
+                        "element {} has no valid mid-edge nodes; run validation and fix the mesh",
+                        mesh.tet_id(e)
+                    )));
+                };
+                let p = super::quadratic::element_points(mesh, e).expect("mid-edge nodes in range");
+                min_altitude.push(1.5 * v / amax);
+                let lumped = super::quadratic::hrz_lumped(&p);
+                for (&n, l) in mesh.tets[e].iter().chain(m).zip(lumped) {
+                    mass[n as usize] += density[e] * l;
+                }
+            } else {
+                min_altitude.push(3.0 * v / amax);
+                let m = density[e] * v / 4.0;
+                for &n in &mesh.tets[e] {
+                    mass[n as usize] += m;
+                }
             }
         }
         let node_elements = NodeElementCsr::build(nn, mesh.tets.iter());
@@ -188,5 +213,46 @@ impl Precomputed {
     /// The surface with tag `tag`.
     pub fn surface(&self, tag: i32) -> Option<&SurfaceTris> {
         self.surfaces.iter().find(|s| s.tag == tag)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::kuhn::{KuhnSpec, kuhn_grid};
+    use crate::mesh::model::LengthUnit;
+
+    #[test]
+    fn quadratic_masses_are_hrz_positive_and_sum_to_rho_v() {
+        let lin = kuhn_grid(&KuhnSpec::benchmark(6, 4, 4), LengthUnit::Millimetre).unwrap();
+        let quad = lin.with_mid_edges();
+        let rho = 1070.0;
+        let (pl, pq) = (
+            Precomputed::with_uniform_density(&lin, rho).unwrap(),
+            Precomputed::with_uniform_density(&quad, rho).unwrap(),
+        );
+        let total = rho * lin.total_volume();
+        let sum: f64 = pq.mass.iter().sum();
+        assert!((sum - total).abs() < 1e-12 * total, "{sum} vs {total}");
+        assert!(pq.mass.iter().all(|&m| m > 0.0), "a non-positive mass");
+        assert_eq!(pq.mass.len(), quad.nodes.len());
+        // Per element: corners 6/216 and mid-edge nodes 32/216 of ρV (straight-sided).
+        let one = Mesh::from_tets(lin.tet_points(0).to_vec(), vec![[0, 1, 2, 3]]).with_mid_edges();
+        let p1 = Precomputed::with_uniform_density(&one, rho).unwrap();
+        let rv = rho * one.tet_volume(0);
+        for (a, m) in p1.mass.iter().enumerate() {
+            let want = if a < 4 { 6.0 } else { 32.0 } / 216.0 * rv;
+            assert!((m - want).abs() < 1e-13 * rv, "node {a}: {m} vs {want}");
+        }
+        // Volumes, Dm⁻¹ and the CSR come from the corners, as for the linear mesh; the element
+        // length is halved.
+        assert_eq!(pq.rest_volume, pl.rest_volume);
+        assert_eq!(pq.dm_inv, pl.dm_inv);
+        for n in 0..lin.nodes.len() {
+            assert_eq!(pq.node_elements.of(n), pl.node_elements.of(n));
+        }
+        for (q, l) in pq.min_altitude.iter().zip(&pl.min_altitude) {
+            assert!((q - 0.5 * l).abs() <= 1e-15 * l);
+        }
     }
 }

@@ -86,6 +86,20 @@ pub enum IssueKind {
     },
     /// A chamber with non-positive enclosed volume (triangles wound the wrong way).
     ChamberWrongOrientation { tag: i32, volume: f64 },
+    /// A quadratic mesh whose mid-edge node lists do not match its tets and triangles.
+    MidEdgeCount {
+        tets: usize,
+        tet_mids: usize,
+        tris: usize,
+        tri_mids: usize,
+    },
+    /// A mid-edge node out of range, a corner of its element, or on two of its edges.
+    BadMidEdgeNode { element: usize, node: u32 },
+    /// An edge whose elements give it different mid-edge nodes.
+    NonConformingMidEdge { edge: [u32; 2], mids: [u32; 2] },
+    /// A quadratic element whose Jacobian determinant is not positive at a quadrature point or
+    /// corner; `ratio` is its smallest value over the straight-sided tet's (6V).
+    NonPositiveJacobian { element: usize, ratio: f64 },
 }
 
 /// One validation finding with a human-readable message.
@@ -138,7 +152,7 @@ pub fn has_errors(issues: &[MeshIssue]) -> bool {
     issues.iter().any(|i| i.severity == Severity::Error)
 }
 
-const MAX_PER_KIND: usize = 50;
+pub(crate) const MAX_PER_KIND: usize = 50;
 
 impl Mesh {
     /// Check the mesh; returns every issue found (empty for a clean mesh). Messages name
@@ -195,11 +209,18 @@ impl Mesh {
                 ));
             }
         }
-        if !range_ok
-            || out
-                .iter()
-                .any(|i| matches!(i.kind, IssueKind::NonFiniteNode { .. }))
-        {
+        let finite = !out
+            .iter()
+            .any(|i| matches!(i.kind, IssueKind::NonFiniteNode { .. }));
+        // Mid-edge nodes (quadratic meshes), once the corners can be indexed.
+        let quad_ok = if range_ok && finite {
+            let (quad, ok) = self.quadratic_issues();
+            out.extend(quad);
+            ok
+        } else {
+            true
+        };
+        if !range_ok || !quad_ok || !finite {
             return out;
         }
         // Orientation and degeneracy.
@@ -379,6 +400,11 @@ impl Mesh {
         let mut used = vec![false; nn];
         for t in &self.tets {
             for &n in t {
+                used[n as usize] = true;
+            }
+        }
+        if let Some(q) = &self.mid_edges {
+            for &n in q.tets.iter().flatten() {
                 used[n as usize] = true;
             }
         }
