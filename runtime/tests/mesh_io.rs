@@ -321,12 +321,16 @@ fn malformed_gmsh_is_refused_with_line_and_reason() {
         good.replace("1 0 0 0\n", "1 zero 0 0\n").as_bytes(),
         &["zero", ":11"],
     );
-    // Quadratic tets are refused with a fix.
+    // One 10-node tet among 4-node ones: refused by its neighbour's line, with a fix.
     refuse(
         "quad.msh",
         good.replace("4 4 2 1 1 2 1 4 8", "4 11 2 1 1 2 1 4 8 1 2 3 4 5 6")
             .as_bytes(),
-        &["10-node tetrahedron", "fix:"],
+        &[
+            "element 5 is a 4-node tetrahedron",
+            "element 4 has 10 nodes",
+            "fix:",
+        ],
     );
     // Binary garbage.
     let mut garbage = b"$MeshFormat\n2.2 1 8\n".to_vec();

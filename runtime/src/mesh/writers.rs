@@ -198,7 +198,51 @@ pub fn vtu_string(
     )
 }
 
-/// A `.vtu` document: tets (VTK type 10) followed by the tagged triangles (type 5). Cell
+/// The cells of a `.vtu` file: the tets, then the tagged triangles.
+struct Cells {
+    conn: Vec<i64>,
+    offsets: Vec<i64>,
+    types: Vec<u8>,
+}
+
+impl Cells {
+    /// Linear tets are VTK type 10 and triangles type 5; a quadratic mesh's tets are type 24
+    /// (`VTK_QUADRATIC_TETRA`: corners, then the mid-edge nodes in softc's order, which is
+    /// VTK's) and its triangles type 22 (`VTK_QUADRATIC_TRIANGLE`).
+    fn of(mesh: &Mesh) -> Cells {
+        let nc = mesh.tets.len() + mesh.tris.len();
+        let mut c = Cells {
+            conn: Vec::with_capacity(nc * 10),
+            offsets: Vec::with_capacity(nc),
+            types: Vec::with_capacity(nc),
+        };
+        let q = mesh.mid_edges.as_ref();
+        for (e, t) in mesh.tets.iter().enumerate() {
+            c.conn.extend(t.iter().map(|&v| v as i64));
+            if let Some(m) = q.and_then(|q| q.tets.get(e)) {
+                c.conn.extend(m.iter().map(|&v| v as i64));
+                c.types.push(24);
+            } else {
+                c.types.push(10);
+            }
+            c.offsets.push(c.conn.len() as i64);
+        }
+        for (f, t) in mesh.tris.iter().enumerate() {
+            c.conn.extend(t.iter().map(|&v| v as i64));
+            if let Some(m) = q.and_then(|q| q.tris.get(f)) {
+                c.conn.extend(m.iter().map(|&v| v as i64));
+                c.types.push(22);
+            } else {
+                c.types.push(5);
+            }
+            c.offsets.push(c.conn.len() as i64);
+        }
+        c
+    }
+}
+
+/// A `.vtu` document: tets (VTK type 10, or 24 for a quadratic mesh) followed by the tagged
+/// triangles (type 5, or 22). Cell
 /// array `tag` holds the region tag of tets and the surface tag of triangles. `positions`
 /// replaces the rest positions (deformed state; metres, written in `unit`); point fields are
 /// written as given (SI), cell fields are per tet (triangles get 0).
@@ -223,25 +267,8 @@ pub fn vtu_document(
     );
     let _ = writeln!(o, "      <!-- length unit: {unit} -->");
     o.push_str("      <Points>\n");
-    let conn: Vec<i64> = mesh
-        .tets
-        .iter()
-        .flat_map(|t| t.iter().map(|&v| v as i64))
-        .chain(mesh.tris.iter().flat_map(|t| t.iter().map(|&v| v as i64)))
-        .collect();
-    let mut offs: Vec<i64> = Vec::with_capacity(nc);
-    let mut off = 0;
-    for _ in &mesh.tets {
-        off += 4;
-        offs.push(off);
-    }
-    for _ in &mesh.tris {
-        off += 3;
-        offs.push(off);
-    }
-    let types: Vec<u8> = std::iter::repeat_n(10u8, mesh.tets.len())
-        .chain(std::iter::repeat_n(5u8, mesh.tris.len()))
-        .collect();
+    let cells = Cells::of(mesh);
+    let (conn, offs, types) = (&cells.conn, &cells.offsets, &cells.types);
     if bin {
         let b: Vec<u8> = pos
             .iter()
@@ -254,7 +281,7 @@ pub fn vtu_document(
         push_binary(&mut o, "Int64", "connectivity", 1, &b);
         let b: Vec<u8> = offs.iter().flat_map(|x| x.to_le_bytes()).collect();
         push_binary(&mut o, "Int64", "offsets", 1, &b);
-        push_binary(&mut o, "UInt8", "types", 1, &types);
+        push_binary(&mut o, "UInt8", "types", 1, types);
     } else {
         o.push_str(
             "        <DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n",
@@ -270,18 +297,21 @@ pub fn vtu_document(
         }
         o.push_str("        </DataArray>\n      </Points>\n      <Cells>\n");
         o.push_str("        <DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n");
-        for t in &mesh.tets {
-            let _ = writeln!(o, "{} {} {} {}", t[0], t[1], t[2], t[3]);
-        }
-        for t in &mesh.tris {
-            let _ = writeln!(o, "{} {} {}", t[0], t[1], t[2]);
+        let mut from = 0;
+        for &to in offs {
+            for (k, v) in conn[from as usize..to as usize].iter().enumerate() {
+                let sep = if k == 0 { "" } else { " " };
+                let _ = write!(o, "{sep}{v}");
+            }
+            o.push('\n');
+            from = to;
         }
         o.push_str("        </DataArray>\n        <DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n");
-        for x in &offs {
+        for x in offs {
             let _ = writeln!(o, "{x}");
         }
         o.push_str("        </DataArray>\n        <DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n");
-        for x in &types {
+        for x in types {
             let _ = writeln!(o, "{x}");
         }
         o.push_str("        </DataArray>\n");

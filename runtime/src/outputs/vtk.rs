@@ -1,7 +1,9 @@
 //! `--vtk DIR`: the deformed mesh as a ParaView series, one `.vtu` file per written step. One
 //! unit system per file, SI as every other output of a run: points and displacement in m,
 //! velocity in m/s, strain-energy density in J/m³, the time in s; each array's name ends in its
-//! unit (`displacement_m`), as the CSV logs' columns do.
+//! unit (`displacement_m`), as the CSV logs' columns do. A quadratic mesh is written as
+//! quadratic tetrahedra (VTK type 24, its tagged triangles type 22): the mid-edge nodes are
+//! points like the corners, with their own displacement and velocity.
 
 use crate::mesh::Mesh;
 use crate::mesh::writers::Field;

@@ -95,9 +95,13 @@ pub fn read(path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
                         }
                     } else if ty.starts_with("C3D") {
                         return Err(err(line, format!(
-                            "element type {ty} is not supported; softc simulates linear tets (C3D4)"
+                            "element type {ty} is not supported; softc reads 4-node tets (C3D4) \
+                             from Abaqus files"
                         ))
-                        .with_fix("mesh with C3D4 elements"));
+                        .with_fix(
+                            "mesh with C3D4 elements (then `softc mesh convert --order 2` for \
+                             10-node tets), or export 10-node tets as gmsh .msh or VTK",
+                        ));
                     } else {
                         *raw.ignored.entry(format!("abaqus {ty}")).or_insert(0) += 1;
                         Mode::Skip

@@ -61,12 +61,25 @@ fn add_elem(
             tag,
             line,
         }),
+        // gmsh's 10-node tet lists edge 2-3 before edge 1-3; VTK's order (softc's) the other
+        // way round.
+        11 => {
+            let mut v = [0i64; 10];
+            v.copy_from_slice(&nodes[..10]);
+            v.swap(8, 9);
+            raw.add_quad_tet(id, v, tag, line);
+        }
+        9 => {
+            let mut v = [0i64; 6];
+            v.copy_from_slice(&nodes[..6]);
+            raw.add_quad_tri(id, v, tag, line);
+        }
         15 => {
             // Point elements: members of a 0-D physical group become a node set.
             raw.point_tags.push((nodes[0], tag));
             *raw.ignored.entry("point".to_string()).or_insert(0) += 1;
         }
-        1 | 8 | 3 | 9 | 10 | 16 => {
+        1 | 8 | 3 | 10 | 16 => {
             *raw.ignored
                 .entry(elem_info(t).map(|x| x.1).unwrap_or("?").to_string())
                 .or_insert(0) += 1;
@@ -74,12 +87,13 @@ fn add_elem(
         _ => {
             let name = elem_info(t).map(|x| x.1).unwrap_or("unknown");
             let e = MeshError::unsupported(format!(
-                "element {id} is a {name} (gmsh type {t}); softc simulates linear tetrahedra only"
+                "element {id} is a {name} (gmsh type {t}); softc simulates 4- and 10-node \
+                 tetrahedra only"
             ))
             .in_file(c.path);
             let e = if line > 0 { e.at_line(line) } else { e };
             return Err(e.with_fix(
-                "mesh the volume with linear tets (gmsh: Mesh.ElementOrder = 1, no recombine)",
+                "mesh the volume with tets (gmsh: Mesh.ElementOrder = 1 or 2, no recombine)",
             ));
         }
     }
@@ -631,6 +645,17 @@ pub fn to_string(mesh: &Mesh, unit: LengthUnit) -> Result<String, MeshError> {
         ))
         .with_fix("renumber the tags"));
     }
+    if let Some(q) = &mesh.mid_edges
+        && (q.tets.len() != mesh.tets.len() || q.tris.len() != mesh.tris.len())
+    {
+        return Err(MeshError::spec(format!(
+            "the quadratic mesh has mid-edge nodes for {} of {} tets and {} of {} triangles",
+            q.tets.len(),
+            mesh.tets.len(),
+            q.tris.len(),
+            mesh.tris.len()
+        )));
+    }
     let s = 1.0 / unit.to_metres();
     let mut o = String::with_capacity(mesh.tets.len() * 40 + mesh.nodes.len() * 60);
     o.push_str("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n");
@@ -671,22 +696,17 @@ pub fn to_string(mesh: &Mesh, unit: LengthUnit) -> Result<String, MeshError> {
         )
     };
     let _ = writeln!(o, "$Entities\n0 0 {} {}", surfaces.len(), regions.len());
+    let quad = mesh.mid_edges.as_ref();
     for &t in &surfaces {
-        let mut it = mesh
-            .tris
-            .iter()
-            .zip(&mesh.tri_tags)
-            .filter(|(_, g)| **g == t)
-            .flat_map(|(f, _)| f.iter().copied());
+        let mut it = (0..mesh.tris.len())
+            .filter(|&f| mesh.tri_tags[f] == t)
+            .flat_map(|f| tri_nodes(mesh, f));
         let _ = writeln!(o, "{t} {} 1 {t} 0", bbox(&mut it));
     }
     for &t in &regions {
-        let mut it = mesh
-            .tets
-            .iter()
-            .zip(&mesh.tet_tags)
-            .filter(|(_, g)| **g == t)
-            .flat_map(|(f, _)| f.iter().copied());
+        let mut it = (0..mesh.tets.len())
+            .filter(|&e| mesh.tet_tags[e] == t)
+            .flat_map(|e| tet_nodes(mesh, e));
         let _ = writeln!(o, "{t} {} 1 {t} 0", bbox(&mut it));
     }
     o.push_str("$EndEntities\n");
@@ -725,28 +745,56 @@ pub fn to_string(mesh: &Mesh, unit: LengthUnit) -> Result<String, MeshError> {
         "$Elements\n{} {ne} 1 {ne}",
         tri_runs.len() + tet_runs.len()
     );
+    let (tri_type, tet_type) = if quad.is_some() { (9, 11) } else { (2, 4) };
     let mut id = 1usize;
+    let line = |o: &mut String, id: usize, nodes: &mut dyn Iterator<Item = u32>| {
+        let _ = write!(o, "{id}");
+        for v in nodes {
+            let _ = write!(o, " {}", v + 1);
+        }
+        o.push('\n');
+    };
     for (t, a, b) in tri_runs {
-        let _ = writeln!(o, "2 {t} 2 {}", b - a);
-        for f in &mesh.tris[a..b] {
-            let _ = writeln!(o, "{id} {} {} {}", f[0] + 1, f[1] + 1, f[2] + 1);
+        let _ = writeln!(o, "2 {t} {tri_type} {}", b - a);
+        for f in a..b {
+            line(&mut o, id, &mut tri_nodes(mesh, f));
             id += 1;
         }
     }
     for (t, a, b) in tet_runs {
-        let _ = writeln!(o, "3 {t} 4 {}", b - a);
-        for f in &mesh.tets[a..b] {
-            let _ = writeln!(
-                o,
-                "{id} {} {} {} {}",
-                f[0] + 1,
-                f[1] + 1,
-                f[2] + 1,
-                f[3] + 1
-            );
+        let _ = writeln!(o, "3 {t} {tet_type} {}", b - a);
+        for e in a..b {
+            line(&mut o, id, &mut tet_nodes(mesh, e));
             id += 1;
         }
     }
     o.push_str("$EndElements\n");
     Ok(o)
+}
+
+/// Tet `e`'s nodes in gmsh's order: the corners, then (quadratic meshes) the mid-edge nodes
+/// of edges 0-1, 1-2, 0-2, 0-3, 2-3, 1-3 (gmsh type 11 swaps VTK's last two).
+fn tet_nodes(mesh: &Mesh, e: usize) -> impl Iterator<Item = u32> + '_ {
+    let mids = mesh
+        .mid_edges
+        .as_ref()
+        .map(|q| {
+            let m = q.tets[e];
+            [m[0], m[1], m[2], m[3], m[5], m[4]]
+        })
+        .into_iter()
+        .flatten();
+    mesh.tets[e].into_iter().chain(mids)
+}
+
+/// Tagged triangle `f`'s nodes: the corners, then (quadratic meshes) the mid-edge nodes of
+/// edges 0-1, 1-2, 2-0 (gmsh type 9).
+fn tri_nodes(mesh: &Mesh, f: usize) -> impl Iterator<Item = u32> + '_ {
+    let mids = mesh
+        .mid_edges
+        .as_ref()
+        .map(|q| q.tris[f])
+        .into_iter()
+        .flatten();
+    mesh.tris[f].into_iter().chain(mids)
 }

@@ -31,6 +31,10 @@ pub(crate) struct RawMesh {
     pub ignored: BTreeMap<String, usize>,
     /// gmsh point elements `(node id, tag)`: named 0-D physical groups become node sets.
     pub point_tags: Vec<(i64, i32)>,
+    /// Quadratic tets: `(index in tets, mid-edge node ids in VTK order)`.
+    pub tet_mids: Vec<(usize, [i64; 6])>,
+    /// 6-node triangles: `(index in tris, mid-edge node ids on edges 0-1, 1-2, 2-0)`.
+    pub tri_mids: Vec<(usize, [i64; 3])>,
 }
 
 #[derive(Debug, Clone)]
@@ -42,6 +46,93 @@ pub(crate) struct RawElem<const N: usize> {
 }
 
 impl RawMesh {
+    /// A 10-node tet: corners, then mid-edge nodes in VTK order (0-1, 1-2, 0-2, 0-3, 1-3, 2-3).
+    pub fn add_quad_tet(&mut self, id: i64, nodes: [i64; 10], tag: i32, line: usize) {
+        self.tet_mids.push((
+            self.tets.len(),
+            [nodes[4], nodes[5], nodes[6], nodes[7], nodes[8], nodes[9]],
+        ));
+        self.tets.push(RawElem {
+            id,
+            nodes: [nodes[0], nodes[1], nodes[2], nodes[3]],
+            tag,
+            line,
+        });
+    }
+
+    /// A 6-node triangle: corners, then mid-edge nodes on edges 0-1, 1-2, 2-0.
+    pub fn add_quad_tri(&mut self, id: i64, nodes: [i64; 6], tag: i32, line: usize) {
+        self.tri_mids
+            .push((self.tris.len(), [nodes[3], nodes[4], nodes[5]]));
+        self.tris.push(RawElem {
+            id,
+            nodes: [nodes[0], nodes[1], nodes[2]],
+            tag,
+            line,
+        });
+    }
+
+    /// Refuse a file that mixes element orders: 4- and 10-node tets, or 3- and 6-node tagged
+    /// triangles beside quadratic tets, or 6-node triangles beside linear tets.
+    fn check_one_order(&self, path: &Path) -> Result<(), MeshError> {
+        let at = |e: MeshError, line: usize| {
+            let e = e.in_file(path);
+            let e = if line > 0 { e.at_line(line) } else { e };
+            e.with_fix(
+                "export every element at one order (gmsh: Mesh.ElementOrder = 2, or 1), or \
+                 convert a linear mesh with `softc mesh convert --order 2`",
+            )
+        };
+        // The first element not in a sorted index list of quadratic ones.
+        fn first_missing(n: usize, quad: impl Iterator<Item = usize>) -> Option<usize> {
+            let mut want = 0;
+            for i in quad {
+                if i != want {
+                    return Some(want);
+                }
+                want += 1;
+            }
+            (want < n).then_some(want)
+        }
+        let quad_tets = !self.tet_mids.is_empty();
+        if quad_tets {
+            if let Some(i) = first_missing(self.tets.len(), self.tet_mids.iter().map(|m| m.0)) {
+                let (lin, quad) = (&self.tets[i], &self.tets[self.tet_mids[0].0]);
+                return Err(at(
+                    MeshError::unsupported(format!(
+                        "element {} is a 4-node tetrahedron but element {} has 10 nodes: a \
+                         mesh's tetrahedra must all be linear or all quadratic",
+                        lin.id, quad.id
+                    )),
+                    lin.line,
+                ));
+            }
+            if let Some(i) = first_missing(self.tris.len(), self.tri_mids.iter().map(|m| m.0)) {
+                let t = &self.tris[i];
+                return Err(at(
+                    MeshError::unsupported(format!(
+                        "surface triangle {} has 3 nodes but the tetrahedra have 10: a \
+                         quadratic mesh's tagged triangles need their mid-edge nodes (6-node \
+                         triangles)",
+                        t.id
+                    )),
+                    t.line,
+                ));
+            }
+        } else if let Some(&(i, _)) = self.tri_mids.first() {
+            let t = &self.tris[i];
+            return Err(at(
+                MeshError::unsupported(format!(
+                    "surface triangle {} has 6 nodes but the tetrahedra have 4: a linear mesh's \
+                     tagged triangles have 3 nodes",
+                    t.id
+                )),
+                t.line,
+            ));
+        }
+        Ok(())
+    }
+
     pub fn add_node(&mut self, id: i64, p: [f64; 3], line: usize) {
         self.node_ids.push(id);
         self.coords.push(p);
@@ -50,6 +141,7 @@ impl RawMesh {
 
     /// Resolve ids, convert to metres, orient. Errors name the file and line.
     pub fn finish(self, path: &Path, unit: LengthUnit) -> Result<Mesh, MeshError> {
+        self.check_one_order(path)?;
         let err = |msg: String, line: usize| {
             let e = MeshError::parse(msg).in_file(path);
             if line > 0 { e.at_line(line) } else { e }
@@ -111,6 +203,31 @@ impl RawMesh {
             tris.push(v);
             tri_tags.push(t.tag);
         }
+        let mid_edges = if self.tet_mids.is_empty() {
+            None
+        } else {
+            let mut q = super::model::MidEdges {
+                tets: Vec::with_capacity(self.tet_mids.len()),
+                tris: Vec::with_capacity(self.tri_mids.len()),
+            };
+            for (i, m) in &self.tet_mids {
+                let t = &self.tets[*i];
+                let mut v = [0u32; 6];
+                for (vk, &id) in v.iter_mut().zip(m) {
+                    *vk = look(id, "element", t.id, t.line)?;
+                }
+                q.tets.push(v);
+            }
+            for (i, m) in &self.tri_mids {
+                let t = &self.tris[*i];
+                let mut v = [0u32; 3];
+                for (vk, &id) in v.iter_mut().zip(m) {
+                    *vk = look(id, "surface triangle", t.id, t.line)?;
+                }
+                q.tris.push(v);
+            }
+            Some(q)
+        };
         let mut node_sets = BTreeMap::new();
         let mut raw_sets = self.node_sets;
         for (id, tag) in &self.point_tags {
@@ -161,8 +278,7 @@ impl RawMesh {
             element_sets,
             report: Default::default(),
             ids,
-            // Quadratic elements in files: read by the gmsh reader (issue 30).
-            mid_edges: None,
+            mid_edges,
         };
         mesh.report.ignored_elements = self.ignored;
         mesh.orient_tets();

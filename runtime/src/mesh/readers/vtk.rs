@@ -1,6 +1,6 @@
 //! Legacy VTK (`.vtk`) reader: ASCII or BINARY (big-endian) `UNSTRUCTURED_GRID`, both the classic `CELLS n size`
-//! layout and the 5.1 `OFFSETS`/`CONNECTIVITY` layout. Tets (type 10) become elements,
-//! triangles (type 5) tagged surfaces; the cell tag comes from an integer cell array named
+//! layout and the 5.1 `OFFSETS`/`CONNECTIVITY` layout. Tets (type 10, or 24 for 10-node tets)
+//! become elements, triangles (type 5, or 22 for 6-node ones) tagged surfaces; the cell tag comes from an integer cell array named
 //! `tag`, `gmsh:physical`, `CellEntityIds`, `region`, `cell_tags` or `MaterialIds` (else 1).
 
 use std::path::Path;
@@ -63,10 +63,20 @@ pub(crate) fn assemble(
                 tag,
                 line: 0,
             }),
-            (1 | 2 | 3 | 4 | 9, _) => {
+            (24, 10) => {
+                let mut v = [0i64; 10];
+                v.copy_from_slice(conn);
+                raw.add_quad_tet(i as i64, v, tag, 0);
+            }
+            (22, 6) => {
+                let mut v = [0i64; 6];
+                v.copy_from_slice(conn);
+                raw.add_quad_tri(i as i64, v, tag, 0);
+            }
+            (1 | 2 | 3 | 4 | 9 | 21, _) => {
                 *raw.ignored.entry(format!("vtk type {ty}")).or_insert(0) += 1
             }
-            (10 | 5, n) => {
+            (10 | 5 | 24 | 22, n) => {
                 return Err(
                     MeshError::parse(format!("cell {i} of type {ty} has {n} nodes"))
                         .in_file(c.path),
@@ -74,16 +84,17 @@ pub(crate) fn assemble(
             }
             (t, _) => {
                 return Err(MeshError::unsupported(format!(
-                    "cell {i} has VTK type {t}; softc simulates linear tets (type 10) only"
+                    "cell {i} has VTK type {t}; softc simulates tetrahedra: linear (type 10) \
+                     or quadratic (type 24)"
                 ))
                 .in_file(c.path)
-                .with_fix("convert to linear tetrahedra"));
+                .with_fix("convert to tetrahedra"));
             }
         }
     }
     if raw.tets.is_empty() {
         return Err(
-            MeshError::parse("the file contains no tetrahedra (VTK type 10)").in_file(c.path),
+            MeshError::parse("the file contains no tetrahedra (VTK type 10 or 24)").in_file(c.path),
         );
     }
     Ok(raw)
