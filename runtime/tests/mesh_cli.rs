@@ -113,21 +113,31 @@ fn convert_between_formats() {
             &vtu,
             LengthUnit::Millimetre,
             false,
+            None,
             o,
             e,
         )
     });
     assert_eq!(c, 0, "{e}");
     let msh = d.join("cube.msh");
-    let (c, _, e) = run(|o, e| convert(&vtu, &msh, LengthUnit::Millimetre, false, o, e));
+    let (c, _, e) = run(|o, e| convert(&vtu, &msh, LengthUnit::Millimetre, false, None, o, e));
     assert_eq!(c, 0, "{e}");
     let a = softc::mesh::load(&fx.join("gmsh_cube_v22_bin.msh"), LengthUnit::Millimetre).unwrap();
     let b = softc::mesh::load(&msh, LengthUnit::Millimetre).unwrap();
     assert_eq!(a.tets, b.tets);
     assert_eq!(a.tri_tags, b.tri_tags);
     // Unsupported output format: exit 1, message names the file.
-    let (c, _, e) =
-        run(|o, e| convert(&msh, &d.join("x.inp"), LengthUnit::Millimetre, false, o, e));
+    let (c, _, e) = run(|o, e| {
+        convert(
+            &msh,
+            &d.join("x.inp"),
+            LengthUnit::Millimetre,
+            false,
+            None,
+            o,
+            e,
+        )
+    });
     assert_eq!(c, 1);
     assert!(e.contains("x.inp"), "{e}");
     std::fs::remove_dir_all(&d).unwrap();
@@ -244,7 +254,7 @@ fn scattered_node_numbering_is_reported_and_renumbered() {
     assert!(o.contains("convert --renumber"), "{o}");
 
     let out = d.join("renumbered.msh");
-    let (c, o, e) = run(|o, e| convert(&file, &out, LengthUnit::Millimetre, true, o, e));
+    let (c, o, e) = run(|o, e| convert(&file, &out, LengthUnit::Millimetre, true, None, o, e));
     assert_eq!(c, 0, "{e}");
     assert!(o.contains("renumbered the nodes"), "{o}");
     let renumbered = softc::mesh::load(&out, LengthUnit::Millimetre).unwrap();
@@ -325,5 +335,95 @@ fn mesh_info_names_tets_by_the_files_numbers_and_hints_at_renumbering_any_scatte
     let (_, o, _) = run(|o, e| info(&file, LengthUnit::Millimetre, true, o, e));
     let j: serde_json::Value = serde_json::from_str(&o).unwrap();
     assert_eq!(j["worst_dihedral_tet"], id);
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// `softc mesh convert --order 2` inserts straight-sided mid-edge nodes (one per edge, node
+/// sets and tagged surfaces carried over), `mesh info` reports the order, and `--order 1` gives
+/// the linear mesh back.
+#[test]
+fn convert_order_2_then_info_then_order_1_round_trips() {
+    let d = tmp("order");
+    let fx = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/mesh");
+    let input = fx.join("gmsh_cube_v41.msh");
+    let lin = softc::mesh::load(&input, LengthUnit::Millimetre).unwrap();
+    let quad = d.join("quad.msh");
+    let (c, o, e) =
+        run(|o, e| convert(&input, &quad, LengthUnit::Millimetre, false, Some(2), o, e));
+    assert_eq!(c, 0, "{e}");
+    let mids = lin.with_mid_edges().nodes.len() - lin.nodes.len();
+    assert!(
+        o.contains(&format!("quadratic (10-node tets, {mids} mid-edge nodes)")),
+        "{o}"
+    );
+    let q = softc::mesh::load(&quad, LengthUnit::Millimetre).unwrap();
+    assert!(q.is_quadratic());
+    assert_eq!(q.tets, lin.tets);
+    assert_eq!(q.tris, lin.tris);
+    assert_eq!(q.nodes.len(), lin.nodes.len() + mids);
+    assert_eq!(q.mid_edges, lin.with_mid_edges().mid_edges);
+    // info: text and JSON name the order; the quadratic mesh is valid.
+    let (c, o, e) = run(|o, e| info(&quad, LengthUnit::Millimetre, false, o, e));
+    assert_eq!(c, 0, "{e}");
+    assert!(
+        o.contains(&format!(
+            "elements: quadratic (10-node tets, {mids} mid-edge nodes)"
+        )),
+        "{o}"
+    );
+    let (c, o, _) = run(|o, e| info(&quad, LengthUnit::Millimetre, true, o, e));
+    assert_eq!(c, 0);
+    let j: serde_json::Value = serde_json::from_str(&o).unwrap();
+    assert_eq!(j["order"], 2);
+    assert_eq!(j["mid_edge_nodes"], mids);
+    assert_eq!(j["valid"], true);
+    let (_, o, _) = run(|o, e| info(&input, LengthUnit::Millimetre, false, o, e));
+    assert!(o.contains("elements: linear (4-node tets)"), "{o}");
+    // Through .vtu (VTK type 24) and renumbered, still the same elements.
+    let vtu = d.join("quad.vtu");
+    let (c, _, e) = run(|o, e| convert(&quad, &vtu, LengthUnit::Millimetre, true, None, o, e));
+    assert_eq!(c, 0, "{e}");
+    let v = softc::mesh::load(&vtu, LengthUnit::Millimetre).unwrap();
+    assert!(v.is_quadratic());
+    assert_eq!(v.nodes.len(), q.nodes.len());
+    assert!((v.total_volume() - q.total_volume()).abs() < 1e-12 * q.total_volume());
+    // --order 1: the corners only, as the input.
+    let back = d.join("back.msh");
+    let (c, o, e) = run(|o, e| convert(&quad, &back, LengthUnit::Millimetre, false, Some(1), o, e));
+    assert_eq!(c, 0, "{e}");
+    assert!(o.contains("linear (4-node tets)"), "{o}");
+    let b = softc::mesh::load(&back, LengthUnit::Millimetre).unwrap();
+    assert!(!b.is_quadratic());
+    assert_eq!(b.tets, lin.tets);
+    assert_eq!(b.tris, lin.tris);
+    assert_eq!(b.names, lin.names);
+    for (p, r) in b.nodes.iter().zip(&lin.nodes) {
+        for k in 0..3 {
+            assert!((p[k] - r[k]).abs() < 1e-15);
+        }
+    }
+    // The binary: --order takes 1 or 2 only (usage error 2).
+    let softc = || std::process::Command::new(env!("CARGO_BIN_EXE_softc"));
+    let out = softc()
+        .args(["mesh", "convert", "--order", "2"])
+        .arg(&input)
+        .arg(d.join("bin.msh"))
+        .output()
+        .unwrap();
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("quadratic"));
+    let out = softc()
+        .args(["mesh", "convert", "--order", "3"])
+        .arg(&input)
+        .arg(d.join("bad.msh"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(!d.join("bad.msh").exists());
     std::fs::remove_dir_all(&d).unwrap();
 }

@@ -29,7 +29,8 @@ pub enum MeshCommand {
         #[arg(long, default_value = "mm")]
         unit: String,
     },
-    /// Convert any readable mesh (.msh .vtk .vtu .node/.ele .inp) to .msh or .vtu.
+    /// Convert any readable mesh (.msh .vtk .vtu .node/.ele .inp) to .msh or .vtu, optionally
+    /// to the other element order (--order 1 or 2).
     Convert {
         input: PathBuf,
         output: PathBuf,
@@ -41,6 +42,11 @@ pub enum MeshCommand {
         /// them (`softc mesh info` shows the node span).
         #[arg(long)]
         renumber: bool,
+        /// Element order of the output: 2 inserts a straight-sided mid-edge node on every
+        /// edge (10-node tets, 6-node tagged triangles; node sets gain the nodes on their
+        /// edges), 1 drops the mid-edge nodes. Default: the input's order.
+        #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2))]
+        order: Option<u8>,
     },
     /// The structured Kuhn-split benchmark scene (BENCHMARK.md), e.g. 12 4 4 for "1k".
     Kuhn {
@@ -87,8 +93,9 @@ pub fn run(cmd: MeshCommand, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             output,
             unit: u,
             renumber,
+            order,
         } => match unit(&u, err) {
-            Ok(u) => commands::convert(&input, &output, u, renumber, out, err),
+            Ok(u) => commands::convert(&input, &output, u, renumber, order, out, err),
             Err(c) => c,
         },
         MeshCommand::Kuhn { nx, ny, nz, output } => commands::kuhn([nx, ny, nz], &output, out, err),

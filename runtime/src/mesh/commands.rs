@@ -142,6 +142,8 @@ pub fn info_json(mesh: &Mesh, file: &Path) -> serde_json::Value {
         "file": file.display().to_string(),
         "nodes": q.nodes,
         "tets": q.tets,
+        "order": mesh.order(),
+        "mid_edge_nodes": mesh.mid_edge_node_count(),
         "node_span": super::renumber::span(mesh),
         "volume": q.volume,
         "bounding_box": {"min": lo, "max": hi},
@@ -166,6 +168,18 @@ pub fn info_json(mesh: &Mesh, file: &Path) -> serde_json::Value {
             "message": i.message,
         })).collect::<Vec<_>>(),
     })
+}
+
+/// The element order in words, for `info` and `convert`.
+fn order_line(mesh: &Mesh) -> String {
+    if mesh.is_quadratic() {
+        format!(
+            "elements: quadratic (10-node tets, {} mid-edge nodes)",
+            mesh.mid_edge_node_count()
+        )
+    } else {
+        "elements: linear (4-node tets)".to_string()
+    }
 }
 
 /// A node span above this (a structured mesh's is ~0.1, a random numbering's ~0.75) makes
@@ -203,6 +217,7 @@ pub fn info(
             q.tets,
             q.volume * mm3
         );
+        let _ = writeln!(out, "{}", order_line(&mesh));
         let (lo, hi) = mesh.bounding_box();
         let _ = writeln!(
             out,
@@ -298,12 +313,15 @@ pub fn info(
     0
 }
 
-/// `softc mesh convert IN OUT`: any readable format to `.msh` or `.vtu`.
+/// `softc mesh convert IN OUT`: any readable format to `.msh` or `.vtu`. `order` 2 inserts a
+/// straight-sided mid-edge node on every edge ([`Mesh::with_mid_edges`]), 1 drops them
+/// ([`Mesh::without_mid_edges`]); `None` keeps the file's order.
 pub fn convert(
     input: &Path,
     output: &Path,
     unit: LengthUnit,
     renumber: bool,
+    order: Option<u8>,
     out: &mut dyn Write,
     err: &mut dyn Write,
 ) -> i32 {
@@ -311,6 +329,15 @@ pub fn convert(
         Ok(m) => m,
         Err(e) => return fail(err, &e),
     };
+    match order {
+        None => {}
+        Some(1) => mesh = mesh.without_mid_edges(),
+        Some(2) => mesh = mesh.with_mid_edges(),
+        Some(o) => {
+            let _ = writeln!(err, "error: --order {o}: softc meshes are of order 1 or 2");
+            return 2;
+        }
+    }
     if renumber {
         let before = super::renumber::span(&mesh);
         let order = super::renumber::locality_order(&mesh);
@@ -327,10 +354,11 @@ pub fn convert(
     }
     let _ = writeln!(
         out,
-        "wrote {}: {} nodes, {} tets",
+        "wrote {}: {} nodes, {} tets; {}",
         output.display(),
         mesh.nodes.len(),
-        mesh.tets.len()
+        mesh.tets.len(),
+        order_line(&mesh)
     );
     0
 }
