@@ -7,6 +7,7 @@ use softc_compiler::back::Precision;
 use softc_compiler::back::cranelift::{Buffers, CpuModule, Options, Topology};
 use softc_compiler::front::parse;
 use softc_compiler::ir::{
+    ElementOrder,
     ArgSource, BinOp, Buffer, BufferId, BuiltKernel, CmpOp, Domain, Func, Inst, Kernel,
     KernelBuilder, Module, Store, UnOp, V, interp,
 };
@@ -179,6 +180,7 @@ fn all_ops_module() -> (Module, BufferId, BufferId) {
         ],
         kernels: vec![kernel],
         uniforms: vec![],
+        ..Module::default()
     };
     (module, input, out)
 }
@@ -393,6 +395,7 @@ fn ln_module() -> (Module, BufferId, BufferId) {
         buffers: vec![buffer("x", Domain::Node, 1), buffer("out", Domain::Node, 1)],
         kernels: vec![kernel],
         uniforms: vec![],
+        ..Module::default()
     };
     (module, input, out)
 }
@@ -858,6 +861,7 @@ fn a_caller_given_csr_order_is_the_summation_order() {
         (o.to_vec(), out)
     };
     let topo = Topology::with_csr(
+        ElementOrder::Linear,
         mesh.x.len(),
         base.elem_conn().to_vec(),
         base.tri_conn().to_vec(),
@@ -1183,6 +1187,7 @@ fn misuse_is_an_error() {
     let mut bad = e.to_vec();
     bad[1] = (bad[1] + 1) % 4;
     let r = Topology::with_csr(
+        ElementOrder::Linear,
         mesh.x.len(),
         t.elem_conn().to_vec(),
         t.tri_conn().to_vec(),

@@ -138,6 +138,7 @@ pub struct FemBuffers {
 impl FemBuffers {
     pub fn declare(m: &mut Module) -> Self {
         let corners = m.order.element_nodes();
+        let x = m.buffer("x", Domain::Node, 3, "node positions, m");
         let rest_shape = match m.order {
             crate::ir::ElementOrder::Linear => m.buffer(
                 "rest_shape",
@@ -154,7 +155,7 @@ impl FemBuffers {
             ),
         };
         FemBuffers {
-            x: m.buffer("x", Domain::Node, 3, "node positions, m"),
+            x,
             rest_shape,
             vol0: m.buffer("vol0", Domain::Element, 1, "rest volume, m^3"),
             force: m.buffer(
