@@ -14,6 +14,9 @@
 //!   Ī2 = J^(−4/3)·I2 and J (F⁻ᵀ from `try_inverse`), the columns of −V0·P·Dm⁻ᵀ on corners
 //!   1–3, minus their sum on corner 0;
 //! - follower pressure: p(t)/6 · (x1 − x0) × (x2 − x0) on each corner of each chamber triangle;
+//! - quadratic (10-node) elements ([`quadratic`]): F, P and the forces −V_q·P_q·∇_X Nₐ at each
+//!   point of the 4-point rule from the element's own isoparametric rest Jacobians, follower
+//!   pressure p ∫ Nₐ (x,ξ × x,η) on 6-node triangles by a 7-point rule (exact), HRZ masses;
 //! - semi-implicit Euler: v' = (v + dt·(F/m − β·v + g))·(1 − fixed), x' = x + dt·v'.
 //!
 //! Closed-loop control: pressures and damping that read reductions over node sets evaluate
@@ -21,13 +24,16 @@
 //!
 //! Every step is checked: an inverted element (J ≤ 0) or a non-finite position stops the run
 //! with the step, the time and the element or node. `dt = auto` is resolved by its own power
-//! iteration on M⁻¹K (K·u from central differences of its own forces).
+//! iteration on M⁻¹K (K·u from central differences of its own forces, M its own lumped
+//! masses, so it holds for 10-node elements as well).
 //!
 //! Entry points: [`run`] (what `softc run --backend reference` calls), [`Reference::step`] for
-//! per-step comparisons, [`Reference::element`] for element-level checks.
+//! per-step comparisons, [`Reference::element`] and [`Reference::element_quadratic`] for
+//! element-level checks.
 
 pub mod dual;
 pub mod eval;
+pub mod quadratic;
 
 use crate::engine::RunSummary;
 use crate::engine::scene::{DtChoice, Scene};
@@ -35,6 +41,7 @@ use dual::Dual;
 use eval::{Evaluator, Scope};
 use nalgebra::{Matrix3, Vector3};
 use softc_compiler::front::ast::*;
+use softc_compiler::ir::ElementOrder;
 
 type Vec3 = Vector3<f64>;
 
@@ -66,6 +73,25 @@ pub struct ElementResult {
     pub piola: [[f64; 3]; 3],
 }
 
+/// What a quadratic element contributes at a deformed configuration.
+#[derive(Clone, Debug)]
+pub struct QuadraticElementResult {
+    /// Forces on the 10 nodes (corners, then mid-edge nodes), N.
+    pub forces: [[f64; 3]; 10],
+    /// Strain energy Σ_q V_q·W(F_q), J.
+    pub energy: f64,
+    /// det F at each quadrature point.
+    pub j: [f64; 4],
+}
+
+/// A quadratic scene's elements and chamber triangles with all their nodes, and each
+/// element's rest data per quadrature point.
+struct Quadratic {
+    conn: Vec<[u32; 10]>,
+    rest: Vec<[quadratic::RestPoint; 4]>,
+    tris: Vec<[u32; 6]>,
+}
+
 /// The reference simulator bound to a scene.
 pub struct Reference<'a> {
     scene: &'a Scene,
@@ -75,10 +101,15 @@ pub struct Reference<'a> {
     materials: Vec<Material<'a>>,
     /// The entry of `materials` of each element.
     elem_material: Vec<usize>,
+    /// Dm⁻¹ per element (linear scenes only).
     dm_inv: Vec<Matrix3<f64>>,
+    /// Rest volume per element (a quadratic one's ∫ det J).
     rest_volume: Vec<f64>,
-    /// Lumped node masses ρ·V0/4 from each adjacent tet, times `mass_scaling`.
+    /// Lumped node masses ρ·V0/4 from each adjacent tet (quadratic: HRZ), times
+    /// `mass_scaling`.
     mass: Vec<f64>,
+    /// Quadratic scenes: 10-node elements and 6-node triangles.
+    quad: Option<Quadratic>,
     /// Pressure expression per chamber, in `scene.lowered.chambers` order.
     pressures: Vec<&'a Expr>,
     damping: Option<&'a Expr>,
@@ -183,7 +214,59 @@ impl<'a> Reference<'a> {
             Some(e) => ev.eval(&Scope::root(), e)?.scalar()?.v,
             None => 1.0,
         };
+        let mids = match (scene.order(), &scene.mesh.mid_edges) {
+            (ElementOrder::Linear, _) => None,
+            (ElementOrder::Quadratic, Some(q)) if q.tets.len() == n_tets => Some(q),
+            (ElementOrder::Quadratic, _) => {
+                return Err("a quadratic scene without the mid-edge nodes of its elements".into());
+            }
+        };
+        let mut quad = match mids {
+            None => None,
+            Some(_) if scene.tri_mids.len() != scene.tris.len() => {
+                return Err(
+                    "a quadratic scene without its chamber triangles' mid-edge nodes".into(),
+                );
+            }
+            Some(_) => Some(Quadratic {
+                conn: Vec::with_capacity(n_tets),
+                rest: Vec::with_capacity(n_tets),
+                tris: scene
+                    .tris
+                    .iter()
+                    .zip(&scene.tri_mids)
+                    .map(|(c, m)| [c[0], c[1], c[2], m[0], m[1], m[2]])
+                    .collect(),
+            }),
+        };
         for (e, tet) in scene.mesh.tets.iter().enumerate() {
+            if let (Some(q), Some(mids)) = (&mut quad, mids) {
+                let m = mids.tets[e];
+                let conn: [u32; 10] =
+                    std::array::from_fn(|a| if a < 4 { tet[a] } else { m[a - 4] });
+                let x = conn.map(|n| Vec3::from(scene.mesh.nodes[n as usize]));
+                let rest = quadratic::rest_points(&x).map_err(|det| {
+                    format!(
+                        "element {} has det J = {det:e} ≤ 0 at a quadrature point",
+                        scene.mesh.tet_id(e)
+                    )
+                })?;
+                let (v0, lumped) = quadratic::hrz_masses(&x);
+                if !(v0 > 0.0 && v0.is_finite()) {
+                    return Err(format!(
+                        "element {} has rest volume {v0:e} m³ ≤ 0",
+                        scene.mesh.tet_id(e)
+                    ));
+                }
+                let rho = materials[elem_material[e]].density * scaling;
+                for (&n, l) in conn.iter().zip(lumped) {
+                    mass[n as usize] += rho * l;
+                }
+                q.conn.push(conn);
+                q.rest.push(rest);
+                rest_volume.push(v0);
+                continue;
+            }
             let p = tet.map(|n| Vec3::from(scene.mesh.nodes[n as usize]));
             let dm = Matrix3::from_columns(&[p[1] - p[0], p[2] - p[0], p[3] - p[0]]);
             let v0 = dm.determinant() / 6.0;
@@ -215,6 +298,9 @@ impl<'a> Reference<'a> {
                     .or_else(|| args.first())
                     .ok_or("`springs(…)` without a volume stiffness")?;
                 let alpha = ev.eval(&Scope::root(), &a.value)?.scalar()?.v;
+                if quad.is_some() {
+                    return Err("the spring mesh is defined on linear (4-node) tets only".into());
+                }
                 Some(spring_mesh(scene, &elem_material, &rest_volume, alpha))
             }
             _ => None,
@@ -226,6 +312,7 @@ impl<'a> Reference<'a> {
             dm_inv,
             rest_volume,
             mass,
+            quad,
             springs,
             pressures: pressure_stmts.into_iter().map(|(_, e)| e).collect(),
             damping: syntax.sim_setting("damping"),
@@ -262,37 +349,23 @@ impl<'a> Reference<'a> {
             .map_err(|e| format!("material `{}`: {e}", mat.name))
     }
 
-    /// Energy, stress and H = −V0·P·Dm⁻ᵀ of element `e` (its material, Dm⁻¹ and V0) with its
-    /// corners at `x`. J ≤ 0 (or not finite) is returned with zero stress for the caller to
-    /// judge; a singular F with J > 0 is an error.
-    fn element_at(&mut self, e: usize, x: &[Vec3; 4]) -> Result<Local, String> {
-        let dm_inv = self.dm_inv[e];
-        let ds = Matrix3::from_columns(&[x[1] - x[0], x[2] - x[0], x[3] - x[0]]);
-        let f = ds * dm_inv;
+    /// P(F), W(F) and J = det F of element `e`'s material. J ≤ 0 (or not finite) is returned
+    /// with zero stress and W = NaN for the caller to judge, unless W is inversion-safe; a
+    /// singular F with J > 0 is an error.
+    fn stress(&mut self, e: usize, f: &Matrix3<f64>) -> Result<(Matrix3<f64>, f64, f64), String> {
+        let f = *f;
         let j = f.determinant();
         let m = self.elem_material[e];
-        let vol0 = self.rest_volume[e];
         if !self.materials[m].isochoric {
             // W(I1, J): P = W_I1·2F + W_J·cof(F), defined for any F (inversion-safe).
             let i1 = (f.transpose() * f).trace();
             let w = self.energy(m, [i1, 0.0, j])?;
             let [w1, _, wj] = w.d;
             let p = f * (2.0 * w1) + cofactor(&f) * wj;
-            let h = p * dm_inv.transpose() * (-vol0);
-            return Ok(Local {
-                h,
-                p,
-                energy: vol0 * w.v,
-                j,
-            });
+            return Ok((p, w.v, j));
         }
         if !(j > 0.0 && j.is_finite()) {
-            return Ok(Local {
-                h: Matrix3::zeros(),
-                p: Matrix3::zeros(),
-                energy: f64::NAN,
-                j,
-            });
+            return Ok((Matrix3::zeros(), f64::NAN, j));
         }
         let finv_t = f
             .try_inverse()
@@ -315,17 +388,76 @@ impl<'a> Reference<'a> {
         let mut p = (f * 2.0 - finv_t * (2.0 / 3.0 * i1)) * (w1 * j23);
         p += ((f * i1 - f * c) * 2.0 - finv_t * (4.0 / 3.0 * i2)) * (w2 * j43);
         p += finv_t * (wj * j);
-        let h = p * dm_inv.transpose() * (-vol0);
+        Ok((p, w.v, j))
+    }
+
+    /// Energy, stress and H = −V0·P·Dm⁻ᵀ of linear element `e` (its material, Dm⁻¹ and V0)
+    /// with its corners at `x`, as [`Reference::stress`] judges J.
+    fn element_at(&mut self, e: usize, x: &[Vec3; 4]) -> Result<Local, String> {
+        let dm_inv = self.dm_inv[e];
+        let ds = Matrix3::from_columns(&[x[1] - x[0], x[2] - x[0], x[3] - x[0]]);
+        let (p, w, j) = self.stress(e, &(ds * dm_inv))?;
+        let vol0 = self.rest_volume[e];
         Ok(Local {
-            h,
+            h: p * dm_inv.transpose() * (-vol0),
             p,
-            energy: vol0 * w.v,
+            energy: vol0 * w,
             j,
         })
     }
 
+    /// Node forces, energy and det F per point of quadratic element `e` (rest data `rest`) with
+    /// its 10 nodes at `x`.
+    fn quadratic_at(
+        &mut self,
+        e: usize,
+        rest: &[quadratic::RestPoint; 4],
+        x: &[Vec3; 10],
+    ) -> Result<([Vec3; 10], f64, [f64; 4]), String> {
+        let mut forces = [Vec3::zeros(); 10];
+        let mut energy = 0.0;
+        let mut js = [0.0; 4];
+        for (q, point) in rest.iter().enumerate() {
+            let f = quadratic::deformation_gradient(point, x);
+            let (p, w, j) = self.stress(e, &f)?;
+            quadratic::forces(point, &p, &mut forces);
+            energy += point.volume * w;
+            js[q] = j;
+        }
+        Ok((forces, energy, js))
+    }
+
+    /// Energy, det F per quadrature point and node forces of quadratic element `e` with its
+    /// 10 nodes (corners, then mid-edge nodes in VTK's order) at `x` (metres).
+    pub fn element_quadratic(
+        &mut self,
+        e: usize,
+        x: &[[f64; 3]; 10],
+    ) -> Result<QuadraticElementResult, String> {
+        let q = self.quad.take().ok_or("the scene's elements are linear")?;
+        let result = self.quadratic_at(e, &q.rest[e], &x.map(Vec3::from));
+        self.quad = Some(q);
+        let (forces, energy, j) = result?;
+        Ok(QuadraticElementResult {
+            forces: forces.map(|f| [f[0], f[1], f[2]]),
+            energy,
+            j,
+        })
+    }
+
+    /// The nodes of each element: 4 corners, or the 10 nodes of a quadratic one.
+    pub fn element_nodes(&self, e: usize) -> Vec<u32> {
+        match &self.quad {
+            Some(q) => q.conn[e].to_vec(),
+            None => self.scene.mesh.tets[e].to_vec(),
+        }
+    }
+
     /// Energy, stress and corner forces of element `e` with its corners at `x` (metres).
     pub fn element(&mut self, e: usize, x: &[[f64; 3]; 4]) -> Result<ElementResult, String> {
+        if self.quad.is_some() {
+            return Err("the scene's elements are quadratic (see `element_quadratic`)".into());
+        }
         let xs = x.map(Vec3::from);
         let l = self.element_at(e, &xs)?;
         let mut forces = [[0.0; 3]; 4];
@@ -350,6 +482,11 @@ impl<'a> Reference<'a> {
         if self.springs.is_some() {
             return self.spring_forces(x, out);
         }
+        if let Some(q) = self.quad.take() {
+            let result = self.quadratic_forces(&q, x, out);
+            self.quad = Some(q);
+            return result;
+        }
         for (e, tet) in self.scene.mesh.tets.iter().enumerate() {
             let xs = tet.map(|n| x[n as usize]);
             let l = self.element_at(e, &xs).map_err(InvertedOr::Other)?;
@@ -363,6 +500,29 @@ impl<'a> Reference<'a> {
             out[tet[2] as usize] += c1;
             out[tet[3] as usize] += c2;
             out[tet[0] as usize] -= c0 + c1 + c2;
+        }
+        Ok(())
+    }
+
+    /// [`Reference::internal_forces`] of a quadratic scene.
+    fn quadratic_forces(
+        &mut self,
+        q: &Quadratic,
+        x: &[Vec3],
+        out: &mut [Vec3],
+    ) -> Result<(), InvertedOr> {
+        for (e, (conn, rest)) in q.conn.iter().zip(&q.rest).enumerate() {
+            let xs = conn.map(|n| x[n as usize]);
+            let (f, _, js) = self.quadratic_at(e, rest, &xs).map_err(InvertedOr::Other)?;
+            let safe = !self.materials[self.elem_material[e]].isochoric;
+            if let Some(&j) = js.iter().find(|j| !(**j > 0.0 && j.is_finite()))
+                && !safe
+            {
+                return Err(InvertedOr::Inverted(e, j));
+            }
+            for (&n, f) in conn.iter().zip(f) {
+                out[n as usize] += f;
+            }
         }
         Ok(())
     }
@@ -559,6 +719,15 @@ impl<'a> Reference<'a> {
         st.f_pr.iter_mut().for_each(|f| *f = Vec3::zeros());
         for c in 0..self.pressures.len() {
             let p = self.scalar_at(self.pressures[c], "pressure")?;
+            if let Some(q) = &self.quad {
+                for tri in &q.tris[scene.chamber_ranges[c].clone()] {
+                    let xs = tri.map(|i| st.x[i as usize]);
+                    for (&i, f) in tri.iter().zip(quadratic::pressure_forces(&xs, p)) {
+                        st.f_pr[i as usize] += f;
+                    }
+                }
+                continue;
+            }
             let p6 = p / 6.0;
             for tri in &scene.tris[scene.chamber_ranges[c].clone()] {
                 let [a, b, cc] = tri.map(|i| st.x[i as usize]);
