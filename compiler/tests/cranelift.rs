@@ -7,9 +7,8 @@ use softc_compiler::back::Precision;
 use softc_compiler::back::cranelift::{Buffers, CpuModule, Options, Topology};
 use softc_compiler::front::parse;
 use softc_compiler::ir::{
-    ElementOrder,
-    ArgSource, BinOp, Buffer, BufferId, BuiltKernel, CmpOp, Domain, Func, Inst, Kernel,
-    KernelBuilder, Module, Store, UnOp, V, interp,
+    ArgSource, BinOp, Buffer, BufferId, BuiltKernel, CmpOp, Domain, ElementOrder, Func, Inst,
+    Kernel, KernelBuilder, Module, Store, UnOp, V, interp,
 };
 use softc_compiler::lower::expr::Program;
 use softc_compiler::lower::fem::element_force_kernel;

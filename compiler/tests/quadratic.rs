@@ -187,7 +187,8 @@ fn an_affine_deformation_has_the_linear_elements_energy_and_rigid_motion_no_forc
     let affine = |p: &[f64; 3]| [0, 1, 2].map(|r| f[r][0] * p[0] + f[r][1] * p[1] + f[r][2] * p[2]);
     let x: Vec<[f64; 3]> = rest.iter().map(affine).collect();
     let linear = kernels(ElementOrder::Linear);
-    for ((name, m, k, d), (_, lm, _, ld)) in kernels(ElementOrder::Quadratic).into_iter().zip(linear)
+    for ((name, m, k, d), (_, lm, _, ld)) in
+        kernels(ElementOrder::Quadratic).into_iter().zip(linear)
     {
         let q = run(&m, &d, &rs, vol, &x);
         let l = run(&lm, &ld, &common::rest_shape(c), vol, &x[..4]);
@@ -202,7 +203,13 @@ fn an_affine_deformation_has_the_linear_elements_energy_and_rigid_motion_no_forc
         let (s, co) = (30f64.to_radians().sin(), 30f64.to_radians().cos());
         let rot: Vec<[f64; 3]> = rest
             .iter()
-            .map(|p| [co * p[0] - s * p[1] + 0.01, s * p[0] + co * p[1], p[2] - 0.02])
+            .map(|p| {
+                [
+                    co * p[0] - s * p[1] + 0.01,
+                    s * p[0] + co * p[1],
+                    p[2] - 0.02,
+                ]
+            })
             .collect();
         for v in run(&m, &k, &rs, vol, &rot).f.iter().flatten() {
             assert!(v.abs() < 1e-8, "{name}: force under rotation {v}");

@@ -802,8 +802,14 @@ fn a_static_body_free_to_rotate_about_its_fixed_nodes_is_held_and_posed() {
                 .fold(0.0, f64::max)
         };
         // Posed: the best rotation about the fixed nodes onto the rest shape is the identity.
-        let pattern =
-            BlockPattern::new(&scene.fixed, &scene.mesh.tets, &scene.tris, true, rest).unwrap();
+        let pattern = BlockPattern::new(
+            &scene.fixed,
+            (&scene.elem_conn(), 4),
+            (&scene.tri_conn(), 3),
+            true,
+            rest,
+        )
+        .unwrap();
         let again = apart(&pattern.align(rest, &x), &x);
         assert!(again < 1e-9 * largest, "{kind}: {again:e} of {largest:e}");
         // One fixed node takes no reaction from balanced loads: moved rigidly onto the rest

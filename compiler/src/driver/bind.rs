@@ -478,12 +478,15 @@ fn assign_materials(
     Ok(of)
 }
 
+/// A chamber's triangles (corners) and, for quadratic elements, their mid-edge nodes.
+type ChamberTriangles = (Vec<[u32; 3]>, Vec<[u32; 3]>);
+
 fn chambers(
     program: &Program,
     ast: &Script,
     mesh: &dyn MeshView,
     kernels: &SceneModule,
-) -> Fail<Vec<(Vec<[u32; 3]>, Vec<[u32; 3]>)>> {
+) -> Fail<Vec<ChamberTriangles>> {
     let quadratic = kernels.module.order == crate::ir::ElementOrder::Quadratic;
     kernels
         .chambers
@@ -505,7 +508,11 @@ fn chambers(
                 },
             };
             let tris = mesh.surface(tag);
-            let mids = if quadratic { mesh.surface_mids(tag) } else { Vec::new() };
+            let mids = if quadratic {
+                mesh.surface_mids(tag)
+            } else {
+                Vec::new()
+            };
             if quadratic && mids.len() != tris.len() {
                 return Err(format!(
                     "chamber `{c}`: the mesh has no mid-edge nodes on its triangles; a \

@@ -240,9 +240,9 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
     ),
     b!(
         "load",
-        "load(path: string, unit?: length) -> mesh",
-        ["path", "unit"],
-        "Reads a mesh file (.msh, .vtk, .vtu, tetgen, .inp); `unit` is the length of one file unit (default 1 mm)."
+        "load(path: string, unit?: length, order?: int) -> mesh",
+        ["path", "unit", "order"],
+        "Reads a mesh file (.msh, .vtk, .vtu, tetgen, .inp); `unit` is the length of one file unit (default 1 mm); `order: 2` simulates quadratic (10-node) tetrahedra, adding a straight-sided mid-edge node on every edge of a linear mesh."
     ),
     b!(
         "box",

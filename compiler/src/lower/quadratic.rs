@@ -185,7 +185,10 @@ pub fn element_kernel(
             })
         })
         .collect();
-    let rel: Vec<[V; 3]> = xs.iter().map(|x| [0, 1, 2].map(|d| k.b.sub(x[d], xs[0][d]))).collect();
+    let rel: Vec<[V; 3]> = xs
+        .iter()
+        .map(|x| [0, 1, 2].map(|d| k.b.sub(x[d], xs[0][d])))
+        .collect();
     const UPPER: [[usize; 3]; 3] = [[0, 1, 2], [1, 3, 4], [2, 4, 5]];
     // Per node and component, the terms of its force.
     let mut terms: Vec<[Vec<V>; 3]> = (0..10).map(|_| Default::default()).collect();
@@ -226,19 +229,21 @@ pub fn element_kernel(
     }
     if diagnostics {
         let e = k.b.sum(&energy);
-        let j = js[1..].iter().fold(js[0], |m, &j| k.b.bin(crate::ir::BinOp::Min, m, j));
+        let j = js[1..]
+            .iter()
+            .fold(js[0], |m, &j| k.b.bin(crate::ir::BinOp::Min, m, j));
         k.store(bufs.energy, 0, e);
         k.store(bufs.j, 0, j);
         return Ok(k.finish());
     }
-    let mut f = vec![[V(0); 3]; 10];
-    for a in 1..10 {
-        for dim in 0..3 {
-            f[a][dim] = k.b.sum(&terms[a][dim]);
+    let mut f = [[V(0); 3]; 10];
+    for (fa, ta) in f.iter_mut().zip(&terms).skip(1) {
+        for (v, t) in fa.iter_mut().zip(ta) {
+            *v = k.b.sum(t);
         }
     }
     for dim in 0..3 {
-        let others: Vec<V> = (1..10).map(|a| f[a][dim]).collect();
+        let others: Vec<V> = f[1..].iter().map(|fa| fa[dim]).collect();
         let s = k.b.sum(&others);
         f[0][dim] = k.b.neg(s);
     }
@@ -274,7 +279,10 @@ pub fn store_pressure_forces(k: &mut KernelBuilder, x_buf: BufferId, tri_force: 
             })
         })
         .collect();
-    let rel: Vec<[V; 3]> = xs.iter().map(|x| [0, 1, 2].map(|d| k.b.sub(x[d], xs[0][d]))).collect();
+    let rel: Vec<[V; 3]> = xs
+        .iter()
+        .map(|x| [0, 1, 2].map(|d| k.b.sub(x[d], xs[0][d])))
+        .collect();
     let mut terms: Vec<[Vec<V>; 3]> = (0..6).map(|_| Default::default()).collect();
     for (l, w) in triangle_rule() {
         let (n, g) = triangle_shape(l);

@@ -147,9 +147,9 @@ pub fn element_order(script: &Script) -> ElementOrder {
         _ => None,
     });
     match order.map(|e| &e.kind) {
-        Some(ExprKind::Number { value, unit: None, .. }) if *value == 2.0 => {
-            ElementOrder::Quadratic
-        }
+        Some(ExprKind::Number {
+            value, unit: None, ..
+        }) if *value == 2.0 => ElementOrder::Quadratic,
         _ => ElementOrder::Linear,
     }
 }

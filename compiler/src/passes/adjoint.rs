@@ -111,7 +111,6 @@ enum Contribution {
     Corner { partial: BufferId, stride: u32 },
 }
 
-
 /// Build the adjoint of a step made of `module`'s kernels run in order. `state` names the
 /// (state, next state) buffer pairs: the step reads the first and writes the second. `scale`
 /// multiplies the adjoint of a state variable by a constant at every reverse step (thesis

@@ -18,7 +18,6 @@
 
 use crate::ir::{ArgSource, BufferId, BuiltKernel, Domain, KernelBuilder, Module, ad};
 
-
 /// Which entries of a force Jacobian a kernel stores.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum JacobianPart {

@@ -341,17 +341,14 @@ impl Checker {
                         && t.num().is_some()
                     {
                         self.err(
-                            Diagnostic::error(
-                                "E0321",
-                                o.span,
-                                "the element order must be 1 or 2",
-                            )
-                            .with_hint(
-                                "`order: 1` for linear (4-node) tetrahedra, `order: 2` for \
+                            Diagnostic::error("E0321", o.span, "the element order must be 1 or 2")
+                                .with_hint(
+                                    "`order: 1` for linear (4-node) tetrahedra, `order: 2` for \
                                  quadratic (10-node) ones",
-                            ),
+                                ),
                         );
                     }
+                    self.sim.quadratic = t.num() == Some(2.0);
                 }
                 let mut unit = 1e-3;
                 if let Some(u) = s[1] {

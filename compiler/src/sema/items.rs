@@ -21,6 +21,8 @@ pub(super) struct SimInfo {
     /// The integrator solves for the state (`implicit_euler`, `quasi_static`): closed-loop
     /// sensors are evaluated at its iterates, which have positions only.
     pub solves_state: Option<&'static str>,
+    /// The mesh is loaded with `order: 2` (quadratic elements).
+    pub quadratic: bool,
 }
 
 /// Largest number of entries of a fixed-shape value (params, inputs, lets).

@@ -582,6 +582,20 @@ impl Checker {
                 if !obj_setting(want)(&t) {
                     let msg = format!("`{}` must be {options}, found {}", name.name, t.ty);
                     self.err(Diagnostic::error("E0203", value.span, msg));
+                } else if name.name == "model"
+                    && self.sim.quadratic
+                    && matches!(&value.kind, ExprKind::Call { callee, .. }
+                        if matches!(&callee.kind, ExprKind::Name(n) if n.name == "springs"))
+                {
+                    self.err(
+                        Diagnostic::error(
+                            "E0321",
+                            value.span,
+                            "the spring mesh works on linear tetrahedra, and the mesh is loaded \
+                             with `order: 2`",
+                        )
+                        .with_hint("use `model = fem`, or load the mesh with `order: 1`"),
+                    );
                 }
             }
             "damping" => {

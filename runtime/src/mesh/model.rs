@@ -528,12 +528,17 @@ impl Mesh {
         let mut out = self.clone();
         for e in &edges {
             let (p, q) = (self.nodes[e[0] as usize], self.nodes[e[1] as usize]);
-            out.nodes
-                .push([0.5 * (p[0] + q[0]), 0.5 * (p[1] + q[1]), 0.5 * (p[2] + q[2])]);
+            out.nodes.push([
+                0.5 * (p[0] + q[0]),
+                0.5 * (p[1] + q[1]),
+                0.5 * (p[2] + q[2]),
+            ]);
         }
         if !out.ids.nodes.is_empty() {
             let next = out.ids.nodes.iter().copied().max().unwrap_or(0) + 1;
-            out.ids.nodes.extend((0..edges.len() as i64).map(|i| next + i));
+            out.ids
+                .nodes
+                .extend((0..edges.len() as i64).map(|i| next + i));
         }
         let tets = self
             .tets

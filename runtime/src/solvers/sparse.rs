@@ -973,15 +973,14 @@ mod rigid_tests {
     #[test]
     fn the_pose_free_sensitivity_has_no_part_along_the_rigid_modes_at_the_state() {
         let rest = rest();
-        let pattern =
-            BlockPattern::new(
-                &[false; 5],
-                (&[0, 1, 2, 3, 1, 2, 3, 4], 4),
-                (&[], 3),
-                true,
-                &rest,
-            )
-                .unwrap();
+        let pattern = BlockPattern::new(
+            &[false; 5],
+            (&[0, 1, 2, 3, 1, 2, 3, 4], 4),
+            (&[], 3),
+            true,
+            &rest,
+        )
+        .unwrap();
         let x: Vec<f64> = rest
             .iter()
             .flat_map(|p| [p[0] * 1.01, p[1], p[2] + 0.02 * p[0]])

@@ -456,13 +456,7 @@ impl Gpu {
         let core = self.core.get_mut();
         let elem: Vec<u32> = tets.iter().flatten().copied().collect();
         let tri: Vec<u32> = tris.iter().flatten().copied().collect();
-        core.allocate(
-            n_nodes,
-            (&elem, tets.len()),
-            (&tri, tris.len()),
-            &ne,
-            &nt,
-        )?;
+        core.allocate(n_nodes, (&elem, tets.len()), (&tri, tris.len()), &ne, &nt)?;
         self.slot = (0..core.buffer_count).collect();
         Ok(())
     }
