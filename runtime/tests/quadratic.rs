@@ -75,7 +75,8 @@ fn cantilever_tip(cells: [usize; 3], order: u32) -> f64 {
 /// per cent (the clamped face, held in all directions, stiffens the 3-D beam slightly).
 #[test]
 fn a_coarse_quadratic_cantilever_bends_as_beam_theory_says_where_linear_tets_lock() {
-    let (e, nu, rho, g, l, h): (f64, f64, f64, f64, f64, f64) = (1e6, 0.3, 1000.0, 0.981, 0.06, 0.01);
+    let (e, nu, rho, g, l, h): (f64, f64, f64, f64, f64, f64) =
+        (1e6, 0.3, 1000.0, 0.981, 0.06, 0.01);
     let (a, i) = (h * h, h * h * h * h / 12.0);
     let q = rho * g * a;
     let shear = q * l * l / (2.0 * (5.0 / 6.0) * e / (2.0 * (1.0 + nu)) * a);
@@ -89,7 +90,10 @@ fn a_coarse_quadratic_cantilever_bends_as_beam_theory_says_where_linear_tets_loc
         100.0 * quadratic / timoshenko
     );
     // Measured: linear 50.6 %, quadratic 97.7 %.
-    assert!(linear < 0.6 * timoshenko, "linear tets did not lock: {linear}");
+    assert!(
+        linear < 0.6 * timoshenko,
+        "linear tets did not lock: {linear}"
+    );
     assert!(
         (quadratic / timoshenko - 1.0).abs() < 0.04,
         "quadratic {quadratic} vs Timoshenko {timoshenko}"
@@ -103,7 +107,10 @@ fn all_kinds(name: &str, edits: &[(&str, &str)]) -> PathBuf {
             .unwrap()
             .replace(
                 "load(\"../../../../meshes/bench_1k.msh\")",
-                &format!("load(\"{}/meshes/bench_1k.msh\", order: 2)", root().display()),
+                &format!(
+                    "load(\"{}/meshes/bench_1k.msh\", order: 2)",
+                    root().display()
+                ),
             );
     for (from, to) in edits {
         assert!(text.contains(from), "{from}");
@@ -163,7 +170,10 @@ fn quadratic_static_gradients_match_central_differences() {
         &[
             ("param beta: rate[4] = 20 /s in [0 /s, 200 /s]\n", ""),
             ("  damping = beta[window(t, 1 ms)]\n", ""),
-            ("  dt = 20 us\n  steps = 200\n", "  integrator = quasi_static\n  duration = 4 ms\n"),
+            (
+                "  dt = 20 us\n  steps = 200\n",
+                "  integrator = quasi_static\n  duration = 4 ms\n",
+            ),
             (" over [0.5 * t_end, t_end]", " at end"),
             (" + (v[n].z * 1 ms)^2", ""),
         ],
