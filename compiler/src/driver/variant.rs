@@ -15,11 +15,13 @@ pub struct Variant {
     /// `sim` settings as source text, `("dt", "auto(safety: 0.5)")`: replaced where the
     /// script sets them, added at the top of the sim block where it does not.
     pub sim_settings: Vec<(String, String)>,
+    /// The element order to load the mesh with (`load(…, order: N)`), replacing the script's.
+    pub order: Option<u32>,
 }
 
 impl Variant {
     pub fn is_empty(&self) -> bool {
-        self.mesh.is_none() && self.sim_settings.is_empty()
+        self.mesh.is_none() && self.sim_settings.is_empty() && self.order.is_none()
     }
 
     /// The script's text with the variant applied.
@@ -27,6 +29,36 @@ impl Variant {
         let ast = crate::front::parse(source).map_err(|d| d.message)?;
         // Edits as (start, end, replacement), applied back to front.
         let mut edits: Vec<(usize, usize, String)> = Vec::new();
+        if let Some(order) = self.order {
+            let (call, args) = ast
+                .items
+                .iter()
+                .find_map(|item| match &item.kind {
+                    ItemKind::Decl {
+                        kind: DeclKind::Mesh,
+                        value,
+                        ..
+                    } => match &value.kind {
+                        ExprKind::Call { args, .. } => Some((value.span, args)),
+                        _ => None,
+                    },
+                    _ => None,
+                })
+                .ok_or("the script's mesh is not `load(\"FILE\")`")?;
+            match args
+                .iter()
+                .find(|a| a.name.as_ref().is_some_and(|n| n.name == "order"))
+            {
+                Some(a) => edits.push((a.value.span.start, a.value.span.end, order.to_string())),
+                None => {
+                    // Before the call's closing parenthesis.
+                    let close = source[..call.end]
+                        .rfind(')')
+                        .ok_or("the mesh's `load(…)` has no `)`")?;
+                    edits.push((close, close, format!(", order: {order}")));
+                }
+            }
+        }
         if let Some(mesh) = &self.mesh {
             let absolute = std::path::absolute(mesh).unwrap_or_else(|_| mesh.clone());
             let span = ast

@@ -114,6 +114,11 @@ pub struct BenchArgs {
         requires = "tradeoff"
     )]
     pub integrators: String,
+    /// With --tradeoff: element orders (`1,2`: linear and quadratic tets; the first is the
+    /// baseline's, and its f64 series gives the reference); each further order adds its
+    /// resolution × precision series, explicit and static.
+    #[arg(long, default_value = "1", requires = "tradeoff")]
+    pub orders: String,
     /// With --tradeoff: also spring-mesh variants with this volume stiffness (`1kPa/mm`).
     #[arg(long, value_name = "ALPHA", requires = "tradeoff")]
     pub springs: Option<String>,
@@ -827,6 +832,11 @@ fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<tradeoff::Sweep, 
             "explicit" => Some(tradeoff::Solver::Explicit),
             "quasi_static" => Some(tradeoff::Solver::QuasiStatic),
             "implicit_euler" => Some(tradeoff::Solver::ImplicitEuler),
+            _ => None,
+        })?,
+        orders: list("orders", &args.orders, |s| match s {
+            "1" => Some(1),
+            "2" => Some(2),
             _ => None,
         })?,
         springs: args.springs.clone(),

@@ -54,6 +54,7 @@ fn variant(args: &BenchArgs, size: &str, settings: &[(&str, &str)]) -> Result<Sc
             .iter()
             .map(|(k, v)| (k.to_string(), v.to_string()))
             .collect(),
+        order: None,
     };
     Scene::load_with(&path, &[], Some(&variant)).map_err(|e| e.0)
 }

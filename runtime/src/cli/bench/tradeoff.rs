@@ -38,6 +38,8 @@ pub struct Sweep {
     pub safeties: Vec<f64>,
     /// Relative settling tolerances (see `Simulation::run_to_steady_state`).
     pub settle: Vec<f64>,
+    /// Element orders (1 linear, 2 quadratic tets); the first is the baseline's.
+    pub orders: Vec<u32>,
     /// Volume stiffness α of the spring-mesh variants (N/m³); none: FEM only.
     pub springs: Option<String>,
     /// The integrators compared (the explicit runs carry every other knob).
@@ -84,6 +86,10 @@ pub struct Point {
     pub tets: usize,
     pub precision: String,
     pub model: String,
+    /// Element order: 1 linear, 2 quadratic tets.
+    pub order: u32,
+    /// Nodes of the mesh (mid-edge nodes included).
+    pub nodes: usize,
     pub safety: f64,
     pub settle: f64,
     pub dt: f64,
@@ -106,6 +112,7 @@ struct Config {
     resolution: f64,
     precision: Precision,
     springs: bool,
+    order: u32,
     safety: f64,
     settle: f64,
 }
@@ -169,6 +176,7 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
         let variant = Variant {
             mesh: Some(mesh),
             sim_settings: sim_settings(c, sweep, duration, sim.duration.is_some()),
+            order: Some(c.order),
         };
         let scene = Scene::load_with(&sweep.script, &sweep.overrides, Some(&variant))
             .map_err(|e| format!("{label}: {e}"))?;
@@ -231,6 +239,7 @@ fn configs(s: &Sweep) -> Vec<Config> {
         resolution: 1.0,
         precision: s.precisions[0],
         springs: false,
+        order: s.orders[0],
         safety: s.safeties[0],
         settle: tight,
     };
@@ -270,14 +279,25 @@ fn configs(s: &Sweep) -> Vec<Config> {
         settle: 0.0,
         ..base
     };
-    for &precision in &s.precisions {
-        for &resolution in &s.resolutions {
-            push(Config {
-                solver: Solver::QuasiStatic,
-                resolution,
-                precision,
-                ..implicit
-            });
+    for &order in &s.orders {
+        for &precision in &s.precisions {
+            for &resolution in &s.resolutions {
+                if order != base.order {
+                    push(Config {
+                        resolution,
+                        precision,
+                        order,
+                        ..base
+                    });
+                }
+                push(Config {
+                    solver: Solver::QuasiStatic,
+                    resolution,
+                    precision,
+                    order,
+                    ..implicit
+                });
+            }
         }
     }
     push(Config {
@@ -287,7 +307,18 @@ fn configs(s: &Sweep) -> Vec<Config> {
     all
 }
 
+/// The force model as the table and labels name it: `fem` (linear tets), `fem2` (quadratic
+/// tets) or `springs`.
+fn model_name(c: &Config) -> &'static str {
+    match (c.springs, c.order) {
+        (true, _) => "springs",
+        (false, 2) => "fem2",
+        _ => "fem",
+    }
+}
+
 fn label(c: &Config) -> String {
+    let model = model_name(c);
     if c.solver != Solver::Explicit {
         return format!(
             "res{}-{}-{}-{}",
@@ -296,7 +327,7 @@ fn label(c: &Config) -> String {
                 Precision::F32 => "f32",
                 _ => "f64",
             },
-            if c.springs { "springs" } else { "fem" },
+            model,
             c.solver.name()
         );
     }
@@ -307,7 +338,7 @@ fn label(c: &Config) -> String {
             Precision::F32 => "f32",
             _ => "f64",
         },
-        if c.springs { "springs" } else { "fem" },
+        model,
         c.safety,
         c.settle
     )
@@ -439,7 +470,9 @@ fn measure(
             Precision::F32 => "f32".into(),
             _ => "f64".into(),
         },
-        model: if c.springs { "springs" } else { "fem" }.into(),
+        model: model_name(c).into(),
+        order: c.order,
+        nodes: scene.mesh.nodes.len(),
         safety: c.safety,
         settle: c.settle,
         dt,
@@ -456,9 +489,15 @@ fn measure(
 
 /// Richardson extrapolation over the f64 FEM resolution series of one integrator (explicit at
 /// its first settings, else the quasi-static solves, else implicit Euler: whichever the sweep
-/// ran), with the order observed from the three finest; else the finest of them.
+/// ran) at the baseline's element order, with the order observed from the three finest; else
+/// the finest of them.
 fn reference(points: &[Point]) -> Reference {
-    let accurate = |p: &Point| p.precision == "f64" && p.model == "fem";
+    let fem = points
+        .iter()
+        .map(|p| p.model.as_str())
+        .find(|m| m.starts_with("fem"))
+        .unwrap_or("fem");
+    let accurate = |p: &Point| p.precision == "f64" && p.model == fem;
     let solver = ["explicit", "quasi_static", "implicit_euler"]
         .into_iter()
         .find(|s| points.iter().any(|p| accurate(p) && p.solver == *s));
@@ -479,7 +518,11 @@ fn reference(points: &[Point]) -> Reference {
     series.dedup_by(|a, b| a.resolution == b.resolution);
     let finest = series.last().copied().unwrap_or(&points[0]);
     let what = match base {
-        Some(b) => format!("{} f64 FEM", b.solver),
+        Some(b) => format!(
+            "{} f64 {}",
+            b.solver,
+            if b.order == 2 { "quadratic FEM" } else { "FEM" }
+        ),
         // Only f32 or spring runs: the finest of them is all there is.
         None => format!("{} {} {}", finest.solver, finest.precision, finest.model),
     };
@@ -554,10 +597,11 @@ fn mark_pareto(points: &mut [Point]) {
 fn print_table(points: &[Point], reference: &Reference, sweep: &Sweep, out: &mut dyn Write) {
     let _ = writeln!(
         out,
-        "{:<14} {:<6} {:>7} {:<4} {:<8} {:>6} {:>8} {:>10} {:>8} {:>8} {:>14} {:>10} {:>9}  pareto",
+        "{:<14} {:<6} {:>7} {:>7} {:<4} {:<8} {:>6} {:>8} {:>10} {:>8} {:>8} {:>14} {:>10} {:>9}  pareto",
         "solver",
         "res",
         "tets",
+        "nodes",
         "prec",
         "model",
         "safety",
@@ -574,10 +618,11 @@ fn print_table(points: &[Point], reference: &Reference, sweep: &Sweep, out: &mut
     for p in sorted {
         let _ = writeln!(
             out,
-            "{:<14} {:<6} {:>7} {:<4} {:<8} {:>6} {:>8.0e} {:>10.3e} {:>8} {:>8.2} {:>14.6e} {:>10.2e} {:>9}  {}",
+            "{:<14} {:<6} {:>7} {:>7} {:<4} {:<8} {:>6} {:>8.0e} {:>10.3e} {:>8} {:>8.2} {:>14.6e} {:>10.2e} {:>9}  {}",
             p.solver,
             p.resolution,
             p.tets,
+            p.nodes,
             p.precision,
             p.model,
             p.safety,
@@ -663,6 +708,8 @@ mod tests {
             tets: 0,
             precision: "f64".into(),
             model: "fem".into(),
+            order: 1,
+            nodes: 0,
             safety: 0.9,
             settle: 1e-4,
             dt: 1e-4,
