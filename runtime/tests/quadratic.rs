@@ -194,3 +194,52 @@ fn the_interpreter_and_cranelift_step_quadratic_elements_to_the_same_bits() {
     assert_eq!(a.x, b.x);
     assert_eq!(a.loss.map(f64::to_bits), b.loss.map(f64::to_bits));
 }
+
+/// The multigrid solver's first coarsening of quadratic elements is the linear problem on the
+/// same mesh (mid-edge nodes interpolated from their edges' corners): the static solve it gives
+/// is the factored one's, in few conjugate-gradient iterations.
+#[test]
+fn multigrid_solves_quadratic_tangents_through_the_linear_problem() {
+    use softc::engine::statics::LinearSolver;
+    let path = all_kinds(
+        "multigrid.soft",
+        &[
+            ("param beta: rate[4] = 20 /s in [0 /s, 200 /s]\n", ""),
+            ("  damping = beta[window(t, 1 ms)]\n", ""),
+            ("  dt = 20 us\n  steps = 200\n", "  integrator = quasi_static\n  duration = 4 ms\n"),
+            (" over [0.5 * t_end, t_end]", " at end"),
+            (" + (v[n].z * 1 ms)^2", ""),
+        ],
+    );
+    let scene = Scene::load(&path, &[]).unwrap();
+    let solve = |linear: LinearSolver| {
+        let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+        let mut sim = Simulation::new(&scene, cpu);
+        sim.linear_solver = linear;
+        sim.run(None, None).unwrap()
+    };
+    let direct = solve(LinearSolver::Direct);
+    let amg = solve(LinearSolver::Amg);
+    let report = amg.solver.clone().unwrap();
+    assert_eq!(report.linear_solver, "amg");
+    assert!(report.multigrid_levels >= 2, "{report:?}");
+    let per_newton = report.krylov_iterations as f64 / report.newton_iterations.max(1) as f64;
+    eprintln!(
+        "{} dofs: {} levels, {per_newton:.1} CG iterations per Newton iteration",
+        report.dofs, report.multigrid_levels
+    );
+    assert!(per_newton < 40.0, "{report:?}");
+    let scale = direct
+        .x
+        .iter()
+        .zip(&scene.mesh.nodes)
+        .flat_map(|(x, x0)| (0..3).map(move |d| (x[d] - x0[d]).abs()))
+        .fold(0.0, f64::max);
+    let diff = direct
+        .x
+        .iter()
+        .zip(&amg.x)
+        .flat_map(|(a, b)| (0..3).map(move |d| (a[d] - b[d]).abs()))
+        .fold(0.0, f64::max);
+    assert!(diff < 1e-8 * scale, "{diff:e} of {scale:e}");
+}

@@ -981,14 +981,33 @@ fn the_material_check_follows_a_trained_material_constant() {
 /// larger one by multigrid; an explicit choice stays what it is.
 #[test]
 fn auto_factors_small_tangents_and_uses_multigrid_beyond_the_threshold() {
-    use softc::engine::statics::{AUTO_MULTIGRID_DOFS, LinearSolver};
+    use softc::engine::statics::{
+        AUTO_MULTIGRID_DOFS, AUTO_MULTIGRID_DOFS_QUADRATIC, LinearSolver,
+    };
+    use softc_compiler::ir::ElementOrder::{Linear, Quadratic};
     assert_eq!(LinearSolver::default(), LinearSolver::Auto);
     let auto = LinearSolver::Auto;
-    assert_eq!(auto.resolve(AUTO_MULTIGRID_DOFS), LinearSolver::Direct);
-    assert_eq!(auto.resolve(AUTO_MULTIGRID_DOFS + 1), LinearSolver::Amg);
     assert_eq!(
-        LinearSolver::Direct.resolve(10 * AUTO_MULTIGRID_DOFS),
+        auto.resolve(AUTO_MULTIGRID_DOFS, Linear),
         LinearSolver::Direct
     );
-    assert_eq!(LinearSolver::Amg.resolve(9), LinearSolver::Amg);
+    assert_eq!(
+        auto.resolve(AUTO_MULTIGRID_DOFS + 1, Linear),
+        LinearSolver::Amg
+    );
+    // Quadratic tangents fill more when factored: multigrid from fewer dofs on.
+    assert!(AUTO_MULTIGRID_DOFS_QUADRATIC < AUTO_MULTIGRID_DOFS);
+    assert_eq!(
+        auto.resolve(AUTO_MULTIGRID_DOFS_QUADRATIC, Quadratic),
+        LinearSolver::Direct
+    );
+    assert_eq!(
+        auto.resolve(AUTO_MULTIGRID_DOFS_QUADRATIC + 1, Quadratic),
+        LinearSolver::Amg
+    );
+    assert_eq!(
+        LinearSolver::Direct.resolve(10 * AUTO_MULTIGRID_DOFS, Quadratic),
+        LinearSolver::Direct
+    );
+    assert_eq!(LinearSolver::Amg.resolve(9, Linear), LinearSolver::Amg);
 }

@@ -174,28 +174,53 @@ impl Hierarchy {
     /// `blocks[i + 1]`: a node's three dofs), with the near-null space `modes` (vectors over
     /// the unknowns: the rigid-body modes for elasticity).
     pub fn new(a: Csr, blocks: Vec<usize>, modes: Vec<Vec<f64>>, options: AmgOptions) -> Self {
+        Hierarchy::with_first(a, blocks, modes, None, options)
+    }
+
+    /// As [`Hierarchy::new`], with the first coarsening given: `(P, coarse blocks, coarse
+    /// near-null space)` — for quadratic elements, the interpolation from the linear problem
+    /// on the same mesh (p-multigrid), which aggregation then coarsens further.
+    pub fn with_first(
+        a: Csr,
+        blocks: Vec<usize>,
+        modes: Vec<Vec<f64>>,
+        first: Option<(Csr, Vec<usize>, Vec<Vec<f64>>)>,
+        options: AmgOptions,
+    ) -> Self {
         let fine_nnz = a.nnz().max(1) as f64;
         let mut levels = Vec::new();
         let mut a = a;
         let mut blocks = blocks;
         let mut modes = modes;
+        let mut first = first;
         while a.rows > options.coarsest && levels.len() + 1 < options.max_levels {
-            let aggregates = aggregate(&a, &blocks, options.strength);
-            let (tentative, coarse_blocks, coarse_modes) = tentative(&blocks, &aggregates, &modes);
-            // Coarsening stalled (every node its own aggregate): solve this level directly.
-            if tentative.cols == 0 || tentative.cols * 10 > a.rows * 9 {
-                break;
-            }
-            let diag = a.diagonal();
-            let diag_inv: Vec<f64> = diag
+            let diag_inv: Vec<f64> = a
+                .diagonal()
                 .iter()
                 .map(|&d| if d != 0.0 { 1.0 / d } else { 0.0 })
                 .collect();
-            let rho = spectral_radius(&a, &diag_inv);
-            let omega = 4.0 / (3.0 * rho.max(f64::MIN_POSITIVE));
-            // P = (I − ω D⁻¹ A) T.
-            let at = a.matmul(&tentative);
-            let p = smooth(&tentative, &at, &diag_inv, omega);
+            let (p, coarse_blocks, coarse_modes) = match first.take() {
+                Some(given) => given,
+                None => {
+                    let aggregates = aggregate(&a, &blocks, options.strength);
+                    let (tentative, coarse_blocks, coarse_modes) =
+                        tentative(&blocks, &aggregates, &modes);
+                    // Coarsening stalled (every node its own aggregate): solve this level
+                    // directly.
+                    if tentative.cols == 0 || tentative.cols * 10 > a.rows * 9 {
+                        break;
+                    }
+                    let rho = spectral_radius(&a, &diag_inv);
+                    let omega = 4.0 / (3.0 * rho.max(f64::MIN_POSITIVE));
+                    // P = (I − ω D⁻¹ A) T.
+                    let at = a.matmul(&tentative);
+                    (
+                        smooth(&tentative, &at, &diag_inv, omega),
+                        coarse_blocks,
+                        coarse_modes,
+                    )
+                }
+            };
             let r = p.transpose();
             let coarse = r.matmul(&a.matmul(&p));
             levels.push(Level { a, diag_inv, p, r });
@@ -390,10 +415,13 @@ impl MultigridSolver {
     ) {
         // The old hierarchy goes before the new one is built (memory).
         self.hierarchy = None;
-        self.hierarchy = Some(Hierarchy::new(
+        let modes = pattern.near_null_space(x);
+        let first = pattern.linear_coarsening(&modes);
+        self.hierarchy = Some(Hierarchy::with_first(
             csr,
             pattern.node_blocks(),
-            pattern.near_null_space(x),
+            modes,
+            first,
             AmgOptions::default(),
         ));
         self.transposed = transposed;

@@ -51,6 +51,9 @@ pub struct BlockPattern {
     tri_pos: Vec<u32>,
     /// Per node, the value index of entry `i·3 + j` of its diagonal block.
     node_pos: Vec<u32>,
+    /// Quadratic elements: per node, the ends of the edge a mid-edge node sits on (`None` for
+    /// a corner), for the multigrid's first coarsening (quadratic → linear interpolation).
+    edge_ends: Option<Vec<Option<[u32; 2]>>>,
 }
 
 impl BlockPattern {
@@ -168,7 +171,80 @@ impl BlockPattern {
             elem_pos,
             tri_pos,
             node_pos,
+            edge_ends: None,
         })
+    }
+
+    /// Declare the nodes that are mid-edge nodes of quadratic elements (`ends[node]`: the
+    /// edge's corners), so that [`BlockPattern::linear_coarsening`] can interpolate them.
+    pub fn with_edge_ends(mut self, ends: Vec<Option<[u32; 2]>>) -> Self {
+        self.edge_ends = Some(ends);
+        self
+    }
+
+    /// For quadratic elements: the interpolation P from the corners' free dofs to all free
+    /// dofs (a corner's dof is itself, a mid-edge node's the mean of its edge's corners'; a
+    /// fixed corner contributes nothing), the coarse dofs' node blocks, and the near-null
+    /// space `modes` on the corners. `None` for linear elements and for bodies held by pinned
+    /// dofs (their pins need not be corners). The multigrid solver's first coarsening: the
+    /// linear problem on the same mesh, which smoothed aggregation then coarsens.
+    pub fn linear_coarsening(
+        &self,
+        modes: &[Vec<f64>],
+    ) -> Option<(crate::solvers::amg::Csr, Vec<usize>, Vec<Vec<f64>>)> {
+        let ends = self.edge_ends.as_ref()?;
+        if !self.pinned.is_empty() {
+            return None;
+        }
+        // Coarse index of each corner's free dofs, in free-dof order.
+        let mut coarse = vec![NONE; self.dof.len()];
+        let mut corners_fine = Vec::new();
+        for (i, &d) in self.dof.iter().enumerate() {
+            if d != NONE && ends[i / 3].is_none() {
+                coarse[i] = corners_fine.len() as u32;
+                corners_fine.push(d as usize);
+            }
+        }
+        let m = corners_fine.len();
+        let mut rows: Vec<Vec<(u32, f64)>> = vec![Vec::new(); self.n];
+        for (i, &d) in self.dof.iter().enumerate() {
+            if d == NONE {
+                continue;
+            }
+            let (node, comp) = (i / 3, i % 3);
+            rows[d as usize] = match ends[node] {
+                None => vec![(coarse[i], 1.0)],
+                Some([a, b]) => [a, b]
+                    .iter()
+                    .map(|&e| coarse[3 * e as usize + comp])
+                    .filter(|&c| c != NONE)
+                    .map(|c| (c, 0.5))
+                    .collect(),
+            };
+        }
+        let mut ptr = vec![0usize];
+        let (mut idx, mut val) = (Vec::new(), Vec::new());
+        for mut r in rows {
+            r.sort_by_key(|e| e.0);
+            for (c, v) in r {
+                idx.push(c);
+                val.push(v);
+            }
+            ptr.push(idx.len());
+        }
+        let p = crate::solvers::amg::Csr {
+            rows: self.n,
+            cols: m,
+            ptr,
+            idx,
+            val,
+        };
+        let blocks = (0..=m / 3).map(|i| 3 * i).collect();
+        let coarse_modes = modes
+            .iter()
+            .map(|mode| corners_fine.iter().map(|&d| mode[d]).collect())
+            .collect();
+        Some((p, blocks, coarse_modes))
     }
 
     /// Whether the body is free to move rigidly (no fixed node, or fixed nodes at one point or
