@@ -996,7 +996,7 @@ fn auto_factors_small_tangents_and_uses_multigrid_beyond_the_threshold() {
         LinearSolver::Amg
     );
     // Quadratic tangents fill more when factored: multigrid from fewer dofs on.
-    assert!(AUTO_MULTIGRID_DOFS_QUADRATIC < AUTO_MULTIGRID_DOFS);
+    const { assert!(AUTO_MULTIGRID_DOFS_QUADRATIC < AUTO_MULTIGRID_DOFS) };
     assert_eq!(
         auto.resolve(AUTO_MULTIGRID_DOFS_QUADRATIC, Quadratic),
         LinearSolver::Direct
