@@ -31,7 +31,8 @@ pub struct RunArgs {
     #[arg(long, value_name = "NAME")]
     pub adapter: Option<String>,
     /// How static and implicit solves solve Newton's linear systems: `auto` (default) is
-    /// `direct` up to 100,000 free dofs and `amg` beyond; `direct` assembles the sparse
+    /// `direct` up to 100,000 free dofs (20,000 for quadratic elements) and `amg` beyond;
+    /// `direct` assembles the sparse
     /// tangent and factors it on the host; `amg` solves the assembled tangent by conjugate
     /// gradients preconditioned by algebraic multigrid (memory about linear in the mesh);
     /// `krylov` runs matrix-free GMRES on tangent products computed by the backend's kernels
