@@ -30,21 +30,7 @@ impl Variant {
         // Edits as (start, end, replacement), applied back to front.
         let mut edits: Vec<(usize, usize, String)> = Vec::new();
         if let Some(order) = self.order {
-            let (call, args) = ast
-                .items
-                .iter()
-                .find_map(|item| match &item.kind {
-                    ItemKind::Decl {
-                        kind: DeclKind::Mesh,
-                        value,
-                        ..
-                    } => match &value.kind {
-                        ExprKind::Call { args, .. } => Some((value.span, args)),
-                        _ => None,
-                    },
-                    _ => None,
-                })
-                .ok_or("the script's mesh is not `load(\"FILE\")`")?;
+            let (call, args) = mesh_call(&ast)?;
             match args
                 .iter()
                 .find(|a| a.name.as_ref().is_some_and(|n| n.name == "order"))
@@ -61,23 +47,11 @@ impl Variant {
         }
         if let Some(mesh) = &self.mesh {
             let absolute = std::path::absolute(mesh).unwrap_or_else(|_| mesh.clone());
-            let span = ast
-                .items
-                .iter()
-                .find_map(|item| match &item.kind {
-                    ItemKind::Decl {
-                        kind: DeclKind::Mesh,
-                        value,
-                        ..
-                    } => match &value.kind {
-                        ExprKind::Call { args, .. } => args
-                            .first()
-                            .filter(|a| matches!(a.value.kind, ExprKind::Str(_)))
-                            .map(|a| a.value.span),
-                        _ => None,
-                    },
-                    _ => None,
-                })
+            let span = mesh_call(&ast)?
+                .1
+                .first()
+                .filter(|a| matches!(a.value.kind, ExprKind::Str(_)))
+                .map(|a| a.value.span)
                 .ok_or("the script's mesh is not `load(\"FILE\")`")?;
             edits.push((
                 span.start,
@@ -118,5 +92,52 @@ impl Variant {
             text.replace_range(start..end, &with);
         }
         Ok(text)
+    }
+}
+
+/// The script's mesh declaration's call: its span and arguments.
+fn mesh_call(
+    ast: &crate::front::ast::Script,
+) -> Result<(crate::front::ast::Span, &[crate::front::ast::Arg]), String> {
+    ast.items
+        .iter()
+        .find_map(|item| match &item.kind {
+            ItemKind::Decl {
+                kind: DeclKind::Mesh,
+                value,
+                ..
+            } => match &value.kind {
+                ExprKind::Call { args, .. } => Some((value.span, args.as_slice())),
+                _ => None,
+            },
+            _ => None,
+        })
+        .ok_or_else(|| "the script's mesh is not `load(\"FILE\")`".to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SCRIPT: &str = "mesh body = load(\"m.msh\")\nsim { dt = 1 us; steps = 1 }\n";
+
+    #[test]
+    fn a_variant_sets_the_element_order_and_replaces_a_given_one() {
+        let v = Variant {
+            order: Some(2),
+            sim_settings: vec![("precision".into(), "f64".into())],
+            ..Variant::default()
+        };
+        let text = v.apply(SCRIPT).unwrap();
+        assert!(text.contains("load(\"m.msh\", order: 2)"), "{text}");
+        assert!(text.contains("precision = f64"), "{text}");
+        let v1 = Variant {
+            order: Some(1),
+            ..Variant::default()
+        };
+        let again = v1.apply(&text).unwrap();
+        assert!(again.contains("load(\"m.msh\", order: 1)"), "{again}");
+        assert!(!again.contains("order: 2"), "{again}");
+        assert!(!v1.is_empty() && Variant::default().is_empty());
     }
 }

@@ -683,6 +683,21 @@ impl KernelBuilder {
         self.b.arg(i as u32)
     }
 
+    /// The 3-vectors of `buffer` (node × 3) at an entity's first `corners` corners.
+    pub fn corner_vectors(&mut self, buffer: BufferId, corners: u32) -> Vec<[V; 3]> {
+        (0..corners)
+            .map(|corner| {
+                [0, 1, 2].map(|component| {
+                    self.load(ArgSource::Corner {
+                        buffer,
+                        corner,
+                        component,
+                    })
+                })
+            })
+            .collect()
+    }
+
     pub fn uniform(&mut self, name: &str) -> V {
         let id = match self.uniforms.iter().position(|u| u == name) {
             Some(i) => i,

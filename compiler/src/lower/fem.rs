@@ -228,17 +228,7 @@ fn element_kernel(
         (format!("fem_{material}"), format!("material {material}"))
     };
     let mut k = KernelBuilder::new(&name, Domain::Element, &origin);
-    let xs: Vec<[V; 3]> = (0..4)
-        .map(|c| {
-            [0, 1, 2].map(|d| {
-                k.load(ArgSource::Corner {
-                    buffer: bufs.x,
-                    corner: c,
-                    component: d,
-                })
-            })
-        })
-        .collect();
+    let xs = k.corner_vectors(bufs.x, 4);
     // G = Dm⁻¹·Dm⁻ᵀ (symmetric: its upper triangle is stored) and d = det Dm⁻¹.
     const UPPER: [[usize; 3]; 3] = [[0, 1, 2], [1, 3, 4], [2, 4, 5]];
     let g_row: Vec<V> = (0..6)

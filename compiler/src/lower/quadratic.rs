@@ -174,17 +174,7 @@ pub fn element_kernel(
         )
     };
     let mut k = KernelBuilder::new(&name, Domain::Element, &origin);
-    let xs: Vec<[V; 3]> = (0..10)
-        .map(|c| {
-            [0, 1, 2].map(|d| {
-                k.load(ArgSource::Corner {
-                    buffer: bufs.x,
-                    corner: c,
-                    component: d,
-                })
-            })
-        })
-        .collect();
+    let xs = k.corner_vectors(bufs.x, 10);
     let rel: Vec<[V; 3]> = xs
         .iter()
         .map(|x| [0, 1, 2].map(|d| k.b.sub(x[d], xs[0][d])))
@@ -268,17 +258,7 @@ fn combine(b: &mut Builder, rel: &[[V; 3]], grads: &[[f64; 3]; 10], r: usize, c:
 /// The follower-pressure forces of pressure `p` on a 6-node triangle whose node positions are
 /// read from `x_buf`, stored per node in `tri_force` (module docs).
 pub fn store_pressure_forces(k: &mut KernelBuilder, x_buf: BufferId, tri_force: BufferId, p: V) {
-    let xs: Vec<[V; 3]> = (0..6)
-        .map(|c| {
-            [0, 1, 2].map(|d| {
-                k.load(ArgSource::Corner {
-                    buffer: x_buf,
-                    corner: c,
-                    component: d,
-                })
-            })
-        })
-        .collect();
+    let xs = k.corner_vectors(x_buf, 6);
     let rel: Vec<[V; 3]> = xs
         .iter()
         .map(|x| [0, 1, 2].map(|d| k.b.sub(x[d], xs[0][d])))

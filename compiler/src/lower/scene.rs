@@ -642,17 +642,7 @@ fn pressure_kernel(
         super::quadratic::store_pressure_forces(&mut k, x_buf, tri_force, p);
         return Ok(k.finish());
     }
-    let xs: Vec<[V; 3]> = (0..3)
-        .map(|c| {
-            [0, 1, 2].map(|d| {
-                k.load(ArgSource::Corner {
-                    buffer: x_buf,
-                    corner: c,
-                    component: d,
-                })
-            })
-        })
-        .collect();
+    let xs = k.corner_vectors(x_buf, 3);
     let e1 = [0, 1, 2].map(|d| k.b.sub(xs[1][d], xs[0][d]));
     let e2 = [0, 1, 2].map(|d| k.b.sub(xs[2][d], xs[0][d]));
     let cross = |k: &mut KernelBuilder, i: usize, j: usize| {

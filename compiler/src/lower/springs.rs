@@ -109,17 +109,7 @@ pub fn spring_force_kernel(
     let (mut func, d2w) = ad::gradient(func, dw[0], &[lam]);
     func.outputs = vec![d2w[0]];
 
-    let xs: Vec<[V; 3]> = (0..4)
-        .map(|c| {
-            [0, 1, 2].map(|d| {
-                k.load(ArgSource::Corner {
-                    buffer: bufs.x,
-                    corner: c,
-                    component: d,
-                })
-            })
-        })
-        .collect();
+    let xs = k.corner_vectors(bufs.x, 4);
     let vol0 = k.load(ArgSource::Own {
         buffer: bufs.vol0,
         component: 0,
