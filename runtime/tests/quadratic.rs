@@ -206,7 +206,10 @@ fn multigrid_solves_quadratic_tangents_through_the_linear_problem() {
         &[
             ("param beta: rate[4] = 20 /s in [0 /s, 200 /s]\n", ""),
             ("  damping = beta[window(t, 1 ms)]\n", ""),
-            ("  dt = 20 us\n  steps = 200\n", "  integrator = quasi_static\n  duration = 4 ms\n"),
+            (
+                "  dt = 20 us\n  steps = 200\n",
+                "  integrator = quasi_static\n  duration = 4 ms\n",
+            ),
             (" over [0.5 * t_end, t_end]", " at end"),
             (" + (v[n].z * 1 ms)^2", ""),
         ],
@@ -242,4 +245,32 @@ fn multigrid_solves_quadratic_tangents_through_the_linear_problem() {
         .flat_map(|(a, b)| (0..3).map(move |d| (a[d] - b[d]).abs()))
         .fold(0.0, f64::max);
     assert!(diff < 1e-8 * scale, "{diff:e} of {scale:e}");
+}
+
+/// Node sets of a quadratic scene hold the mid-edge nodes they contain: a named surface's
+/// (its 6-node triangles'), a region's (its elements'), a selection by position.
+#[test]
+fn node_sets_of_a_quadratic_scene_include_their_mid_edge_nodes() {
+    let path = all_kinds(
+        "sets.soft",
+        &[(
+            "nodes tip = named(body, \"tip\")\n",
+            "nodes tip = named(body, \"tip\")\nnodes all = tagged(body, 1)\n\
+             nodes far = select(body, x > 59.9 mm)\n",
+        )],
+    );
+    let scene = Scene::load(&path, &[]).unwrap();
+    let set = |name: &str| {
+        let (_, nodes) = scene.node_sets.iter().find(|(n, _)| n == name).unwrap();
+        nodes.clone()
+    };
+    let corners = scene.mesh.tets.iter().flatten().max().unwrap() + 1;
+    assert!(scene.mesh.nodes.len() > corners as usize);
+    assert_eq!(set("all").len(), scene.mesh.nodes.len());
+    let (tip, far) = (set("tip"), set("far"));
+    assert!(
+        tip.iter().any(|&n| n >= corners),
+        "no mid-edge node on the tip"
+    );
+    assert_eq!(tip, far, "the tip face is x = 60 mm");
 }

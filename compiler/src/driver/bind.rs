@@ -34,6 +34,10 @@ pub trait MeshView {
     fn surface_mids(&self, _tag: i32) -> Vec<[u32; 3]> {
         Vec::new()
     }
+    /// The mid-edge nodes of each tet of a quadratic mesh (empty for a linear one).
+    fn tet_mids(&self) -> &[[u32; 6]] {
+        &[]
+    }
     fn node_set(&self, name: &str) -> Option<&[u32]>;
     fn element_set(&self, name: &str) -> Option<&[u32]>;
     /// The mesh file's number of tet `e`, what messages call it (default: `e + 1`).
@@ -351,7 +355,7 @@ fn selection(
         if elements {
             elems
         } else {
-            nodes_of(tets, &elems)
+            nodes_of(tets, mesh.tet_mids(), &elems)
         }
     };
     let second = args.get(1).map(|a| &a.value);
@@ -427,8 +431,10 @@ fn selection(
     })
 }
 
-fn nodes_of(tets: &[[u32; 4]], elems: &[u32]) -> Vec<u32> {
+/// The nodes of elements `elems`: their corners and any mid-edge nodes.
+fn nodes_of(tets: &[[u32; 4]], mids: &[[u32; 6]], elems: &[u32]) -> Vec<u32> {
     let mut n: Vec<u32> = elems.iter().flat_map(|&e| tets[e as usize]).collect();
+    n.extend(elems.iter().filter_map(|&e| mids.get(e as usize)).flatten());
     n.sort_unstable();
     n.dedup();
     n

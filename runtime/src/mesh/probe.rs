@@ -107,6 +107,9 @@ impl softc_compiler::driver::MeshView for super::Mesh {
     fn surface_mids(&self, tag: i32) -> Vec<[u32; 3]> {
         super::Mesh::surface_mids(self, tag)
     }
+    fn tet_mids(&self) -> &[[u32; 6]] {
+        self.mid_edges.as_ref().map_or(&[], |q| q.tets.as_slice())
+    }
     fn node_set(&self, name: &str) -> Option<&[u32]> {
         self.node_sets.get(name).map(Vec::as_slice)
     }
