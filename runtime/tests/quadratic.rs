@@ -274,3 +274,45 @@ fn node_sets_of_a_quadratic_scene_include_their_mid_edge_nodes() {
     );
     assert_eq!(tip, far, "the tip face is x = 60 mm");
 }
+
+/// `area_mean` weighs each node by the integral of its shape function over the boundary
+/// triangles the set covers: on quadratic elements it integrates y² over the 10 × 10 mm tip face
+/// exactly (100/3 mm²); on linear ones it integrates the linear interpolant (100/3 + h²/6 for
+/// the 2.5 mm grid); a plain node mean is neither.
+#[test]
+fn area_mean_integrates_over_the_sets_boundary_surface() {
+    let loss = |order: u32, reduction: &str| {
+        let text =
+            std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
+                .unwrap()
+                .replace(
+                    "load(\"../../../../meshes/bench_1k.msh\")",
+                    &format!(
+                        "load(\"{}/meshes/bench_1k.msh\", order: {order})",
+                        root().display()
+                    ),
+                );
+        let at = text.find("\nloss = ").unwrap();
+        let text = format!(
+            "{}\nloss = {reduction}(n in tip) (x0[n].y / 1 mm)^2\n",
+            &text[..at]
+        );
+        let path = scratch(&format!("area_{order}_{reduction}.soft"));
+        std::fs::write(&path, text).unwrap();
+        let scene = Scene::load(&path, &[]).unwrap();
+        let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
+        Simulation::new(&scene, cpu)
+            .run(None, Some(1))
+            .unwrap()
+            .loss
+            .unwrap()
+    };
+    let exact = 100.0 / 3.0;
+    let quadratic = loss(2, "area_mean");
+    assert!((quadratic - exact).abs() < 1e-12 * exact, "{quadratic}");
+    let linear = loss(1, "area_mean");
+    let interpolant = exact + 2.5 * 2.5 / 6.0;
+    assert!((linear - interpolant).abs() < 1e-12 * exact, "{linear}");
+    let plain = loss(2, "mean");
+    assert!((plain - exact).abs() > 1e-2, "{plain}");
+}

@@ -165,8 +165,21 @@ impl Resolved {
                 start..end
             })
             .collect();
-        let loss = lower_loss(&program, ast, &node_sets, &element_sets)?;
-        let sensors = lower_sensors(&program, ast, &kernels.sensors, &node_sets, &element_sets)?;
+        // Area weights only where a reduction asks for them (a face table of the mesh).
+        let node_weights = if self.source.contains("area_mean") {
+            super::area::area_weights(mesh, &node_sets)
+        } else {
+            Default::default()
+        };
+        let loss = lower_loss(&program, ast, &node_sets, &element_sets, &node_weights)?;
+        let sensors = lower_sensors(
+            &program,
+            ast,
+            &kernels.sensors,
+            &node_sets,
+            &element_sets,
+            &node_weights,
+        )?;
         Ok(Bound {
             order,
             material_ranges,

@@ -178,6 +178,7 @@ pub(super) fn lower_sensors(
     sensors: &[crate::front::ast::Expr],
     node_sets: &[(String, Vec<u32>)],
     element_sets: &[(String, Vec<u32>)],
+    node_weights: &HashMap<String, Vec<f64>>,
 ) -> Result<Vec<SensorKernels>, String> {
     let sim_lets: HashMap<_, _> = (ast.sim_block().iter())
         .filter_map(|s| match &s.kind {
@@ -191,6 +192,7 @@ pub(super) fn lower_sensors(
         lw.runtime_names = vec!["t_end", "dt"];
         lw.sim_lets = sim_lets.clone();
         lw.node_sets = node_sets.iter().cloned().collect();
+        lw.node_weights = node_weights.clone();
         lw.element_sets = element_sets.iter().cloned().collect();
         let mut k = KernelBuilder::new("sensor", Domain::Single, "sensor");
         let value = lw
@@ -230,6 +232,7 @@ pub(super) fn lower_loss(
     ast: &Script,
     node_sets: &[(String, Vec<u32>)],
     element_sets: &[(String, Vec<u32>)],
+    node_weights: &HashMap<String, Vec<f64>>,
 ) -> Result<Option<LossKernels>, String> {
     let Some(decl) = ast.items.iter().find_map(|i| match &i.kind {
         ItemKind::Loss(l) => Some(l),
@@ -240,6 +243,7 @@ pub(super) fn lower_loss(
     let mut lw = ExprLowerer::new(program);
     lw.runtime_names = vec!["t_end", "dt"];
     lw.node_sets = node_sets.iter().cloned().collect::<HashMap<_, _>>();
+    lw.node_weights = node_weights.clone();
     lw.element_sets = element_sets.iter().cloned().collect::<HashMap<_, _>>();
     let mut k = KernelBuilder::new("loss", Domain::Single, "loss");
     let v = lw

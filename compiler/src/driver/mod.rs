@@ -7,6 +7,7 @@
 //! script means (the independent reference oracle reads it through [`Resolved::syntax`], on
 //! purpose).
 
+mod area;
 pub mod bind;
 pub mod loss;
 pub mod plan;

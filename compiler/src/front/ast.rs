@@ -440,6 +440,9 @@ impl BinOp {
 pub enum ReduceOp {
     Sum,
     Mean,
+    /// The mean over the boundary surface a node set covers, each node weighted by the
+    /// integral of its shape function over the set's boundary triangles.
+    AreaMean,
     Max,
     Min,
 }
@@ -449,6 +452,7 @@ impl ReduceOp {
         match self {
             ReduceOp::Sum => "sum",
             ReduceOp::Mean => "mean",
+            ReduceOp::AreaMean => "area_mean",
             ReduceOp::Max => "max",
             ReduceOp::Min => "min",
         }

@@ -1017,6 +1017,7 @@ fn expr(p: Pair<Rule>) -> Result<Built> {
             let op = match it.next().unwrap().as_str() {
                 "sum" => ReduceOp::Sum,
                 "mean" => ReduceOp::Mean,
+                "area_mean" => ReduceOp::AreaMean,
                 "max" => ReduceOp::Max,
                 _ => ReduceOp::Min,
             };

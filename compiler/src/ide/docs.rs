@@ -444,7 +444,7 @@ pub const RESERVED_DOCS: &[(&str, &str)] = &[
 ];
 
 /// Reduction operators (`sum(i in D) body`).
-pub const REDUCTIONS: &[&str] = &["sum", "mean", "max", "min"];
+pub const REDUCTIONS: &[&str] = &["sum", "mean", "area_mean", "max", "min"];
 
 /// Settings with a one-line description.
 pub(super) fn setting_doc(name: &str) -> &'static str {

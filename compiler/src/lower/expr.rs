@@ -166,6 +166,8 @@ pub struct ExprLowerer<'p, 'a> {
     pub runtime_names: Vec<&'static str>,
     /// Node sets by name (for reductions over nodes in losses): node indices.
     pub node_sets: HashMap<String, Vec<u32>>,
+    /// Per node set, each node's area weight (`area_mean`), in the set's order.
+    pub node_weights: HashMap<String, Vec<f64>>,
     /// Element sets by name (for reductions over elements, `mu[e]`): element indices of the
     /// mesh, in the set's order.
     pub element_sets: HashMap<String, Vec<u32>>,
@@ -203,6 +205,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             constants: HashMap::new(),
             runtime_names: Vec::new(),
             node_sets: HashMap::new(),
+            node_weights: HashMap::new(),
             element_sets: HashMap::new(),
             element_fields: HashMap::new(),
             node_binders: HashMap::new(),
@@ -577,6 +580,9 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         body: &Expr,
     ) -> Result<LVal, LowerError> {
         let mut terms = Vec::new();
+        if op == ReduceOp::AreaMean {
+            return self.area_mean(k, env, var, domain, body);
+        }
         if let ExprKind::Name(set) = &domain.kind
             && let Some(elements) = self.element_sets.get(&set.name).cloned()
         {
@@ -644,7 +650,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         let mut acc = first;
         for t in &terms[1..] {
             acc = zip_scalars(k, &acc, t, &mut |k, x, y| match op {
-                ReduceOp::Sum | ReduceOp::Mean => k.b.add(x, y),
+                ReduceOp::Sum | ReduceOp::Mean | ReduceOp::AreaMean => k.b.add(x, y),
                 ReduceOp::Max => k.b.bin(BinOp::Max, x, y),
                 ReduceOp::Min => k.b.bin(BinOp::Min, x, y),
             })?;
@@ -654,6 +660,53 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             acc = map_scalars(k, &acc, &mut |k, x| k.b.scale(1.0 / n, x))?;
         }
         Ok(acc)
+    }
+
+    /// Σ wₙ·body(n) / Σ wₙ over a node set's nodes of nonzero area weight.
+    fn area_mean(
+        &mut self,
+        k: &mut KernelBuilder,
+        env: &Env,
+        var: &Ident,
+        domain: &Expr,
+        body: &Expr,
+    ) -> Result<LVal, LowerError> {
+        let ExprKind::Name(set) = &domain.kind else {
+            return Err(LowerError::new("`area_mean` runs over a node set"));
+        };
+        let (Some(nodes), Some(weights)) = (
+            self.node_sets.get(&set.name).cloned(),
+            self.node_weights.get(&set.name).cloned(),
+        ) else {
+            return Err(LowerError::new(format!(
+                "`area_mean` over `{}` is evaluated only in the loss",
+                set.name
+            )));
+        };
+        let total: f64 = weights.iter().sum();
+        if total <= 0.0 {
+            return Err(LowerError::new(format!(
+                "the node set `{}` covers no whole boundary triangle, so `area_mean` has no \
+                 area to average over; select the nodes of a boundary face (e.g. \
+                 `named(body, \"tip\")`), or use `mean`",
+                set.name
+            )));
+        }
+        let mut acc: Option<LVal> = None;
+        for (node, w) in nodes.into_iter().zip(weights) {
+            if w == 0.0 {
+                continue;
+            }
+            self.node_binders.insert(var.name.clone(), node);
+            let t = self.lower(k, env, body);
+            self.node_binders.remove(&var.name);
+            let t = map_scalars(k, &t?, &mut |k, x| k.b.scale(w / total, x))?;
+            acc = Some(match acc {
+                None => t,
+                Some(a) => zip_scalars(k, &a, &t, &mut |k, x, y| k.b.add(x, y))?,
+            });
+        }
+        Ok(acc.expect("a positive total weight has a term"))
     }
 
     fn call(

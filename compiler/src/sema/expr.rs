@@ -822,6 +822,14 @@ impl Checker {
         let d = self.check_expr(domain);
         let binder = match &d.ty {
             Ty::Error => Typed::error(),
+            other if op == ReduceOp::AreaMean && *other != Ty::Obj(Obj::NodeSet) => {
+                let msg = format!(
+                    "`area_mean` runs over a node set (the boundary surface it covers), found \
+                     {other}"
+                );
+                self.err(Diagnostic::error("E0203", domain.span, msg));
+                Typed::error()
+            }
             Ty::Obj(Obj::NodeSet) => Typed::of(Ty::Obj(Obj::Node), Var::Const),
             Ty::Obj(Obj::ElementSet) => Typed::of(Ty::Obj(Obj::Element), Var::Const),
             Ty::Obj(Obj::Range) => Typed::of(Ty::int(), d.var),
@@ -844,7 +852,7 @@ impl Checker {
                 Ty::Num {
                     dim: *dim,
                     shape: shape.clone(),
-                    int: *int && op != ReduceOp::Mean,
+                    int: *int && !matches!(op, ReduceOp::Mean | ReduceOp::AreaMean),
                 },
                 b.var.max(d.var),
             ),

@@ -65,7 +65,7 @@ fn combine(acc: Option<Val>, term: Val, op: ReduceOp) -> Result<Val, String> {
     match acc {
         None => Ok(term),
         Some(a) => zip(&a, &term, &mut |x, y| match op {
-            ReduceOp::Sum | ReduceOp::Mean => x + y,
+            ReduceOp::Sum | ReduceOp::Mean | ReduceOp::AreaMean => x + y,
             ReduceOp::Max => x.max(y),
             ReduceOp::Min => x.min(y),
         }),
@@ -404,6 +404,13 @@ impl<'a> Evaluator<'a> {
     ) -> Result<Val, String> {
         if self.state.is_none() {
             return Err("a reduction over a node set needs the node state".into());
+        }
+        if op == ReduceOp::AreaMean {
+            return Err(
+                "the reference oracle does not evaluate `area_mean` (a loss it does not \
+                 compare); use `mean` to check a scene against it"
+                    .into(),
+            );
         }
         let mut acc: Option<Val> = None;
         for &node in nodes {
