@@ -316,3 +316,63 @@ fn area_mean_integrates_over_the_sets_boundary_surface() {
     let plain = loss(2, "mean");
     assert!((plain - exact).abs() > 1e-2, "{plain}");
 }
+
+#[test]
+fn quadratic_implicit_euler_gradients_match_central_differences() {
+    let path = all_kinds(
+        "implicit.soft",
+        &[(
+            "  dt = 20 us\n  steps = 200\n",
+            "  dt = 0.5 ms\n  steps = 8\n  integrator = implicit_euler\n",
+        )],
+    );
+    let worst = worst_gradient_error(&path, 1e-4);
+    assert!(worst < 1e-5, "worst relative error {worst:e}");
+}
+
+/// A per-element param (one shear modulus per element of half the beam) on quadratic
+/// elements: its largest gradient entries and the pressure's match central differences.
+#[test]
+fn a_per_element_param_of_quadratic_elements_matches_central_differences() {
+    let text = std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/field.soft"))
+        .unwrap()
+        .replace(
+            "load(\"../../../../meshes/bench_1k.msh\")",
+            &format!(
+                "load(\"{}/meshes/bench_1k.msh\", order: 2)",
+                root().display()
+            ),
+        );
+    assert!(text.contains("order: 2"));
+    let path = scratch("field.soft");
+    std::fs::write(&path, text).unwrap();
+    let scene = Scene::load(&path, &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let g = Simulation::new(&scene, cpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    let mut entries: Vec<(&String, f64)> = g
+        .gradients
+        .iter()
+        .filter(|(n, _)| n.starts_with("param.mu."))
+        .map(|(n, &v)| (n, v))
+        .collect();
+    assert!(entries.len() > 100, "one entry per element of `near`");
+    entries.sort_by(|a, b| b.1.abs().total_cmp(&a.1.abs()));
+    let mut checked: Vec<(&String, f64)> = entries[..3].to_vec();
+    let p0 = "param.p0".to_string();
+    checked.push((&p0, g.gradients[&p0]));
+    for (name, adj) in checked {
+        let p = scene.uniforms[name.as_str()];
+        // One element's modulus moves the loss little: a larger step keeps round-off out.
+        let h = if name.starts_with("param.mu.") {
+            1e-3
+        } else {
+            1e-4
+        } * p.abs();
+        let fd = (loss_with(&scene, name, p + h) - loss_with(&scene, name, p - h)) / (2.0 * h);
+        let err = (adj - fd).abs() / fd.abs();
+        eprintln!("{name}: adjoint {adj:e}, central {fd:e}, relative {err:.1e}");
+        assert!(err < 1e-5, "{name}: adjoint {adj:e}, central {fd:e}");
+    }
+}
