@@ -149,7 +149,7 @@ impl FemBuffers {
             crate::ir::ElementOrder::Quadratic => m.buffer(
                 "rest_shape",
                 Domain::Element,
-                4 * super::quadratic::REST_PER_POINT,
+                super::quadratic::tet_rule().len() as u32 * super::quadratic::REST_PER_POINT,
                 "per quadrature point: Dm^-1 Dm^-T (G00 G01 G02 G11 G12 G22, 1/m^2), \
                  det Dm^-1 (1/m^3) and its volume w*det Dm (m^3)",
             ),

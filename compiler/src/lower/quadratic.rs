@@ -17,7 +17,11 @@
 //! **Quadrature.** The 4-point rule of degree 2 (points (a, b, b, b) and permutations,
 //! a = (5 + 3√5)/20, b = (5 − √5)/20, weight 1/24 each): exact for the stiffness of a
 //! straight-sided element at small strain (∇N·∇N is of degree 2), the rule Abaqus' C3D10,
-//! FEBio and SfePy use by default. The rest data per point (G_q, det Dm_q⁻¹, V_q) is computed
+//! FEBio and SfePy use by default. Measured against Stroud's 27-point conical product rule of
+//! degree 3 (the verification cuboid at 20 kPa, 46.7k dofs, static): the tip's area mean moves
+//! by 5.6e-6 relative (−0.2328209 against −0.2328196 mm), three orders of magnitude below the
+//! mesh's discretization error (4.9 %), at a seventh of the element cost. The buffer widths
+//! follow [`tet_rule`]'s length. The rest data per point (G_q, det Dm_q⁻¹, V_q) is computed
 //! by the runtime from the element's 10 rest positions ([`quadratic_rest_shape`]), so curved
 //! elements are integrated on their own geometry.
 //!
@@ -126,7 +130,7 @@ pub fn triangle_shape(l: [f64; 3]) -> ([f64; 6], [[f64; 2]; 6]) {
 /// point, the upper triangle of G = Dm_q⁻¹·Dm_q⁻ᵀ, det Dm_q⁻¹ and V_q = w_q·det Dm_q. `None`
 /// when a point's Jacobian is not positive (an inverted or degenerate curved element).
 pub fn quadratic_rest_shape(x: &[[f64; 3]; 10]) -> Option<Vec<f64>> {
-    let mut out = Vec::with_capacity(4 * REST_PER_POINT as usize);
+    let mut out = Vec::with_capacity(tet_rule().len() * REST_PER_POINT as usize);
     for (l, w) in tet_rule() {
         let g = tet_shape_gradients(l);
         // Dm[r][c] = Σₐ (Xₐ − X₀)[r]·∂Nₐ/∂ξ_c
