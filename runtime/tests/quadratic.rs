@@ -100,15 +100,15 @@ fn a_coarse_quadratic_cantilever_bends_as_beam_theory_says_where_linear_tets_loc
     );
 }
 
-/// The gradient tests' every-param-kind scene on quadratic elements.
-fn all_kinds(name: &str, edits: &[(&str, &str)]) -> PathBuf {
+/// The gradient tests' every-param-kind scene with elements of `order`, `edits` applied.
+fn every_kind(order: u32, name: &str, edits: &[(&str, &str)]) -> PathBuf {
     let mut text =
         std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
             .unwrap()
             .replace(
                 "load(\"../../../../meshes/bench_1k.msh\")",
                 &format!(
-                    "load(\"{}/meshes/bench_1k.msh\", order: 2)",
+                    "load(\"{}/meshes/bench_1k.msh\", order: {order})",
                     root().display()
                 ),
             );
@@ -116,11 +116,29 @@ fn all_kinds(name: &str, edits: &[(&str, &str)]) -> PathBuf {
         assert!(text.contains(from), "{from}");
         text = text.replace(from, to);
     }
-    assert!(text.contains("order: 2"));
+    assert!(text.contains(&format!("order: {order}")));
     let path = scratch(name);
     std::fs::write(&path, text).unwrap();
     path
 }
+
+/// The every-param-kind scene on quadratic elements.
+fn all_kinds(name: &str, edits: &[(&str, &str)]) -> PathBuf {
+    every_kind(2, name, edits)
+}
+
+/// The every-param-kind scene as one static solve: damping has no effect there (its window
+/// params go), the controller and the material stay.
+const STATIC: [(&str, &str); 5] = [
+    ("param beta: rate[4] = 20 /s in [0 /s, 200 /s]\n", ""),
+    ("  damping = beta[window(t, 1 ms)]\n", ""),
+    (
+        "  dt = 20 us\n  steps = 200\n",
+        "  integrator = quasi_static\n  duration = 4 ms\n",
+    ),
+    (" over [0.5 * t_end, t_end]", " at end"),
+    (" + (v[n].z * 1 ms)^2", ""),
+];
 
 fn loss_with(scene: &Scene, uniform: &str, value: f64) -> f64 {
     let module = match scene.lowered.statics {
@@ -163,21 +181,7 @@ fn quadratic_explicit_gradients_of_every_param_kind_match_central_differences() 
 
 #[test]
 fn quadratic_static_gradients_match_central_differences() {
-    // The same params through one static solve (damping has no effect there: its window
-    // params are dropped, the controller and the material stay).
-    let path = all_kinds(
-        "static.soft",
-        &[
-            ("param beta: rate[4] = 20 /s in [0 /s, 200 /s]\n", ""),
-            ("  damping = beta[window(t, 1 ms)]\n", ""),
-            (
-                "  dt = 20 us\n  steps = 200\n",
-                "  integrator = quasi_static\n  duration = 4 ms\n",
-            ),
-            (" over [0.5 * t_end, t_end]", " at end"),
-            (" + (v[n].z * 1 ms)^2", ""),
-        ],
-    );
+    let path = all_kinds("static.soft", &STATIC);
     let worst = worst_gradient_error(&path, 1e-4);
     assert!(worst < 1e-5, "worst relative error {worst:e}");
 }
@@ -201,19 +205,7 @@ fn the_interpreter_and_cranelift_step_quadratic_elements_to_the_same_bits() {
 #[test]
 fn multigrid_solves_quadratic_tangents_through_the_linear_problem() {
     use softc::engine::statics::LinearSolver;
-    let path = all_kinds(
-        "multigrid.soft",
-        &[
-            ("param beta: rate[4] = 20 /s in [0 /s, 200 /s]\n", ""),
-            ("  damping = beta[window(t, 1 ms)]\n", ""),
-            (
-                "  dt = 20 us\n  steps = 200\n",
-                "  integrator = quasi_static\n  duration = 4 ms\n",
-            ),
-            (" over [0.5 * t_end, t_end]", " at end"),
-            (" + (v[n].z * 1 ms)^2", ""),
-        ],
-    );
+    let path = all_kinds("multigrid.soft", &STATIC);
     let scene = Scene::load(&path, &[]).unwrap();
     let solve = |linear: LinearSolver| {
         let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
@@ -282,23 +274,15 @@ fn node_sets_of_a_quadratic_scene_include_their_mid_edge_nodes() {
 #[test]
 fn area_mean_integrates_over_the_sets_boundary_surface() {
     let loss = |order: u32, reduction: &str| {
-        let text =
-            std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
-                .unwrap()
-                .replace(
-                    "load(\"../../../../meshes/bench_1k.msh\")",
-                    &format!(
-                        "load(\"{}/meshes/bench_1k.msh\", order: {order})",
-                        root().display()
-                    ),
-                );
-        let at = text.find("\nloss = ").unwrap();
-        let text = format!(
-            "{}\nloss = {reduction}(n in tip) (x0[n].y / 1 mm)^2\n",
-            &text[..at]
+        let path = every_kind(
+            order,
+            &format!("area_{order}_{reduction}.soft"),
+            &[(
+                "loss = sum(n in tip) ((x[n].z - x0[n].z + 0.1 mm)^2 + (v[n].z * 1 ms)^2) \
+                 over [0.5 * t_end, t_end]",
+                &format!("loss = {reduction}(n in tip) (x0[n].y / 1 mm)^2"),
+            )],
         );
-        let path = scratch(&format!("area_{order}_{reduction}.soft"));
-        std::fs::write(&path, text).unwrap();
         let scene = Scene::load(&path, &[]).unwrap();
         let cpu = Cpu::new(&scene.lowered.module, Precision::F64, Some(1)).unwrap();
         Simulation::new(&scene, cpu)
