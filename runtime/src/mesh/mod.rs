@@ -44,7 +44,8 @@ use std::path::Path;
 
 pub use error::{MeshError, MeshErrorKind};
 pub use model::{
-    BoundaryFace, LengthUnit, LoadReport, Mesh, MidEdges, PhysicalName, signed_volume,
+    BoundaryFace, LengthUnit, LoadReport, Mesh, MidEdges, PhysicalName, QUAD_TET_EDGES,
+    signed_volume,
 };
 pub use precompute::{Edge, NodeElementCsr, Precomputed, SurfaceTris};
 pub use quality::QualityReport;

@@ -357,9 +357,13 @@ fn refined_mesh(
             k.n = k.n.map(|n| ((n as f64 * factor).round() as usize).max(1));
             None
         }
+        // The extruded mesher's resolution is its wall edge (interior and layer scale alike).
         None => Some(
-            spec.resolution
-                .ok_or("the mesh spec has neither [kuhn] nor `resolution`")?
+            spec.extrude
+                .as_ref()
+                .map(|x| x.wall)
+                .or(spec.resolution)
+                .ok_or("the mesh spec has none of [kuhn], [extrude] and `resolution`")?
                 / factor,
         ),
     };

@@ -34,8 +34,13 @@
 //! max = [10, 10, 10]
 //! # [kuhn] n = [12, 4, 4]  → structured Kuhn grid instead (box body, ≤ 1 box cavity);
 //! #   a resolution override h then sets n = round(extent / h) per axis
+//! # [extrude] wall = 0.75, interior = 1.5, layer = 2.0 → boundary-conforming extrusion
+//! #   (cylinder/box body and cavities parallel to one axis); a resolution override sets
+//! #   wall = h and scales interior and layer alike
+//! # order = 2 → 10-node tets; mid-edge nodes of curved boundaries on the exact surface
 //! ```
 
+pub mod extrude;
 pub mod sdf;
 pub mod stuffing;
 
@@ -113,6 +118,10 @@ pub struct MeshSpec {
     pub base: Option<TagSpec>,
     pub tip: Option<TagSpec>,
     pub kuhn: Option<KuhnSection>,
+    /// Boundary-conforming extrusion instead of isosurface stuffing.
+    pub extrude: Option<extrude::ExtrudeSection>,
+    /// Element order: 1 (4-node tets, the default) or 2 (10-node tets).
+    pub order: Option<u32>,
     /// Parts of the solid with their own region tag (materials): tets whose centroid lies
     /// inside the shape get `tag`; later entries win.
     #[serde(default)]
@@ -245,6 +254,11 @@ pub fn generate(
         name: "solid".into(),
         axis: None,
     });
+    let quadratic = match spec.order.unwrap_or(1) {
+        1 => false,
+        2 => true,
+        o => return Err(MeshError::spec(format!("order {o} must be 1 or 2"))),
+    };
     let base_axis = spec.base.as_ref().map(TagSpec::axis_index).transpose()?;
     let tip_axis = spec.tip.as_ref().map(TagSpec::axis_index).transpose()?;
     let body = shape_of(&spec.body, "body", base_dir, unit)?;
@@ -320,6 +334,9 @@ pub fn generate(
         retag_all(&mut mesh, &map);
         retag_region(&mut mesh, &region);
         apply_subregions(&mut mesh, &subregions, s);
+        if quadratic {
+            mesh = mesh.with_mid_edges();
+        }
         return Ok(Generated {
             mesh,
             reference_volume,
@@ -327,64 +344,56 @@ pub fn generate(
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
-    let h = resolution.or(spec.resolution).ok_or_else(|| {
-        MeshError::spec("no `resolution` (lattice spacing) in the spec or on the command line")
-    })?;
-    let (lo, hi) = body.bbox();
-    let ext = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
-    if !(h > 0.0 && h.is_finite()) || ext / h > 2000.0 {
-        return Err(MeshError::spec(format!(
-            "resolution {h} is not usable for a body of size {ext} (need 0 < h and size/h ≤ 2000)"
-        )));
-    }
-    let f = |p: [f64; 3]| {
-        let mut d = body.sdf(p);
-        for (c, _, _) in &cavities {
-            d = d.max(-c.sdf(p));
+    let (mut mesh, extruded, h) = if let Some(x) = &spec.extrude {
+        // A resolution override is the new wall edge; interior and layer scale with it.
+        let scale = match resolution {
+            Some(h) if h > 0.0 && h.is_finite() => h / x.wall,
+            Some(h) => return Err(MeshError::spec(format!("resolution {h} must be > 0"))),
+            None => 1.0,
+        };
+        let shapes: Vec<&Shape> = cavities.iter().map(|c| &c.0).collect();
+        let ex = extrude::extrude(&body, &shapes, base_axis.unwrap_or(0), x, scale)?;
+        let mesh = Mesh::from_tets(ex.nodes.clone(), ex.tets.clone());
+        (mesh, Some(ex), x.wall * scale)
+    } else {
+        let h = resolution.or(spec.resolution).ok_or_else(|| {
+            MeshError::spec("no `resolution` (lattice spacing) in the spec or on the command line")
+        })?;
+        let (lo, hi) = body.bbox();
+        let ext = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
+        if !(h > 0.0 && h.is_finite()) || ext / h > 2000.0 {
+            return Err(MeshError::spec(format!(
+                "resolution {h} is not usable for a body of size {ext} (need 0 < h and size/h ≤ 2000)"
+            )));
         }
-        d
+        let f = |p: [f64; 3]| {
+            let mut d = body.sdf(p);
+            for (c, _, _) in &cavities {
+                d = d.max(-c.sdf(p));
+            }
+            d
+        };
+        let st = stuffing::stuff(&f, lo, hi, h);
+        (Mesh::from_tets(st.nodes, st.tets), None, h)
     };
-    let st = stuffing::stuff(&f, lo, hi, h);
-    let mut mesh = Mesh::from_tets(st.nodes, st.tets);
     mesh.tet_tags = vec![region.tag; mesh.tets.len()];
     mesh.set_name(3, region.tag, &region.name);
-    // Tag boundary faces by the closest surface at their centroid.
-    let tol = 1e-6 * h;
-    for bf in mesh.boundary_faces() {
-        let p = bf.nodes.map(|n| mesh.nodes[n as usize]);
-        let c = [
-            (p[0][0] + p[1][0] + p[2][0]) / 3.0,
-            (p[0][1] + p[1][1] + p[2][1]) / 3.0,
-            (p[0][2] + p[1][2] + p[2][2]) / 3.0,
-        ];
-        let mut best = (body.sdf(c).abs(), 0i32);
-        for (cs, tag, _) in &cavities {
-            let d = cs.sdf(c).abs();
-            if d < best.0 {
-                best = (d, *tag);
-            }
-        }
-        let inward = [bf.nodes[0], bf.nodes[2], bf.nodes[1]];
-        let tag = if best.1 != 0 {
-            Some(best.1)
-        } else if let Some(b) = spec.base.as_ref().filter(|_| {
-            let a = base_axis.unwrap_or(0);
-            p.iter().all(|q| (q[a] - lo[a]).abs() < tol)
-        }) {
-            Some(b.tag)
-        } else {
-            spec.tip
-                .as_ref()
-                .filter(|_| {
-                    let a = tip_axis.unwrap_or(0);
-                    p.iter().all(|q| (q[a] - hi[a]).abs() < tol)
-                })
-                .map(|t| t.tag)
-        };
-        if let Some(t) = tag {
-            mesh.tris.push(inward);
-            mesh.tri_tags.push(t);
-        }
+    let shapes: Vec<(&Shape, i32)> = cavities.iter().map(|(c, t, _)| (c, *t)).collect();
+    let planes = [
+        spec.base.as_ref().map(|b| (b.tag, base_axis.unwrap_or(0))),
+        spec.tip.as_ref().map(|t| (t.tag, tip_axis.unwrap_or(0))),
+    ];
+    tag_boundary(&mut mesh, &body, &shapes, planes, 1e-6 * h);
+    if quadratic {
+        mesh = mesh.with_mid_edges();
+        let tol = 1e-4 * h;
+        let nodes = mesh.nodes.clone();
+        curve_boundary_mids(&mut mesh, &|a, b, mid| match &extruded {
+            Some(ex) => ex.arc_midpoint(a, b, mid),
+            None => std::iter::once(&body)
+                .chain(cavities.iter().map(|c| &c.0))
+                .find_map(|sh| sh.arc_point(nodes[a as usize], nodes[b as usize], mid, tol)),
+        });
     }
     for (_, tag, name) in &cavities {
         mesh.set_name(2, *tag, name);
@@ -407,6 +416,69 @@ pub fn generate(
         cavity_volumes,
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// Tag the boundary faces of a linear mesh (spec units): each face goes to the closest of the
+/// body and the cavities at its centroid; a cavity's faces get its tag (wound into the solid),
+/// the body's faces on the base or tip plane (`(tag, axis)`: the min or max plane of the body's
+/// bounding box along the axis) get that tag, other body faces none.
+fn tag_boundary(
+    mesh: &mut Mesh,
+    body: &Shape,
+    cavities: &[(&Shape, i32)],
+    planes: [Option<(i32, usize)>; 2],
+    tol: f64,
+) {
+    let (lo, hi) = body.bbox();
+    for bf in mesh.boundary_faces() {
+        let p = bf.nodes.map(|n| mesh.nodes[n as usize]);
+        let c = [0, 1, 2].map(|k| (p[0][k] + p[1][k] + p[2][k]) / 3.0);
+        let mut best = (body.sdf(c).abs(), 0i32);
+        for (cs, tag) in cavities {
+            let d = cs.sdf(c).abs();
+            if d < best.0 {
+                best = (d, *tag);
+            }
+        }
+        let on_plane = |(tag, a): (i32, usize), at: f64| {
+            p.iter().all(|q| (q[a] - at).abs() < tol).then_some(tag)
+        };
+        let tag = if best.1 != 0 {
+            Some(best.1)
+        } else {
+            planes[0]
+                .and_then(|b| on_plane(b, lo[b.1]))
+                .or_else(|| planes[1].and_then(|t| on_plane(t, hi[t.1])))
+        };
+        if let Some(t) = tag {
+            mesh.tris.push([bf.nodes[0], bf.nodes[2], bf.nodes[1]]);
+            mesh.tri_tags.push(t);
+        }
+    }
+}
+
+/// Move the mid-edge nodes of boundary edges of a quadratic mesh to where `place(a, b, mid)`
+/// says the edge `a`–`b` runs on the exact geometry (None: keep the straight edge).
+fn curve_boundary_mids(mesh: &mut Mesh, place: &dyn Fn(u32, u32, [f64; 3]) -> Option<[f64; 3]>) {
+    let Some(mids) = mesh.mid_edges.as_ref() else {
+        return;
+    };
+    let mut moves = Vec::new();
+    for bf in mesh.boundary_faces() {
+        let (tet, tm) = (mesh.tets[bf.tet as usize], mids.tets[bf.tet as usize]);
+        for (k, e) in super::model::QUAD_TET_EDGES.iter().enumerate() {
+            let (a, b) = (tet[e[0]], tet[e[1]]);
+            if bf.nodes.contains(&a) && bf.nodes.contains(&b) {
+                let m = tm[k];
+                if let Some(p) = place(a, b, mesh.nodes[m as usize]) {
+                    moves.push((m, p));
+                }
+            }
+        }
+    }
+    for (m, p) in moves {
+        mesh.nodes[m as usize] = p;
+    }
 }
 
 /// Replace surface tags `from → (to, name)` all at once (no collisions between old and new).

@@ -204,6 +204,45 @@ impl Shape {
         }
     }
 
+    /// Where the mid-edge node `mid` of a boundary edge `p`–`q` belongs on this shape's exact
+    /// surface: on a sphere, or on a cylinder's curved side, when both ends lie on it (within
+    /// `tol`) and the edge spans at most 60° around the centre or axis (a longer edge is a
+    /// chord across a face, not a piece of the curve). None for flat faces, which straight
+    /// edges already follow.
+    pub fn arc_point(&self, p: [f64; 3], q: [f64; 3], mid: [f64; 3], tol: f64) -> Option<[f64; 3]> {
+        let close = |a: [f64; 3], b: [f64; 3]| dot(a, b) >= 0.5 * norm(a) * norm(b);
+        match self {
+            Shape::Sphere { c, r } => {
+                let (dp, dq, dm) = (sub(p, *c), sub(q, *c), sub(mid, *c));
+                let on = |d: [f64; 3]| (norm(d) - r).abs() <= tol;
+                (on(dp) && on(dq) && close(dp, dq)).then(|| {
+                    let k = r / norm(dm);
+                    [c[0] + dm[0] * k, c[1] + dm[1] * k, c[2] + dm[2] * k]
+                })
+            }
+            Shape::Cylinder { a, b, r } => {
+                let ax = sub(*b, *a);
+                let len = norm(ax);
+                let u = [ax[0] / len, ax[1] / len, ax[2] / len];
+                // The radial part of a point and its position along the axis.
+                let radial = |x: [f64; 3]| {
+                    let d = sub(x, *a);
+                    let t = dot(d, u);
+                    (sub(d, [u[0] * t, u[1] * t, u[2] * t]), t)
+                };
+                let ((rp, tp), (rq, tq), (rm, tm)) = (radial(p), radial(q), radial(mid));
+                let on = |rad: [f64; 3], t: f64| {
+                    (norm(rad) - r).abs() <= tol && t >= -tol && t <= len + tol
+                };
+                (on(rp, tp) && on(rq, tq) && close(rp, rq) && norm(rm) > 0.0).then(|| {
+                    let k = r / norm(rm);
+                    [0, 1, 2].map(|i| a[i] + u[i] * tm + rm[i] * k)
+                })
+            }
+            Shape::Box { .. } | Shape::Surface(_) => None,
+        }
+    }
+
     /// Exact enclosed volume.
     pub fn volume(&self) -> f64 {
         match self {

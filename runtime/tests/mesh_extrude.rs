@@ -1,0 +1,280 @@
+//! The extruded mesher (`[extrude]`) and quadratic mesh generation (`order = 2`): conforming,
+//! positive, reproducible meshes whose chamber walls get the elements asked for, outline
+//! vertices and (order 2) mid-edge nodes on the exact curved surfaces, clear spec errors.
+
+use std::path::Path;
+
+use softc::mesh::mesher::{Generated, MeshSpec, Shape, generate};
+use softc::mesh::{Mesh, has_errors};
+
+/// A short soft-endoscope section (mm): radius 9, three chambers of radius 2.5 whose axes lie
+/// 5 from the body axis (1.5 mm outer walls), x in [0, 20], chambers x in [2, 18].
+fn endoscope_spec(wall: f64, order: u32) -> String {
+    let mut s = format!(
+        "unit = \"mm\"\norder = {order}\n[extrude]\nwall = {wall}\ninterior = {}\nlayer = {}\n\
+         [body]\nshape = \"cylinder\"\nstart = [0, 0, 0]\nend = [20, 0, 0]\nradius = 9\n",
+        2.0 * wall,
+        2.0 * wall
+    );
+    for (k, deg) in [30.0f64, 150.0, 270.0].iter().enumerate() {
+        let (y, z) = (5.0 * deg.to_radians().cos(), 5.0 * deg.to_radians().sin());
+        s += &format!(
+            "[[cavity]]\nname = \"c{}\"\ntag = {}\nshape = \"cylinder\"\nstart = [2, {y}, {z}]\n\
+             end = [18, {y}, {z}]\nradius = 2.5\n",
+            k + 1,
+            k + 1
+        );
+    }
+    s + "[base]\ntag = 10\nname = \"base\"\n[tip]\ntag = 11\nname = \"tip\"\n"
+}
+
+fn generate_text(text: &str, resolution: Option<f64>) -> Result<Generated, String> {
+    let spec = MeshSpec::from_toml(text, Path::new("test.toml")).map_err(|e| e.to_string())?;
+    generate(&spec, resolution, Path::new(".")).map_err(|e| e.to_string())
+}
+
+/// Chamber `k`'s exact cylinder, in metres.
+fn chamber(k: usize) -> Shape {
+    let deg = [30.0f64, 150.0, 270.0][k].to_radians();
+    let (y, z) = (5e-3 * deg.cos(), 5e-3 * deg.sin());
+    Shape::Cylinder {
+        a: [2e-3, y, z],
+        b: [18e-3, y, z],
+        r: 2.5e-3,
+    }
+}
+
+fn body() -> Shape {
+    Shape::Cylinder {
+        a: [0.0; 3],
+        b: [20e-3, 0.0, 0.0],
+        r: 9e-3,
+    }
+}
+
+/// Nodes of the boundary faces that lie on the body's curved outer surface.
+fn outer_nodes(m: &Mesh) -> std::collections::BTreeSet<u32> {
+    m.boundary_faces()
+        .iter()
+        .flat_map(|f| f.nodes)
+        .filter(|&n| {
+            let p = m.nodes[n as usize];
+            ((p[1] * p[1] + p[2] * p[2]).sqrt() - 9e-3).abs() < 1e-9
+        })
+        .collect()
+}
+
+#[test]
+fn an_extruded_endoscope_is_conforming_with_two_elements_through_every_wall() {
+    let g = generate_text(&endoscope_spec(0.75, 1), None).unwrap();
+    let m = &g.mesh;
+    let issues = m.validate();
+    assert!(!has_errors(&issues), "{issues:?}");
+    for e in 0..m.tets.len() {
+        assert!(m.tet_volume(e) > 0.0, "tet {e} is not positive");
+    }
+    // Watertight: every boundary edge joins exactly two boundary faces.
+    let mut edges: Vec<(u32, u32)> = m
+        .boundary_faces()
+        .iter()
+        .flat_map(|f| (0..3).map(move |k| (f.nodes[k], f.nodes[(k + 1) % 3])))
+        .map(|(a, b)| (a.min(b), a.max(b)))
+        .collect();
+    edges.sort_unstable();
+    for w in edges.chunks(2) {
+        assert!(
+            w.len() == 2 && w[0] == w[1],
+            "boundary edge {:?} is open",
+            w[0]
+        );
+    }
+    assert_eq!(m.chamber_tags(), vec![1, 2, 3]);
+    // Every chamber vertex lies on its exact cylinder (side or cap).
+    for k in 0..3 {
+        let c = chamber(k);
+        for n in m.surface_nodes(k as i32 + 1) {
+            let d = c.sdf(m.nodes[n as usize]).abs();
+            assert!(d < 1e-12, "c{}: node {n} is {d} m off the cylinder", k + 1);
+        }
+    }
+    // Inscribed polygons: the solid is slightly larger than the exact one, the chambers
+    // slightly smaller (by the chords' sagitta, under 1.5 % at 0.75 mm on a 2.5 mm radius).
+    let q = m.quality(Some(g.reference_volume));
+    let err = q.volume_error.unwrap();
+    assert!(err > 0.0 && err < 0.005, "solid volume error {err}");
+    for (tag, exact) in &g.cavity_volumes {
+        let e = (m.enclosed_volume(*tag) - exact) / exact;
+        assert!(e < 0.0 && e > -0.015, "chamber {tag} volume error {e}");
+    }
+    // Two elements through each 1.5 mm outer wall: no tet touches both a chamber and the
+    // outer surface.
+    let outer = outer_nodes(m);
+    for k in 1..=3 {
+        let inner: std::collections::BTreeSet<u32> = m.surface_nodes(k).into_iter().collect();
+        for t in &m.tets {
+            assert!(
+                !(t.iter().any(|n| inner.contains(n)) && t.iter().any(|n| outer.contains(n))),
+                "tet {t:?} spans the wall of c{k}"
+            );
+        }
+    }
+    // The base and tip planes are tagged and named node sets.
+    assert!(
+        m.node_sets["base"]
+            .iter()
+            .all(|&n| m.nodes[n as usize][0] == 0.0)
+    );
+    assert!(
+        m.node_sets["tip"]
+            .iter()
+            .all(|&n| m.nodes[n as usize][0] == 20e-3)
+    );
+    // Reproducible to the bit.
+    let again = generate_text(&endoscope_spec(0.75, 1), None).unwrap().mesh;
+    assert_eq!(again.nodes, m.nodes);
+    assert_eq!(again.tets, m.tets);
+    assert_eq!(again.tris, m.tris);
+}
+
+#[test]
+fn a_resolution_override_refines_the_walls() {
+    let fine = generate_text(&endoscope_spec(0.75, 1), Some(0.5)).unwrap();
+    let coarse = generate_text(&endoscope_spec(0.75, 1), Some(1.5)).unwrap();
+    let base = generate_text(&endoscope_spec(0.75, 1), None).unwrap();
+    assert!(fine.mesh.tets.len() > 2 * base.mesh.tets.len());
+    assert!(coarse.mesh.tets.len() * 4 < base.mesh.tets.len());
+    // Finer outlines: closer chamber volumes.
+    let err = |g: &Generated| {
+        let (tag, exact) = g.cavity_volumes[0];
+        (g.mesh.enclosed_volume(tag) - exact).abs() / exact
+    };
+    assert!(err(&fine) < err(&base) && err(&base) < err(&coarse));
+    assert!(!has_errors(&coarse.mesh.validate()));
+}
+
+#[test]
+fn quadratic_generation_puts_curved_mid_edge_nodes_on_the_exact_surfaces() {
+    let g = generate_text(&endoscope_spec(1.0, 2), None).unwrap();
+    let m = &g.mesh;
+    assert!(m.is_quadratic());
+    let issues = m.validate();
+    assert!(!has_errors(&issues), "{issues:?}");
+    // Every node of every chamber triangle, corners and mid-edge nodes, on its cylinder: the
+    // chords of the outline are arcs now.
+    for k in 0..3 {
+        let c = chamber(k);
+        let tris = m.surface_mids(k as i32 + 1);
+        assert!(!tris.is_empty());
+        for n in tris.iter().flatten() {
+            let d = c.sdf(m.nodes[*n as usize]).abs();
+            assert!(
+                d < 1e-12,
+                "c{}: mid-edge node {n} is {d} m off the cylinder",
+                k + 1
+            );
+        }
+    }
+    // The outer surface's mid-edge nodes too (the untagged body surface).
+    let mids = m.mid_edges.as_ref().unwrap();
+    let outer = outer_nodes(m);
+    let b = body();
+    let mut curved = 0;
+    for (t, tm) in m.tets.iter().zip(&mids.tets) {
+        for (e, &mid) in softc::mesh::QUAD_TET_EDGES.iter().zip(tm) {
+            let (p, q) = (t[e[0]], t[e[1]]);
+            let (pp, qq) = (m.nodes[p as usize], m.nodes[q as usize]);
+            // An outline chord of the outer circle: both ends on it, in one or two sections,
+            // less than 10° apart.
+            let angle = |x: [f64; 3]| x[2].atan2(x[1]);
+            if outer.contains(&p)
+                && outer.contains(&q)
+                && (angle(pp) - angle(qq)).abs() < 10f64.to_radians()
+                && angle(pp) != angle(qq)
+            {
+                let d = b.sdf(m.nodes[mid as usize]).abs();
+                assert!(
+                    d < 1e-12,
+                    "outer mid-edge node {mid} is {d} m off the cylinder"
+                );
+                curved += 1;
+            }
+        }
+    }
+    assert!(curved > 100, "{curved} curved outer edges");
+    // Straight-sided interior edges keep their midpoints.
+    let interior = m
+        .tets
+        .iter()
+        .zip(&mids.tets)
+        .flat_map(|(t, tm)| {
+            softc::mesh::QUAD_TET_EDGES
+                .iter()
+                .zip(tm)
+                .map(move |(e, &n)| (t[e[0]], t[e[1]], n))
+        })
+        .filter(|(p, q, _)| !outer.contains(p) || !outer.contains(q))
+        .filter(|(p, q, n)| {
+            let (a, b, c) = (
+                m.nodes[*p as usize],
+                m.nodes[*q as usize],
+                m.nodes[*n as usize],
+            );
+            (0..3).all(|k: usize| (0.5 * (a[k] + b[k]) - c[k]).abs() < 1e-15f64)
+        })
+        .count();
+    assert!(
+        interior > m.tets.len(),
+        "{interior} straight interior edges"
+    );
+}
+
+#[test]
+fn quadratic_stuffed_spheres_have_their_chamber_mid_edge_nodes_on_the_sphere() {
+    let g = generate_text(
+        "resolution = 2.5\norder = 2\n[body]\nshape = \"sphere\"\ncenter = [0, 0, 0]\nradius = 10\n\
+         [[cavity]]\nname = \"inner\"\ntag = 2\nshape = \"sphere\"\ncenter = [0, 0, 0]\nradius = 5\n",
+        None,
+    )
+    .unwrap();
+    let m = &g.mesh;
+    assert!(m.is_quadratic());
+    assert!(!has_errors(&m.validate()));
+    let inner = Shape::Sphere {
+        c: [0.0; 3],
+        r: 5e-3,
+    };
+    let mids = m.surface_mids(2);
+    assert!(!mids.is_empty());
+    for n in mids.iter().flatten() {
+        let d = inner.sdf(m.nodes[*n as usize]).abs();
+        assert!(d < 1e-9, "mid-edge node {n} is {d} m off the sphere");
+    }
+}
+
+#[test]
+fn extrusion_refuses_what_it_cannot_mesh_with_a_clear_message() {
+    // A chamber that cuts through the outer wall.
+    let crossing = endoscope_spec(0.75, 1).replace("radius = 2.5", "radius = 4.5");
+    let e = generate_text(&crossing, None).unwrap_err();
+    assert!(e.contains("strictly inside the body"), "{e}");
+    // A sphere cannot be extruded.
+    let sphere =
+        "[extrude]\nwall = 1\n[body]\nshape = \"sphere\"\ncenter = [0, 0, 0]\nradius = 10\n";
+    let e = generate_text(sphere, None).unwrap_err();
+    assert!(e.contains("cylinders and boxes only"), "{e}");
+    // A cavity askew to the axis.
+    let askew = "[extrude]\nwall = 1\n[body]\nshape = \"cylinder\"\nstart = [0, 0, 0]\n\
+                 end = [20, 0, 0]\nradius = 9\n[[cavity]]\nshape = \"cylinder\"\n\
+                 start = [2, 0, 0]\nend = [18, 1, 0]\nradius = 2\n";
+    let e = generate_text(askew, None).unwrap_err();
+    assert!(e.contains("parallel"), "{e}");
+    // Order 3 does not exist.
+    let e = generate_text(&endoscope_spec(0.75, 3), None).unwrap_err();
+    assert!(e.contains("order 3 must be 1 or 2"), "{e}");
+    let e = generate_text(
+        &endoscope_spec(0.75, 1).replace("wall = 0.75", "wall = 0"),
+        None,
+    )
+    .unwrap_err();
+    assert!(e.contains("must be > 0"), "{e}");
+}
