@@ -71,10 +71,14 @@ class Slot:
 
 @dataclass(frozen=True)
 class Mesh:
-    """The scene's mesh: nodes in metres, tets in the kernels' order (grouped by material)."""
+    """The scene's mesh: nodes in metres, tets in the kernels' order (grouped by material).
+    ``order`` is 1 (4-node tets) or 2 (10-node tets: ``elements`` holds each tet's corners, then
+    its mid-edge nodes in VTK order; ``tets`` the corners alone; ``nodes`` every node)."""
 
     nodes: np.ndarray  # (n_nodes, 3) float64
     tets: np.ndarray  # (n_tets, 4) uint32
+    order: int
+    elements: np.ndarray  # (n_tets, 4 or 10) uint32
     node_sets: Dict[str, np.ndarray]
     element_sets: Dict[str, np.ndarray]
     fixed_nodes: np.ndarray
@@ -213,6 +217,10 @@ class Scene:
             self._mesh = Mesh(
                 nodes=np.asarray(m["nodes"], dtype=np.float64).reshape(-1, 3),
                 tets=np.asarray(m["tets"], dtype=np.uint32).reshape(-1, 4),
+                order=int(m["order"]),
+                elements=np.asarray(m["elements"], dtype=np.uint32).reshape(
+                    -1, 10 if m["order"] == 2 else 4
+                ),
                 node_sets={k: np.asarray(v, dtype=np.uint32) for k, v in m["node_sets"].items()},
                 element_sets={
                     k: np.asarray(v, dtype=np.uint32) for k, v in m["element_sets"].items()

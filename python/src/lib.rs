@@ -139,6 +139,14 @@ impl NativeScene {
         let tets: Vec<u32> = scene.mesh.tets.iter().flatten().copied().collect();
         d.set_item("nodes", nodes)?;
         d.set_item("tets", tets)?;
+        // Quadratic scenes: the 10 nodes per element (corners, then the mid-edge nodes in VTK
+        // order); linear ones: the corners again.
+        let order = match scene.order() {
+            softc_compiler::ir::ElementOrder::Linear => 1,
+            softc_compiler::ir::ElementOrder::Quadratic => 2,
+        };
+        d.set_item("order", order)?;
+        d.set_item("elements", scene.elem_conn())?;
         let sets = PyDict::new(py);
         for (name, nodes) in &scene.node_sets {
             sets.set_item(name, nodes.clone())?;

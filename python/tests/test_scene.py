@@ -313,3 +313,24 @@ def test_malformed_param_values_are_param_errors(beam):
     # Strings with the right unit, in a NumPy array too, are the numbers they say.
     as_text = beam.run({"mu": np.array(["20 kPa"] * size)}, steps=5)["loss"]
     assert as_text == beam.run({"mu": np.full(size, 20e3)}, steps=5)["loss"]
+
+
+def test_quadratic_scenes_expose_their_10_node_elements_and_match_the_command_line(tmp_path):
+    scene = softc.compile(SCENES / "beam_quadratic.soft")
+    m = scene.mesh
+    assert m.order == 2 and m.elements.shape == (len(m.tets), 10)
+    np.testing.assert_array_equal(m.elements[:, :4], m.tets)
+    # Straight-sided mid-edge nodes: each is the midpoint of its edge (VTK order 0-1 first).
+    np.testing.assert_allclose(
+        m.nodes[m.elements[:, 4]], 0.5 * (m.nodes[m.elements[:, 0]] + m.nodes[m.elements[:, 1]])
+    )
+    # The tip set holds mid-edge nodes too.
+    assert m.node_sets["tip"].max() >= m.tets.max() + 1
+    loss, grads = scene.loss_and_grad({"p0": 3e3})
+    cli = cli_json(tmp_path, SCENES / "beam_quadratic.soft", "--set", "p0=3kPa", "--grad")
+    assert loss == cli["loss"] and grads["p0"] == cli["gradients"]["p0"]
+    h = 1.0
+    fd = (scene.loss_and_grad({"p0": 3e3 + h})[0] - scene.loss_and_grad({"p0": 3e3 - h})[0]) / (
+        2 * h
+    )
+    assert abs(grads["p0"] - fd) <= 1e-6 * abs(fd)
