@@ -834,3 +834,109 @@ fn the_linear_solver_flag_selects_the_iterative_solves() {
     assert_eq!(code, 2, "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `softc mesh converge`: the static answer at two orders on the script's own mesh (no spec
+/// needed), and a quadratic resolution series extrapolated to an error estimate. The scene: a
+/// cantilever 40 × 8 × 8 mm under its weight, a Kuhn grid of 10 × 2 × 2 cells (one cell through
+/// half the depth, where linear tets lock).
+#[test]
+fn mesh_converge_reports_how_far_a_static_answer_is_from_convergence() {
+    let dir = std::env::temp_dir().join(format!("softc-converge-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let spec = dir.join("beam.toml");
+    std::fs::write(
+        &spec,
+        "unit = \"mm\"\n[body]\nshape = \"box\"\nmin = [0, 0, 0]\nmax = [40, 8, 8]\n\
+         [base]\ntag = 10\nname = \"base\"\n[tip]\ntag = 11\nname = \"tip\"\n[kuhn]\nn = [10, 2, 2]\n",
+    )
+    .unwrap();
+    let mesh = dir.join("beam.msh");
+    let (code, _, err) = softc(&[
+        "mesh",
+        "generate",
+        spec.to_str().unwrap(),
+        "-o",
+        mesh.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let script = dir.join("beam.soft");
+    std::fs::write(
+        &script,
+        "mesh body = load(\"beam.msh\")\n\
+         material gel = neo_hookean(mu: 100 kPa, kappa: 300 kPa, density: 1000 kg/m^3)\n\
+         nodes base = named(body, \"base\")\nnodes tip = named(body, \"tip\")\n\
+         sim {\n  integrator = quasi_static\n  duration = 1 s\n  \
+         gravity = [0, 0, -9.81] m/s^2\n  use gel\n  fix base\n}\n\
+         loss = area_mean(n in tip) (x[n].z - x0[n].z) at end\n",
+    )
+    .unwrap();
+    // Two orders, resolution 1 only: the spec is not needed (moved away here).
+    std::fs::rename(&spec, dir.join("aside.toml")).unwrap();
+    let (code, table, err) = softc(&[
+        "mesh",
+        "converge",
+        script.to_str().unwrap(),
+        "--out",
+        dir.join("orders").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    println!("{table}");
+    let apart = table
+        .lines()
+        .find(|l| l.contains("resolution 1: linear"))
+        .unwrap_or_else(|| panic!("{table}"));
+    // Linear tets lock: the quadratic answer bends about twice as far.
+    let percent: f64 = apart
+        .split(": ")
+        .last()
+        .and_then(|s| s.trim_end_matches(" % apart").parse().ok())
+        .unwrap();
+    assert!(percent > 30.0 && percent < 70.0, "{apart}");
+    assert!(table.contains("the script's own answer (linear, resolution 1)"));
+    assert!(table.contains("verdict: at least"), "{table}");
+    assert!(dir.join("orders/tradeoff.json").exists());
+    // A quadratic resolution series from the spec: an extrapolated reference (order about 2
+    // in the cell size) and an estimated error.
+    std::fs::rename(dir.join("aside.toml"), &spec).unwrap();
+    let (code, table, err) = softc(&[
+        "mesh",
+        "converge",
+        script.to_str().unwrap(),
+        "--orders",
+        "2",
+        "--resolutions",
+        "0.5,1,2",
+        "--out",
+        dir.join("series").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    println!("{table}");
+    let order: f64 = table
+        .split("(observed order ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("{table}"));
+    assert!((1.5..3.0).contains(&order), "observed order {order}");
+    assert!(table.contains("quadratic: "), "{table}");
+    let estimate: f64 = table
+        .split("verdict: estimated error ")
+        .nth(1)
+        .and_then(|s| s.split(' ').next())
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("{table}"));
+    assert!(estimate > 0.5 && estimate < 5.0, "{table}");
+    // An unknown node set is refused with the reason.
+    let (code, _, err) = softc(&[
+        "mesh",
+        "converge",
+        script.to_str().unwrap(),
+        "--output",
+        "nowhere.z",
+        "--out",
+        dir.join("bad").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1);
+    assert!(err.contains("no node set `nowhere`"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -10,7 +10,7 @@
 //! recompute ratio and d loss / d p_peak.
 
 mod solvers;
-mod tradeoff;
+pub(crate) mod tradeoff;
 
 use crate::devices::{Backend, BackendChoice, DeviceChoice, Devices};
 use crate::engine::Simulation;
@@ -623,25 +623,7 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         };
     }
     if let Some(script) = &args.tradeoff {
-        let sweep = match sweep(&args, script) {
-            Ok(s) => s,
-            Err(e) => {
-                let _ = writeln!(err, "error: {}: {e}", script.display());
-                return 2;
-            }
-        };
-        return match tradeoff::run(&sweep, out, err) {
-            Ok(()) => 0,
-            Err(e) => {
-                // A bad flag found once the script is read (a `--set` of the wrong dimension).
-                let (code, e) = match e.strip_prefix(tradeoff::USAGE) {
-                    Some(e) => (2, e.to_string()),
-                    None => (1, e),
-                };
-                let _ = writeln!(err, "error: {}: {e}", script.display());
-                code
-            }
-        };
+        return tradeoff_command(&args, script, tradeoff::run, out, err);
     }
     if args.solvers {
         return match solvers::run(&args, &sizes, out) {
@@ -784,6 +766,36 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
     0
 }
 
+/// Run a sweep (`bench --tradeoff`, `mesh converge`): exit 0, 1 for a problem in the script
+/// or a run, 2 for a bad flag.
+pub fn tradeoff_command(
+    args: &BenchArgs,
+    script: &std::path::Path,
+    what: fn(&tradeoff::Sweep, &mut dyn Write, &mut dyn Write) -> Result<(), String>,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
+    let sweep = match sweep(args, script) {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = writeln!(err, "error: {}: {e}", script.display());
+            return 2;
+        }
+    };
+    match what(&sweep, out, err) {
+        Ok(()) => 0,
+        Err(e) => {
+            // A bad flag found once the script is read (a `--set` of the wrong dimension).
+            let (code, e) = match e.strip_prefix(tradeoff::USAGE) {
+                Some(e) => (2, e.to_string()),
+                None => (1, e),
+            };
+            let _ = writeln!(err, "error: {}: {e}", script.display());
+            code
+        }
+    }
+}
+
 /// The `--tradeoff` options as a sweep.
 fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<tradeoff::Sweep, String> {
     fn list<T>(
@@ -801,11 +813,13 @@ fn sweep(args: &BenchArgs, script: &std::path::Path) -> Result<tradeoff::Sweep, 
         Ok(v)
     }
     let positive = |s: &str| s.parse::<f64>().ok().filter(|v| *v > 0.0 && v.is_finite());
-    let (set, axis) = args
-        .output
-        .rsplit_once('.')
-        .and_then(|(set, a)| Some((set, ["x", "y", "z"].iter().position(|x| *x == a)?)))
-        .ok_or_else(|| format!("--output `{}`: expected SET.x, SET.y or SET.z", args.output))?;
+    let (set, axis) = match args.output.as_str() {
+        tradeoff::LOSS => (tradeoff::LOSS, 0),
+        o => o
+            .rsplit_once('.')
+            .and_then(|(set, a)| Some((set, ["x", "y", "z"].iter().position(|x| *x == a)?)))
+            .ok_or_else(|| format!("--output `{o}`: expected SET.x, SET.y, SET.z or loss"))?,
+    };
     let sets: Vec<crate::session::SetFlag> = args
         .set
         .iter()

@@ -48,6 +48,35 @@ pub enum MeshCommand {
         #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2))]
         order: Option<u8>,
     },
+    /// How converged a static script's answer is: its static solve at each element order and
+    /// mesh resolution asked for (other resolutions regenerated from the `.toml` spec beside
+    /// the mesh), then how far the script's own answer (resolution 1, the first order) is
+    /// from the converged reference (Richardson extrapolation over three or more resolutions,
+    /// else the finest answer of the first order), how much each order moves between its
+    /// two finest meshes and how far the orders are apart. The table is `bench --tradeoff`'s.
+    Converge {
+        /// A script with a static solve (`integrator = quasi_static`) of a loaded mesh.
+        script: PathBuf,
+        /// Element orders; the first is the reference's and the script's own answer's.
+        #[arg(long, default_value = "2,1")]
+        orders: String,
+        /// Mesh refinement factors (1 = the script's own mesh; others need the spec).
+        #[arg(long, default_value = "1")]
+        resolutions: String,
+        /// The quantity: `loss` (the script's loss), or SET.AXIS (a node set's mean
+        /// displacement).
+        #[arg(long, default_value = "loss")]
+        output: String,
+        /// A param or input value, with its unit (`--set p=20kPa`).
+        #[arg(long)]
+        set: Vec<String>,
+        /// Threads of the cpu backend.
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Folder of the table's JSON, plots, meshes and variant scripts.
+        #[arg(long, default_value = "converge")]
+        out: PathBuf,
+    },
     /// The structured Kuhn-split benchmark scene (BENCHMARK.md), e.g. 12 4 4 for "1k".
     Kuhn {
         nx: usize,
@@ -99,5 +128,57 @@ pub fn run(cmd: MeshCommand, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             Err(c) => c,
         },
         MeshCommand::Kuhn { nx, ny, nz, output } => commands::kuhn([nx, ny, nz], &output, out, err),
+        MeshCommand::Converge {
+            script,
+            orders,
+            resolutions,
+            output,
+            set,
+            threads,
+            out: folder,
+        } => {
+            // `bench --tradeoff` restricted to f64 static solves.
+            let mut argv: Vec<String> = [
+                "bench",
+                "--integrators",
+                "quasi_static",
+                "--precisions",
+                "f64",
+                "--orders",
+                &orders,
+                "--resolutions",
+                &resolutions,
+                "--output",
+                &output,
+            ]
+            .map(String::from)
+            .to_vec();
+            argv.extend(["--tradeoff".into(), script.display().to_string()]);
+            argv.extend(["--out".into(), folder.display().to_string()]);
+            for s in set {
+                argv.extend(["--set".into(), s]);
+            }
+            if let Some(t) = threads {
+                argv.extend(["--threads".into(), t.to_string()]);
+            }
+            #[derive(clap::Parser)]
+            struct Bench {
+                #[command(flatten)]
+                args: super::bench::BenchArgs,
+            }
+            match <Bench as clap::Parser>::try_parse_from(argv) {
+                Ok(b) => super::bench::tradeoff_command(
+                    &b.args,
+                    &script,
+                    super::bench::tradeoff::converge,
+                    out,
+                    err,
+                ),
+                Err(e) => {
+                    let _ = writeln!(err, "error: {e}");
+                    2
+                }
+            }
+        }
     }
 }

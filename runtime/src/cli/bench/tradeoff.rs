@@ -123,6 +123,139 @@ pub const USAGE: &str = "usage: ";
 
 /// Run the sweep; prints progress to `err`, the table to `out`; writes JSON and the plot.
 pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<(), String> {
+    let (points, reference, _) = sweep_points(sweep, err)?;
+    print_table(&points, &reference, sweep, out);
+    write_outputs(&points, &reference, sweep)
+}
+
+/// `softc mesh converge`: the sweep's table, then how far the script's own answer (resolution
+/// 1, the order it declares) is from the converged reference, how much each order's answer moves
+/// between its two finest resolutions, and how far the orders are apart on one mesh.
+pub fn converge(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<(), String> {
+    let (points, reference, script_order) = sweep_points(sweep, err)?;
+    print_table(&points, &reference, sweep, out);
+    write_outputs(&points, &reference, sweep)?;
+    let rel = |a: f64, b: f64| (a - b).abs() / b.abs().max(f64::MIN_POSITIVE);
+    let own = points
+        .iter()
+        .find(|p| p.resolution == 1.0 && p.order == script_order)
+        .or_else(|| {
+            points
+                .iter()
+                .find(|p| p.resolution == 1.0 && p.order == sweep.orders[0])
+        });
+    let _ = writeln!(out, "\nconvergence of {}:", output_name(sweep));
+    for &order in &sweep.orders {
+        let mut series: Vec<&Point> = points.iter().filter(|p| p.order == order).collect();
+        series.sort_by(|a, b| a.resolution.total_cmp(&b.resolution));
+        if let [.., a, b] = series[..] {
+            let _ = writeln!(
+                out,
+                "  {}: {:+.3} % from resolution {} to {} ({} → {} nodes)",
+                order_name(order),
+                100.0 * (b.value - a.value) / a.value.abs().max(f64::MIN_POSITIVE),
+                a.resolution,
+                b.resolution,
+                a.nodes,
+                b.nodes
+            );
+        }
+    }
+    let mut resolutions: Vec<f64> = points.iter().map(|p| p.resolution).collect();
+    resolutions.sort_by(f64::total_cmp);
+    resolutions.dedup();
+    for r in resolutions {
+        let at: Vec<&Point> = points.iter().filter(|p| p.resolution == r).collect();
+        if let (Some(l), Some(q)) = (
+            at.iter().find(|p| p.order == 1),
+            at.iter().find(|p| p.order == 2),
+        ) {
+            let _ = writeln!(
+                out,
+                "  resolution {r}: linear {:.6e}, quadratic {:.6e}: {:.3} % apart",
+                l.value,
+                q.value,
+                100.0 * rel(l.value, q.value)
+            );
+        }
+    }
+    let Some(p) = own else {
+        return Ok(());
+    };
+    let error = rel(p.value, reference.value);
+    let _ = writeln!(
+        out,
+        "  {} ({}, resolution 1): {:.6e}",
+        if p.order == script_order {
+            "the script's own answer"
+        } else {
+            "the answer on the script's mesh"
+        },
+        order_name(p.order),
+        p.value
+    );
+    let is_reference = reference.order.is_none() && p.value == reference.value;
+    let verdict = if is_reference {
+        "its error is not estimated: it is the finest answer here. Add resolutions (a spec \
+         beside the mesh and --resolutions 1,1.5,2) for an extrapolation, or the other order \
+         (--orders 1,2) for a comparison"
+            .to_string()
+    } else {
+        let refine = "refine the mesh (a finer spec `resolution` or `[extrude] wall`) or load \
+                      it with `order: 2`";
+        match reference.order {
+            Some(_) if error > 0.05 => {
+                format!(
+                    "estimated error {:.3} %: not converged; {refine}",
+                    100.0 * error
+                )
+            }
+            Some(_) => format!(
+                "estimated error {:.3} %: within {} %",
+                100.0 * error,
+                if error > 0.01 { 5 } else { 1 }
+            ),
+            // Against a finer answer that is not converged itself: a lower bound.
+            None => format!(
+                "at least {:.3} % from the converged answer (the finest answer here is that \
+                 far from it); {}",
+                100.0 * error,
+                if error > 0.01 {
+                    refine
+                } else {
+                    "add resolutions to estimate the error itself"
+                }
+            ),
+        }
+    };
+    let _ = writeln!(out, "  verdict: {verdict}");
+    let _ = writeln!(out, "  reference: {}", reference.method);
+    Ok(())
+}
+
+fn order_name(order: u32) -> &'static str {
+    if order == 2 { "quadratic" } else { "linear" }
+}
+
+fn output_name(sweep: &Sweep) -> String {
+    match sweep.set.as_str() {
+        LOSS => "the script's loss".to_string(),
+        set => format!(
+            "the mean {} displacement of `{set}`",
+            ["x", "y", "z"][sweep.axis]
+        ),
+    }
+}
+
+/// `--output loss`: the script's loss at the steady state instead of a node set's mean.
+pub const LOSS: &str = "loss";
+
+/// Every variant of the sweep, measured, with the reference their errors are taken against.
+/// Also the element order the script declares.
+fn sweep_points(
+    sweep: &Sweep,
+    err: &mut dyn Write,
+) -> Result<(Vec<Point>, Reference, u32), String> {
     let base = Scene::load(&sweep.script, &sweep.overrides).map_err(|e| e.0)?;
     crate::session::check_set_dims(&base.resolved, &sweep.sets)
         .map_err(|e| format!("{USAGE}{e}"))?;
@@ -131,21 +264,32 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
     }
     let spec_path = base.resolved.mesh.written.with_extension("toml");
     let spec_path = base_dir(&sweep.script).join(&spec_path);
-    let spec = MeshSpec::from_file(&spec_path).map_err(|e| {
-        format!(
-            "{e}\n  --tradeoff regenerates the script's mesh at other resolutions from the \
-             spec beside it ({}); give the mesh a spec or use --resolutions 1",
-            spec_path.display()
-        )
-    })?;
+    // Other resolutions are regenerated from the spec beside the mesh; resolution 1 is the
+    // script's own mesh, which needs none.
+    let spec = if sweep.resolutions.iter().all(|r| *r == 1.0) {
+        None
+    } else {
+        Some(MeshSpec::from_file(&spec_path).map_err(|e| {
+            format!(
+                "{e}\n  other resolutions are regenerated from the spec beside the script's \
+                 mesh ({}); give the mesh a spec or use --resolutions 1",
+                spec_path.display()
+            )
+        })?)
+    };
     std::fs::create_dir_all(sweep.out.join("meshes"))
         .and_then(|_| std::fs::create_dir_all(sweep.out.join("variants")))
         .map_err(|e| format!("cannot create {}: {e}", sweep.out.display()))?;
-    let set_index = base
-        .node_sets
-        .iter()
-        .position(|(n, _)| *n == sweep.set)
-        .ok_or_else(|| format!("the script has no node set `{}`", sweep.set))?;
+    let set_index = match sweep.set.as_str() {
+        LOSS if base.loss.is_none() => return Err("the script has no loss".into()),
+        LOSS => None,
+        set => Some(
+            base.node_sets
+                .iter()
+                .position(|(n, _)| *n == set)
+                .ok_or_else(|| format!("the script has no node set `{set}`"))?,
+        ),
+    };
     let configs = configs(sweep);
     // The script's end time: its `duration`, or its fixed `dt` times its `steps`.
     let sim = &base.resolved.sim;
@@ -164,17 +308,19 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
     let mut meshes: Vec<(f64, PathBuf)> = Vec::new();
     let mut points = Vec::new();
     for (i, c) in configs.iter().enumerate() {
-        let mesh = match meshes.iter().find(|(r, _)| *r == c.resolution) {
-            Some((_, p)) => p.clone(),
-            None => {
-                let p = refined_mesh(&spec, &spec_path, c.resolution, &sweep.out)?;
+        let mesh = match (meshes.iter().find(|(r, _)| *r == c.resolution), &spec) {
+            (Some((_, p)), _) => Some(p.clone()),
+            (None, Some(spec)) => {
+                let p = refined_mesh(spec, &spec_path, c.resolution, &sweep.out)?;
                 meshes.push((c.resolution, p.clone()));
-                p
+                Some(p)
             }
+            // Resolution 1 without a spec: the script's own mesh.
+            (None, None) => None,
         };
         let label = label(c);
         let variant = Variant {
-            mesh: Some(mesh),
+            mesh,
             sim_settings: sim_settings(c, sweep, duration, sim.duration.is_some()),
             order: Some(c.order),
         };
@@ -209,8 +355,11 @@ pub fn run(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Result<()
         p.error = ((p.value - reference.value) / reference.value).abs();
     }
     mark_pareto(&mut points);
-    print_table(&points, &reference, sweep, out);
-    write_outputs(&points, &reference, sweep)
+    let script_order = match base.order() {
+        softc_compiler::ir::ElementOrder::Linear => 1,
+        softc_compiler::ir::ElementOrder::Quadratic => 2,
+    };
+    Ok((points, reference, script_order))
 }
 
 /// The converged value every error is measured against, and how it was obtained.
@@ -436,7 +585,7 @@ fn measure(
     label: &str,
     c: &Config,
     sweep: &Sweep,
-    set_index: usize,
+    set_index: Option<usize>,
 ) -> Result<Point, String> {
     let t0 = Instant::now();
     // The implicit solvers' tangent kernels are in the adjoint module.
@@ -461,10 +610,18 @@ fn measure(
     .map_err(|e| format!("{label}: {e}"))?;
     let dt = run.summary.dt;
     let seconds = t1.elapsed().as_secs_f64();
-    let (_, nodes) = &scene.node_sets[set_index];
-    let [mean, _, _] =
-        crate::outputs::set_displacement(nodes, &scene.mesh.nodes, |n| run.summary.x[n]);
-    let value = mean[sweep.axis];
+    let value = match set_index {
+        Some(i) => {
+            let (_, nodes) = &scene.node_sets[i];
+            let [mean, _, _] =
+                crate::outputs::set_displacement(nodes, &scene.mesh.nodes, |n| run.summary.x[n]);
+            mean[sweep.axis]
+        }
+        None => run
+            .summary
+            .loss
+            .ok_or_else(|| format!("{label}: the run computed no loss"))?,
+    };
     Ok(Point {
         label: label.to_string(),
         solver: c.solver.name().to_string(),
@@ -642,9 +799,8 @@ fn print_table(points: &[Point], reference: &Reference, sweep: &Sweep, out: &mut
     }
     let _ = writeln!(
         out,
-        "output: mean displacement of `{}` along {}; reference {:.6e} m = {}",
-        sweep.set,
-        ["x", "y", "z"][sweep.axis],
+        "output: {}; reference {:.6e} = {}",
+        output_name(sweep),
         reference.value,
         reference.method
     );
