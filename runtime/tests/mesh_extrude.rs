@@ -278,3 +278,56 @@ fn extrusion_refuses_what_it_cannot_mesh_with_a_clear_message() {
     .unwrap_err();
     assert!(e.contains("must be > 0"), "{e}");
 }
+
+/// A box body with a box cavity, graded towards the cavity's edges: outline pieces `corner`
+/// long at its corners and layers `end_layer` thick at every end plane, growing by at most
+/// 1.3 per piece; the cavity is exact (its faces are planes).
+#[test]
+fn a_box_cavity_is_graded_towards_its_edges() {
+    let text = "unit = \"mm\"\n[extrude]\nwall = 1\ninterior = 2\nlayer = 2\ncorner = 0.2\n\
+                end_layer = 0.25\n[body]\nshape = \"box\"\nmin = [0, 0, 0]\nmax = [20, 10, 10]\n\
+                [[cavity]]\nname = \"cavity\"\ntag = 2\nshape = \"box\"\nmin = [5, 2.5, 4]\n\
+                max = [15, 7.5, 8]\n[base]\ntag = 10\nname = \"base\"\n";
+    let g = generate_text(text, None).unwrap();
+    let m = &g.mesh;
+    assert!(!has_errors(&m.validate()));
+    let (_, exact) = g.cavity_volumes[0];
+    assert!(((m.enclosed_volume(2) - exact) / exact).abs() < 1e-12);
+    // Layer planes: x coordinates of the nodes.
+    let mut xs: Vec<f64> = m.nodes.iter().map(|p| p[0] * 1e3).collect();
+    xs.sort_by(f64::total_cmp);
+    xs.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    for end in [0.0, 5.0, 15.0, 20.0] {
+        let i = xs.iter().position(|x| (x - end).abs() < 1e-9).unwrap();
+        let next = [i.checked_sub(1), Some(i + 1)]
+            .into_iter()
+            .flatten()
+            .filter_map(|j| xs.get(j))
+            .map(|x| (x - end).abs())
+            .fold(f64::INFINITY, f64::min);
+        assert!(
+            (next - 0.25).abs() < 1e-9,
+            "layer next to x = {end}: {next}"
+        );
+    }
+    assert!(xs.windows(2).all(|w| w[1] - w[0] <= 2.0 + 1e-9));
+    // The cavity's corner edges in a section plane: its shortest outline pieces are 0.2 mm.
+    let corner = [5e-3, 2.5e-3, 4e-3];
+    let near: f64 = m
+        .surface(2)
+        .iter()
+        .flat_map(|t| (0..3).map(move |k| (t[k], t[(k + 1) % 3])))
+        .filter(|&(a, b)| {
+            let (p, q) = (m.nodes[a as usize], m.nodes[b as usize]);
+            p[0] == corner[0] && q[0] == corner[0] && (p == corner || q == corner)
+        })
+        .map(|(a, b)| {
+            let (p, q) = (m.nodes[a as usize], m.nodes[b as usize]);
+            ((p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt()
+        })
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        (near - 0.2e-3).abs() < 1e-12,
+        "shortest piece at the corner: {near}"
+    );
+}

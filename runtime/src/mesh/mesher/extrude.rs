@@ -25,6 +25,40 @@ pub struct ExtrudeSection {
     pub interior: Option<f64>,
     /// Layer thickness along the axis (default: `interior`).
     pub layer: Option<f64>,
+    /// Edge length at the corners of box cavities (default `wall`): smaller grades the
+    /// outline towards the re-entrant edges, where the stress is singular.
+    pub corner: Option<f64>,
+    /// Layer thickness at every end plane (body and cavity ends; default `layer`): smaller
+    /// grades the layers towards them.
+    pub end_layer: Option<f64>,
+}
+
+/// Growth of graded pieces: each is at most this much longer than the one before.
+const GROWTH: f64 = 1.3;
+
+/// Positions subdividing [0, len]: pieces `h_end` long at both ends, growing by [`GROWTH`]
+/// towards the middle up to `h_max`, the middle evenly at most `h_max`.
+fn graded(len: f64, h_end: f64, h_max: f64) -> Vec<f64> {
+    let mut side = Vec::new();
+    let (mut at, mut h) = (0.0, h_end.min(h_max));
+    while h < h_max && at + h <= 0.5 * len - 0.5 * h {
+        side.push(h);
+        at += h;
+        h = (h * GROWTH).min(h_max);
+    }
+    let gap = len - 2.0 * at;
+    let m = ((gap / h_max).ceil() as usize).max(1);
+    let pieces = side
+        .iter()
+        .copied()
+        .chain(std::iter::repeat_n(gap / m as f64, m))
+        .chain(side.iter().rev().copied());
+    let mut out = vec![0.0];
+    for p in pieces {
+        out.push(out.last().unwrap() + p);
+    }
+    *out.last_mut().unwrap() = len;
+    out
 }
 
 /// A cross-section outline: a closed polygon (counter-clockwise) in the section's 2-D
@@ -63,7 +97,13 @@ fn cylinder_axis(a: [f64; 3], b: [f64; 3]) -> Option<usize> {
     (0..3).find(|&k| (d[k].abs() - len).abs() <= 1e-12 * len)
 }
 
-fn outline_of(shape: &Shape, axis: usize, wall: f64, what: &str) -> Result<Outline, MeshError> {
+fn outline_of(
+    shape: &Shape,
+    axis: usize,
+    wall: f64,
+    corner: f64,
+    what: &str,
+) -> Result<Outline, MeshError> {
     let [u, v] = plane_axes(axis);
     match shape {
         Shape::Cylinder { a, b, r } => {
@@ -97,9 +137,9 @@ fn outline_of(shape: &Shape, axis: usize, wall: f64, what: &str) -> Result<Outli
             for k in 0..4 {
                 let (p, q) = (corners[k], corners[(k + 1) % 4]);
                 let len = ((q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2)).sqrt();
-                let m = ((len / wall).ceil() as usize).max(1);
-                for i in 0..m {
-                    let s = i as f64 / m as f64;
+                let at = graded(len, corner, wall);
+                for a in &at[..at.len() - 1] {
+                    let s = a / len;
                     points.push([p[0] + s * (q[0] - p[0]), p[1] + s * (q[1] - p[1])]);
                 }
             }
@@ -134,19 +174,14 @@ fn inside(poly: &[[f64; 2]], p: [f64; 2]) -> bool {
 
 /// Layer planes along the axis: every outline end, and uniform layers of at most `layer`
 /// between them.
-fn layer_planes(ends: &mut Vec<f64>, layer: f64) -> Vec<f64> {
+fn layer_planes(ends: &mut Vec<f64>, layer: f64, end_layer: f64) -> Vec<f64> {
     ends.sort_by(f64::total_cmp);
     ends.dedup_by(|a, b| (*a - *b).abs() <= 1e-9 * (1.0 + b.abs()));
     let mut planes = vec![ends[0]];
     for w in ends.windows(2) {
-        let m = (((w[1] - w[0]) / layer).ceil() as usize).max(1);
-        for i in 1..=m {
-            planes.push(if i == m {
-                w[1]
-            } else {
-                w[0] + (w[1] - w[0]) * i as f64 / m as f64
-            });
-        }
+        let at = graded(w[1] - w[0], end_layer, layer);
+        planes.extend(at[1..at.len() - 1].iter().map(|a| w[0] + a));
+        planes.push(w[1]);
     }
     planes
 }
@@ -163,9 +198,14 @@ pub fn extrude(
     let wall = section.wall * scale;
     let interior = section.interior.map_or(2.0 * wall, |x| x * scale);
     let layer = section.layer.map_or(interior, |x| x * scale);
-    if !(positive(wall) && positive(interior) && positive(layer)) {
+    let corner = section.corner.map_or(wall, |x| x * scale);
+    let end_layer = section.end_layer.map_or(layer, |x| x * scale);
+    if ![wall, interior, layer, corner, end_layer]
+        .into_iter()
+        .all(positive)
+    {
         return Err(MeshError::spec(
-            "[extrude]: wall, interior and layer must be > 0",
+            "[extrude]: wall, interior, layer, corner and end_layer must be > 0",
         ));
     }
     let axis = match body {
@@ -174,11 +214,12 @@ pub fn extrude(
         })?,
         _ => box_axis,
     };
-    let outer = outline_of(body, axis, wall, "body")?;
+    // The body's corners are convex (no singularity): only cavities are graded.
+    let outer = outline_of(body, axis, wall, wall, "body")?;
     let mut holes = Vec::new();
     for (i, c) in cavities.iter().enumerate() {
         let what = format!("cavity {}", i + 1);
-        let o = outline_of(c, axis, wall, &what)?;
+        let o = outline_of(c, axis, wall, corner, &what)?;
         // Outlines may neither touch nor cross: each cavity lies strictly inside the body and
         // apart from the others (a wall of zero thickness has no mesh).
         let clear = o.points.iter().all(|&p| {
@@ -286,7 +327,7 @@ pub fn extrude(
         .chain(&holes)
         .flat_map(|o| o.span)
         .collect();
-    let planes = layer_planes(&mut ends, layer);
+    let planes = layer_planes(&mut ends, layer, end_layer);
     let nv = section_points.len();
     let [u, v] = plane_axes(axis);
     let mut nodes = Vec::with_capacity(nv * planes.len());
@@ -403,7 +444,7 @@ mod tests {
 
     #[test]
     fn layer_planes_include_every_end() {
-        let planes = layer_planes(&mut vec![0.0, 100.0, 4.0, 96.0, 4.0], 2.5);
+        let planes = layer_planes(&mut vec![0.0, 100.0, 4.0, 96.0, 4.0], 2.5, 2.5);
         assert_eq!(planes.first(), Some(&0.0));
         assert_eq!(planes.last(), Some(&100.0));
         assert!(planes.contains(&4.0) && planes.contains(&96.0));
@@ -412,6 +453,22 @@ mod tests {
                 .windows(2)
                 .all(|w| w[1] > w[0] && w[1] - w[0] <= 2.5 + 1e-12)
         );
+    }
+
+    #[test]
+    fn graded_pieces_grow_from_both_ends_and_cover_the_interval() {
+        let at = graded(10.0, 0.1, 1.0);
+        assert_eq!((at[0], *at.last().unwrap()), (0.0, 10.0));
+        let pieces: Vec<f64> = at.windows(2).map(|w| w[1] - w[0]).collect();
+        assert!((pieces[0] - 0.1).abs() < 1e-12 && (pieces.last().unwrap() - 0.1).abs() < 1e-12);
+        assert!(pieces.iter().all(|&p| p <= 1.0 + 1e-12));
+        assert!(pieces.windows(2).all(|w| w[1] <= GROWTH * w[0] + 1e-12));
+        // Symmetric.
+        for (a, b) in pieces.iter().zip(pieces.iter().rev()) {
+            assert!((a - b).abs() < 1e-12);
+        }
+        // Ungraded: even pieces.
+        assert_eq!(graded(10.0, 1.0, 1.0).len(), 11);
     }
 
     #[test]

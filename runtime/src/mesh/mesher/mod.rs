@@ -35,8 +35,9 @@
 //! # [kuhn] n = [12, 4, 4]  → structured Kuhn grid instead (box body, ≤ 1 box cavity);
 //! #   a resolution override h then sets n = round(extent / h) per axis
 //! # [extrude] wall = 0.75, interior = 1.5, layer = 2.0 → boundary-conforming extrusion
-//! #   (cylinder/box body and cavities parallel to one axis); a resolution override sets
-//! #   wall = h and scales interior and layer alike
+//! #   (cylinder/box body and cavities parallel to one axis), optionally graded towards box
+//! #   cavities' corners (corner = 0.1) and every end plane (end_layer = 0.15); a resolution
+//! #   override sets wall = h and scales every other length alike
 //! # order = 2 → 10-node tets; mid-edge nodes of curved boundaries on the exact surface
 //! ```
 
