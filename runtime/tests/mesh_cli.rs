@@ -66,6 +66,8 @@ fn shipped_meshes_are_reproducible_and_valid() {
         // The soft endoscope at both lattices: generating the 93k-tet one takes ~0.5 s.
         "endoscope_soft",
         "endoscope_soft_coarse",
+        // The boundary-conforming quadratic one (issue 30).
+        "endoscope_soft_quadratic",
         "bench_1k",
         "bench_10k",
         "bench_50k",
