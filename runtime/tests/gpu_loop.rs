@@ -7,9 +7,9 @@
 
 use softc::devices::gpu::Gpu;
 use softc::devices::{Backend, HostSlice, HostSliceMut, PendingRead, Uniforms};
-use softc::engine::Simulation;
 use softc::engine::adjoint::GradOptions;
 use softc::engine::scene::Scene;
+use softc::engine::{RunError, RunSummary, Simulation};
 use softc_compiler::back::Precision;
 use softc_compiler::back::wgsl::LaunchMode;
 use softc_compiler::ir::{BufferId, Module};
@@ -250,31 +250,33 @@ fn gradients_with_the_states_on_the_gpu_equal_those_kept_on_the_host() {
     }
 }
 
-#[test]
-fn a_batch_runs_its_scenes_matching_stretches_as_one() {
-    let scene = scene("benchmark-1k.soft");
+/// The scene run on the GPU once per `p_peak` in `pressures`, each alone, then all as one batch
+/// in lockstep: the single runs, the batch's results, and the batch's dispatch counts.
+fn single_and_batched(
+    scene: &Scene,
+    pressures: &[f64],
+    steps: u64,
+) -> (
+    Vec<RunSummary>,
+    Vec<Result<RunSummary, RunError>>,
+    softc::devices::gpu::DispatchStats,
+) {
     let module = &scene.lowered.module;
-    let Some(g) = gpu(module, LaunchMode::Uniform) else {
-        return;
-    };
-    let steps = 260;
-    let pressures = [1.0e3, 2.0e3, 3.0e3, 4.0e3];
     let single: Vec<_> = pressures
         .iter()
         .map(|&p| {
-            let g = gpu(module, LaunchMode::Uniform).unwrap();
-            let mut sim = Simulation::new(&scene, g);
+            let mut sim = Simulation::new(scene, gpu(module, LaunchMode::Uniform).unwrap());
             sim.uniforms.set_named("param.p_peak", p);
             sim.run(None, Some(steps)).unwrap()
         })
         .collect();
-    drop(g);
-    let batch = softc::devices::gpu::GpuBatch::new(module, Precision::F32, None, 4).unwrap();
+    let batch =
+        softc::devices::gpu::GpuBatch::new(module, Precision::F32, None, pressures.len()).unwrap();
     let mut sims: Vec<_> = pressures
         .iter()
         .enumerate()
         .map(|(i, &p)| {
-            let mut sim = Simulation::new(&scene, batch.scene(i).unwrap());
+            let mut sim = Simulation::new(scene, batch.scene(i).unwrap());
             sim.uniforms.set_named("param.p_peak", p);
             sim
         })
@@ -282,13 +284,29 @@ fn a_batch_runs_its_scenes_matching_stretches_as_one() {
     let before = batch.stats();
     let results = softc::engine::in_lockstep(&mut sims, |_, sim| sim.run(None, Some(steps)));
     let after = batch.stats();
-    let (launches, dispatches) = (
-        after.launches - before.launches,
-        after.dispatches - before.dispatches,
-    );
+    let stats = softc::devices::gpu::DispatchStats {
+        launches: after.launches - before.launches,
+        dispatches: after.dispatches - before.dispatches,
+        submissions: after.submissions - before.submissions,
+        ..Default::default()
+    };
+    (single, results, stats)
+}
+
+#[test]
+fn a_batch_runs_its_scenes_matching_stretches_as_one() {
+    let scene = scene("benchmark-1k.soft");
+    let module = &scene.lowered.module;
+    let Some(g) = gpu(module, LaunchMode::Uniform) else {
+        return;
+    };
+    drop(g);
+    let steps = 260;
+    let (single, results, stats) = single_and_batched(&scene, &[1.0e3, 2.0e3, 3.0e3, 4.0e3], steps);
+    let (launches, dispatches) = (stats.launches, stats.dispatches);
     eprintln!(
         "batch of 4, {steps} steps: {launches} launches in {dispatches} dispatches, {} submissions",
-        after.submissions - before.submissions
+        stats.submissions
     );
     // Each stretch of the four scenes is one batched stretch: a dispatch per launch of all.
     assert!(
@@ -330,26 +348,7 @@ fn a_batch_of_quadratic_scenes_gives_the_bits_of_single_runs() {
         return;
     };
     drop(g);
-    let (steps, pressures) = (60, [2.0e3, 5.0e3]);
-    let single: Vec<_> = pressures
-        .iter()
-        .map(|&p| {
-            let mut sim = Simulation::new(&scene, gpu(module, LaunchMode::Uniform).unwrap());
-            sim.uniforms.set_named("param.p_peak", p);
-            sim.run(None, Some(steps)).unwrap()
-        })
-        .collect();
-    let batch = softc::devices::gpu::GpuBatch::new(module, Precision::F32, None, 2).unwrap();
-    let mut sims: Vec<_> = pressures
-        .iter()
-        .enumerate()
-        .map(|(i, &p)| {
-            let mut sim = Simulation::new(&scene, batch.scene(i).unwrap());
-            sim.uniforms.set_named("param.p_peak", p);
-            sim
-        })
-        .collect();
-    let results = softc::engine::in_lockstep(&mut sims, |_, sim| sim.run(None, Some(steps)));
+    let (single, results, _) = single_and_batched(&scene, &[2.0e3, 5.0e3], 60);
     for (i, (b, s)) in results.into_iter().zip(&single).enumerate() {
         let b = b.unwrap();
         assert!(b.x.iter().zip(&scene.mesh.nodes).any(|(x, x0)| x != x0));
