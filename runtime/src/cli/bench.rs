@@ -10,7 +10,7 @@
 //! recompute ratio and d loss / d p_peak.
 
 mod solvers;
-pub(crate) mod tradeoff;
+mod tradeoff;
 
 use crate::devices::{Backend, BackendChoice, DeviceChoice, Devices};
 use crate::engine::Simulation;
@@ -764,6 +764,57 @@ pub fn run(args: BenchArgs, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
         }
     }
     0
+}
+
+/// `softc mesh converge`: `bench --tradeoff` restricted to f64 static solves, with the
+/// convergence verdict.
+#[allow(clippy::too_many_arguments)]
+pub fn mesh_converge(
+    script: &std::path::Path,
+    orders: &str,
+    resolutions: &str,
+    output: &str,
+    set: &[String],
+    threads: Option<usize>,
+    folder: &std::path::Path,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
+    let mut argv: Vec<String> = [
+        "bench",
+        "--integrators",
+        "quasi_static",
+        "--precisions",
+        "f64",
+        "--orders",
+        orders,
+        "--resolutions",
+        resolutions,
+        "--output",
+        output,
+    ]
+    .map(String::from)
+    .to_vec();
+    argv.extend(["--tradeoff".into(), script.display().to_string()]);
+    argv.extend(["--out".into(), folder.display().to_string()]);
+    for s in set {
+        argv.extend(["--set".into(), s.clone()]);
+    }
+    if let Some(t) = threads {
+        argv.extend(["--threads".into(), t.to_string()]);
+    }
+    #[derive(clap::Parser)]
+    struct Bench {
+        #[command(flatten)]
+        args: BenchArgs,
+    }
+    match <Bench as clap::Parser>::try_parse_from(argv) {
+        Ok(b) => tradeoff_command(&b.args, script, tradeoff::converge, out, err),
+        Err(e) => {
+            let _ = writeln!(err, "error: {e}");
+            2
+        }
+    }
 }
 
 /// Run a sweep (`bench --tradeoff`, `mesh converge`): exit 0, 1 for a problem in the script

@@ -128,57 +128,14 @@ pub fn run(cmd: MeshCommand, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             Err(c) => c,
         },
         MeshCommand::Kuhn { nx, ny, nz, output } => commands::kuhn([nx, ny, nz], &output, out, err),
-        MeshCommand::Converge {
-            script,
-            orders,
-            resolutions,
-            output,
-            set,
-            threads,
-            out: folder,
-        } => {
-            // `bench --tradeoff` restricted to f64 static solves.
-            let mut argv: Vec<String> = [
-                "bench",
-                "--integrators",
-                "quasi_static",
-                "--precisions",
-                "f64",
-                "--orders",
-                &orders,
-                "--resolutions",
-                &resolutions,
-                "--output",
-                &output,
-            ]
-            .map(String::from)
-            .to_vec();
-            argv.extend(["--tradeoff".into(), script.display().to_string()]);
-            argv.extend(["--out".into(), folder.display().to_string()]);
-            for s in set {
-                argv.extend(["--set".into(), s]);
-            }
-            if let Some(t) = threads {
-                argv.extend(["--threads".into(), t.to_string()]);
-            }
-            #[derive(clap::Parser)]
-            struct Bench {
-                #[command(flatten)]
-                args: super::bench::BenchArgs,
-            }
-            match <Bench as clap::Parser>::try_parse_from(argv) {
-                Ok(b) => super::bench::tradeoff_command(
-                    &b.args,
-                    &script,
-                    super::bench::tradeoff::converge,
-                    out,
-                    err,
-                ),
-                Err(e) => {
-                    let _ = writeln!(err, "error: {e}");
-                    2
-                }
-            }
+        // `bench --tradeoff` restricted to static solves: `cli/mod.rs` runs it through
+        // `cli::bench` before it gets here.
+        MeshCommand::Converge { .. } => {
+            let _ = writeln!(
+                err,
+                "error: `mesh converge` is run by the command line's root"
+            );
+            2
         }
     }
 }

@@ -152,6 +152,28 @@ pub fn run<A: AsRef<OsStr>>(args: &[A], out: &mut dyn Write, err: &mut dyn Write
         } => compile_file(&file, emit, precision, batch, out, err),
         Command::Run(args) => run::run(args, out, err),
         Command::Bench(args) => bench::run(args, out, err),
+        Command::Mesh {
+            command:
+                mesh::MeshCommand::Converge {
+                    script,
+                    orders,
+                    resolutions,
+                    output,
+                    set,
+                    threads,
+                    out: folder,
+                },
+        } => bench::mesh_converge(
+            &script,
+            &orders,
+            &resolutions,
+            &output,
+            &set,
+            threads,
+            &folder,
+            out,
+            err,
+        ),
         Command::Mesh { command } => mesh::run(command, out, err),
         Command::Lsp => crate::lsp::run_stdio(),
     }

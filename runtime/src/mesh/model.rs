@@ -656,30 +656,16 @@ impl Mesh {
             .sum()
     }
 
-    /// [`Mesh::enclosed_volume`] of 6-node triangles, curved by their mid-edge nodes:
-    /// (1/3)∮ x·n dA, whose integrand (degree 4 in the reference coordinates) the compiler's
-    /// degree-4 triangle rule integrates exactly.
+    /// [`Mesh::enclosed_volume`] of 6-node triangles, curved by their mid-edge nodes.
     fn enclosed_volume_curved(&self, tag: i32, mids: &[[u32; 3]]) -> f64 {
-        use softc_compiler::lower::quadratic::{triangle_rule, triangle_shape};
-        let rule = triangle_rule();
-        let mut volume = 0.0;
-        for (f, m) in self.surface(tag).iter().zip(mids) {
-            let p: Vec<[f64; 3]> = f.iter().chain(m).map(|&n| self.nodes[n as usize]).collect();
-            for (l, w) in &rule {
-                let (n, g) = triangle_shape(*l);
-                let (mut x, mut dxi, mut deta) = ([0.0; 3], [0.0; 3], [0.0; 3]);
-                for a in 0..6 {
-                    for k in 0..3 {
-                        x[k] += n[a] * p[a][k];
-                        dxi[k] += g[a][0] * p[a][k];
-                        deta[k] += g[a][1] * p[a][k];
-                    }
-                }
-                // The rule's weights sum to 1/2, the reference triangle's area.
-                volume += w * dot(x, cross(dxi, deta)) / 3.0;
-            }
-        }
-        volume
+        self.surface(tag)
+            .iter()
+            .zip(mids)
+            .map(|(f, m)| {
+                let at = |k: usize| self.nodes[if k < 3 { f[k] } else { m[k - 3] } as usize];
+                super::quadratic::curved_triangle_volume(&std::array::from_fn(at))
+            })
+            .sum()
     }
 
     /// Total area of the tagged surface `tag`.
