@@ -12,6 +12,8 @@
 //! Without an adapter these tests print a note and pass, except with `CI=true`, where they
 //! fail: CI installs Mesa's lavapipe (`mesa-vulkan-drivers`) so they always run there.
 
+mod common;
+
 use softc::devices::cpu::Cpu;
 use softc::devices::gpu::Gpu;
 use softc::devices::interp::Interpreter;
@@ -224,15 +226,7 @@ fn f64_on_the_gpu_matches_f64_on_the_cpu() {
 #[test]
 fn quadratic_elements_on_the_gpu_match_the_cpu() {
     use softc::engine::adjoint::GradOptions;
-    let text = std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
-        .unwrap()
-        .replace(
-            "load(\"../../../../meshes/bench_1k.msh\")",
-            &format!(
-                "load(\"{}/meshes/bench_1k.msh\", order: 2)",
-                root().display()
-            ),
-        );
+    let text = common::script_at_order("runtime/tests/fixtures/grad/all_kinds.soft", 2);
     let dir = std::env::temp_dir().join(format!("softc-gpu-quadratic-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let explicit = dir.join("explicit.soft");

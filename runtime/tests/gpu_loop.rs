@@ -5,6 +5,8 @@
 //! Without an adapter these tests print a note and pass, except with `CI=true`, where they
 //! fail: CI installs Mesa's lavapipe (`mesa-vulkan-drivers`) so they always run there.
 
+mod common;
+
 use softc::devices::gpu::Gpu;
 use softc::devices::{Backend, HostSlice, HostSliceMut, PendingRead, Uniforms};
 use softc::engine::adjoint::GradOptions;
@@ -326,15 +328,7 @@ fn a_batch_runs_its_scenes_matching_stretches_as_one() {
 /// run.
 #[test]
 fn a_batch_of_quadratic_scenes_gives_the_bits_of_single_runs() {
-    let text = std::fs::read_to_string(root().join("examples/benchmark-1k.soft"))
-        .unwrap()
-        .replace(
-            "load(\"../meshes/bench_1k.msh\")",
-            &format!(
-                "load(\"{}/meshes/bench_1k.msh\", order: 2)",
-                root().display()
-            ),
-        )
+    let text = common::script_at_order("examples/benchmark-1k.soft", 2)
         // The quadratic mesh's stable step is 17 µs (the linear one's above 40 µs).
         .replace("dt = 40 us", "dt = 10 us");
     let path =

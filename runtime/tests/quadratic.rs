@@ -3,6 +3,8 @@
 //! differences through explicit runs and static solves; the interpreter and the Cranelift
 //! backend give the same bits.
 
+mod common;
+
 use softc::devices::cpu::Cpu;
 use softc::devices::interp::Interpreter;
 use softc::engine::Simulation;
@@ -13,13 +15,6 @@ use softc::mesh::{LengthUnit, save};
 use softc_compiler::back::Precision;
 use softc_compiler::ir::ElementOrder;
 use std::path::{Path, PathBuf};
-
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
 
 fn scratch(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("softc-quadratic-{}", std::process::id()));
@@ -110,16 +105,7 @@ fn a_coarse_quadratic_cantilever_bends_as_beam_theory_says_where_linear_tets_loc
 
 /// The gradient tests' every-param-kind scene with elements of `order`, `edits` applied.
 fn every_kind(order: u32, name: &str, edits: &[(&str, &str)]) -> PathBuf {
-    let mut text =
-        std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/all_kinds.soft"))
-            .unwrap()
-            .replace(
-                "load(\"../../../../meshes/bench_1k.msh\")",
-                &format!(
-                    "load(\"{}/meshes/bench_1k.msh\", order: {order})",
-                    root().display()
-                ),
-            );
+    let mut text = common::script_at_order("runtime/tests/fixtures/grad/all_kinds.soft", order);
     for (from, to) in edits {
         assert!(text.contains(from), "{from}");
         text = text.replace(from, to);
@@ -326,15 +312,7 @@ fn quadratic_implicit_euler_gradients_match_central_differences() {
 /// elements: its largest gradient entries and the pressure's match central differences.
 #[test]
 fn a_per_element_param_of_quadratic_elements_matches_central_differences() {
-    let text = std::fs::read_to_string(root().join("runtime/tests/fixtures/grad/field.soft"))
-        .unwrap()
-        .replace(
-            "load(\"../../../../meshes/bench_1k.msh\")",
-            &format!(
-                "load(\"{}/meshes/bench_1k.msh\", order: 2)",
-                root().display()
-            ),
-        );
+    let text = common::script_at_order("runtime/tests/fixtures/grad/field.soft", 2);
     assert!(text.contains("order: 2"));
     let path = scratch("field.soft");
     std::fs::write(&path, text).unwrap();
