@@ -895,6 +895,23 @@ fn mesh_converge_reports_how_far_a_static_answer_is_from_convergence() {
     assert!(table.contains("the script's own answer (linear, resolution 1)"));
     assert!(table.contains("verdict: at least"), "{table}");
     assert!(dir.join("orders/tradeoff.json").exists());
+    // Listed linear first, the linear answer is its own series' finest: it is judged by the
+    // quadratic answer on the same mesh, not called unestimated.
+    let (code, table, err) = softc(&[
+        "mesh",
+        "converge",
+        script.to_str().unwrap(),
+        "--orders",
+        "1,2",
+        "--out",
+        dir.join("orders_linear_first").to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert!(
+        table.contains("verdict: the quadratic answer on the same mesh is")
+            && table.contains("away: not converged"),
+        "{table}"
+    );
     // A quadratic resolution series from the spec: an extrapolated reference (order about 2
     // in the cell size) and an estimated error.
     std::fs::rename(dir.join("aside.toml"), &spec).unwrap();

@@ -1,4 +1,4 @@
-//! The README's exit-status table is a contract: 0 success, 1 a problem in the input (script
+//! The exit-status table (docs/src/reference/exit-status.md) is a contract: 0 success, 1 a problem in the input (script
 //! or mesh), 2 a usage error (bad flags, an unreadable file, a flag that does not fit the
 //! scene). Issue 31 item 13 found commands that answered 1 where the table says 2; this walks
 //! one case of each kind per command.

@@ -68,6 +68,8 @@ fn shipped_meshes_are_reproducible_and_valid() {
         "endoscope_soft_coarse",
         // The boundary-conforming quadratic one (issue 30).
         "endoscope_soft_quadratic",
+        // The guide's first actuator (docs/src/tutorials/first-actuator.md).
+        "finger",
         "bench_1k",
         "bench_10k",
         "bench_50k",

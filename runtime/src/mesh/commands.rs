@@ -14,7 +14,7 @@ use super::model::{LengthUnit, Mesh};
 use super::validate::{Severity, has_errors};
 
 /// Report `e`: a file that cannot be opened, read or written is a usage error (2), as the
-/// README's exit-status table says; a bad mesh or spec is bad input (1).
+/// exit-status table (docs/src/reference/exit-status.md) says; a bad mesh or spec is bad input (1).
 fn fail(err: &mut dyn Write, e: &MeshError) -> i32 {
     let _ = writeln!(err, "error: {e}");
     match e.kind {

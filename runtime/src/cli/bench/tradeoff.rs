@@ -195,7 +195,29 @@ pub fn converge(sweep: &Sweep, out: &mut dyn Write, err: &mut dyn Write) -> Resu
         p.value
     );
     let is_reference = reference.order.is_none() && p.value == reference.value;
-    let verdict = if is_reference {
+    // The other element order on the same mesh, when the script's own answer is the finest of
+    // its series: the two orders' distance is all there is to judge it by.
+    let other_order = points
+        .iter()
+        .find(|o| o.resolution == p.resolution && o.order != p.order);
+    let verdict = if let (true, Some(o)) = (is_reference, other_order) {
+        let apart = rel(p.value, o.value);
+        format!(
+            "the {} answer on the same mesh is {:.3} % away: {}",
+            order_name(o.order),
+            100.0 * apart,
+            if apart > 0.05 {
+                "not converged; refine the mesh (a finer spec `resolution` or `[extrude] \
+                 wall`) or load it with `order: 2`, and add resolutions (--resolutions 1,0.75,0.5) \
+                 for an error estimate"
+            } else if apart > 0.01 {
+                "within a few % if the finer order is close to converged; add resolutions for an \
+                 error estimate"
+            } else {
+                "the orders agree to 1 %; add resolutions for an error estimate"
+            }
+        )
+    } else if is_reference {
         "its error is not estimated: it is the finest answer here. Add resolutions (a spec \
          beside the mesh and --resolutions 1,1.5,2) for an extrapolation, or the other order \
          (--orders 1,2) for a comparison"
