@@ -267,3 +267,31 @@ fn nothing_below_the_cli_imports_it() {
         found.join("\n")
     );
 }
+
+/// Outputs depend on the engine, never the reverse: the engine, the solvers, the devices and
+/// the optimizer hand states to the engine's sink traits (`engine::sinks`) and know no file
+/// format; `outputs` implements those traits and formats the engine's results (JSON, VTK, CSV).
+#[test]
+fn the_engine_knows_no_output_format() {
+    let mut found = Vec::new();
+    for dir in [
+        "runtime/src/engine",
+        "runtime/src/solvers",
+        "runtime/src/devices",
+        "runtime/src/optim",
+    ] {
+        for file in rust_files(dir) {
+            for (n, l) in code_lines(&file) {
+                if l.contains("crate::outputs") || l.contains("softc::outputs") {
+                    found.push(format!("{}:{n}: {}", rel(&file), l.trim()));
+                }
+            }
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "the engine side names `outputs`; give it a trait in engine::sinks for `outputs` to \
+         implement instead:\n{}",
+        found.join("\n")
+    );
+}

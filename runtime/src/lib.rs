@@ -13,3 +13,4 @@ pub mod outputs;
 pub mod reference;
 pub mod session;
 pub mod solvers;
+pub mod text;

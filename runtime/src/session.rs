@@ -237,8 +237,8 @@ pub fn csv_outputs(
     scene: &Scene,
     dt: f64,
     err: &mut dyn Write,
-) -> Result<Vec<CsvOutput>, String> {
-    let mut outputs = Vec::new();
+) -> Result<Vec<Box<dyn crate::engine::NodeSetLog>>, String> {
+    let mut outputs: Vec<Box<dyn crate::engine::NodeSetLog>> = Vec::new();
     for log in &scene.resolved.sim.csv {
         let Some(dir) = dir else {
             let _ = writeln!(
@@ -261,11 +261,11 @@ pub fn csv_outputs(
             .ok_or_else(|| format!("`output csv({})`: no node set of that name", log.set))?;
         std::fs::create_dir_all(dir)
             .map_err(|e| format!("cannot create `{}`: {e}", dir.display()))?;
-        outputs.push(CsvOutput::new(
+        outputs.push(Box::new(CsvOutput::new(
             dir.join(format!("{}.csv", log.set)),
             nodes,
             every_steps,
-        ));
+        )));
     }
     Ok(outputs)
 }
@@ -316,7 +316,7 @@ fn doubtful(
              loads (`converged`: false) — the loads are at the round-off of the internal forces \
              in this precision; use `precision = f64` or larger loads",
             solver.kind,
-            crate::outputs::Sig(solver.residual_norm),
+            crate::text::Sig(solver.residual_norm),
             100.0 * solver.relative_residual
         ));
     }

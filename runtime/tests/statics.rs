@@ -639,12 +639,12 @@ fn static_and_implicit_runs_report_their_progress() {
         let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
         let mut sim = Simulation::new(&scene, cpu);
         let log = Log::default();
-        sim.progress = Some(Progress::to_log(
+        sim.progress = Some(Box::new(Progress::to_log(
             "run",
             Box::new(log.clone()),
             Duration::ZERO,
             Duration::ZERO,
-        ));
+        )));
         if gradient {
             sim.gradient(None, None, &GradOptions::default()).unwrap();
         } else {

@@ -360,7 +360,7 @@ fn train<B: Backend + Send>(
         trainer.plan.method.name(),
         members,
         trainer.state.steps,
-        crate::outputs::Sig(trainer.state.dt),
+        crate::text::Sig(trainer.state.dt),
         if trainer.state.iteration > 0 {
             format!(", resuming after iteration {}", trainer.state.iteration)
         } else {
@@ -425,16 +425,16 @@ fn train<B: Backend + Send>(
     }
 
     // The optimized run: its VTK series and the summary.
-    let vtk = match &ctx.dir {
+    let vtk: Option<Box<dyn crate::engine::StateSeries>> = match &ctx.dir {
         Some(d) => {
             let folder = d.join("vtk");
             std::fs::create_dir_all(&folder)
                 .map_err(|e| format!("cannot create `{}`: {e}", folder.display()))?;
-            Some(crate::outputs::vtk::VtkOutput::new(
+            Some(Box::new(crate::outputs::vtk::VtkOutput::new(
                 &folder,
                 "optimized",
                 crate::session::vtk_every(scene).unwrap_or(100),
-            ))
+            )))
         }
         None => None,
     };

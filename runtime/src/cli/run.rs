@@ -5,12 +5,12 @@ use crate::engine::adjoint::{GradOptions, GradientReport};
 use crate::engine::scene::Scene;
 use crate::engine::statics::LinearSolver;
 use crate::engine::{RunSummary, Simulation};
-use crate::outputs::Sig;
 use crate::outputs::json::{adjoint_json, gradients_json, summary_json};
 use crate::session::{
     check_set_dims, csv_outputs, grad_options, parse_checkpoint, parse_dt, parse_memory_budget,
     parse_set, vtk_every,
 };
+use crate::text::Sig;
 use clap::Args;
 use std::io::Write;
 use std::path::PathBuf;
@@ -728,7 +728,7 @@ fn vtk_output(
     args: &RunArgs,
     scene: &Scene,
     err: &mut dyn Write,
-) -> Result<Option<crate::outputs::vtk::VtkOutput>, i32> {
+) -> Result<Option<Box<dyn crate::engine::StateSeries>>, i32> {
     let Some(dir) = &args.vtk else {
         return Ok(None);
     };
@@ -742,7 +742,9 @@ fn vtk_output(
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "run".into());
-    Ok(Some(crate::outputs::vtk::VtkOutput::new(dir, &name, every)))
+    Ok(Some(Box::new(crate::outputs::vtk::VtkOutput::new(
+        dir, &name, every,
+    ))))
 }
 
 /// A forward run, or with `--grad` a forward and backward pass, on one backend. An empty error
@@ -780,9 +782,9 @@ fn prepare<'s, B: Backend>(
     };
     announce_dt(&mut sim, dt, err)?;
     let (step, _) = crate::session::checked_time_steps(&mut sim, dt, args.steps)?;
-    sim.progress = Some(crate::outputs::progress::Progress::new(
+    sim.progress = Some(Box::new(crate::outputs::progress::Progress::new(
         args.file.display().to_string(),
-    ));
+    )));
     sim.csv = csv_outputs(args.csv.as_deref(), scene, step, err)?;
     Ok(sim)
 }

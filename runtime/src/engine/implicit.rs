@@ -16,7 +16,7 @@ use super::loss::{Loss, LossWindow};
 use super::statics::{Newton, SolverReport, StaticRun, Tangent};
 use super::{RunError, RunSummary, Simulation};
 use crate::devices::Backend;
-use crate::outputs::Sig;
+use crate::text::Sig;
 use softc_compiler::driver::LossArg;
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -91,12 +91,12 @@ impl<B: Backend> Simulation<'_, B> {
         for k in 0..steps {
             let (x, v) = (self.backend.get(self.ids.x), self.backend.get(self.ids.v));
             if !self.csv.is_empty() {
-                for c in self.csv.iter_mut().filter(|c| k % c.every == 0) {
+                for c in self.csv.iter_mut().filter(|c| k % c.every() == 0) {
                     c.record(k, k as f64 * h, rest, &x);
                 }
             }
             if let Some(vtk) = &self.vtk
-                && k % vtk.every.max(1) == 0
+                && k % vtk.every().max(1) == 0
             {
                 self.uniforms.set(self.ids.t, k as f64 * h);
                 self.write_vtk(k as f64 * h)?;

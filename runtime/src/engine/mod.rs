@@ -14,6 +14,7 @@ mod matrix_free;
 pub mod profile;
 pub mod scene;
 mod sensors;
+pub mod sinks;
 mod stable_dt;
 pub mod statics;
 
@@ -23,10 +24,9 @@ pub use crate::devices::Backend;
 pub use crate::devices::cpu::Cpu;
 
 use crate::devices::{Launch, Lockstep, Uniforms};
-use crate::outputs::Sig;
-use crate::outputs::csv::CsvOutput;
-use crate::outputs::vtk::{Frame, VtkOutput};
+use crate::text::Sig;
 use scene::{DtChoice, Scene};
+pub use sinks::{Frame, NodeSetLog, ProgressReport, StateSeries};
 use softc_compiler::back::Precision;
 use softc_compiler::ir::{BufferId, UniformId};
 use std::ops::Range;
@@ -218,12 +218,12 @@ pub struct Simulation<'s, B: Backend> {
     pub scene: &'s Scene,
     pub backend: B,
     pub uniforms: Uniforms,
-    /// Write a ParaView series while running.
-    pub vtk: Option<VtkOutput>,
+    /// Write a series of states (ParaView) while running.
+    pub vtk: Option<Box<dyn StateSeries>>,
     /// Node-set logs (`output csv(SET)`) written by `run`.
-    pub csv: Vec<CsvOutput>,
-    /// Progress of a long run on stderr (`softc run`), updated at the host's checks.
-    pub progress: Option<crate::outputs::progress::Progress>,
+    pub csv: Vec<Box<dyn NodeSetLog>>,
+    /// Progress of a long run (`softc run`: on stderr), updated at the host's checks.
+    pub progress: Option<Box<dyn ProgressReport>>,
     /// Set from another thread to stop the run at its next check ([`INTERRUPTED`]): the
     /// Python package's Ctrl-C, while the run holds no GIL.
     pub interrupt: Option<std::sync::Arc<std::sync::atomic::AtomicBool>>,
@@ -617,10 +617,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let scene = self.scene;
         let rest = &scene.mesh.nodes;
         let mut loss_sum = 0.0;
-        let csv_due = |csv: &[CsvOutput], k: u64| csv.iter().any(|c| k.is_multiple_of(c.every));
-        let vtk_due = |vtk: &Option<VtkOutput>, k: u64| {
+        let csv_due =
+            |csv: &[Box<dyn NodeSetLog>], k: u64| csv.iter().any(|c| k.is_multiple_of(c.every()));
+        let vtk_due = |vtk: &Option<Box<dyn StateSeries>>, k: u64| {
             vtk.as_ref()
-                .is_some_and(|o| k.is_multiple_of(o.every.max(1)))
+                .is_some_and(|o| k.is_multiple_of(o.every().max(1)))
         };
         // The initial state is the first good one (a blow-up before the first check is run
         // again from here).
@@ -640,7 +641,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             if csv_due(&self.csv, step) {
                 let x = self.backend.get(self.ids.x);
-                for c in self.csv.iter_mut().filter(|c| step % c.every == 0) {
+                for c in self.csv.iter_mut().filter(|c| step % c.every() == 0) {
                     c.record(step, step as f64 * dt, rest, &x);
                 }
             }

@@ -15,7 +15,7 @@
 
 use super::{RunError, Simulation};
 use crate::devices::Backend;
-use crate::outputs::Sig;
+use crate::text::Sig;
 use softc_compiler::driver::{LossArg, SensorKernels};
 use softc_compiler::ir::interp;
 use std::collections::BTreeMap;

@@ -21,9 +21,9 @@
 use super::loss::{Loss, LossWindow};
 use super::{RunError, RunSummary, Simulation};
 use crate::devices::Backend;
-use crate::outputs::Sig;
 use crate::solvers::amg::MultigridSolver;
 use crate::solvers::sparse::{BlockPattern, FreeMotion, SparseSolver};
+use crate::text::Sig;
 use softc_compiler::back::Precision;
 use softc_compiler::driver::LossArg;
 use softc_compiler::driver::StaticKernels;
@@ -1273,7 +1273,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 }
             }
             if let Some(vtk) = &self.vtk
-                && (k % vtk.every.max(1) == 0 || k == steps)
+                && (k % vtk.every().max(1) == 0 || k == steps)
             {
                 self.write_vtk(t)?;
             }

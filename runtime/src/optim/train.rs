@@ -608,8 +608,8 @@ impl<'s, B: Backend + Send> Trainer<'s, B> {
     pub fn forward(
         &mut self,
         inputs: &BTreeMap<String, f64>,
-        vtk: Option<crate::outputs::vtk::VtkOutput>,
-        csv: Vec<crate::outputs::csv::CsvOutput>,
+        vtk: Option<Box<dyn crate::engine::StateSeries>>,
+        csv: Vec<Box<dyn crate::engine::NodeSetLog>>,
     ) -> Result<RunSummary, RunError> {
         let params = self.result();
         let (dt, steps) = (self.state.dt, self.state.steps);

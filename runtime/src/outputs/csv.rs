@@ -45,3 +45,17 @@ impl CsvOutput {
             .map_err(|e| format!("cannot write the CSV output `{}`: {e}", self.path.display()))
     }
 }
+
+impl crate::engine::NodeSetLog for CsvOutput {
+    fn every(&self) -> u64 {
+        self.every
+    }
+
+    fn record(&mut self, step: u64, t: f64, rest: &[[f64; 3]], x: &[f64]) {
+        CsvOutput::record(self, step, t, rest, x)
+    }
+
+    fn finish(&self) -> Result<(), String> {
+        CsvOutput::finish(self)
+    }
+}

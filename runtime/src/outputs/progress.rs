@@ -223,3 +223,13 @@ mod tests {
         assert_eq!(human(42_368_149.0), "1.3 years");
     }
 }
+
+impl crate::engine::ProgressReport for Progress {
+    fn update(&mut self, phase: &str, done: u64, total: u64) {
+        Progress::update(self, phase, done, total)
+    }
+
+    fn note(&mut self, detail: &str) {
+        Progress::note(self, detail)
+    }
+}

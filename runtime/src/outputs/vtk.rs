@@ -5,6 +5,7 @@
 //! quadratic tetrahedra (VTK type 24, its tagged triangles type 22): the mid-edge nodes are
 //! points like the corners, with their own displacement and velocity.
 
+use crate::engine::{Frame, StateSeries};
 use crate::mesh::Mesh;
 use crate::mesh::writers::Field;
 
@@ -14,18 +15,6 @@ pub struct VtkOutput {
     pub series: crate::mesh::writers::PvdSeries,
     /// Write every this many steps (and the first and last state).
     pub every: u64,
-}
-
-/// One frame of a run: the state at time `t`, as flat buffers of the kernels.
-pub struct Frame<'a> {
-    pub t: f64,
-    /// Positions and velocities, 3 values per node.
-    pub x: &'a [f64],
-    pub v: &'a [f64],
-    /// Strain energy per element (empty for the spring mesh, which has none).
-    pub energy: &'a [f64],
-    /// Volume ratio J per element.
-    pub j: &'a [f64],
 }
 
 /// The array names, each with its SI unit.
@@ -83,5 +72,20 @@ impl VtkOutput {
             )
             .map(|_| ())
             .map_err(|e| format!("cannot write the VTK output: {e}"))
+    }
+}
+
+impl StateSeries for VtkOutput {
+    fn every(&self) -> u64 {
+        self.every
+    }
+
+    fn write_frame(
+        &mut self,
+        mesh: &Mesh,
+        rest_volume: &[f64],
+        frame: &Frame,
+    ) -> Result<(), String> {
+        VtkOutput::write_frame(self, mesh, rest_volume, frame)
     }
 }
