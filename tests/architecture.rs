@@ -295,3 +295,16 @@ fn the_engine_knows_no_output_format() {
         found.join("\n")
     );
 }
+
+/// The editor support answers from the checker's resolution table (`sema::Resolution`): it
+/// keeps no scopes of its own, so what an editor shows cannot drift from what `softc check`
+/// resolved.
+#[test]
+fn the_ide_layer_has_no_resolver_of_its_own() {
+    let found = mentions("compiler/src/ide", &["scopes", "fn use_name", "struct Resolver"]);
+    assert!(
+        found.is_empty(),
+        "compiler/src/ide resolves names itself; read sema's resolution table instead:\n{}",
+        found.join("\n")
+    );
+}

@@ -4,9 +4,12 @@
 //! answers its questions from the same front end and checker as `softc check`. Everything works
 //! on byte offsets into the script; the server converts to editor positions.
 //!
-//! Hover and go-to-definition use the AST when the script parses, and a token scan otherwise
-//! (while the user types, most states of the document do not parse). Completion always works
-//! from tokens before the cursor, so it is useful in the middle of an unfinished statement.
+//! Hover, go-to-definition and references use the checker's resolution table
+//! ([`crate::sema::Resolution`]: every declaration and every use with what it resolved to) when
+//! the script parses — the checker goes on past semantic errors, so a script with mistakes is
+//! resolved too — and a token scan otherwise (while the user types, most states of the
+//! document do not parse). The editor has no resolver of its own. Completion always works from
+//! tokens before the cursor, so it is useful in the middle of an unfinished statement.
 
 mod complete;
 mod docs;
@@ -16,10 +19,10 @@ mod hover;
 mod lex;
 mod navigate;
 mod outline;
-mod resolve;
 #[cfg(test)]
 mod tests;
 
+pub use crate::sema::{Def, DefKind, Resolution};
 pub use complete::{Completion, CompletionKind};
 pub use docs::{
     BUILTIN_DOCS, BuiltinDoc, CONSTANT_DOCS, CONTEXTUAL_KEYWORDS, KEYWORDS, REDUCTIONS,
@@ -28,45 +31,48 @@ pub use docs::{
 pub use hover::{builtin_hover, eval_dim, prelude_signatures};
 pub use lex::{Tok, TokKind, is_keyword, tokenize};
 pub use outline::Symbol;
-pub use resolve::{Def, DefKind, Resolved, resolve};
 
 use crate::front::ast::*;
-use crate::sema::{CheckedScript, GlobalInfo};
+use crate::sema::{CheckOptions, CheckedScript, GlobalInfo};
 
 /// A script parsed, resolved and checked, ready to answer editor questions.
 pub struct Analysis<'a> {
     pub text: &'a str,
     pub script: Option<Script>,
-    pub resolved: Resolved,
+    /// The checker's resolution table (empty when the script does not parse).
+    pub resolved: Resolution,
     /// The checker's view of the script's globals (types, values); empty when not checked.
     pub globals: Vec<GlobalInfo>,
     pub tokens: Vec<Tok>,
 }
 
 impl<'a> Analysis<'a> {
-    /// Analyze without running the checker (hover then shows declared, not inferred, types).
+    /// Parse and check the text (no files read: paths and the mesh are not checked).
     pub fn new(text: &'a str) -> Self {
         let script = crate::front::parse(text).ok();
-        let resolved = script.as_ref().map(resolve).unwrap_or_default();
-        Analysis {
-            text,
-            script,
-            resolved,
-            globals: Vec::new(),
-            tokens: tokenize(text),
-        }
+        let checked = script
+            .as_ref()
+            .map(|s| crate::sema::check(s, &CheckOptions::default()).0);
+        Analysis::from_parsed(text, script, checked)
     }
 
-    /// Analyze and keep the checker's results (types of globals).
+    /// Analyze with the results of a check made before (`softc lsp` checks with the mesh).
     pub fn with_check(text: &'a str, checked: Option<CheckedScript>) -> Self {
-        let mut a = Analysis::new(text);
-        a.globals = checked.map(|c| c.globals).unwrap_or_default();
-        a
+        let script = crate::front::parse(text).ok();
+        Analysis::from_parsed(text, script, checked)
     }
 
-    /// Analyze a script parsed before (`script` must be `front::parse(text).ok()`).
-    pub fn from_parsed(text: &'a str, script: Option<Script>, globals: Vec<GlobalInfo>) -> Self {
-        let resolved = script.as_ref().map(resolve).unwrap_or_default();
+    /// Analyze a script parsed and checked before (`script` must be `front::parse(text).ok()`
+    /// and `checked` its check).
+    pub fn from_parsed(
+        text: &'a str,
+        script: Option<Script>,
+        checked: Option<CheckedScript>,
+    ) -> Self {
+        let (resolved, globals) = match (script.is_some(), checked) {
+            (true, Some(c)) => (c.resolution, c.globals),
+            _ => Default::default(),
+        };
         Analysis {
             text,
             script,

@@ -212,3 +212,85 @@ fn never_panics_on_odd_text() {
         let _ = a.symbols();
     }
 }
+
+/// The resolution table is the checker's: on every example, each use names a declaration of
+/// the same name, each declaration is where its name is written, no use is recorded twice, and
+/// every declared global the checker saw used has a use in the table.
+#[test]
+fn the_checkers_resolution_table_is_consistent_on_every_example() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
+    let mut checked = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "soft") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&path).unwrap();
+        let a = Analysis::new(&text);
+        let r = &a.resolved;
+        let name = path.display();
+        assert!(!r.defs.is_empty() && !r.refs.is_empty(), "{name}");
+        for d in &r.defs {
+            assert_eq!(&text[d.span.start..d.span.end], d.name, "{name}: {d:?}");
+        }
+        let mut uses = std::collections::HashSet::new();
+        for (span, d) in &r.refs {
+            assert_eq!(
+                &text[span.start..span.end],
+                r.defs[*d].name,
+                "{name}: {span:?}"
+            );
+            assert!(
+                uses.insert((span.start, span.end)),
+                "{name}: {span:?} twice"
+            );
+        }
+        for f in &r.free {
+            assert!(
+                uses.insert((f.span.start, f.span.end)),
+                "{name}: {f:?} also a use"
+            );
+        }
+        // A global the checker does not warn about as unused (W0001) is used somewhere (but a
+        // scene's only material, used without `use`).
+        let report = crate::check_source(&text, &Default::default());
+        let written =
+            |d: &&Def| matches!(d.kind, DefKind::Global(k) if k != crate::sema::SymKind::Material);
+        for d in r.defs.iter().filter(written) {
+            let unused = report
+                .diagnostics
+                .iter()
+                .any(|w| w.code == "W0001" && w.span == d.span);
+            let used = r.refs.iter().any(|(_, i)| r.defs[*i].span == d.span);
+            assert!(
+                unused || used,
+                "{name}: `{}` is used but the table has no use",
+                d.name
+            );
+        }
+        checked += 1;
+    }
+    assert!(checked >= 15, "{checked} examples");
+}
+
+/// A script with semantic mistakes is still resolved: declarations and uses around an unknown
+/// name, a type error and a wrong kind of name.
+#[test]
+fn a_script_with_errors_is_resolved_too() {
+    let text = "param p: pressure = 1 kPa\nlet a = p + 2 mm\nlet b = a * nowhere\n\
+                nodes tip = select(body, x > 1 mm)\nsim {\n  fix p\n  let k = b\n}\n";
+    let a = Analysis::new(text);
+    let def = |needle: &str| {
+        let at = text.find(needle).unwrap();
+        a.definition(at).map(|s| &text[s.start..s.end])
+    };
+    // `p` in `p + 2 mm` (a type error) and in `fix p` (a param is not a node set).
+    assert_eq!(def("p + 2"), Some("p"));
+    assert_eq!(def("p\n  let"), Some("p"));
+    assert_eq!(def("a * nowhere"), Some("a"));
+    assert_eq!(def("b\n}"), Some("b"));
+    assert!(a.resolved.free.iter().any(|f| f.name == "nowhere"));
+    assert!(a.resolved.free.iter().any(|f| f.name == "body"));
+    let refs = a.references(text.find("p:").unwrap());
+    assert_eq!(refs.len(), 3, "{refs:?}");
+}

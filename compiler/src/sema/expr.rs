@@ -141,7 +141,7 @@ impl Checker {
                 var,
                 domain,
                 body,
-            } => self.check_reduce(*op, var, domain, body),
+            } => self.check_reduce(*op, var, domain, body, e.span),
             ExprKind::If {
                 cond,
                 then,
@@ -339,8 +339,15 @@ impl Checker {
 
     fn check_name(&mut self, id: &Ident) -> Typed {
         let name = id.name.as_str();
-        if let Some(t) = self.lookup_local(name) {
+        if let Some((t, def)) = self.lookup_local_def(name) {
+            self.record_use(id, def);
             return t;
+        }
+        // Not a local: the script can only have declared it as a global (implicit names such
+        // as `t` and `x` are reserved).
+        match self.globals.get(name).copied() {
+            Some(g) => self.record_global_use(id, g),
+            None => self.record_use(id, None),
         }
         match name {
             "t" if self.ctx.time => return Typed::of(Ty::scalar(Dim::TIME), Var::Time),
@@ -818,7 +825,14 @@ impl Checker {
         }
     }
 
-    fn check_reduce(&mut self, op: ReduceOp, var: &Ident, domain: &Expr, body: &Expr) -> Typed {
+    fn check_reduce(
+        &mut self,
+        op: ReduceOp,
+        var: &Ident,
+        domain: &Expr,
+        body: &Expr,
+        whole: Span,
+    ) -> Typed {
         let d = self.check_expr(domain);
         let binder = match &d.ty {
             Ty::Error => Typed::error(),
@@ -843,7 +857,8 @@ impl Checker {
             }
         };
         self.push_scope();
-        self.declare_local(&var.name, var.span, binder, false);
+        let def = self.define(var, super::DefKind::ReduceVar, whole, None);
+        self.declare_local(&var.name, var.span, binder, false, def);
         let b = self.check_expr(body);
         self.pop_scope();
         match &b.ty {
@@ -878,12 +893,14 @@ impl Checker {
             return Typed::error();
         };
         let name = id.name.as_str();
-        if self.lookup_local(name).is_some() {
+        if let Some((_, def)) = self.lookup_local_def(name) {
+            self.record_use(id, def);
             let msg = format!("`{name}` is a value, not a function");
             self.err(Diagnostic::error("E0110", id.span, msg));
             return Typed::error();
         }
         if let Some(&gid) = self.globals.get(name) {
+            self.record_global_use(id, gid);
             self.syms[gid].used = true;
             let kind = self.syms[gid].kind;
             return match kind {
@@ -897,6 +914,7 @@ impl Checker {
                 }
             };
         }
+        self.record_use(id, None);
         if super::builtins::FUNCTIONS.contains(&name) {
             return self.check_builtin(e, id, args);
         }
@@ -1117,6 +1135,8 @@ impl Checker {
         // The arguments' values, and the defaults of those not given.
         let mark = self.diags.len();
         let mut values = Vec::new();
+        // The defaults are the function's code (perhaps the prelude's).
+        let saved_prelude = std::mem::replace(&mut self.in_prelude, prelude);
         for (p, v) in f.params.iter().zip(given) {
             let v = match (v, &p.default) {
                 (Some(v), _) => v,
@@ -1125,6 +1145,7 @@ impl Checker {
             };
             values.push(v);
         }
+        self.in_prelude = saved_prelude;
         self.diags.truncate(mark);
         if values.iter().any(Option::is_none) || values.len() != f.params.len() {
             return plain;
@@ -1142,7 +1163,9 @@ impl Checker {
                     return plain;
                 }
                 self.folds += 1;
+                let saved_prelude = std::mem::replace(&mut self.in_prelude, prelude);
                 let done = self.evaluate_call(&f, sig, values);
+                self.in_prelude = saved_prelude;
                 self.folded.insert(key, done.clone());
                 done
             }
@@ -1207,7 +1230,8 @@ impl Checker {
                 var: Var::Const,
                 value,
             };
-            self.declare_local(&p.name.name, p.name.span, typed, false);
+            let def = self.param_def(&f.name, p);
+            self.declare_local(&p.name.name, p.name.span, typed, false, def);
         }
         let body = self.check_expr(&f.body);
         self.pop_scope();

@@ -62,10 +62,20 @@ impl Checker {
         } else {
             self.user_items = items.to_vec();
         }
+        self.in_prelude = prelude;
         for (index, item) in items.iter().enumerate() {
             let Some((name, kind)) = SymKind::of_item(item) else {
                 continue;
             };
+            // The declaration as written, for editors (every one, clashes included).
+            let written = match &item.kind {
+                ItemKind::Param(p) => Some(p.ty.clone()),
+                ItemKind::Input(i) => Some(i.ty.clone()),
+                ItemKind::Let(l) => l.ty.clone(),
+                ItemKind::Fn(f) => f.ret.clone(),
+                _ => None,
+            };
+            let def = self.define(name, super::DefKind::Global(kind), item.span, written);
             if super::RESERVED_NAMES.contains(&name.name.as_str()) {
                 self.err(reserved_name(&name.name, name.span));
                 continue;
@@ -108,6 +118,9 @@ impl Checker {
                 continue;
             }
             self.globals.insert(name.name.clone(), self.syms.len());
+            if let Some(d) = def {
+                self.global_defs.insert(self.syms.len(), d);
+            }
             self.syms.push(Global {
                 name: name.name.clone(),
                 kind,
@@ -122,6 +135,7 @@ impl Checker {
 
     /// Check every item (pass 2). The sim block goes first: the loss needs its duration.
     pub(super) fn check_items(&mut self, items: &[Item], prelude: bool) {
+        self.in_prelude = prelude;
         let ids: Vec<usize> = (0..self.syms.len())
             .filter(|&i| self.syms[i].prelude == prelude)
             .collect();
@@ -257,6 +271,7 @@ impl Checker {
 
     /// Turn a written type into a [`Ty`]; `template` allows `*` lengths.
     pub(super) fn resolve_type(&mut self, te: &TypeExpr, template: bool) -> Option<Ty> {
+        self.record_type_names(te);
         let dim = self.resolve_dim(&te.dim)?;
         let mut shape = Vec::new();
         for s in &te.shape {
@@ -324,6 +339,36 @@ impl Checker {
             shape,
             int: false,
         })
+    }
+
+    /// Enter a type's dimension names and element-set names in the resolution table, all of
+    /// them, whether or not the type checks.
+    fn record_type_names(&mut self, te: &TypeExpr) {
+        if self.in_prelude {
+            return;
+        }
+        let mut stack = vec![&te.dim];
+        while let Some(d) = stack.pop() {
+            for f in std::iter::once(&d.first).chain(d.rest.iter().map(|(_, f)| f)) {
+                match &f.base {
+                    DimBase::One => {}
+                    DimBase::Named(id) => {
+                        if self.seen_uses.insert((id.span.start, id.span.end)) {
+                            self.out.resolution.dims.push(id.clone());
+                        }
+                    }
+                    DimBase::Group(g) => stack.push(g),
+                }
+            }
+        }
+        for s in &te.shape {
+            if let ShapeItem::Set(id) = s {
+                match self.globals.get(&id.name).copied() {
+                    Some(g) => self.record_global_use(id, g),
+                    None => self.record_use(id, None),
+                }
+            }
+        }
     }
 
     fn resolve_dim(&mut self, d: &DimExpr) -> Option<Dim> {
@@ -533,11 +578,13 @@ impl Checker {
             }
             let ty = ty.unwrap_or(Ty::Error);
             ok &= !ty.is_error();
+            let def = self.param_def(&f.name, p);
             self.declare_local(
                 &p.name.name,
                 p.name.span,
                 Typed::of(ty.clone(), Var::Const),
                 false,
+                def,
             );
             params.push(SigParam {
                 name: p.name.name.clone(),
@@ -597,11 +644,13 @@ impl Checker {
                     let t = self.check_expr(d);
                     self.expect_type(&t, &ty, d, &format!("the default of `{}`", p.name.name));
                 }
+                let def = self.param_def(&m.name, p);
                 self.declare_local(
                     &p.name.name,
                     p.name.span,
                     Typed::of(ty.clone(), Var::Const),
                     false,
+                    def,
                 );
                 sig.push(SigParam {
                     name: p.name.name.clone(),
@@ -667,7 +716,8 @@ impl Checker {
                 StmtKind::Let(l) => {
                     let t = self.check_expr(&l.value);
                     let t = self.check_let_type(l, t);
-                    self.declare_local(&l.name.name, l.name.span, t, true);
+                    let def = self.define(&l.name, super::DefKind::LocalLet, s.span, l.ty.clone());
+                    self.declare_local(&l.name.name, l.name.span, t, true, def);
                 }
                 StmtKind::Assign {
                     name: setting,
@@ -763,6 +813,7 @@ impl Checker {
                                 used: false,
                                 // Listing all three invariants and using two is fine.
                                 warn_unused: false,
+                                def: None,
                             },
                         );
                     }
@@ -809,6 +860,7 @@ impl Checker {
     pub(super) fn global_kind(&mut self, id: &Ident) -> Option<SymKind> {
         match self.globals.get(&id.name) {
             Some(&g) => {
+                self.record_global_use(id, g);
                 self.syms[g].used = true;
                 let t = self.global_typed_at(g, Some(id.span));
                 // A let naming a region, a set or a material stands for it (`let s = clamp`).
@@ -821,6 +873,7 @@ impl Checker {
                 })
             }
             None => {
+                self.record_use(id, None);
                 let d = self.unknown_name(&id.name, id.span);
                 self.err(d);
                 None

@@ -12,12 +12,14 @@ mod expr;
 mod items;
 pub mod mesh_probe;
 mod optimize;
+pub mod resolution;
 mod sim;
 pub mod types;
 pub mod units;
 
 pub use builtins::{CONSTANTS, FUNCTIONS};
 pub use items::{OPTIMIZE_SETTINGS, SIM_SETTINGS};
+pub use resolution::{Def, DefKind, Resolution};
 
 use crate::diag::{Diagnostic, did_you_mean};
 use crate::front::ast::{Item, Script, Span};
@@ -29,7 +31,7 @@ use types::{Ty, Typed, Var};
 pub const PRELUDE: &str = include_str!("prelude.soft");
 
 /// What the checker learned about a script (consumed by lowering in later stages).
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone)]
 pub struct CheckedScript {
     /// Declared parameters in source order: name, type, initial value (SI, flattened).
     pub params: Vec<ParamInfo>,
@@ -37,6 +39,9 @@ pub struct CheckedScript {
     pub duration: Option<f64>,
     /// The script's global declarations with their checked types (editors: hover).
     pub globals: Vec<GlobalInfo>,
+    /// Every declaration and every use of a name with what it resolved to (editors: hover,
+    /// definition, references).
+    pub resolution: Resolution,
 }
 
 /// A global declaration of the user's script, as the checker saw it.
@@ -250,6 +255,8 @@ struct Local {
     used: bool,
     /// Warn when unused (sim/material lets); binders and parameters are exempt.
     warn_unused: bool,
+    /// Its entry in the resolution table (`None` for implicit names and in the prelude).
+    def: Option<usize>,
 }
 
 /// Implicit names visible in the expression being checked.
@@ -297,6 +304,14 @@ struct Checker {
     regions: HashMap<String, mesh_probe::Shape>,
     /// The shape of the region call checked last (picked up by its declaration).
     last_shape: Option<mesh_probe::Shape>,
+    /// Whether the code being checked is the prelude's (nothing of it enters the resolution
+    /// table, whose spans point into the user's script).
+    in_prelude: bool,
+    /// Resolution-table entries by the declared name's span, and the user's globals' entries.
+    def_at_span: HashMap<(usize, usize), usize>,
+    global_defs: HashMap<usize, usize>,
+    /// Uses recorded so far (a body checked twice, e.g. folded at a call, records once).
+    seen_uses: std::collections::HashSet<(usize, usize)>,
 }
 
 impl Checker {
@@ -323,7 +338,76 @@ impl Checker {
             mesh: None,
             regions: HashMap::new(),
             last_shape: None,
+            in_prelude: false,
+            def_at_span: HashMap::new(),
+            global_defs: HashMap::new(),
+            seen_uses: std::collections::HashSet::new(),
         }
+    }
+
+    /// The resolution-table entry of a declaration (one per declared name, however often its
+    /// code is checked); `None` in the prelude.
+    fn define(
+        &mut self,
+        name: &crate::front::ast::Ident,
+        kind: DefKind,
+        decl: Span,
+        ty: Option<crate::front::ast::TypeExpr>,
+    ) -> Option<usize> {
+        if self.in_prelude {
+            return None;
+        }
+        let key = (name.span.start, name.span.end);
+        if let Some(&d) = self.def_at_span.get(&key) {
+            return Some(d);
+        }
+        let r = &mut self.out.resolution;
+        r.defs.push(Def {
+            name: name.name.clone(),
+            kind,
+            span: name.span,
+            decl,
+            ty,
+        });
+        self.def_at_span.insert(key, r.defs.len() - 1);
+        Some(r.defs.len() - 1)
+    }
+
+    /// Record that the name `id` (written in the user's script) resolved to entry `def`, or
+    /// to nothing the script declares (`None`: a built-in, a prelude name, an implicit name, a
+    /// mistake).
+    fn record_use(&mut self, id: &crate::front::ast::Ident, def: Option<usize>) {
+        if self.in_prelude || !self.seen_uses.insert((id.span.start, id.span.end)) {
+            return;
+        }
+        match def {
+            Some(d) => self.out.resolution.refs.push((id.span, d)),
+            None => self.out.resolution.free.push(id.clone()),
+        }
+    }
+
+    /// The resolution-table entry of a parameter of `owner` (a function, controller or
+    /// material template).
+    fn param_def(
+        &mut self,
+        owner: &crate::front::ast::Ident,
+        p: &crate::front::ast::FnParam,
+    ) -> Option<usize> {
+        let end = p.default.as_ref().map_or(p.ty.span, |d| d.span);
+        self.define(
+            &p.name,
+            DefKind::Param {
+                owner: owner.name.clone(),
+            },
+            p.name.span.to(end),
+            Some(p.ty.clone()),
+        )
+    }
+
+    /// Record a use of the global `gid` (the user's declaration, or a prelude name).
+    fn record_global_use(&mut self, id: &crate::front::ast::Ident, gid: usize) {
+        let def = self.global_defs.get(&gid).copied();
+        self.record_use(id, def);
     }
 
     fn err(&mut self, d: Diagnostic) {
@@ -338,12 +422,13 @@ impl Checker {
         }
     }
 
-    /// Look a name up in the local scopes, innermost first, marking it used.
-    fn lookup_local(&mut self, name: &str) -> Option<Typed> {
+    /// Look a name up in the local scopes, innermost first, marking it used; with the local's
+    /// resolution-table entry.
+    fn lookup_local_def(&mut self, name: &str) -> Option<(Typed, Option<usize>)> {
         for scope in self.scopes.iter_mut().rev() {
             if let Some(l) = scope.get_mut(name) {
                 l.used = true;
-                return Some(l.typed.clone());
+                return Some((l.typed.clone(), l.def));
             }
         }
         None
@@ -373,7 +458,14 @@ impl Checker {
         }
     }
 
-    fn declare_local(&mut self, name: &str, span: Span, typed: Typed, warn_unused: bool) {
+    fn declare_local(
+        &mut self,
+        name: &str,
+        span: Span,
+        typed: Typed,
+        warn_unused: bool,
+        def: Option<usize>,
+    ) {
         if RESERVED_NAMES.contains(&name) {
             self.err(reserved_name(name, span));
         }
@@ -393,6 +485,7 @@ impl Checker {
                 span,
                 used: false,
                 warn_unused,
+                def,
             },
         );
     }
@@ -465,7 +558,9 @@ impl Checker {
                 let saved_scopes = std::mem::take(&mut self.scopes);
                 let saved_ctx = std::mem::take(&mut self.ctx);
                 let item = self.item(self.syms[id].prelude, self.syms[id].item);
+                let saved_prelude = std::mem::replace(&mut self.in_prelude, self.syms[id].prelude);
                 let t = self.check_decl(id, &item);
+                self.in_prelude = saved_prelude;
                 self.scopes = saved_scopes;
                 self.ctx = saved_ctx;
                 if matches!(self.syms[id].state, GState::InProgress) {

@@ -78,6 +78,10 @@ impl Checker {
             );
         }
         for t in &opt.targets {
+            match self.globals.get(&t.name).copied() {
+                Some(g) => self.record_global_use(t, g),
+                None => self.record_use(t, None),
+            }
             match self.globals.get(&t.name).map(|&g| (g, self.syms[g].kind)) {
                 Some((g, SymKind::Param)) => {
                     self.syms[g].used = true;
@@ -142,6 +146,7 @@ impl Checker {
                                 span: s.span,
                                 used: false,
                                 warn_unused: false,
+                                def: None,
                             },
                         );
                     }
@@ -156,6 +161,10 @@ impl Checker {
                     }
                 }
                 StmtKind::Validate { input, source } => {
+                    match self.globals.get(&input.name).copied() {
+                        Some(g) => self.record_global_use(input, g),
+                        None => self.record_use(input, None),
+                    }
                     match self
                         .globals
                         .get(&input.name)

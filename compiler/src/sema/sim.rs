@@ -168,7 +168,8 @@ impl Checker {
                 StmtKind::Let(l) => {
                     let t = self.check_expr(&l.value);
                     let t = self.check_let_type(l, t);
-                    self.declare_local(&l.name.name, l.name.span, t, true);
+                    let def = self.define(&l.name, super::DefKind::LocalLet, s.span, l.ty.clone());
+                    self.declare_local(&l.name.name, l.name.span, t, true, def);
                 }
                 StmtKind::Fix(names) => {
                     for n in names {

@@ -385,14 +385,9 @@ impl Server {
     fn analysis<'a>(&self, doc: &'a Document) -> Analysis<'a> {
         match &doc.parsed {
             // Checked and parsed: reuse both (they belong to the current text).
-            Some(ast) if !doc.dirty => Analysis::from_parsed(
-                &doc.text,
-                Some(ast.clone()),
-                doc.checked
-                    .as_ref()
-                    .map(|c| c.globals.clone())
-                    .unwrap_or_default(),
-            ),
+            Some(ast) if !doc.dirty => {
+                Analysis::from_parsed(&doc.text, Some(ast.clone()), doc.checked.clone())
+            }
             _ => Analysis::new(&doc.text),
         }
     }
