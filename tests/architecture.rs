@@ -301,7 +301,10 @@ fn the_engine_knows_no_output_format() {
 /// resolved.
 #[test]
 fn the_ide_layer_has_no_resolver_of_its_own() {
-    let found = mentions("compiler/src/ide", &["scopes", "fn use_name", "struct Resolver"]);
+    let found = mentions(
+        "compiler/src/ide",
+        &["scopes", "fn use_name", "struct Resolver"],
+    );
     assert!(
         found.is_empty(),
         "compiler/src/ide resolves names itself; read sema's resolution table instead:\n{}",

@@ -283,6 +283,16 @@ fn extrusion_refuses_what_it_cannot_mesh_with_a_clear_message() {
     )
     .unwrap_err();
     assert!(e.contains("must be > 0"), "{e}");
+    // A `resolution` key would be ignored beside [extrude]: it is refused, naming the fix.
+    let e = generate_text(
+        &format!("resolution = 2.0\n{}", endoscope_spec(0.75, 1)),
+        None,
+    )
+    .unwrap_err();
+    assert!(
+        e.contains("no effect beside [extrude]") && e.contains("`wall`"),
+        "{e}"
+    );
 }
 
 /// A box body with a box cavity, graded towards the cavity's edges: outline pieces `corner`

@@ -103,7 +103,7 @@ pub fn info_json(mesh: &Mesh, file: &Path) -> serde_json::Value {
         .map(|t| {
             let vol: f64 = (0..mesh.tets.len())
                 .filter(|e| mesh.tet_tags[*e] == t)
-                .map(|e| mesh.tet_volume(e))
+                .map(|e| mesh.element_volume(e))
                 .sum();
             json!({
                 "tag": t,

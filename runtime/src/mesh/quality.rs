@@ -97,7 +97,8 @@ impl Mesh {
                 continue;
             }
             let p = self.tet_points(e);
-            q.volume += signed_volume(p);
+            // A curved 10-node tet's own volume, not its corners'.
+            q.volume += self.element_volume(e);
             for a in dihedral_angles(p) {
                 let d = a.to_degrees();
                 if d < q.min_dihedral_deg {

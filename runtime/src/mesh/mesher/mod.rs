@@ -345,6 +345,14 @@ pub fn generate(
             seconds: t0.elapsed().as_secs_f64(),
         });
     }
+    if let (Some(h), Some(x)) = (spec.resolution, &spec.extrude) {
+        // It would be silently ignored: the extrusion's lengths are its own.
+        return Err(MeshError::spec(format!(
+            "`resolution = {h}` has no effect beside [extrude], whose `wall` ({}) sets the edge \
+             length: remove it (to refine, lower `wall`, or pass --resolution to scale every length)",
+            x.wall
+        )));
+    }
     let (mut mesh, extruded, h) = if let Some(x) = &spec.extrude {
         // A resolution override is the new wall edge; interior and layer scale with it.
         let scale = match resolution {
