@@ -20,21 +20,27 @@ fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
-/// The guide's pages, sorted.
-fn guide_pages() -> Vec<PathBuf> {
-    fn walk(dir: &Path, out: &mut Vec<PathBuf>) {
-        for entry in std::fs::read_dir(dir).unwrap() {
+/// The files under `dir` (recursively) whose extension is `ext`, sorted.
+fn files_under(dir: &Path, ext: &str) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).unwrap_or_else(|e| panic!("{}: {e}", d.display())) {
             let path = entry.unwrap().path();
             if path.is_dir() {
-                walk(&path, out);
-            } else if path.extension().is_some_and(|e| e == "md") {
+                stack.push(path);
+            } else if path.extension().is_some_and(|e| e == ext) {
                 out.push(path);
             }
         }
     }
-    let mut pages = Vec::new();
-    walk(&root().join("docs/src"), &mut pages);
-    pages.sort();
+    out.sort();
+    out
+}
+
+/// The guide's pages, sorted.
+fn guide_pages() -> Vec<PathBuf> {
+    let pages = files_under(&root().join("docs/src"), "md");
     assert!(pages.len() > 10, "the guide has pages: {pages:?}");
     pages
 }
@@ -539,29 +545,22 @@ fn the_error_code_reference_covers_every_code() {
             (cells[1].to_string(), cells[2].to_string()),
         );
     }
-    // Every code in the compiler's and runtime's sources.
+    // Every code in the compiler's and runtime's sources: a string literal `"E0201"`.
     let mut emitted = std::collections::BTreeSet::new();
-    fn scan(dir: &Path, found: &mut std::collections::BTreeSet<String>) {
-        for entry in std::fs::read_dir(dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                scan(&path, found);
-            } else if path.extension().is_some_and(|e| e == "rs") {
-                let text = std::fs::read_to_string(&path).unwrap();
-                for (i, _) in text.match_indices('"') {
-                    let code = text.get(i + 1..i + 6).unwrap_or("");
-                    if text.get(i + 6..i + 7) == Some("\"")
-                        && (code.starts_with('E') || code.starts_with('W'))
-                        && code[1..].chars().all(|c| c.is_ascii_digit())
-                    {
-                        found.insert(code.to_string());
-                    }
+    for dir in ["compiler/src", "runtime/src"] {
+        for path in files_under(&root().join(dir), "rs") {
+            let text = read(&path);
+            for (i, _) in text.match_indices('"') {
+                let code = text.get(i + 1..i + 6).unwrap_or("");
+                if text.get(i + 6..i + 7) == Some("\"")
+                    && (code.starts_with('E') || code.starts_with('W'))
+                    && code[1..].chars().all(|c| c.is_ascii_digit())
+                {
+                    emitted.insert(code.to_string());
                 }
             }
         }
     }
-    scan(&root().join("compiler/src"), &mut emitted);
-    scan(&root().join("runtime/src"), &mut emitted);
     let undocumented: Vec<&String> = emitted
         .iter()
         .filter(|c| !meanings.contains_key(*c))
