@@ -167,6 +167,16 @@ impl Drop for Progress {
     }
 }
 
+impl crate::engine::ProgressReport for Progress {
+    fn update(&mut self, phase: &str, done: u64, total: u64) {
+        Progress::update(self, phase, done, total)
+    }
+
+    fn note(&mut self, detail: &str) {
+        Progress::note(self, detail)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -221,15 +231,5 @@ mod tests {
         assert_eq!(human(720.0), "12.0 min");
         assert_eq!(human(3.4 * 3600.0), "3.4 h");
         assert_eq!(human(42_368_149.0), "1.3 years");
-    }
-}
-
-impl crate::engine::ProgressReport for Progress {
-    fn update(&mut self, phase: &str, done: u64, total: u64) {
-        Progress::update(self, phase, done, total)
-    }
-
-    fn note(&mut self, detail: &str) {
-        Progress::note(self, detail)
     }
 }
