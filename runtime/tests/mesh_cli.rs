@@ -97,11 +97,38 @@ fn shipped_meshes_are_reproducible_and_valid() {
     }
     // `softc mesh kuhn 12 4 4` makes the same file as bench_1k.toml.
     let out = d.join("k.msh");
-    let (c, _, e) = run(|o, e| kuhn([12, 4, 4], &out, o, e));
+    let (c, _, e) = run(|o, e| kuhn([12, 4, 4], 1, &out, o, e));
     assert_eq!(c, 0, "{e}");
     assert_eq!(
         std::fs::read(&out).unwrap(),
         std::fs::read(meshes().join("bench_1k.msh")).unwrap()
+    );
+    // `--order 2`: the same grid as 10-node tets, the same file as converting it.
+    let (quadratic, converted) = (d.join("k2.msh"), d.join("k2c.msh"));
+    let (c, o, e) = run(|o, e| kuhn([12, 4, 4], 2, &quadratic, o, e));
+    assert_eq!(c, 0, "{e}");
+    assert!(o.contains("wrote"), "{o}");
+    let (c, _, e) = run(|o, e| {
+        convert(
+            &out,
+            &converted,
+            LengthUnit::Millimetre,
+            false,
+            Some(2),
+            o,
+            e,
+        )
+    });
+    assert_eq!(c, 0, "{e}");
+    assert_eq!(
+        std::fs::read(&quadratic).unwrap(),
+        std::fs::read(&converted).unwrap()
+    );
+    let (c, o, _) = run(|o, e| info(&quadratic, LengthUnit::Millimetre, false, o, e));
+    assert_eq!(c, 0);
+    assert!(
+        o.contains("quadratic") && o.contains("valid: no issues"),
+        "{o}"
     );
     std::fs::remove_dir_all(&d).unwrap();
 }

@@ -84,6 +84,10 @@ pub enum MeshCommand {
         nz: usize,
         #[arg(short, long)]
         output: PathBuf,
+        /// Element order: 2 writes 10-node tets (a straight-sided mid-edge node on every edge;
+        /// the grid's faces are planes, so nothing is lost to curvature).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2))]
+        order: u8,
     },
 }
 
@@ -127,7 +131,13 @@ pub fn run(cmd: MeshCommand, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
             Ok(u) => commands::convert(&input, &output, u, renumber, order, out, err),
             Err(c) => c,
         },
-        MeshCommand::Kuhn { nx, ny, nz, output } => commands::kuhn([nx, ny, nz], &output, out, err),
+        MeshCommand::Kuhn {
+            nx,
+            ny,
+            nz,
+            output,
+            order,
+        } => commands::kuhn([nx, ny, nz], order, &output, out, err),
         // `bench --tradeoff` restricted to static solves: `cli/mod.rs` runs it through
         // `cli::bench` before it gets here.
         MeshCommand::Converge { .. } => {

@@ -364,11 +364,18 @@ pub fn convert(
 }
 
 /// `softc mesh kuhn NX NY NZ -o OUT`: the benchmark scene of BENCHMARK.md.
-pub fn kuhn(n: [usize; 3], output: &Path, out: &mut dyn Write, err: &mut dyn Write) -> i32 {
+pub fn kuhn(
+    n: [usize; 3],
+    order: u8,
+    output: &Path,
+    out: &mut dyn Write,
+    err: &mut dyn Write,
+) -> i32 {
     let mesh = match kuhn_grid(
         &KuhnSpec::benchmark(n[0], n[1], n[2]),
         LengthUnit::Millimetre,
     ) {
+        Ok(m) if order == 2 => m.with_mid_edges(),
         Ok(m) => m,
         Err(e) => return fail(err, &e.in_file(output)),
     };
