@@ -604,6 +604,11 @@ fn the_error_code_reference_covers_every_code() {
          status 1), `W` codes warnings (`--deny-warnings` makes them errors).\n",
     );
     for (code, (meaning, example)) in &meanings {
+        let mut first = meaning.chars();
+        let meaning: String = first
+            .next()
+            .map(|c| c.to_uppercase().chain(first).collect())
+            .unwrap_or_default();
         page.push_str(&format!(
             "\n## {code}\n\n{meaning}.\n\nExample: {example}.\n"
         ));
