@@ -360,6 +360,21 @@ fn every_command_shown_is_run_or_marked_as_not_run() {
     }
 }
 
+/// A path with its `..` and `.` components resolved (the file need not exist).
+fn normalized(path: &Path) -> PathBuf {
+    let mut out = PathBuf::new();
+    for c in path.components() {
+        match c {
+            std::path::Component::ParentDir => {
+                out.pop();
+            }
+            std::path::Component::CurDir => {}
+            other => out.push(other),
+        }
+    }
+    out
+}
+
 /// GitHub's and mdBook's anchor of a heading: lower case, letters, digits, `-` and `_` kept,
 /// spaces to `-`, everything else dropped.
 fn slug(heading: &str) -> String {
@@ -419,6 +434,15 @@ fn relative_links_and_anchors_resolve() {
             if !resolved.exists() {
                 failures.push(format!("{}: `{target}` names nothing", file.display()));
                 continue;
+            }
+            // The book holds only what is under docs/src: a page that links outside it has a
+            // broken link in the HTML (include the file as a page instead).
+            let book = root().join("docs/src");
+            if file.starts_with(&book) && !normalized(&resolved).starts_with(&book) {
+                failures.push(format!(
+                    "{}: `{target}` leaves docs/src: the built book will not have it",
+                    file.display()
+                ));
             }
             if !anchor.is_empty() && resolved.extension().is_some_and(|e| e == "md") {
                 // A guide page that includes another file has that file's headings.
