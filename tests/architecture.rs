@@ -3,7 +3,7 @@
 //! and `compiler/src/back/mod.rs`; nothing below the CLI imports it; no source file grows past
 //! 1,500 lines.
 
-use softc_tests::root;
+use softc_tests::{files_under, root};
 use std::path::{Path, PathBuf};
 
 /// The most lines a source file may have.
@@ -12,22 +12,7 @@ const MAX_LINES: usize = 1500;
 /// Every `.rs` file under `dir` (relative to the workspace root), recursively, sorted. Fails
 /// when there is none, so a moved folder cannot make a rule pass vacuously.
 fn rust_files(dir: &str) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    let mut stack = vec![root().join(dir)];
-    while let Some(d) = stack.pop() {
-        let entries = std::fs::read_dir(&d).unwrap_or_else(|e| panic!("{}: {e}", d.display()));
-        for entry in entries {
-            let path = entry
-                .unwrap_or_else(|e| panic!("{}: {e}", d.display()))
-                .path();
-            if path.is_dir() {
-                stack.push(path);
-            } else if path.extension().is_some_and(|e| e == "rs") {
-                out.push(path);
-            }
-        }
-    }
-    out.sort();
+    let out = files_under(&root().join(dir), "rs");
     assert!(!out.is_empty(), "no .rs files under {dir}");
     out
 }

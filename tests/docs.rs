@@ -3,7 +3,7 @@
 //! every relative link and anchor by resolving it, the generated reference pages against the
 //! program, and the book by building it. docs/src/contributing.md states the conventions.
 
-use softc_tests::{bless, root, scratch, softc};
+use softc_tests::{bless, files_under, root, scratch, softc};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -18,24 +18,6 @@ struct Block {
 
 fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
-}
-
-/// The files under `dir` (recursively) whose extension is `ext`, sorted.
-fn files_under(dir: &Path, ext: &str) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for entry in std::fs::read_dir(&d).unwrap_or_else(|e| panic!("{}: {e}", d.display())) {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                stack.push(path);
-            } else if path.extension().is_some_and(|e| e == ext) {
-                out.push(path);
-            }
-        }
-    }
-    out.sort();
-    out
 }
 
 /// The guide's pages, sorted.
@@ -126,21 +108,20 @@ fn prose(text: &str) -> String {
 /// (read only by convention), and where `meshes/...` also resolves from inside `examples/`.
 fn workspace(tag: &str) -> PathBuf {
     let dir = scratch("docs", tag);
-    for name in ["examples", "meshes"] {
+    link_repository_folders(&dir, &["examples", "meshes"]);
+    link_repository_folders(&dir.join("snippets"), &["examples", "meshes"]);
+    dir
+}
+
+/// `dir/NAME` → the repository's `NAME`, for each name (made once; `dir` created).
+fn link_repository_folders(dir: &Path, names: &[&str]) {
+    std::fs::create_dir_all(dir).unwrap();
+    for name in names {
         let link = dir.join(name);
         if !link.exists() {
             std::os::unix::fs::symlink(root().join(name), &link).unwrap();
         }
     }
-    let snippets = dir.join("snippets");
-    std::fs::create_dir_all(&snippets).unwrap();
-    for name in ["examples", "meshes"] {
-        let link = snippets.join(name);
-        if !link.exists() {
-            std::os::unix::fs::symlink(root().join(name), &link).unwrap();
-        }
-    }
-    dir
 }
 
 // The language reference checks fragments in a small scene (its section 1's), as its
@@ -226,12 +207,9 @@ fn every_soft_snippet_checks_as_annotated() {
             // resolve from there).
             let folder = match (expected.iter().position(|w| *w == "in"), expected.last()) {
                 (Some(_), Some(rel)) => {
+                    link_repository_folders(&dir.join("nested"), &["meshes"]);
                     let d = dir.join("nested").join(rel);
                     std::fs::create_dir_all(&d).unwrap();
-                    let link = dir.join("nested/meshes");
-                    if !link.exists() {
-                        std::os::unix::fs::symlink(root().join("meshes"), &link).unwrap();
-                    }
                     d
                 }
                 _ => dir.clone(),
