@@ -167,6 +167,13 @@ fn a_batched_module_offsets_every_buffer_by_its_scene_and_validates() {
         // Connectivity is shared: indexed by the scene-local entity.
         assert!(w.source.contains("elem_conn[4u * e + 3u]"));
         assert!(w.source.contains("for (var j = node_elem_offsets[e]"));
+        // A per-corner gather reads by slot past its scene's rows; a per-element one needs
+        // the element of the slot.
+        assert!(
+            w.source
+                .contains("elem_force[12u * base_element + 3u * slot + 1u]")
+        );
+        assert!(w.source.contains("weights[(base_element + ent)]"));
         assert!(wgsl::emit_batched(&m, p, 0).is_err());
     }
 }

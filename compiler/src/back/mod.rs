@@ -117,6 +117,16 @@ impl NodeCsr {
             .flat_map(|&(e, c)| [e, u32::from(c)])
             .collect()
     }
+
+    /// Each incidence as one index `entity · nc + corner` for entities of `nc` nodes: the row
+    /// of a per-corner buffer it reads, the layout of the GPU's gathers and the CPU's
+    /// ([`Topology::node_elem_slots`]).
+    pub fn slots(&self, nc: u32) -> Vec<u32> {
+        self.entries
+            .iter()
+            .map(|&(e, c)| e * nc + u32::from(c))
+            .collect()
+    }
 }
 
 /// The node→entity CSR of a connectivity with `nc` nodes per entity, flattened

@@ -63,13 +63,13 @@ alias real = f32;
 
 // ---- connectivity
 // 4 nodes per element, 3 per chamber triangle
-// node CSR lists: offsets (nodes + 1), entries as (entity, corner) pairs
+// node CSR lists: offsets (nodes + 1), slots: each incidence as entity * corners + corner
 @group(0) @binding(28) var<storage, read> elem_conn: array<u32>;
 @group(0) @binding(29) var<storage, read> tri_conn: array<u32>;
 @group(0) @binding(30) var<storage, read> node_elem_offsets: array<u32>;
-@group(0) @binding(31) var<storage, read> node_elem_entries: array<u32>;
+@group(0) @binding(31) var<storage, read> node_elem_slots: array<u32>;
 @group(0) @binding(32) var<storage, read> node_tri_offsets: array<u32>;
-@group(0) @binding(33) var<storage, read> node_tri_entries: array<u32>;
+@group(0) @binding(33) var<storage, read> node_tri_slots: array<u32>;
 
 // ---- math helpers
 // Non-finite values, computed at run time (WGSL has no literal for them).
@@ -669,22 +669,20 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
-        let ent = node_elem_entries[2u * j];
-        let corner = node_elem_entries[2u * j + 1u];
-        arg1 += elem_force[12u * ent + 3u * corner];
-        arg3 += elem_force[12u * ent + 3u * corner + 1u];
-        arg5 += elem_force[12u * ent + 3u * corner + 2u];
+        let slot = node_elem_slots[j];
+        arg1 += elem_force[3u * slot];
+        arg3 += elem_force[3u * slot + 1u];
+        arg5 += elem_force[3u * slot + 2u];
     }
     // sum over the node's incident triangles, in CSR order
     var arg2: real = 0.0f;
     var arg4: real = 0.0f;
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
-        let ent = node_tri_entries[2u * j];
-        let corner = node_tri_entries[2u * j + 1u];
-        arg2 += tri_force[9u * ent + 3u * corner];
-        arg4 += tri_force[9u * ent + 3u * corner + 1u];
-        arg6 += tri_force[9u * ent + 3u * corner + 2u];
+        let slot = node_tri_slots[j];
+        arg2 += tri_force[3u * slot];
+        arg4 += tri_force[3u * slot + 1u];
+        arg6 += tri_force[3u * slot + 2u];
     }
     let v1: real = 0.0f;
     let v2: real = select(0.0f, 1.0f, arg0 == v1);
@@ -1910,22 +1908,20 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
-        let ent = node_elem_entries[2u * j];
-        let corner = node_elem_entries[2u * j + 1u];
-        arg1 += adj_x_elem_force[12u * ent + 3u * corner];
-        arg3 += adj_x_elem_force[12u * ent + 3u * corner + 1u];
-        arg5 += adj_x_elem_force[12u * ent + 3u * corner + 2u];
+        let slot = node_elem_slots[j];
+        arg1 += adj_x_elem_force[3u * slot];
+        arg3 += adj_x_elem_force[3u * slot + 1u];
+        arg5 += adj_x_elem_force[3u * slot + 2u];
     }
     // sum over the node's incident triangles, in CSR order
     var arg0: real = 0.0f;
     var arg2: real = 0.0f;
     var arg4: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
-        let ent = node_tri_entries[2u * j];
-        let corner = node_tri_entries[2u * j + 1u];
-        arg0 += adj_x_tri_force[9u * ent + 3u * corner];
-        arg2 += adj_x_tri_force[9u * ent + 3u * corner + 1u];
-        arg4 += adj_x_tri_force[9u * ent + 3u * corner + 2u];
+        let slot = node_tri_slots[j];
+        arg0 += adj_x_tri_force[3u * slot];
+        arg2 += adj_x_tri_force[3u * slot + 1u];
+        arg4 += adj_x_tri_force[3u * slot + 2u];
     }
     let v2: real = arg0 + arg1;
     let v5: real = arg2 + arg3;
@@ -4927,22 +4923,20 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
-        let ent = node_elem_entries[2u * j];
-        let corner = node_elem_entries[2u * j + 1u];
-        arg1 += elem_force_dir[12u * ent + 3u * corner];
-        arg3 += elem_force_dir[12u * ent + 3u * corner + 1u];
-        arg5 += elem_force_dir[12u * ent + 3u * corner + 2u];
+        let slot = node_elem_slots[j];
+        arg1 += elem_force_dir[3u * slot];
+        arg3 += elem_force_dir[3u * slot + 1u];
+        arg5 += elem_force_dir[3u * slot + 2u];
     }
     // sum over the node's incident triangles, in CSR order
     var arg2: real = 0.0f;
     var arg4: real = 0.0f;
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
-        let ent = node_tri_entries[2u * j];
-        let corner = node_tri_entries[2u * j + 1u];
-        arg2 += tri_force_dir[9u * ent + 3u * corner];
-        arg4 += tri_force_dir[9u * ent + 3u * corner + 1u];
-        arg6 += tri_force_dir[9u * ent + 3u * corner + 2u];
+        let slot = node_tri_slots[j];
+        arg2 += tri_force_dir[3u * slot];
+        arg4 += tri_force_dir[3u * slot + 1u];
+        arg6 += tri_force_dir[3u * slot + 2u];
     }
     let v1: real = 0.0f;
     let v2: real = select(0.0f, 1.0f, arg0 == v1);

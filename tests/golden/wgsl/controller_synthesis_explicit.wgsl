@@ -53,13 +53,13 @@ alias real = f32;
 
 // ---- connectivity
 // 4 nodes per element, 3 per chamber triangle
-// node CSR lists: offsets (nodes + 1), entries as (entity, corner) pairs
+// node CSR lists: offsets (nodes + 1), slots: each incidence as entity * corners + corner
 @group(0) @binding(23) var<storage, read> elem_conn: array<u32>;
 @group(0) @binding(24) var<storage, read> tri_conn: array<u32>;
 @group(0) @binding(25) var<storage, read> node_elem_offsets: array<u32>;
-@group(0) @binding(26) var<storage, read> node_elem_entries: array<u32>;
+@group(0) @binding(26) var<storage, read> node_elem_slots: array<u32>;
 @group(0) @binding(27) var<storage, read> node_tri_offsets: array<u32>;
-@group(0) @binding(28) var<storage, read> node_tri_entries: array<u32>;
+@group(0) @binding(28) var<storage, read> node_tri_slots: array<u32>;
 
 // ---- math helpers
 // Non-finite values, computed at run time (WGSL has no literal for them).
@@ -659,22 +659,20 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg7: real = 0.0f;
     var arg11: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
-        let ent = node_elem_entries[2u * j];
-        let corner = node_elem_entries[2u * j + 1u];
-        arg3 += elem_force[12u * ent + 3u * corner];
-        arg7 += elem_force[12u * ent + 3u * corner + 1u];
-        arg11 += elem_force[12u * ent + 3u * corner + 2u];
+        let slot = node_elem_slots[j];
+        arg3 += elem_force[3u * slot];
+        arg7 += elem_force[3u * slot + 1u];
+        arg11 += elem_force[3u * slot + 2u];
     }
     // sum over the node's incident triangles, in CSR order
     var arg4: real = 0.0f;
     var arg8: real = 0.0f;
     var arg12: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
-        let ent = node_tri_entries[2u * j];
-        let corner = node_tri_entries[2u * j + 1u];
-        arg4 += tri_force[9u * ent + 3u * corner];
-        arg8 += tri_force[9u * ent + 3u * corner + 1u];
-        arg12 += tri_force[9u * ent + 3u * corner + 2u];
+        let slot = node_tri_slots[j];
+        arg4 += tri_force[3u * slot];
+        arg8 += tri_force[3u * slot + 1u];
+        arg12 += tri_force[3u * slot + 2u];
     }
     let v0: real = 60.0f;
     let v4: real = 0.0f;
@@ -1951,22 +1949,20 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg5: real = 0.0f;
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
-        let ent = node_elem_entries[2u * j];
-        let corner = node_elem_entries[2u * j + 1u];
-        arg2 += adj_x_elem_force[12u * ent + 3u * corner];
-        arg5 += adj_x_elem_force[12u * ent + 3u * corner + 1u];
-        arg8 += adj_x_elem_force[12u * ent + 3u * corner + 2u];
+        let slot = node_elem_slots[j];
+        arg2 += adj_x_elem_force[3u * slot];
+        arg5 += adj_x_elem_force[3u * slot + 1u];
+        arg8 += adj_x_elem_force[3u * slot + 2u];
     }
     // sum over the node's incident triangles, in CSR order
     var arg1: real = 0.0f;
     var arg4: real = 0.0f;
     var arg7: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
-        let ent = node_tri_entries[2u * j];
-        let corner = node_tri_entries[2u * j + 1u];
-        arg1 += adj_x_tri_force[9u * ent + 3u * corner];
-        arg4 += adj_x_tri_force[9u * ent + 3u * corner + 1u];
-        arg7 += adj_x_tri_force[9u * ent + 3u * corner + 2u];
+        let slot = node_tri_slots[j];
+        arg1 += adj_x_tri_force[3u * slot];
+        arg4 += adj_x_tri_force[3u * slot + 1u];
+        arg7 += adj_x_tri_force[3u * slot + 2u];
     }
     let v3: real = arg0 + arg1;
     let v4: real = arg2 + v3;

@@ -13,9 +13,11 @@
 //!   `len(domain) × width` values, entity-major. Buffers some kernel stores to are
 //!   `read_write`, the others `read`.
 //! - then the connectivity as `array<u32>`: `elem_conn` (4 nodes per element), `tri_conn` (3 per
-//!   triangle), and the node CSR lists `node_elem_offsets`/`node_elem_entries` and
-//!   `node_tri_offsets`/`node_tri_entries` (entries are `(entity, corner)` pairs), as
-//!   [`crate::back::Topology`] builds them.
+//!   triangle), and the node CSR lists `node_elem_offsets`/`node_elem_slots` and
+//!   `node_tri_offsets`/`node_tri_slots` (each incidence `(entity, corner)` as the one index
+//!   `entity · corners + corner`, [`crate::back::NodeCsr::slots`]), as
+//!   [`crate::back::Topology`] builds them. A gather of per-corner values then reads
+//!   `buffer[stride · slot + component]`: one index load per incidence, no multiply chain.
 //! - then one uniform block per kernel, `launch_<kernel>`: the first entity `begin`, the entity
 //!   `count` of the launch, and the kernel's uniforms (`t`, `dt`, params, …) in the order of
 //!   [`WgslKernel::uniforms`], as `real` fields. The runtime binds it with a dynamic offset, so
@@ -72,9 +74,9 @@ pub enum TopoArray {
     ElemConn,
     TriConn,
     NodeElemOffsets,
-    NodeElemEntries,
+    NodeElemSlots,
     NodeTriOffsets,
-    NodeTriEntries,
+    NodeTriSlots,
 }
 
 impl TopoArray {
@@ -82,9 +84,9 @@ impl TopoArray {
         TopoArray::ElemConn,
         TopoArray::TriConn,
         TopoArray::NodeElemOffsets,
-        TopoArray::NodeElemEntries,
+        TopoArray::NodeElemSlots,
         TopoArray::NodeTriOffsets,
-        TopoArray::NodeTriEntries,
+        TopoArray::NodeTriSlots,
     ];
 
     /// Its name in the generated code.
@@ -93,9 +95,9 @@ impl TopoArray {
             TopoArray::ElemConn => "elem_conn",
             TopoArray::TriConn => "tri_conn",
             TopoArray::NodeElemOffsets => "node_elem_offsets",
-            TopoArray::NodeElemEntries => "node_elem_entries",
+            TopoArray::NodeElemSlots => "node_elem_slots",
             TopoArray::NodeTriOffsets => "node_tri_offsets",
-            TopoArray::NodeTriEntries => "node_tri_entries",
+            TopoArray::NodeTriSlots => "node_tri_slots",
         }
     }
 
@@ -772,7 +774,7 @@ fn emit_with(
     let _ = writeln!(w, "// 4 nodes per element, 3 per chamber triangle");
     let _ = writeln!(
         w,
-        "// node CSR lists: offsets (nodes + 1), entries as (entity, corner) pairs"
+        "// node CSR lists: offsets (nodes + 1), slots: each incidence as entity * corners + corner"
     );
     for t in TopoArray::ALL {
         let _ = writeln!(
@@ -861,10 +863,10 @@ fn emit_with(
                     used_bufs.insert(buffer.0);
                     if *over == Domain::Element {
                         used_topo.insert(TopoArray::NodeElemOffsets);
-                        used_topo.insert(TopoArray::NodeElemEntries);
+                        used_topo.insert(TopoArray::NodeElemSlots);
                     } else {
                         used_topo.insert(TopoArray::NodeTriOffsets);
-                        used_topo.insert(TopoArray::NodeTriEntries);
+                        used_topo.insert(TopoArray::NodeTriSlots);
                     }
                 }
                 ArgSource::Uniform(_) => {}
@@ -1127,11 +1129,16 @@ fn emit_body(
         if gathers.is_empty() {
             continue;
         }
-        let (offsets, entries) = if over == Domain::Element {
-            ("node_elem_offsets", "node_elem_entries")
+        let (offsets, slots) = if over == Domain::Element {
+            ("node_elem_offsets", "node_elem_slots")
         } else {
-            ("node_tri_offsets", "node_tri_entries")
+            ("node_tri_offsets", "node_tri_slots")
         };
+        let nc = module.corners(over).unwrap_or(1);
+        // A per-corner value of a buffer whose row is the entity's corners one after another
+        // (width = corners × stride) is at `stride · slot + component`; anything else (a
+        // per-entity value, a row with more than the corners) needs the entity and corner.
+        let by_slot = |buffer: BufferId, stride: u32| stride > 0 && width(buffer) == nc * stride;
         let _ = writeln!(
             w,
             "    // sum over the node's incident {}s, in CSR order",
@@ -1144,17 +1151,40 @@ fn emit_body(
             w,
             "    for (var j = {offsets}[e]; j < {offsets}[e + 1u]; j += 1u) {{"
         );
-        let _ = writeln!(w, "        let ent = {entries}[2u * j];");
-        let _ = writeln!(w, "        let corner = {entries}[2u * j + 1u];");
-        for (i, buffer, stride, component) in &gathers {
-            let comp = match (*stride, *component) {
+        let _ = writeln!(w, "        let slot = {slots}[j];");
+        if gathers.iter().any(|&(_, b, s, _)| !by_slot(b, s)) {
+            let _ = writeln!(w, "        let ent = slot / {nc}u;");
+            let _ = writeln!(w, "        let corner = slot - {nc}u * ent;");
+        }
+        for &(i, buffer, stride, component) in &gathers {
+            if by_slot(buffer, stride) {
+                let name = &buf_names[buffer.0 as usize];
+                let base = if batched {
+                    format!(
+                        "{}u * {} + ",
+                        width(buffer),
+                        base_name(module.buffers[buffer.0 as usize].domain)
+                    )
+                } else {
+                    String::new()
+                };
+                let at = match (stride, component) {
+                    (1, 0) => "slot".to_string(),
+                    (1, c) => format!("slot + {c}u"),
+                    (s, 0) => format!("{s}u * slot"),
+                    (s, c) => format!("{s}u * slot + {c}u"),
+                };
+                let _ = writeln!(w, "        arg{i} += {name}[{base}{at}];");
+                continue;
+            }
+            let comp = match (stride, component) {
                 (0, c) => format!("{c}u"),
                 (1, 0) => "corner".to_string(),
                 (1, c) => format!("corner + {c}u"),
                 (s, 0) => format!("{s}u * corner"),
                 (s, c) => format!("{s}u * corner + {c}u"),
             };
-            let _ = writeln!(w, "        arg{i} += {};", row(*buffer, "ent", comp));
+            let _ = writeln!(w, "        arg{i} += {};", row(buffer, "ent", comp));
         }
         let _ = writeln!(w, "    }}");
     }

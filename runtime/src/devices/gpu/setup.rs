@@ -382,9 +382,11 @@ impl Core {
                 TopoArray::ElemConn => flat(elem),
                 TopoArray::TriConn => flat(tri),
                 TopoArray::NodeElemOffsets => flat(&node_elements.offsets),
-                TopoArray::NodeElemEntries => flat(&node_elements.flat_entries()),
+                TopoArray::NodeElemSlots => {
+                    flat(&node_elements.slots(self.ir.order.element_nodes()))
+                }
                 TopoArray::NodeTriOffsets => flat(&node_tris.offsets),
-                TopoArray::NodeTriEntries => flat(&node_tris.flat_entries()),
+                TopoArray::NodeTriSlots => flat(&node_tris.slots(self.ir.order.triangle_nodes())),
             };
             if data.len() as u64 > max {
                 return Err(format!(
