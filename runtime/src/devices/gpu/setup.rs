@@ -238,10 +238,7 @@ impl Core {
                 v.push(e.to_string());
             }
         }));
-        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("softc kernels"),
-            source: wgpu::ShaderSource::Wgsl(wg.source.as_str().into()),
-        });
+        let shader = kernels_module(&device, &wg.source);
         let stride_of = |b: u32| launch_stride_of(&wg, module.buffers.len(), b);
         let pipelines = wg
             .kernels
@@ -438,4 +435,30 @@ impl Core {
             Precision::F64 => data.iter().flat_map(|&v| v.to_le_bytes()).collect(),
         }
     }
+}
+
+/// The generated kernels as a shader module without wgpu's loop bounding and integer-division
+/// guards. Both are for untrusted shaders: a loop bound (a counter and a test in every gather
+/// loop, which also keeps the driver from unrolling it) guards against infinite loops, and
+/// ours run over a node's CSR range, `offsets[e]..offsets[e + 1]`, so they end; our integer
+/// divisions are by constant corner counts. Buffer bounds checks stay (and cost nothing where
+/// the driver checks natively, robustBufferAccess2). `SOFTC_GPU_LOOP_BOUND=1` puts the guards
+/// back, to measure what they cost.
+fn kernels_module(device: &wgpu::Device, source: &str) -> wgpu::ShaderModule {
+    let desc = wgpu::ShaderModuleDescriptor {
+        label: Some("softc kernels"),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    };
+    if std::env::var("SOFTC_GPU_LOOP_BOUND").as_deref() == Ok("1") {
+        return device.create_shader_module(desc);
+    }
+    let checks = wgpu::ShaderRuntimeChecks {
+        force_loop_bounding: false,
+        int_div_checks: false,
+        ..wgpu::ShaderRuntimeChecks::checked()
+    };
+    // SAFETY: the module is softc's generated code: every loop runs over a CSR range of
+    // validated connectivity (it ends), every integer division is by a nonzero constant, and
+    // bounds checks are kept.
+    unsafe { device.create_shader_module_trusted(desc, checks) }
 }
