@@ -352,3 +352,66 @@ fn a_batch_of_quadratic_scenes_gives_the_bits_of_single_runs() {
         );
     }
 }
+
+/// A run's JSON with its timings left out (the lines that name seconds or speeds).
+fn json_without_timings(stdout: &[u8]) -> String {
+    String::from_utf8_lossy(stdout)
+        .lines()
+        .filter(|l| {
+            !["seconds", "steps_per", "_us", "_s\""]
+                .iter()
+                .any(|k| l.contains(k))
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+#[test]
+fn workgroup_sizes_give_the_same_bits_forward_and_backward() {
+    let run = |wg: Option<&str>| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_softc"));
+        cmd.current_dir(root()).args([
+            "run",
+            "examples/benchmark-1k.soft",
+            "--backend",
+            "gpu",
+            "--steps",
+            "300",
+            "--grad",
+        ]);
+        match wg {
+            Some(n) => cmd.env("SOFTC_GPU_WG", n),
+            None => cmd.env_remove("SOFTC_GPU_WG"),
+        };
+        cmd.output().unwrap()
+    };
+    let default = run(None);
+    let stderr = String::from_utf8_lossy(&default.stderr);
+    if !default.status.success() && stderr.contains("no GPU adapter found") {
+        assert!(
+            std::env::var("CI").as_deref() != Ok("true"),
+            "CI=true but no GPU adapter: {stderr}"
+        );
+        eprintln!("note: GPU test skipped: {stderr}");
+        return;
+    }
+    assert!(default.status.success(), "{stderr}");
+    let expected = json_without_timings(&default.stdout);
+    assert!(expected.contains("\"gradients\""), "{expected}");
+    for wg in ["32", "256"] {
+        let out = run(Some(wg));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert_eq!(
+            json_without_timings(&out.stdout),
+            expected,
+            "SOFTC_GPU_WG={wg}"
+        );
+    }
+    let bad = run(Some("100"));
+    assert!(!bad.status.success(), "a bad size is refused");
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("SOFTC_GPU_WG=100: give a power of two"));
+}

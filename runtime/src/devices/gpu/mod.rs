@@ -330,6 +330,8 @@ struct Core {
     ir: Module,
     /// Fuse independent kernels of a step into one dispatch (`SOFTC_GPU_FUSE=0`: never).
     fuse: bool,
+    /// Invocations per workgroup of every pipeline (the kernels' `softc_wg` override).
+    wg_size: u32,
     /// Fused entry points' pipelines by their (sorted) kernels, and their entry points.
     fused: HashMap<Vec<usize>, usize>,
     fused_kernels: HashMap<usize, WgslKernel>,

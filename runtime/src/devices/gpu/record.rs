@@ -200,7 +200,7 @@ impl Core {
     /// Workgroups of a dispatch of `count` entities for `scenes` scenes (rows beyond 65,535
     /// workgroups go to y).
     pub(super) fn workgroups(&self, count: u64, scenes: usize) -> (u32, u32, u32) {
-        let groups = count.div_ceil(u64::from(wgsl::WORKGROUP_SIZE));
+        let groups = count.div_ceil(u64::from(self.wg_size));
         let max = u64::from(self.device.limits().max_compute_workgroups_per_dimension);
         let gx = groups.clamp(1, max);
         (gx as u32, groups.div_ceil(gx) as u32, scenes as u32)
@@ -389,7 +389,7 @@ impl Core {
         if range.is_empty() {
             return Ok(false);
         }
-        let groups = (range.len() as u64).div_ceil(u64::from(wgsl::WORKGROUP_SIZE));
+        let groups = (range.len() as u64).div_ceil(u64::from(self.wg_size));
         let max = u64::from(self.device.limits().max_compute_workgroups_per_dimension);
         if groups.div_ceil(max) > max {
             return Err(format!(

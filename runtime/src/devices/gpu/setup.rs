@@ -53,6 +53,7 @@ pub(super) fn pipeline_for(
     scenes: u64,
     launch: LaunchMode,
     stride_of: &dyn Fn(u32) -> u64,
+    wg_size: u32,
 ) -> Pipeline {
     let entries: Vec<wgpu::BindGroupLayoutEntry> = k
         .bindings
@@ -102,7 +103,7 @@ pub(super) fn pipeline_for(
         layout: Some(&pl),
         module: shader,
         entry_point: Some(&k.entry),
-        compilation_options: Default::default(),
+        compilation_options: workgroup_constants(&[(wgsl::WORKGROUP_OVERRIDE, f64::from(wg_size))]),
         cache: None,
     });
     Pipeline { pipeline, layout }
@@ -238,12 +239,13 @@ impl Core {
                 v.push(e.to_string());
             }
         }));
+        let wg_size = workgroup_size(&limits)?;
         let shader = kernels_module(&device, &wg.source);
         let stride_of = |b: u32| launch_stride_of(&wg, module.buffers.len(), b);
         let pipelines = wg
             .kernels
             .iter()
-            .map(|k| pipeline_for(&device, &shader, k, scenes, launch, &stride_of))
+            .map(|k| pipeline_for(&device, &shader, k, scenes, launch, &stride_of, wg_size))
             .collect();
         let _ = device.poll(wgpu::PollType::wait_indefinitely());
         if let Some(e) = errors.lock().ok().and_then(|mut v| v.drain(..).next()) {
@@ -295,6 +297,7 @@ impl Core {
             states: None,
             ir: module.clone(),
             fuse,
+            wg_size,
             fused,
             fused_kernels,
             stats: DispatchStats::default(),
@@ -444,7 +447,7 @@ impl Core {
 /// divisions are by constant corner counts. Buffer bounds checks stay (and cost nothing where
 /// the driver checks natively, robustBufferAccess2). `SOFTC_GPU_LOOP_BOUND=1` puts the guards
 /// back, to measure what they cost.
-fn kernels_module(device: &wgpu::Device, source: &str) -> wgpu::ShaderModule {
+pub(super) fn kernels_module(device: &wgpu::Device, source: &str) -> wgpu::ShaderModule {
     let desc = wgpu::ShaderModuleDescriptor {
         label: Some("softc kernels"),
         source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -461,4 +464,32 @@ fn kernels_module(device: &wgpu::Device, source: &str) -> wgpu::ShaderModule {
     // validated connectivity (it ends), every integer division is by a nonzero constant, and
     // bounds checks are kept.
     unsafe { device.create_shader_module_trusted(desc, checks) }
+}
+
+/// Pipeline options setting the overrides `constants`.
+pub(super) fn workgroup_constants<'a>(
+    constants: &'a [(&'a str, f64)],
+) -> wgpu::PipelineCompilationOptions<'a> {
+    wgpu::PipelineCompilationOptions {
+        constants,
+        ..Default::default()
+    }
+}
+
+/// Invocations per workgroup: 64, or `SOFTC_GPU_WG` (a power of two from 32 to the adapter's
+/// limit) to measure another size; the same bits either way, since each entity is one
+/// invocation whatever the grouping.
+fn workgroup_size(limits: &wgpu::Limits) -> Result<u32, String> {
+    let Ok(v) = std::env::var("SOFTC_GPU_WG") else {
+        return Ok(wgsl::WORKGROUP_SIZE);
+    };
+    let max = limits
+        .max_compute_invocations_per_workgroup
+        .min(limits.max_compute_workgroup_size_x);
+    match v.trim().parse::<u32>() {
+        Ok(n) if n.is_power_of_two() && (32..=max).contains(&n) => Ok(n),
+        _ => Err(format!(
+            "SOFTC_GPU_WG={v}: give a power of two from 32 to {max} (invocations per workgroup)"
+        )),
+    }
 }

@@ -2,7 +2,7 @@
 //! restored) recorded at once, independent kernels fused into one dispatch, a batch's
 //! matching stretches merged.
 
-use super::setup::{fused_storage_buffers, launch_stride_of, pipeline_for};
+use super::setup::{fused_storage_buffers, kernels_module, launch_stride_of, pipeline_for};
 use super::*;
 
 impl Core {
@@ -24,12 +24,7 @@ impl Core {
             .collect();
         if !new.is_empty() {
             let wg = wgsl::emit_fused(&self.ir, self.module.precision, &new)?;
-            let shader = self
-                .device
-                .create_shader_module(wgpu::ShaderModuleDescriptor {
-                    label: Some("softc fused kernels"),
-                    source: wgpu::ShaderSource::Wgsl(wg.source.as_str().into()),
-                });
+            let shader = kernels_module(&self.device, &wg.source);
             let stride_of = |b: u32| launch_stride_of(&self.module, self.buffer_count, b);
             for (g, k) in new.iter().zip(&wg.kernels[self.module.kernels.len()..]) {
                 let p = pipeline_for(
@@ -39,6 +34,7 @@ impl Core {
                     self.scenes as u64,
                     LaunchMode::Uniform,
                     &stride_of,
+                    self.wg_size,
                 );
                 self.pipelines.push(p);
                 let at = self.pipelines.len() - 1;

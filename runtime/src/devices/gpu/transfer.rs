@@ -1,6 +1,7 @@
 //! What crosses between host and device: readbacks (waited for, or under way), the
 //! adjoint's states kept in device memory, and pass times from timestamp queries.
 
+use super::setup::workgroup_constants;
 use super::*;
 
 /// The copy kernel between a state (`x`, `v`: `len` values each) and a slot of the device's
@@ -28,9 +29,10 @@ const N: u32 = {len}u;
 @group(0) @binding(0) var<storage, {state}> x: array<real>;
 @group(0) @binding(1) var<storage, {state}> v: array<real>;
 @group(0) @binding(2) var<storage, {slot}> slot: array<real>;
-@compute @workgroup_size(64)
+override softc_wg: u32 = 64u;
+@compute @workgroup_size(softc_wg)
 fn {name}(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {{
-    let i = gid.x + gid.y * nwg.x * 64u;
+    let i = gid.x + gid.y * nwg.x * softc_wg;
     if (i < N) {{
         {body}
     }}
@@ -395,7 +397,10 @@ impl Core {
                     layout: Some(&pl),
                     module: &shader,
                     entry_point: Some(name),
-                    compilation_options: Default::default(),
+                    compilation_options: workgroup_constants(&[(
+                        wgsl::WORKGROUP_OVERRIDE,
+                        f64::from(self.wg_size),
+                    )]),
                     cache: None,
                 });
             self.pipelines.push(Pipeline { pipeline, layout });
