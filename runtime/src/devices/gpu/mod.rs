@@ -283,6 +283,10 @@ struct Timing {
     /// Nanoseconds per tick.
     period: f64,
     seconds: f64,
+    /// With `SOFTC_GPU_PROFILE=1`: the pipeline each used pair timed (one dispatch per pass),
+    /// and per pipeline its GPU seconds and dispatches so far.
+    labels: Vec<Option<usize>>,
+    per_pipeline: std::collections::BTreeMap<usize, (f64, u64)>,
 }
 
 /// The device, the compiled kernels, the buffers of every scene and the recorded work.
@@ -332,6 +336,9 @@ struct Core {
     fuse: bool,
     /// Invocations per workgroup of every pipeline (the kernels' `softc_wg` override).
     wg_size: u32,
+    /// `SOFTC_GPU_PROFILE=1`: with timing on, each dispatch in a pass of its own with its own
+    /// timestamps, and the GPU time per kernel printed when the device closes.
+    profile: bool,
     /// Fused entry points' pipelines by their (sorted) kernels, and their entry points.
     fused: HashMap<Vec<usize>, usize>,
     fused_kernels: HashMap<usize, WgslKernel>,

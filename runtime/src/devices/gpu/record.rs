@@ -401,6 +401,105 @@ impl Core {
         Ok(true)
     }
 
+    /// Record dispatch `d` into `pass`, setting only what differs from `bound` (the pipeline
+    /// and bind group bound last).
+    fn encode_dispatch(
+        &self,
+        pass: &mut wgpu::ComputePass<'_>,
+        d: &Dispatch,
+        bound: &mut Option<(usize, usize)>,
+    ) {
+        let table = self.module.launch == LaunchMode::Table;
+        if bound.is_none_or(|(k, _)| k != d.kernel) {
+            pass.set_pipeline(&self.pipelines[d.kernel].pipeline);
+        }
+        if d.kernel >= self.module.kernels.len() {
+            // Fused kernels (a launch block each) or a state copy (its slot).
+            pass.set_bind_group(0, &self.groups[d.group], &d.args[..d.parts as usize]);
+        } else if table {
+            if bound.is_none_or(|(_, g)| g != d.group) {
+                pass.set_bind_group(0, &self.groups[d.group], &[]);
+            }
+            pass.set_immediates(0, &d.args[0].to_le_bytes());
+        } else {
+            pass.set_bind_group(0, &self.groups[d.group], &d.args[..1]);
+        }
+        *bound = Some((d.kernel, d.group));
+        pass.dispatch_workgroups(d.groups.0, d.groups.1, d.groups.2);
+    }
+
+    /// The pending dispatches, each in a compute pass of its own timed by its own pair of
+    /// timestamps (profiling: passes cost more than dispatches, so wall time suffers, but
+    /// each pair brackets one kernel). Dispatches beyond the free pairs go untimed.
+    fn encode_profiled(&mut self, enc: &mut wgpu::CommandEncoder) {
+        let pending = std::mem::take(&mut self.pending);
+        for d in &pending {
+            let pair = self
+                .timing
+                .as_mut()
+                .and_then(|t| t.next_pair_of(Some(d.kernel)));
+            let timestamp_writes = match (&self.timing, pair) {
+                (Some(t), Some(i)) => Some(wgpu::ComputePassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: Some(i),
+                    end_of_pass_write_index: Some(i + 1),
+                }),
+                _ => None,
+            };
+            {
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("softc profiled dispatch"),
+                    timestamp_writes,
+                });
+                self.encode_dispatch(&mut pass, d, &mut None);
+            }
+            if let (Some(t), Some(i)) = (&self.timing, pair) {
+                t.resolve(enc, i);
+            }
+        }
+        self.pending = pending;
+    }
+
+    /// The GPU time per kernel profiled so far (`SOFTC_GPU_PROFILE=1`), one line per
+    /// pipeline, the most expensive first: its dispatches, µs per dispatch and share.
+    pub(super) fn profile_report(&mut self) -> Option<String> {
+        let t = self.timing.as_mut()?;
+        t.collect(&self.device, &self.queue);
+        let total: f64 = t.per_pipeline.values().map(|v| v.0).sum();
+        if total <= 0.0 {
+            return None;
+        }
+        let mut rows: Vec<(usize, (f64, u64))> =
+            t.per_pipeline.iter().map(|(&p, &v)| (p, v)).collect();
+        rows.sort_by(|a, b| b.1.0.total_cmp(&a.1.0));
+        let mut out = format!(
+            "GPU time per kernel ({}, workgroups of {}; a pass per dispatch):\n",
+            self.adapter, self.wg_size
+        );
+        for (p, (seconds, n)) in rows {
+            let name = self
+                .module
+                .kernels
+                .get(p)
+                .or_else(|| self.fused_kernels.get(&p))
+                .map(|k| k.name.clone())
+                .or_else(|| {
+                    let st = self.states.as_ref()?;
+                    (p == st.store || p == st.restore).then(|| {
+                        let what = if p == st.store { "store" } else { "restore" };
+                        format!("adjoint state {what} (copy)")
+                    })
+                })
+                .unwrap_or_else(|| format!("pipeline {p}"));
+            out.push_str(&format!(
+                "  {name:<48} {n:>8} dispatches {:>10.2} us each {:>6.1} %\n",
+                seconds / n as f64 * 1e6,
+                100.0 * seconds / total
+            ));
+        }
+        Some(out)
+    }
+
     /// Submit the pending dispatches in one compute pass (their blocks are in the staging
     /// area), without waiting.
     pub(super) fn submit(&mut self) {
@@ -438,8 +537,15 @@ impl Core {
         {
             t.collect(&self.device, &self.queue);
         }
-        let pair = self.timing.as_mut().and_then(Timing::next_pair);
-        {
+        let profile = self.profile && self.timing.is_some();
+        let pair = if profile {
+            None
+        } else {
+            self.timing.as_mut().and_then(Timing::next_pair)
+        };
+        if profile {
+            self.encode_profiled(&mut enc);
+        } else {
             let timestamp_writes = match (&self.timing, pair) {
                 (Some(t), Some(i)) => Some(wgpu::ComputePassTimestampWrites {
                     query_set: &t.set,
@@ -452,26 +558,9 @@ impl Core {
                 label: Some("softc steps"),
                 timestamp_writes,
             });
-            let table = self.module.launch == LaunchMode::Table;
-            let kernels = self.module.kernels.len();
             let mut bound: Option<(usize, usize)> = None;
             for d in &self.pending {
-                if bound.is_none_or(|(k, _)| k != d.kernel) {
-                    pass.set_pipeline(&self.pipelines[d.kernel].pipeline);
-                }
-                if d.kernel >= kernels {
-                    // Fused kernels (a launch block each) or a state copy (its slot).
-                    pass.set_bind_group(0, &self.groups[d.group], &d.args[..d.parts as usize]);
-                } else if table {
-                    if bound.is_none_or(|(_, g)| g != d.group) {
-                        pass.set_bind_group(0, &self.groups[d.group], &[]);
-                    }
-                    pass.set_immediates(0, &d.args[0].to_le_bytes());
-                } else {
-                    pass.set_bind_group(0, &self.groups[d.group], &d.args[..1]);
-                }
-                bound = Some((d.kernel, d.group));
-                pass.dispatch_workgroups(d.groups.0, d.groups.1, d.groups.2);
+                self.encode_dispatch(&mut pass, d, &mut bound);
             }
         }
         if let (Some(t), Some(i)) = (&self.timing, pair) {
@@ -487,5 +576,16 @@ impl Core {
         self.pending.clear();
         self.staging.clear();
         index
+    }
+}
+
+impl Drop for Core {
+    /// With `SOFTC_GPU_PROFILE=1`, the GPU time per kernel on stderr.
+    fn drop(&mut self) {
+        if self.profile
+            && let Some(report) = self.profile_report()
+        {
+            eprint!("{report}");
+        }
     }
 }

@@ -264,7 +264,7 @@ impl Core {
             .collect();
         let align = limits.min_uniform_buffer_offset_alignment.max(16);
         let scenes = scenes as usize;
-        Ok(Core {
+        let mut core = Core {
             device,
             queue,
             adapter: desc,
@@ -298,13 +298,18 @@ impl Core {
             ir: module.clone(),
             fuse,
             wg_size,
+            profile: std::env::var("SOFTC_GPU_PROFILE").as_deref() == Ok("1"),
             fused,
             fused_kernels,
             stats: DispatchStats::default(),
             active: vec![false; scenes],
             waiting: vec![None; scenes],
             served: (0..scenes).map(|_| None).collect(),
-        })
+        };
+        if core.profile {
+            core.enable_timing();
+        }
+        Ok(core)
     }
 
     /// Add the host time since `start` (an instant and the submission time then), less the

@@ -68,13 +68,21 @@ impl Timing {
             used: 0,
             period: f64::from(queue.get_timestamp_period()),
             seconds: 0.0,
+            labels: Vec::new(),
+            per_pipeline: Default::default(),
         }
     }
 
     /// The first query of a free pair, if any is left.
     pub(super) fn next_pair(&mut self) -> Option<u32> {
+        self.next_pair_of(None)
+    }
+
+    /// As [`Timing::next_pair`] for a pass that runs one dispatch of `pipeline` (profiling).
+    pub(super) fn next_pair_of(&mut self, pipeline: Option<usize>) -> Option<u32> {
         (self.used < self.pairs).then(|| {
             self.used += 1;
+            self.labels.push(pipeline);
             2 * (self.used - 1)
         })
     }
@@ -112,13 +120,20 @@ impl Timing {
         {
             let tick =
                 |c: &[u8]| u64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]);
-            for pair in view.chunks_exact(span) {
+            for (pair, label) in view.chunks_exact(span).zip(&self.labels) {
                 let (begin, end) = (tick(&pair[0..8]), tick(&pair[8..16]));
-                self.seconds += end.saturating_sub(begin) as f64 * self.period * 1e-9;
+                let seconds = end.saturating_sub(begin) as f64 * self.period * 1e-9;
+                self.seconds += seconds;
+                if let Some(p) = label {
+                    let e = self.per_pipeline.entry(*p).or_default();
+                    e.0 += seconds;
+                    e.1 += 1;
+                }
             }
         }
         self.read.unmap();
         self.used = 0;
+        self.labels.clear();
     }
 }
 
