@@ -67,7 +67,7 @@ use std::fmt::Write as _;
 
 /// Invocations per workgroup of every entry point unless the runtime sets the
 /// pipeline-overridable constant [`WORKGROUP_OVERRIDE`] when it makes a kernel's pipeline.
-pub const WORKGROUP_SIZE: u32 = 64;
+pub const WORKGROUP_SIZE: u32 = 128;
 
 /// The name of the override (WGSL `override`) that sizes every entry point's workgroup: one
 /// module serves any size, chosen per pipeline.

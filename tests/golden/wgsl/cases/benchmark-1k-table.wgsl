@@ -4,7 +4,7 @@
 alias real = f32;
 
 // Invocations per workgroup, set per pipeline by the runtime.
-override softc_wg: u32 = 64u;
+override softc_wg: u32 = 128u;
 
 // The launch blocks are rows of each kernel's launch table; a dispatch's row comes as an immediate.
 struct SoftcRow {

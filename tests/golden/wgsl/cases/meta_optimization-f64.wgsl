@@ -4,7 +4,7 @@
 alias real = f64;
 
 // Invocations per workgroup, set per pipeline by the runtime.
-override softc_wg: u32 = 64u;
+override softc_wg: u32 = 128u;
 
 // ---- buffers: len(domain) x width values, entity-major
 // x per node, width 3: node positions, m
