@@ -162,16 +162,24 @@ fn a_batched_module_offsets_every_buffer_by_its_scene_and_validates() {
             w.source
                 .contains("let base_node = (*l).scene * (*l).nodes;")
         );
-        assert!(w.source.contains("x[3u * (base_node + n3) + 2u]"));
+        // A node's 3-vector is one `vec4` load.
+        assert!(w.source.contains("let q0 = x[(base_node + n3)];"));
+        assert!(w.source.contains("let arg0 = q0.z;"));
         assert!(w.source.contains("weights[(base_element + e)]"));
         // Connectivity is shared: indexed by the scene-local entity.
         assert!(w.source.contains("elem_conn[4u * e + 3u]"));
         assert!(w.source.contains("for (var j = node_elem_offsets[e]"));
-        // A per-corner gather reads by slot past its scene's rows; a per-element one needs
-        // the element of the slot.
+        // A per-corner 3-vector is gathered as the `vec4` of its slot past its scene's rows;
+        // a per-element value needs the element of the slot.
         assert!(
             w.source
-                .contains("elem_force[12u * base_element + 3u * slot + 1u]")
+                .contains("let g0 = elem_force[4u * base_element + slot];")
+        );
+        assert!(w.source.contains("arg0 += g0.y;"));
+        // A corner's force is one `vec4` store (the unused lane 0).
+        assert!(
+            w.source
+                .contains("elem_force[4u * (base_element + e) + 3u] = vec4<real>(v56, v56, v56, ")
         );
         assert!(w.source.contains("weights[(base_element + ent)]"));
         assert!(wgsl::emit_batched(&m, p, 0).is_err());
@@ -331,4 +339,38 @@ fn constants_are_exact_in_their_precision() {
     assert!(f64s.contains("0.1lf"), "{f64s}");
     assert!(f64s.contains("softc_nan()"));
     wgsl::validate(&f64s, Precision::F64).unwrap();
+}
+
+#[test]
+fn rows_of_three_vectors_lie_as_vec4s_and_round_trip() {
+    use softc_compiler::back::wgsl::RowLayout;
+    // Plain rows stay as they are.
+    for w in [1, 2] {
+        let l = RowLayout::of(w);
+        assert!(!l.is_vector());
+        assert_eq!(l.padded(), w);
+    }
+    // A node's 3-vector; a tet's four corner forces; a rest shape of 7 values.
+    let node = RowLayout::of(3);
+    assert_eq!((node.lanes, node.groups(), node.padded()), (3, 1, 4));
+    let corners = RowLayout::of(12);
+    assert_eq!(
+        (corners.lanes, corners.groups(), corners.padded()),
+        (3, 4, 16)
+    );
+    assert_eq!(corners.place(7), (2, 1));
+    let shape = RowLayout::of(7);
+    assert_eq!((shape.lanes, shape.groups(), shape.padded()), (4, 2, 8));
+    assert_eq!(shape.place(6), (1, 2));
+    // Two rows each: padded with zeros in the unused lanes, and back.
+    let values: Vec<f64> = (0..24).map(f64::from).collect();
+    let padded = corners.pad(&values);
+    assert_eq!(padded.len(), 32);
+    assert_eq!(&padded[..8], &[0.0, 1.0, 2.0, 0.0, 3.0, 4.0, 5.0, 0.0]);
+    assert_eq!(&padded[16..20], &[12.0, 13.0, 14.0, 0.0]);
+    assert_eq!(corners.unpad(&padded), values);
+    let values: Vec<f64> = (0..14).map(f64::from).collect();
+    let padded = shape.pad(&values);
+    assert_eq!(&padded[4..8], &[4.0, 5.0, 6.0, 0.0]);
+    assert_eq!(shape.unpad(&padded), values);
 }

@@ -8,51 +8,51 @@ override softc_wg: u32 = 128u;
 
 // ---- buffers: len(domain) x width values, entity-major
 // x per node, width 3: node positions, m
-@group(0) @binding(0) var<storage, read> x: array<real>;
+@group(0) @binding(0) var<storage, read> x: array<vec4<real>>;
 // rest_shape per element, width 7: Dm^-1 Dm^-T (G00 G01 G02 G11 G12 G22, 1/m^2) and det Dm^-1 (1/m^3)
-@group(0) @binding(1) var<storage, read> rest_shape: array<real>;
+@group(0) @binding(1) var<storage, read> rest_shape: array<vec4<real>>;
 // vol0 per element, width 1: rest volume, m^3
 @group(0) @binding(2) var<storage, read> vol0: array<real>;
 // elem_force per element, width 12: internal force per corner, N
-@group(0) @binding(3) var<storage, read_write> elem_force: array<real>;
+@group(0) @binding(3) var<storage, read_write> elem_force: array<vec4<real>>;
 // elem_energy per element, width 1: strain energy V0*W, J
 @group(0) @binding(4) var<storage, read_write> elem_energy: array<real>;
 // elem_j per element, width 1: volume ratio det F
 @group(0) @binding(5) var<storage, read_write> elem_j: array<real>;
 // tri_force per triangle, width 9: pressure force per triangle corner, N
-@group(0) @binding(6) var<storage, read_write> tri_force: array<real>;
+@group(0) @binding(6) var<storage, read_write> tri_force: array<vec4<real>>;
 // v per node, width 3: node velocities, m/s
-@group(0) @binding(7) var<storage, read> v_: array<real>;
+@group(0) @binding(7) var<storage, read> v_: array<vec4<real>>;
 // x_next per node, width 3: positions after the step, m
-@group(0) @binding(8) var<storage, read_write> x_next: array<real>;
+@group(0) @binding(8) var<storage, read_write> x_next: array<vec4<real>>;
 // v_next per node, width 3: velocities after the step, m/s
-@group(0) @binding(9) var<storage, read_write> v_next: array<real>;
+@group(0) @binding(9) var<storage, read_write> v_next: array<vec4<real>>;
 // mass per node, width 1: lumped (scaled) mass, kg
 @group(0) @binding(10) var<storage, read> mass: array<real>;
 // fixed per node, width 1: 1 for fixed nodes, else 0
 @group(0) @binding(11) var<storage, read> fixed: array<real>;
 // adj_x per node, width 3: ∂L/∂x of the step's state
-@group(0) @binding(12) var<storage, read_write> adj_x: array<real>;
+@group(0) @binding(12) var<storage, read_write> adj_x: array<vec4<real>>;
 // adj_x_next per node, width 3: ∂L/∂x of the next state
-@group(0) @binding(13) var<storage, read> adj_x_next: array<real>;
+@group(0) @binding(13) var<storage, read> adj_x_next: array<vec4<real>>;
 // adj_v per node, width 3: ∂L/∂v of the step's state
-@group(0) @binding(14) var<storage, read_write> adj_v: array<real>;
+@group(0) @binding(14) var<storage, read_write> adj_v: array<vec4<real>>;
 // adj_v_next per node, width 3: ∂L/∂v of the next state
-@group(0) @binding(15) var<storage, read> adj_v_next: array<real>;
+@group(0) @binding(15) var<storage, read> adj_v_next: array<vec4<real>>;
 // adjg_elem_force@x_next per node, width 3: partial ∂L/∂elem_force from the adjoint of x_next
-@group(0) @binding(16) var<storage, read_write> adjg_elem_force_x_next: array<real>;
+@group(0) @binding(16) var<storage, read_write> adjg_elem_force_x_next: array<vec4<real>>;
 // adjg_tri_force@x_next per node, width 3: partial ∂L/∂tri_force from the adjoint of x_next
-@group(0) @binding(17) var<storage, read_write> adjg_tri_force_x_next: array<real>;
+@group(0) @binding(17) var<storage, read_write> adjg_tri_force_x_next: array<vec4<real>>;
 // adj_x@x_next per node, width 3: partial ∂L/∂x from the adjoint of x_next
-@group(0) @binding(18) var<storage, read_write> adj_x_x_next: array<real>;
+@group(0) @binding(18) var<storage, read_write> adj_x_x_next: array<vec4<real>>;
 // adj_v@x_next per node, width 3: partial ∂L/∂v from the adjoint of x_next
-@group(0) @binding(19) var<storage, read_write> adj_v_x_next: array<real>;
+@group(0) @binding(19) var<storage, read_write> adj_v_x_next: array<vec4<real>>;
 // grad@tri_force per triangle, width 1: ∂L/∂param summed over steps, per entity (param.p_peak)
 @group(0) @binding(20) var<storage, read_write> grad_tri_force: array<real>;
 // adj_x@tri_force per triangle, width 9: partial ∂L/∂x from the adjoint of tri_force
-@group(0) @binding(21) var<storage, read_write> adj_x_tri_force: array<real>;
+@group(0) @binding(21) var<storage, read_write> adj_x_tri_force: array<vec4<real>>;
 // adj_x@elem_force per element, width 12: partial ∂L/∂x from the adjoint of elem_force
-@group(0) @binding(22) var<storage, read_write> adj_x_elem_force: array<real>;
+@group(0) @binding(22) var<storage, read_write> adj_x_elem_force: array<vec4<real>>;
 
 // ---- connectivity
 // 4 nodes per element, 3 per chamber triangle
@@ -120,25 +120,31 @@ fn fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
     let n3 = elem_conn[4u * e + 3u];
-    let arg0 = x[3u * n0 + 0u];
-    let arg1 = x[3u * n0 + 1u];
-    let arg2 = x[3u * n0 + 2u];
-    let arg3 = x[3u * n1 + 0u];
-    let arg4 = x[3u * n1 + 1u];
-    let arg5 = x[3u * n1 + 2u];
-    let arg6 = x[3u * n2 + 0u];
-    let arg7 = x[3u * n2 + 1u];
-    let arg8 = x[3u * n2 + 2u];
-    let arg9 = x[3u * n3 + 0u];
-    let arg10 = x[3u * n3 + 1u];
-    let arg11 = x[3u * n3 + 2u];
-    let arg12 = rest_shape[7u * e + 0u];
-    let arg13 = rest_shape[7u * e + 1u];
-    let arg14 = rest_shape[7u * e + 2u];
-    let arg15 = rest_shape[7u * e + 3u];
-    let arg16 = rest_shape[7u * e + 4u];
-    let arg17 = rest_shape[7u * e + 5u];
-    let arg18 = rest_shape[7u * e + 6u];
+    let q0 = x[n0];
+    let arg0 = q0.x;
+    let arg1 = q0.y;
+    let arg2 = q0.z;
+    let q1 = x[n1];
+    let arg3 = q1.x;
+    let arg4 = q1.y;
+    let arg5 = q1.z;
+    let q2 = x[n2];
+    let arg6 = q2.x;
+    let arg7 = q2.y;
+    let arg8 = q2.z;
+    let q3 = x[n3];
+    let arg9 = q3.x;
+    let arg10 = q3.y;
+    let arg11 = q3.z;
+    let q4 = rest_shape[2u * e];
+    let arg12 = q4.x;
+    let arg13 = q4.y;
+    let arg14 = q4.z;
+    let arg15 = q4.w;
+    let q5 = rest_shape[2u * e + 1u];
+    let arg16 = q5.x;
+    let arg17 = q5.y;
+    let arg18 = q5.z;
     let arg19 = vol0[e];
     let v20: real = arg3 - arg0;
     let v21: real = arg6 - arg0;
@@ -275,18 +281,10 @@ fn fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let v152: real = v139 + v142;
     let v153: real = v145 + v152;
     let v154: real = -v153;
-    elem_force[12u * e + 0u] = v148;
-    elem_force[12u * e + 1u] = v151;
-    elem_force[12u * e + 2u] = v154;
-    elem_force[12u * e + 3u] = v121;
-    elem_force[12u * e + 4u] = v130;
-    elem_force[12u * e + 5u] = v139;
-    elem_force[12u * e + 6u] = v124;
-    elem_force[12u * e + 7u] = v133;
-    elem_force[12u * e + 8u] = v142;
-    elem_force[12u * e + 9u] = v127;
-    elem_force[12u * e + 10u] = v136;
-    elem_force[12u * e + 11u] = v145;
+    elem_force[4u * e] = vec4<real>(v148, v151, v154, 0.0f);
+    elem_force[4u * e + 1u] = vec4<real>(v121, v130, v139, 0.0f);
+    elem_force[4u * e + 2u] = vec4<real>(v124, v133, v142, 0.0f);
+    elem_force[4u * e + 3u] = vec4<real>(v127, v136, v145, 0.0f);
 }
 
 // ======== kernel pressure_cavity over triangle (from pressure cavity)
@@ -310,15 +308,18 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let n2 = tri_conn[3u * e + 2u];
     let arg0 = launch_pressure_cavity.param_p_peak;
     let arg1 = launch_pressure_cavity.t;
-    let arg2 = x[3u * n0 + 0u];
-    let arg3 = x[3u * n0 + 1u];
-    let arg4 = x[3u * n0 + 2u];
-    let arg5 = x[3u * n1 + 0u];
-    let arg6 = x[3u * n1 + 1u];
-    let arg7 = x[3u * n1 + 2u];
-    let arg8 = x[3u * n2 + 0u];
-    let arg9 = x[3u * n2 + 1u];
-    let arg10 = x[3u * n2 + 2u];
+    let q0 = x[n0];
+    let arg2 = q0.x;
+    let arg3 = q0.y;
+    let arg4 = q0.z;
+    let q1 = x[n1];
+    let arg5 = q1.x;
+    let arg6 = q1.y;
+    let arg7 = q1.z;
+    let q2 = x[n2];
+    let arg8 = q2.x;
+    let arg9 = q2.y;
+    let arg10 = q2.z;
     let v2: real = 0.5f;
     let v3: real = arg1 / v2;
     let v4: real = 1.0f;
@@ -346,15 +347,9 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[9u * e + 0u] = v35;
-    tri_force[9u * e + 1u] = v36;
-    tri_force[9u * e + 2u] = v37;
-    tri_force[9u * e + 3u] = v35;
-    tri_force[9u * e + 4u] = v36;
-    tri_force[9u * e + 5u] = v37;
-    tri_force[9u * e + 6u] = v35;
-    tri_force[9u * e + 7u] = v36;
-    tri_force[9u * e + 8u] = v37;
+    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel integrate over node (from sim)
@@ -375,21 +370,24 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     let arg0 = launch_integrate.dt;
     let arg1 = mass[e];
     let arg2 = fixed[e];
-    let arg5 = x[3u * e + 0u];
-    let arg6 = v_[3u * e + 0u];
-    let arg9 = x[3u * e + 1u];
-    let arg10 = v_[3u * e + 1u];
-    let arg13 = x[3u * e + 2u];
-    let arg14 = v_[3u * e + 2u];
+    let q0 = x[e];
+    let arg5 = q0.x;
+    let q1 = v_[e];
+    let arg6 = q1.x;
+    let arg9 = q0.y;
+    let arg10 = q1.y;
+    let arg13 = q0.z;
+    let arg14 = q1.z;
     // sum over the node's incident elements, in CSR order
     var arg3: real = 0.0f;
     var arg7: real = 0.0f;
     var arg11: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        arg3 += elem_force[3u * slot];
-        arg7 += elem_force[3u * slot + 1u];
-        arg11 += elem_force[3u * slot + 2u];
+        let g0 = elem_force[slot];
+        arg3 += g0.x;
+        arg7 += g0.y;
+        arg11 += g0.z;
     }
     // sum over the node's incident triangles, in CSR order
     var arg4: real = 0.0f;
@@ -397,9 +395,10 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg12: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        arg4 += tri_force[3u * slot];
-        arg8 += tri_force[3u * slot + 1u];
-        arg12 += tri_force[3u * slot + 2u];
+        let g0 = tri_force[slot];
+        arg4 += g0.x;
+        arg8 += g0.y;
+        arg12 += g0.z;
     }
     let v0: real = 20.0f;
     let v4: real = 0.0f;
@@ -433,12 +432,8 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     let v44: real = select(v4, v43, v5 != 0.0f);
     let v45: real = arg0 * v44;
     let v46: real = arg13 + v45;
-    x_next[3u * e + 0u] = v20;
-    v_next[3u * e + 0u] = v18;
-    x_next[3u * e + 1u] = v33;
-    v_next[3u * e + 1u] = v31;
-    x_next[3u * e + 2u] = v46;
-    v_next[3u * e + 2u] = v44;
+    x_next[e] = vec4<real>(v20, v33, v46, 0.0f);
+    v_next[e] = vec4<real>(v18, v31, v44, 0.0f);
 }
 
 // ======== kernel fem_rubber_diagnostics over element (from material rubber (energy and J))
@@ -459,25 +454,31 @@ fn fem_rubber_diagnostics(@builtin(global_invocation_id) gid: vec3<u32>, @builti
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
     let n3 = elem_conn[4u * e + 3u];
-    let arg0 = x[3u * n0 + 0u];
-    let arg1 = x[3u * n0 + 1u];
-    let arg2 = x[3u * n0 + 2u];
-    let arg3 = x[3u * n1 + 0u];
-    let arg4 = x[3u * n1 + 1u];
-    let arg5 = x[3u * n1 + 2u];
-    let arg6 = x[3u * n2 + 0u];
-    let arg7 = x[3u * n2 + 1u];
-    let arg8 = x[3u * n2 + 2u];
-    let arg9 = x[3u * n3 + 0u];
-    let arg10 = x[3u * n3 + 1u];
-    let arg11 = x[3u * n3 + 2u];
-    let arg12 = rest_shape[7u * e + 0u];
-    let arg13 = rest_shape[7u * e + 1u];
-    let arg14 = rest_shape[7u * e + 2u];
-    let arg15 = rest_shape[7u * e + 3u];
-    let arg16 = rest_shape[7u * e + 4u];
-    let arg17 = rest_shape[7u * e + 5u];
-    let arg18 = rest_shape[7u * e + 6u];
+    let q0 = x[n0];
+    let arg0 = q0.x;
+    let arg1 = q0.y;
+    let arg2 = q0.z;
+    let q1 = x[n1];
+    let arg3 = q1.x;
+    let arg4 = q1.y;
+    let arg5 = q1.z;
+    let q2 = x[n2];
+    let arg6 = q2.x;
+    let arg7 = q2.y;
+    let arg8 = q2.z;
+    let q3 = x[n3];
+    let arg9 = q3.x;
+    let arg10 = q3.y;
+    let arg11 = q3.z;
+    let q4 = rest_shape[2u * e];
+    let arg12 = q4.x;
+    let arg13 = q4.y;
+    let arg14 = q4.z;
+    let arg15 = q4.w;
+    let q5 = rest_shape[2u * e + 1u];
+    let arg16 = q5.x;
+    let arg17 = q5.y;
+    let arg18 = q5.z;
     let arg19 = vol0[e];
     let v20: real = arg3 - arg0;
     let v21: real = arg6 - arg0;
@@ -600,12 +601,14 @@ fn adj_integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     let arg0 = launch_adj_integrate.dt;
     let arg1 = mass[e];
     let arg2 = fixed[e];
-    let arg3 = adj_x_next[3u * e + 0u];
-    let arg4 = adj_v_next[3u * e + 0u];
-    let arg5 = adj_x_next[3u * e + 1u];
-    let arg6 = adj_v_next[3u * e + 1u];
-    let arg7 = adj_x_next[3u * e + 2u];
-    let arg8 = adj_v_next[3u * e + 2u];
+    let q0 = adj_x_next[e];
+    let arg3 = q0.x;
+    let q1 = adj_v_next[e];
+    let arg4 = q1.x;
+    let arg5 = q0.y;
+    let arg6 = q1.y;
+    let arg7 = q0.z;
+    let arg8 = q1.z;
     let v3: real = 20.0f;
     let v4: real = 0.0f;
     let v5: real = select(0.0f, 1.0f, arg2 == v4);
@@ -632,18 +635,10 @@ fn adj_integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     let v32: real = v3 * v31;
     let v33: real = v30 - v32;
     let v34: real = v7 * v31;
-    adjg_elem_force_x_next[3u * e + 0u] = v34;
-    adjg_tri_force_x_next[3u * e + 0u] = v34;
-    adj_x_x_next[3u * e + 0u] = arg3;
-    adj_v_x_next[3u * e + 0u] = v33;
-    adjg_elem_force_x_next[3u * e + 1u] = v27;
-    adjg_tri_force_x_next[3u * e + 1u] = v27;
-    adj_x_x_next[3u * e + 1u] = arg5;
-    adj_v_x_next[3u * e + 1u] = v26;
-    adjg_elem_force_x_next[3u * e + 2u] = v20;
-    adjg_tri_force_x_next[3u * e + 2u] = v20;
-    adj_x_x_next[3u * e + 2u] = arg7;
-    adj_v_x_next[3u * e + 2u] = v19;
+    adjg_elem_force_x_next[e] = vec4<real>(v34, v27, v20, 0.0f);
+    adjg_tri_force_x_next[e] = vec4<real>(v34, v27, v20, 0.0f);
+    adj_x_x_next[e] = vec4<real>(arg3, arg5, arg7, 0.0f);
+    adj_v_x_next[e] = vec4<real>(v33, v26, v19, 0.0f);
 }
 
 // ======== kernel adj_pressure_cavity over triangle (from adjoint of pressure cavity)
@@ -667,24 +662,30 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let n2 = tri_conn[3u * e + 2u];
     let arg0 = launch_adj_pressure_cavity.param_p_peak;
     let arg1 = launch_adj_pressure_cavity.t;
-    let arg2 = x[3u * n0 + 0u];
-    let arg3 = x[3u * n0 + 1u];
-    let arg4 = x[3u * n0 + 2u];
-    let arg5 = x[3u * n1 + 0u];
-    let arg6 = x[3u * n1 + 1u];
-    let arg7 = x[3u * n1 + 2u];
-    let arg8 = x[3u * n2 + 0u];
-    let arg9 = x[3u * n2 + 1u];
-    let arg10 = x[3u * n2 + 2u];
-    let arg11 = adjg_tri_force_x_next[3u * n0 + 0u];
-    let arg12 = adjg_tri_force_x_next[3u * n0 + 1u];
-    let arg13 = adjg_tri_force_x_next[3u * n0 + 2u];
-    let arg14 = adjg_tri_force_x_next[3u * n1 + 0u];
-    let arg15 = adjg_tri_force_x_next[3u * n1 + 1u];
-    let arg16 = adjg_tri_force_x_next[3u * n1 + 2u];
-    let arg17 = adjg_tri_force_x_next[3u * n2 + 0u];
-    let arg18 = adjg_tri_force_x_next[3u * n2 + 1u];
-    let arg19 = adjg_tri_force_x_next[3u * n2 + 2u];
+    let q0 = x[n0];
+    let arg2 = q0.x;
+    let arg3 = q0.y;
+    let arg4 = q0.z;
+    let q1 = x[n1];
+    let arg5 = q1.x;
+    let arg6 = q1.y;
+    let arg7 = q1.z;
+    let q2 = x[n2];
+    let arg8 = q2.x;
+    let arg9 = q2.y;
+    let arg10 = q2.z;
+    let q3 = adjg_tri_force_x_next[n0];
+    let arg11 = q3.x;
+    let arg12 = q3.y;
+    let arg13 = q3.z;
+    let q4 = adjg_tri_force_x_next[n1];
+    let arg14 = q4.x;
+    let arg15 = q4.y;
+    let arg16 = q4.z;
+    let q5 = adjg_tri_force_x_next[n2];
+    let arg17 = q5.x;
+    let arg18 = q5.y;
+    let arg19 = q5.z;
     let arg20 = grad_tri_force[e];
     let v11: real = 0.5f;
     let v12: real = arg1 / v11;
@@ -755,15 +756,9 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v86: real = v16 * v58;
     let v88: real = v86 + arg20;
     grad_tri_force[e] = v88;
-    adj_x_tri_force[9u * e + 0u] = v85;
-    adj_x_tri_force[9u * e + 1u] = v84;
-    adj_x_tri_force[9u * e + 2u] = v83;
-    adj_x_tri_force[9u * e + 3u] = v67;
-    adj_x_tri_force[9u * e + 4u] = v78;
-    adj_x_tri_force[9u * e + 5u] = v74;
-    adj_x_tri_force[9u * e + 6u] = v70;
-    adj_x_tri_force[9u * e + 7u] = v75;
-    adj_x_tri_force[9u * e + 8u] = v79;
+    adj_x_tri_force[3u * e] = vec4<real>(v85, v84, v83, 0.0f);
+    adj_x_tri_force[3u * e + 1u] = vec4<real>(v67, v78, v74, 0.0f);
+    adj_x_tri_force[3u * e + 2u] = vec4<real>(v70, v75, v79, 0.0f);
 }
 
 // ======== kernel adj_fem_rubber over element (from adjoint of material rubber)
@@ -784,38 +779,48 @@ fn adj_fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
     let n3 = elem_conn[4u * e + 3u];
-    let arg0 = x[3u * n0 + 0u];
-    let arg1 = x[3u * n0 + 1u];
-    let arg2 = x[3u * n0 + 2u];
-    let arg3 = x[3u * n1 + 0u];
-    let arg4 = x[3u * n1 + 1u];
-    let arg5 = x[3u * n1 + 2u];
-    let arg6 = x[3u * n2 + 0u];
-    let arg7 = x[3u * n2 + 1u];
-    let arg8 = x[3u * n2 + 2u];
-    let arg9 = x[3u * n3 + 0u];
-    let arg10 = x[3u * n3 + 1u];
-    let arg11 = x[3u * n3 + 2u];
-    let arg12 = rest_shape[7u * e + 0u];
-    let arg13 = rest_shape[7u * e + 1u];
-    let arg14 = rest_shape[7u * e + 2u];
-    let arg15 = rest_shape[7u * e + 3u];
-    let arg16 = rest_shape[7u * e + 4u];
-    let arg17 = rest_shape[7u * e + 5u];
-    let arg18 = rest_shape[7u * e + 6u];
+    let q0 = x[n0];
+    let arg0 = q0.x;
+    let arg1 = q0.y;
+    let arg2 = q0.z;
+    let q1 = x[n1];
+    let arg3 = q1.x;
+    let arg4 = q1.y;
+    let arg5 = q1.z;
+    let q2 = x[n2];
+    let arg6 = q2.x;
+    let arg7 = q2.y;
+    let arg8 = q2.z;
+    let q3 = x[n3];
+    let arg9 = q3.x;
+    let arg10 = q3.y;
+    let arg11 = q3.z;
+    let q4 = rest_shape[2u * e];
+    let arg12 = q4.x;
+    let arg13 = q4.y;
+    let arg14 = q4.z;
+    let arg15 = q4.w;
+    let q5 = rest_shape[2u * e + 1u];
+    let arg16 = q5.x;
+    let arg17 = q5.y;
+    let arg18 = q5.z;
     let arg19 = vol0[e];
-    let arg20 = adjg_elem_force_x_next[3u * n0 + 0u];
-    let arg21 = adjg_elem_force_x_next[3u * n0 + 1u];
-    let arg22 = adjg_elem_force_x_next[3u * n0 + 2u];
-    let arg23 = adjg_elem_force_x_next[3u * n1 + 0u];
-    let arg24 = adjg_elem_force_x_next[3u * n1 + 1u];
-    let arg25 = adjg_elem_force_x_next[3u * n1 + 2u];
-    let arg26 = adjg_elem_force_x_next[3u * n2 + 0u];
-    let arg27 = adjg_elem_force_x_next[3u * n2 + 1u];
-    let arg28 = adjg_elem_force_x_next[3u * n2 + 2u];
-    let arg29 = adjg_elem_force_x_next[3u * n3 + 0u];
-    let arg30 = adjg_elem_force_x_next[3u * n3 + 1u];
-    let arg31 = adjg_elem_force_x_next[3u * n3 + 2u];
+    let q6 = adjg_elem_force_x_next[n0];
+    let arg20 = q6.x;
+    let arg21 = q6.y;
+    let arg22 = q6.z;
+    let q7 = adjg_elem_force_x_next[n1];
+    let arg23 = q7.x;
+    let arg24 = q7.y;
+    let arg25 = q7.z;
+    let q8 = adjg_elem_force_x_next[n2];
+    let arg26 = q8.x;
+    let arg27 = q8.y;
+    let arg28 = q8.z;
+    let q9 = adjg_elem_force_x_next[n3];
+    let arg29 = q9.x;
+    let arg30 = q9.y;
+    let arg31 = q9.z;
     let v20: real = arg3 - arg0;
     let v21: real = arg6 - arg0;
     let v22: real = arg9 - arg0;
@@ -1073,18 +1078,10 @@ fn adj_fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let v286: real = -v251;
     let v287: real = v286 - v247;
     let v288: real = v287 - v242;
-    adj_x_elem_force[12u * e + 0u] = v288;
-    adj_x_elem_force[12u * e + 1u] = v285;
-    adj_x_elem_force[12u * e + 2u] = v282;
-    adj_x_elem_force[12u * e + 3u] = v242;
-    adj_x_elem_force[12u * e + 4u] = v265;
-    adj_x_elem_force[12u * e + 5u] = v270;
-    adj_x_elem_force[12u * e + 6u] = v247;
-    adj_x_elem_force[12u * e + 7u] = v278;
-    adj_x_elem_force[12u * e + 8u] = v275;
-    adj_x_elem_force[12u * e + 9u] = v251;
-    adj_x_elem_force[12u * e + 10u] = v274;
-    adj_x_elem_force[12u * e + 11u] = v279;
+    adj_x_elem_force[4u * e] = vec4<real>(v288, v285, v282, 0.0f);
+    adj_x_elem_force[4u * e + 1u] = vec4<real>(v242, v265, v270, 0.0f);
+    adj_x_elem_force[4u * e + 2u] = vec4<real>(v247, v278, v275, 0.0f);
+    adj_x_elem_force[4u * e + 3u] = vec4<real>(v251, v274, v279, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1101,18 +1098,20 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
-    let arg0 = adj_x_x_next[3u * e + 0u];
-    let arg3 = adj_x_x_next[3u * e + 1u];
-    let arg6 = adj_x_x_next[3u * e + 2u];
+    let q0 = adj_x_x_next[e];
+    let arg0 = q0.x;
+    let arg3 = q0.y;
+    let arg6 = q0.z;
     // sum over the node's incident elements, in CSR order
     var arg2: real = 0.0f;
     var arg5: real = 0.0f;
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        arg2 += adj_x_elem_force[3u * slot];
-        arg5 += adj_x_elem_force[3u * slot + 1u];
-        arg8 += adj_x_elem_force[3u * slot + 2u];
+        let g0 = adj_x_elem_force[slot];
+        arg2 += g0.x;
+        arg5 += g0.y;
+        arg8 += g0.z;
     }
     // sum over the node's incident triangles, in CSR order
     var arg1: real = 0.0f;
@@ -1120,9 +1119,10 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg7: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        arg1 += adj_x_tri_force[3u * slot];
-        arg4 += adj_x_tri_force[3u * slot + 1u];
-        arg7 += adj_x_tri_force[3u * slot + 2u];
+        let g0 = adj_x_tri_force[slot];
+        arg1 += g0.x;
+        arg4 += g0.y;
+        arg7 += g0.z;
     }
     let v3: real = arg0 + arg1;
     let v4: real = arg2 + v3;
@@ -1130,9 +1130,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v9: real = arg5 + v8;
     let v13: real = arg6 + arg7;
     let v14: real = arg8 + v13;
-    adj_x[3u * e + 0u] = v4;
-    adj_x[3u * e + 1u] = v9;
-    adj_x[3u * e + 2u] = v14;
+    adj_x[e] = vec4<real>(v4, v9, v14, 0.0f);
 }
 
 // ======== kernel adj_state_v over node (from adjoint of the state v)
@@ -1149,10 +1147,9 @@ fn adj_state_v(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_v.begin + i;
-    let arg0 = adj_v_x_next[3u * e + 0u];
-    let arg1 = adj_v_x_next[3u * e + 1u];
-    let arg2 = adj_v_x_next[3u * e + 2u];
-    adj_v[3u * e + 0u] = arg0;
-    adj_v[3u * e + 1u] = arg1;
-    adj_v[3u * e + 2u] = arg2;
+    let q0 = adj_v_x_next[e];
+    let arg0 = q0.x;
+    let arg1 = q0.y;
+    let arg2 = q0.z;
+    adj_v[e] = vec4<real>(arg0, arg1, arg2, 0.0f);
 }

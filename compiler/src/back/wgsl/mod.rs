@@ -73,6 +73,97 @@ pub const WORKGROUP_SIZE: u32 = 128;
 /// module serves any size, chosen per pipeline.
 pub const WORKGROUP_OVERRIDE: &str = "softc_wg";
 
+/// How a buffer's rows (its `width` values per entity) lie in GPU memory. A row of 3·k values
+/// (a node's position, a corner's force: the vectors gathers sum) is k `vec4`s with the fourth
+/// lane unused, so a vector is one 16-byte load or store and a gather reads one `vec4` per
+/// incidence; other rows of more than 2 values are `vec4`s, the last one partly used; rows
+/// of 1 or 2 values are plain. The runtime pads what it uploads and drops the padding from
+/// what it reads back ([`RowLayout::pad`], [`RowLayout::unpad`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RowLayout {
+    /// Values per entity.
+    pub width: u32,
+    /// Lanes used of each `vec4` (3 or 4); 0 for a plain row.
+    pub lanes: u32,
+}
+
+impl RowLayout {
+    /// The layout of rows of `width` values.
+    pub const fn of(width: u32) -> Self {
+        let lanes = if width <= 2 {
+            0
+        } else if width % 3 == 0 {
+            3
+        } else {
+            4
+        };
+        RowLayout { width, lanes }
+    }
+
+    /// Whether the rows are `vec4`s.
+    pub const fn is_vector(self) -> bool {
+        self.lanes > 0
+    }
+
+    /// `vec4`s per row (0 for a plain row).
+    pub const fn groups(self) -> u32 {
+        if self.is_vector() {
+            self.width.div_ceil(self.lanes)
+        } else {
+            0
+        }
+    }
+
+    /// Values per entity in GPU memory.
+    pub const fn padded(self) -> u32 {
+        if self.is_vector() {
+            4 * self.groups()
+        } else {
+            self.width
+        }
+    }
+
+    /// The `vec4` of the row and the lane holding value `c` of a vector row.
+    pub fn place(self, c: u32) -> (u32, u32) {
+        (c / self.lanes, c % self.lanes)
+    }
+
+    /// Rows in GPU layout from rows of `width` values (unused lanes 0).
+    pub fn pad(self, values: &[f64]) -> Vec<f64> {
+        if self.padded() == self.width || self.width == 0 {
+            return values.to_vec();
+        }
+        let (w, l) = (self.width as usize, self.lanes as usize);
+        let mut out = vec![0.0; values.len() / w * self.padded() as usize];
+        for (row, dst) in values
+            .chunks_exact(w)
+            .zip(out.chunks_exact_mut(self.padded() as usize))
+        {
+            for (c, &v) in row.iter().enumerate() {
+                dst[c / l * 4 + c % l] = v;
+            }
+        }
+        out
+    }
+
+    /// Rows of `width` values from rows in GPU layout.
+    pub fn unpad(self, values: &[f64]) -> Vec<f64> {
+        if self.padded() == self.width || self.width == 0 {
+            return values.to_vec();
+        }
+        let (w, l) = (self.width as usize, self.lanes as usize);
+        values
+            .chunks_exact(self.padded() as usize)
+            .flat_map(|row| (0..w).map(move |c| row[c / l * 4 + c % l]))
+            .collect()
+    }
+}
+
+/// The component letter of lane `l` of a `vec4`.
+fn lane_name(l: u32) -> &'static str {
+    ["x", "y", "z", "w"][l as usize & 3]
+}
+
 /// Connectivity arrays a kernel may read.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum TopoArray {
@@ -776,9 +867,14 @@ fn emit_with(
             domain_word(b.domain),
             b.width
         );
+        let ty = if RowLayout::of(b.width).is_vector() {
+            "array<vec4<real>>"
+        } else {
+            "array<real>"
+        };
         let _ = writeln!(
             w,
-            "@group(0) @binding({i}) var<storage, {access}> {}: array<real>;",
+            "@group(0) @binding({i}) var<storage, {access}> {}: {ty};",
             buf_names[i]
         );
     }
@@ -1057,19 +1153,22 @@ fn emit_body(
             let _ = writeln!(w, "    let {} = {launch}.scene * {count};", base_name(d));
         }
     }
+    // The entity index of a buffer's row: in a batch, past the earlier scenes' rows.
+    let entity_of = |b: BufferId, entity: &str| {
+        if batched {
+            format!(
+                "({} + {entity})",
+                base_name(module.buffers[b.0 as usize].domain)
+            )
+        } else {
+            entity.to_string()
+        }
+    };
+    // Value `comp` (an expression) of a plain row.
     let row = |b: BufferId, entity: &str, comp: String| {
         let wd = width(b);
         let name = &buf_names[b.0 as usize];
-        let based;
-        let entity = if batched {
-            based = format!(
-                "({} + {entity})",
-                base_name(module.buffers[b.0 as usize].domain)
-            );
-            based.as_str()
-        } else {
-            entity
-        };
+        let entity = entity_of(b, entity);
         if wd == 1 {
             if comp == "0u" {
                 format!("{name}[{entity}]")
@@ -1078,6 +1177,17 @@ fn emit_body(
             }
         } else {
             format!("{name}[{wd}u * {entity} + {comp}]")
+        }
+    };
+    // The `vec4` `g` of a vector row.
+    let vec_at = |b: BufferId, entity: &str, g: u32| {
+        let groups = RowLayout::of(width(b)).groups();
+        let name = &buf_names[b.0 as usize];
+        let entity = entity_of(b, entity);
+        match (groups, g) {
+            (1, _) => format!("{name}[{entity}]"),
+            (n, 0) => format!("{name}[{n}u * {entity}]"),
+            (n, g) => format!("{name}[{n}u * {entity} + {g}u]"),
         }
     };
     // Node indices of the corners this kernel reads.
@@ -1097,33 +1207,48 @@ fn emit_body(
             let _ = writeln!(w, "    let n{c} = {conn}[{nc}u * e + {c}u];");
         }
     }
-    // Plain loads.
+    // Plain loads; a vector row's `vec4`s are loaded whole, once each, in order of first use.
+    let mut vectors: Vec<(BufferId, String, u32)> = Vec::new();
     for (i, a) in k.args.iter().enumerate() {
-        match a {
-            ArgSource::Own { buffer, component } => {
-                let _ = writeln!(
-                    w,
-                    "    let arg{i} = {};",
-                    row(*buffer, "e", format!("{component}u"))
-                );
-            }
+        let (buffer, entity, component) = match a {
+            ArgSource::Own { buffer, component } => (*buffer, "e".to_string(), *component),
             ArgSource::Corner {
                 buffer,
                 corner,
                 component,
-            } => {
-                let _ = writeln!(
-                    w,
-                    "    let arg{i} = {};",
-                    row(*buffer, &format!("n{corner}"), format!("{component}u"))
-                );
-            }
+            } => (*buffer, format!("n{corner}"), *component),
             ArgSource::Uniform(id) => {
                 let j = uniforms.iter().position(|u| u == id).unwrap_or(0);
                 let _ = writeln!(w, "    let arg{i} = {launch}.{};", fields[j]);
+                continue;
             }
-            ArgSource::Gather { .. } => {}
+            ArgSource::Gather { .. } => continue,
+        };
+        let layout = RowLayout::of(width(buffer));
+        if !layout.is_vector() {
+            let _ = writeln!(
+                w,
+                "    let arg{i} = {};",
+                row(buffer, &entity, format!("{component}u"))
+            );
+            continue;
         }
+        let (g, lane) = layout.place(component);
+        let key = (buffer, entity.clone(), g);
+        let at = match vectors.iter().position(|v| *v == key) {
+            Some(at) => at,
+            None => {
+                let _ = writeln!(
+                    w,
+                    "    let q{} = {};",
+                    vectors.len(),
+                    vec_at(buffer, &entity, g)
+                );
+                vectors.push(key);
+                vectors.len() - 1
+            }
+        };
+        let _ = writeln!(w, "    let arg{i} = q{at}.{};", lane_name(lane));
     }
     // Gathers: one loop per CSR list, one accumulator per gathered value, in list order.
     for over in [Domain::Element, Domain::Triangle] {
@@ -1150,10 +1275,17 @@ fn emit_body(
             ("node_tri_offsets", "node_tri_slots")
         };
         let nc = module.corners(over).unwrap_or(1);
-        // A per-corner value of a buffer whose row is the entity's corners one after another
-        // (width = corners × stride) is at `stride · slot + component`; anything else (a
-        // per-entity value, a row with more than the corners) needs the entity and corner.
-        let by_slot = |buffer: BufferId, stride: u32| stride > 0 && width(buffer) == nc * stride;
+        // How a gather finds its value from the incidence's slot (entity · corners + corner).
+        // A per-corner 3-vector in a row of the corners' vectors: `vec4` `slot` of the buffer
+        // (one 16-byte load for the three). A per-corner value of a plain row of the corners'
+        // values: value `stride · slot + component`. Anything else needs the entity and corner.
+        let by_vec4 = |buffer: BufferId, stride: u32| {
+            let l = RowLayout::of(width(buffer));
+            l.lanes == 3 && stride == 3 && width(buffer) == 3 * nc
+        };
+        let by_slot = |buffer: BufferId, stride: u32| {
+            !RowLayout::of(width(buffer)).is_vector() && stride > 0 && width(buffer) == nc * stride
+        };
         let _ = writeln!(
             w,
             "    // sum over the node's incident {}s, in CSR order",
@@ -1167,19 +1299,37 @@ fn emit_body(
             "    for (var j = {offsets}[e]; j < {offsets}[e + 1u]; j += 1u) {{"
         );
         let _ = writeln!(w, "        let slot = {slots}[j];");
-        if gathers.iter().any(|&(_, b, s, _)| !by_slot(b, s)) {
+        if gathers
+            .iter()
+            .any(|&(_, b, s, _)| !by_vec4(b, s) && !by_slot(b, s))
+        {
             let _ = writeln!(w, "        let ent = slot / {nc}u;");
             let _ = writeln!(w, "        let corner = slot - {nc}u * ent;");
         }
+        let mut loaded: Vec<BufferId> = Vec::new();
         for &(i, buffer, stride, component) in &gathers {
+            let name = &buf_names[buffer.0 as usize];
+            let domain = module.buffers[buffer.0 as usize].domain;
+            if by_vec4(buffer, stride) {
+                let at = match loaded.iter().position(|&b| b == buffer) {
+                    Some(at) => at,
+                    None => {
+                        let base = if batched {
+                            format!("{nc}u * {} + ", base_name(domain))
+                        } else {
+                            String::new()
+                        };
+                        let _ = writeln!(w, "        let g{} = {name}[{base}slot];", loaded.len());
+                        loaded.push(buffer);
+                        loaded.len() - 1
+                    }
+                };
+                let _ = writeln!(w, "        arg{i} += g{at}.{};", lane_name(component));
+                continue;
+            }
             if by_slot(buffer, stride) {
-                let name = &buf_names[buffer.0 as usize];
                 let base = if batched {
-                    format!(
-                        "{}u * {} + ",
-                        width(buffer),
-                        base_name(module.buffers[buffer.0 as usize].domain)
-                    )
+                    format!("{}u * {} + ", width(buffer), base_name(domain))
                 } else {
                     String::new()
                 };
@@ -1190,6 +1340,22 @@ fn emit_body(
                     (s, c) => format!("{s}u * slot + {c}u"),
                 };
                 let _ = writeln!(w, "        arg{i} += {name}[{base}{at}];");
+                continue;
+            }
+            let layout = RowLayout::of(width(buffer));
+            if layout.is_vector() {
+                // The value's place in the row depends on the corner: its `vec4` and lane at
+                // run time.
+                let (groups, lanes) = (layout.groups(), layout.lanes);
+                let in_row = match stride {
+                    0 => format!("{component}u"),
+                    s => format!("({s}u * corner + {component}u)"),
+                };
+                let _ = writeln!(
+                    w,
+                    "        arg{i} += {name}[{groups}u * {} + {in_row} / {lanes}u][{in_row} % {lanes}u];",
+                    entity_of(buffer, "ent")
+                );
                 continue;
             }
             let comp = match (stride, component) {
@@ -1266,10 +1432,46 @@ fn emit_body(
         let _ = writeln!(w, "    let v{n}: real = {expr};");
         names.push(format!("v{n}"));
     }
-    for s in &k.stores {
-        let v = k.body.outputs[s.output];
-        let target = row(s.buffer, "e", format!("{}u", s.component));
-        let _ = writeln!(w, "    {target} = {};", name(v, &names));
+    // Stores: a vector row's `vec4` in one store when the kernel writes all its used lanes
+    // (the unused lane 0), lane by lane otherwise.
+    let mut done = vec![false; k.stores.len()];
+    for (j, s) in k.stores.iter().enumerate() {
+        if done[j] {
+            continue;
+        }
+        let layout = RowLayout::of(width(s.buffer));
+        let value = |st: &crate::ir::Store| name(k.body.outputs[st.output], &names);
+        if !layout.is_vector() {
+            let target = row(s.buffer, "e", format!("{}u", s.component));
+            let _ = writeln!(w, "    {target} = {};", value(s));
+            continue;
+        }
+        let (g, _) = layout.place(s.component);
+        let used = layout.lanes.min(layout.width - g * layout.lanes);
+        let lanes: Vec<Option<usize>> = (0..used)
+            .map(|l| {
+                k.stores.iter().enumerate().position(|(m, t)| {
+                    !done[m] && t.buffer == s.buffer && t.component == g * layout.lanes + l
+                })
+            })
+            .collect();
+        let target = vec_at(s.buffer, "e", g);
+        if lanes.iter().all(Option::is_some) {
+            let parts: Vec<String> = (0..4)
+                .map(|l| match lanes.get(l).copied().flatten() {
+                    Some(m) => value(&k.stores[m]),
+                    None => literal(0.0, p),
+                })
+                .collect();
+            let _ = writeln!(w, "    {target} = vec4<real>({});", parts.join(", "));
+            for m in lanes.into_iter().flatten() {
+                done[m] = true;
+            }
+        } else {
+            let (_, lane) = layout.place(s.component);
+            let _ = writeln!(w, "    {target}.{} = {};", lane_name(lane), value(s));
+            done[j] = true;
+        }
     }
 }
 

@@ -37,7 +37,9 @@
 use super::{Backend, Launch, Lockstep, PendingRead, StateCopy, Stepped, Uniforms};
 use crate::engine::scene::{Csr, Scene};
 use softc_compiler::back::Precision;
-use softc_compiler::back::wgsl::{self, Binding, LaunchMode, TopoArray, WgslKernel, WgslModule};
+use softc_compiler::back::wgsl::{
+    self, Binding, LaunchMode, RowLayout, TopoArray, WgslKernel, WgslModule,
+};
 use softc_compiler::ir::{BufferId, Domain, Module};
 use std::cell::RefCell;
 use std::collections::{HashMap, VecDeque};
@@ -266,7 +268,7 @@ struct InFlight {
     buffer: wgpu::Buffer,
     total: u64,
     /// (offset, bytes) of each buffer's values in it.
-    spans: Vec<(u64, u64)>,
+    spans: Vec<(u64, u64, RowLayout)>,
     index: wgpu::SubmissionIndex,
     mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
 }
@@ -304,9 +306,12 @@ struct Core {
     errors: Arc<Mutex<Vec<String>>>,
     /// Scenes the buffers hold (1 for an unbatched module).
     scenes: usize,
-    /// Physical buffers, each holding `scenes × lens[i]` values.
+    /// Physical buffers, each holding `scenes × gpu_lens[i]` values: `lens[i]` values per
+    /// scene, laid out by `rows[i]` (3-vectors as `vec4`s).
     buffers: Vec<wgpu::Buffer>,
     lens: Vec<usize>,
+    gpu_lens: Vec<usize>,
+    rows: Vec<RowLayout>,
     topo: Vec<wgpu::Buffer>,
     /// Entities per domain of the prepared mesh: element, triangle, node.
     counts: [usize; 3],

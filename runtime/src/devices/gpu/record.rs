@@ -30,7 +30,7 @@ impl Core {
         if data.is_empty() {
             return;
         }
-        let bytes = self.bytes_of(data);
+        let bytes = self.bytes_of(&self.rows[phys].pad(data));
         // A failure to submit shows at the next launch or readback.
         let _ = self.record(scene, Op::Set { phys, bytes });
     }
@@ -154,7 +154,8 @@ impl Core {
                 self.submit();
                 for s in heads {
                     if let Some(Op::Set { phys, bytes }) = self.queues[s].pop_front() {
-                        let offset = (s * self.lens[phys] * self.module.precision.size()) as u64;
+                        let offset =
+                            (s * self.gpu_lens[phys] * self.module.precision.size()) as u64;
                         self.queue.write_buffer(&self.buffers[phys], offset, &bytes);
                     }
                 }

@@ -281,6 +281,8 @@ impl Core {
             scenes,
             buffers: Vec::new(),
             lens: Vec::new(),
+            gpu_lens: Vec::new(),
+            rows: Vec::new(),
             topo: Vec::new(),
             counts: [0; 3],
             launch_buffer: None,
@@ -361,10 +363,12 @@ impl Core {
         let size = self.module.precision.size() as u64;
         let counts = [n_elems, n_tris, n_nodes];
         let mut buffers = Vec::new();
-        let mut lens = Vec::new();
+        let (mut lens, mut gpu_lens, mut rows) = (Vec::new(), Vec::new(), Vec::new());
         for b in &self.layout {
+            let row = RowLayout::of(b.1);
             let n = domain_count(&counts, b.0) * b.1 as usize;
-            let bytes = (n * self.scenes) as u64 * size;
+            let gpu_n = domain_count(&counts, b.0) * row.padded() as usize;
+            let bytes = (gpu_n * self.scenes) as u64 * size;
             if bytes > max {
                 return Err(format!(
                     "buffer `{}` needs {bytes} bytes{}; adapter {} binds at most {max}",
@@ -379,6 +383,8 @@ impl Core {
             }
             buffers.push(self.storage_buffer(&b.2, bytes));
             lens.push(n);
+            gpu_lens.push(gpu_n);
+            rows.push(row);
         }
         let flat = |v: &[u32]| -> Vec<u8> { v.iter().flat_map(|x| x.to_le_bytes()).collect() };
         let mut topo = Vec::new();
@@ -410,6 +416,8 @@ impl Core {
         self.counts = counts;
         self.buffers = buffers;
         self.lens = lens;
+        self.gpu_lens = gpu_lens;
+        self.rows = rows;
         self.topo = topo;
         self.bind_groups.clear();
         self.groups.clear();

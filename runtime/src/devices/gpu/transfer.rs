@@ -6,6 +6,14 @@ use super::*;
 
 /// The copy kernel between a state (`x`, `v`: `len` values each) and a slot of the device's
 /// state store (bound at a dynamic offset): `store` into the slot, else out of it.
+/// The rows of the adjoint's states, positions and velocities: 3 per node.
+const STATE_ROW: RowLayout = RowLayout::of(3);
+
+/// Values in device memory of a state of `len` values (3 per node, as `vec4`s).
+fn state_gpu_len(len: usize) -> usize {
+    len / STATE_ROW.width as usize * STATE_ROW.padded() as usize
+}
+
 pub(super) fn state_copy_wgsl(real: &str, len: usize, store: bool) -> String {
     let (state, slot, body, name) = if store {
         (
@@ -171,14 +179,16 @@ impl Core {
         self.stats.readbacks += 1;
         let size = self.module.precision.size();
         let mut spans = Vec::new();
+        let mut rows = Vec::new();
         let mut total = 0u64;
         for &(phys, scene) in requests {
             let n = *self
-                .lens
+                .gpu_lens
                 .get(phys)
                 .ok_or_else(|| format!("no buffer {phys}"))?;
             let bytes = (n * size) as u64;
             spans.push((phys, (scene * n * size) as u64, total, bytes));
+            rows.push(self.rows[phys]);
             total = round_up(total + bytes, 256);
         }
         let total = total.max(256);
@@ -216,7 +226,7 @@ impl Core {
             InFlight {
                 buffer,
                 total,
-                spans: spans.iter().map(|s| (s.2, s.3)).collect(),
+                spans: spans.iter().zip(rows).map(|(s, r)| (s.2, s.3, r)).collect(),
                 index,
                 mapped: rx,
             },
@@ -252,7 +262,9 @@ impl Core {
                 .map_err(|e| format!("GPU ({}): {e}", self.adapter))?;
             f.spans
                 .iter()
-                .map(|&(to, bytes)| self.values(&view[to as usize..(to + bytes) as usize]))
+                .map(|&(to, bytes, row)| {
+                    row.unpad(&self.values(&view[to as usize..(to + bytes) as usize]))
+                })
                 .collect()
         };
         f.buffer.unmap();
@@ -307,7 +319,7 @@ impl Core {
         let size = self.module.precision.size() as u64;
         let limits = self.device.limits();
         let align = u64::from(limits.min_storage_buffer_offset_alignment).max(256);
-        let slot_bytes = round_up(2 * len as u64 * size, align);
+        let slot_bytes = round_up(2 * state_gpu_len(len) as u64 * size, align);
         let total = slot_bytes.saturating_mul(slots as u64);
         let cap = device_state_limit();
         if slots == 0 || total > cap || slot_bytes > limits.max_storage_buffer_binding_size {
@@ -389,7 +401,7 @@ impl Core {
                 .create_shader_module(wgpu::ShaderModuleDescriptor {
                     label: Some(name),
                     source: wgpu::ShaderSource::Wgsl(
-                        state_copy_wgsl(real, len, name == "store").into(),
+                        state_copy_wgsl(real, state_gpu_len(len), name == "store").into(),
                     ),
                 });
             let layout = self
@@ -462,7 +474,11 @@ impl Core {
         if slot >= st.slots {
             return Err(format!("device state slot {slot} of {}", st.slots));
         }
-        if self.lens[x] != st.len || self.lens[v] != st.len {
+        if self.lens[x] != st.len
+            || self.lens[v] != st.len
+            || self.rows[x] != STATE_ROW
+            || self.rows[v] != STATE_ROW
+        {
             return Err("a device state copy of buffers of another size".into());
         }
         let (chunk, offset) = (
@@ -470,7 +486,7 @@ impl Core {
             (slot % st.per_chunk) as u64 * st.slot_bytes,
         );
         let kernel = if store { st.store } else { st.restore };
-        let (count, slot_bytes) = (st.len as u64, st.slot_bytes);
+        let (count, slot_bytes) = (state_gpu_len(st.len) as u64, st.slot_bytes);
         let key = vec![x, v, chunk];
         let group = match self.bind_groups.get(&(kernel, key.clone())) {
             Some(&g) => g,
