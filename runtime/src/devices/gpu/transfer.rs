@@ -14,6 +14,8 @@ fn state_gpu_len(len: usize) -> usize {
     len / STATE_ROW.width as usize * STATE_ROW.padded() as usize
 }
 
+/// The copy kernel into (`store`) or out of a device slot of a state of `len` values in
+/// device memory (x then v, each `len / 4` `vec4`s).
 pub(super) fn state_copy_wgsl(real: &str, len: usize, store: bool) -> String {
     let (state, slot, body, name) = if store {
         (
@@ -33,10 +35,10 @@ pub(super) fn state_copy_wgsl(real: &str, len: usize, store: bool) -> String {
     format!(
         "// softc: the adjoint's state store on the device (copies, no arithmetic).
 alias real = {real};
-const N: u32 = {len}u;
-@group(0) @binding(0) var<storage, {state}> x: array<real>;
-@group(0) @binding(1) var<storage, {state}> v: array<real>;
-@group(0) @binding(2) var<storage, {slot}> slot: array<real>;
+const N: u32 = {}u;
+@group(0) @binding(0) var<storage, {state}> x: array<vec4<real>>;
+@group(0) @binding(1) var<storage, {state}> v: array<vec4<real>>;
+@group(0) @binding(2) var<storage, {slot}> slot: array<vec4<real>>;
 override softc_wg: u32 = 64u;
 @compute @workgroup_size(softc_wg)
 fn {name}(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {{
@@ -45,7 +47,8 @@ fn {name}(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         {body}
     }}
 }}
-"
+",
+        len / 4
     )
 }
 
@@ -486,7 +489,7 @@ impl Core {
             (slot % st.per_chunk) as u64 * st.slot_bytes,
         );
         let kernel = if store { st.store } else { st.restore };
-        let (count, slot_bytes) = (state_gpu_len(st.len) as u64, st.slot_bytes);
+        let (count, slot_bytes) = (state_gpu_len(st.len) as u64 / 4, st.slot_bytes);
         let key = vec![x, v, chunk];
         let group = match self.bind_groups.get(&(kernel, key.clone())) {
             Some(&g) => g,
