@@ -92,7 +92,7 @@ impl RowLayout {
     pub const fn of(width: u32) -> Self {
         let lanes = if width <= 2 {
             0
-        } else if width % 3 == 0 {
+        } else if width.is_multiple_of(3) {
             3
         } else {
             4

@@ -439,14 +439,7 @@ impl Core {
                 .timing
                 .as_mut()
                 .and_then(|t| t.next_pair_of(Some(d.kernel)));
-            let timestamp_writes = match (&self.timing, pair) {
-                (Some(t), Some(i)) => Some(wgpu::ComputePassTimestampWrites {
-                    query_set: &t.set,
-                    beginning_of_pass_write_index: Some(i),
-                    end_of_pass_write_index: Some(i + 1),
-                }),
-                _ => None,
-            };
+            let timestamp_writes = self.timing.as_ref().zip(pair).map(|(t, i)| t.writes(i));
             {
                 let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("softc profiled dispatch"),
@@ -547,14 +540,7 @@ impl Core {
         if profile {
             self.encode_profiled(&mut enc);
         } else {
-            let timestamp_writes = match (&self.timing, pair) {
-                (Some(t), Some(i)) => Some(wgpu::ComputePassTimestampWrites {
-                    query_set: &t.set,
-                    beginning_of_pass_write_index: Some(i),
-                    end_of_pass_write_index: Some(i + 1),
-                }),
-                _ => None,
-            };
+            let timestamp_writes = self.timing.as_ref().zip(pair).map(|(t, i)| t.writes(i));
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("softc steps"),
                 timestamp_writes,

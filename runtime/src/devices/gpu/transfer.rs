@@ -98,6 +98,15 @@ impl Timing {
         })
     }
 
+    /// A pass's timestamp writes into the pair starting at query `first`.
+    pub(super) fn writes(&self, first: u32) -> wgpu::ComputePassTimestampWrites<'_> {
+        wgpu::ComputePassTimestampWrites {
+            query_set: &self.set,
+            beginning_of_pass_write_index: Some(first),
+            end_of_pass_write_index: Some(first + 1),
+        }
+    }
+
     pub(super) fn resolve(&self, enc: &mut wgpu::CommandEncoder, first: u32) {
         enc.resolve_query_set(
             &self.set,
