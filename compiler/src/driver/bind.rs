@@ -6,13 +6,13 @@
 
 use super::loss::{LossKernels, SensorKernels, lower_loss, lower_sensors};
 use super::plan::uniform_name;
-use super::settings::{arg, call_parts};
-use super::{Resolved, const_scalar, const_values};
+use super::settings::call_parts;
+use super::{Resolved, const_scalar};
 use crate::front::ast::*;
 use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
-use crate::sema::mesh_probe::Shape;
+use crate::sema::mesh_probe::{Shape, SurfaceRef};
 use crate::sema::types::Len;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -126,12 +126,13 @@ impl Resolved {
     pub fn bind(&self, kernels: &SceneModule, mesh: &dyn MeshView) -> Fail<Bound> {
         let program = self.lowering_program();
         let ast = &self.syntax;
-        let material_of = assign_materials(&program, ast, mesh, kernels)?;
+        let regions = &self.regions;
+        let material_of = assign_materials(&program, ast, regions, mesh, kernels)?;
         let (chamber_tris, chamber_mids): (Vec<_>, Vec<_>) =
-            chambers(&program, ast, mesh, kernels)?.into_iter().unzip();
-        let fixed = fixed_nodes(&program, ast, mesh)?;
-        let node_sets = all_node_sets(&program, ast, mesh)?;
-        let element_sets = all_element_sets(&program, ast, mesh)?;
+            chambers(&self.surfaces, mesh, kernels)?.into_iter().unzip();
+        let fixed = fixed_nodes(&program, ast, regions, mesh)?;
+        let node_sets = all_node_sets(&program, ast, regions, mesh)?;
+        let element_sets = all_element_sets(&program, ast, regions, mesh)?;
         let slots = self.slots(&element_sets)?;
         let fields = fields(ast, kernels, mesh, &material_of, &element_sets)?;
         // Group elements by material, so each element kernel runs over a range, and within a
@@ -314,35 +315,17 @@ fn string_arg(e: &Expr) -> Option<&str> {
     }
 }
 
-/// Whether a point lies in a region.
-type PointTest = Box<dyn Fn([f64; 3]) -> bool>;
-
-/// Region geometry from `box(…)`, `sphere(…)`, `cylinder(…)`.
-fn region_contains(program: &Program, e: &Expr) -> Fail<PointTest> {
-    let (f, args) = call_parts(e).ok_or("a region is a box, sphere or cylinder")?;
-    let v = |name: &str, pos: usize| -> Fail<Vec<f64>> {
-        const_values(
-            program,
-            arg(args, name, pos).ok_or_else(|| format!("missing `{name}`"))?,
-        )
-    };
-    let v3 = |name: &str, pos: usize| -> Fail<[f64; 3]> {
-        let x = v(name, pos)?;
-        Ok([x[0], x[1], x[2]])
-    };
-    let shape = match f {
-        "box" => Shape::Box(v3("min", 0)?, v3("max", 1)?),
-        "sphere" => Shape::Sphere(v3("center", 0)?, v("radius", 1)?[0]),
-        "cylinder" => Shape::Cylinder(v3("start", 0)?, v3("end", 1)?, v("radius", 2)?[0]),
-        other => return Err(format!("`{other}` is not a region")),
-    };
-    Ok(Box::new(move |p| shape.contains(p)))
+/// The geometry of region `name`, as the checker evaluated it.
+fn region<'a>(regions: &'a BTreeMap<String, Shape>, name: &str) -> Fail<&'a Shape> {
+    regions
+        .get(name)
+        .ok_or_else(|| format!("unknown region `{name}`"))
 }
 
 /// Indices selected by a `nodes` (points = nodes) or `elements` (points = centroids) value.
 fn selection(
     program: &Program,
-    ast: &Script,
+    regions: &BTreeMap<String, Shape>,
     mesh: &dyn MeshView,
     e: &Expr,
     elements: bool,
@@ -410,13 +393,11 @@ fn selection(
             let Some(ExprKind::Name(r)) = second.map(|e| &e.kind) else {
                 return Err("`inside` needs a region name".into());
             };
-            let (_, region) =
-                decl(ast, &r.name).ok_or_else(|| format!("unknown region `{}`", r.name))?;
-            let contains = region_contains(program, region)?;
+            let shape = region(regions, &r.name)?;
             points
                 .iter()
                 .enumerate()
-                .filter(|(_, p)| contains(**p))
+                .filter(|(_, p)| shape.contains(**p))
                 .map(|(i, _)| i as u32)
                 .collect()
         }
@@ -456,6 +437,7 @@ fn nodes_of(tets: &[[u32; 4]], mids: &[[u32; 6]], elems: &[u32]) -> Vec<u32> {
 fn assign_materials(
     program: &Program,
     ast: &Script,
+    regions: &BTreeMap<String, Shape>,
     mesh: &dyn MeshView,
     kernels: &SceneModule,
 ) -> Fail<Vec<usize>> {
@@ -482,7 +464,7 @@ fn assign_materials(
             Some(s) => {
                 let (_, value) = decl(ast, &s.name)
                     .ok_or_else(|| format!("unknown element set `{}`", s.name))?;
-                for e in selection(program, ast, mesh, value, true)? {
+                for e in selection(program, regions, mesh, value, true)? {
                     of[e as usize] = m;
                 }
             }
@@ -501,8 +483,7 @@ fn assign_materials(
 type ChamberTriangles = (Vec<[u32; 3]>, Vec<[u32; 3]>);
 
 fn chambers(
-    program: &Program,
-    ast: &Script,
+    surfaces: &BTreeMap<String, SurfaceRef>,
     mesh: &dyn MeshView,
     kernels: &SceneModule,
 ) -> Fail<Vec<ChamberTriangles>> {
@@ -511,20 +492,12 @@ fn chambers(
         .chambers
         .iter()
         .map(|c| {
-            let (_, value) = decl(ast, c).ok_or_else(|| format!("unknown chamber `{c}`"))?;
-            let (_, args) = call_parts(value).ok_or("a chamber is `surface(…)`")?;
-            let tag = match (
-                arg(args, "name", 1).and_then(string_arg),
-                arg(args, "tag", 99),
-            ) {
-                (Some(name), _) => mesh
+            let tag = match surfaces.get(c) {
+                Some(SurfaceRef::Name(name)) => mesh
                     .tag_by_name(2, name)
                     .ok_or_else(|| format!("the mesh has no surface named \"{name}\""))?,
-                (None, Some(t)) => const_scalar(program, t)? as i32,
-                (None, None) => match args.get(1) {
-                    Some(a) => const_scalar(program, &a.value)? as i32,
-                    None => return Err(format!("chamber `{c}` names no surface")),
-                },
+                Some(SurfaceRef::Tag(t)) => *t,
+                None => return Err(format!("chamber `{c}` names no surface")),
             };
             let tris = mesh.surface(tag);
             let mids = if quadratic {
@@ -543,7 +516,12 @@ fn chambers(
         .collect()
 }
 
-fn fixed_nodes(program: &Program, ast: &Script, mesh: &dyn MeshView) -> Fail<Vec<bool>> {
+fn fixed_nodes(
+    program: &Program,
+    ast: &Script,
+    regions: &BTreeMap<String, Shape>,
+    mesh: &dyn MeshView,
+) -> Fail<Vec<bool>> {
     let mut fixed = vec![false; mesh.nodes().len()];
     for s in ast.sim_block() {
         let StmtKind::Fix(names) = &s.kind else {
@@ -568,15 +546,15 @@ fn fixed_nodes(program: &Program, ast: &Script, mesh: &dyn MeshView) -> Fail<Vec
                 decl(ast, &name).ok_or_else(|| format!("unknown region `{name}`"))?;
             match kind {
                 DeclKind::Region => {
-                    let contains = region_contains(program, value)?;
+                    let shape = region(regions, &name)?;
                     for (i, p) in mesh.nodes().iter().enumerate() {
-                        if contains(*p) {
+                        if shape.contains(*p) {
                             fixed[i] = true;
                         }
                     }
                 }
                 DeclKind::Nodes => {
-                    for i in selection(program, ast, mesh, value, false)? {
+                    for i in selection(program, regions, mesh, value, false)? {
                         fixed[i as usize] = true;
                     }
                 }
@@ -602,13 +580,14 @@ fn declared_sets(ast: &Script, kind: DeclKind) -> impl Iterator<Item = (&Ident, 
 fn all_node_sets(
     program: &Program,
     ast: &Script,
+    regions: &BTreeMap<String, Shape>,
     mesh: &dyn MeshView,
 ) -> Fail<Vec<(String, Vec<u32>)>> {
     declared_sets(ast, DeclKind::Nodes)
         .map(|(name, value)| {
             Ok((
                 name.name.clone(),
-                selection(program, ast, mesh, value, false)?,
+                selection(program, regions, mesh, value, false)?,
             ))
         })
         .collect()
@@ -617,13 +596,14 @@ fn all_node_sets(
 fn all_element_sets(
     program: &Program,
     ast: &Script,
+    regions: &BTreeMap<String, Shape>,
     mesh: &dyn MeshView,
 ) -> Fail<Vec<(String, Vec<u32>)>> {
     declared_sets(ast, DeclKind::Elements)
         .map(|(name, value)| {
             // A named set from the mesh file may list an element twice: keep the first.
             let mut seen = vec![false; mesh.tets().len()];
-            let elements = selection(program, ast, mesh, value, true)?
+            let elements = selection(program, regions, mesh, value, true)?
                 .into_iter()
                 .filter(|&e| !std::mem::replace(&mut seen[e as usize], true))
                 .collect();

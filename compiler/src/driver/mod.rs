@@ -40,6 +40,8 @@ use crate::ir::{Domain, KernelBuilder};
 use crate::lower::expr::{Env, ExprLowerer, Program, flatten};
 use crate::lower::scene::lower_scene;
 use crate::sema::CheckOptions;
+use crate::sema::mesh_probe::{Shape, SurfaceRef};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -159,6 +161,9 @@ pub struct Resolved {
     pub chambers: Vec<String>,
     /// Per material (kernel order): its density, kg/m³.
     pub densities: Vec<f64>,
+    /// The regions' geometry and the chambers' surfaces, as the checker evaluated them.
+    regions: BTreeMap<String, Shape>,
+    surfaces: BTreeMap<String, SurfaceRef>,
     syntax: Script,
 }
 
@@ -270,6 +275,8 @@ pub fn compile(
             materials,
             chambers,
             densities,
+            regions: checked_script.regions,
+            surfaces: checked_script.surfaces,
             syntax,
         },
     })

@@ -459,6 +459,11 @@ impl Checker {
                     } else if let Some(v) = &t.value
                         && (is_name || is_tag)
                     {
+                        self.last_surface = match v {
+                            Value::Str(s) => Some(super::mesh_probe::SurfaceRef::Name(s.clone())),
+                            Value::Num(t) => Some(super::mesh_probe::SurfaceRef::Tag(*t as i32)),
+                            _ => None,
+                        };
                         self.check_surface_exists(arg, v);
                     }
                 }

@@ -187,6 +187,9 @@ impl Checker {
         match &item.kind {
             ItemKind::Decl { kind, name, value } => {
                 let errors_before = self.diags.len();
+                // What the value's region or surface call records is this declaration's.
+                self.last_shape = None;
+                self.last_surface = None;
                 let t = self.check_expr(value);
                 let clean = self.diags.len() == errors_before;
                 let (want, what) = match kind {
@@ -211,7 +214,12 @@ impl Checker {
                 match kind {
                     DeclKind::Region => {
                         if let Some(shape) = self.last_shape.take() {
-                            self.regions.insert(name.name.clone(), shape);
+                            self.out.regions.insert(name.name.clone(), shape);
+                        }
+                    }
+                    DeclKind::Chamber => {
+                        if let Some(surface) = self.last_surface.take() {
+                            self.out.surfaces.insert(name.name.clone(), surface);
                         }
                     }
                     DeclKind::Nodes | DeclKind::Elements if clean => {

@@ -87,6 +87,13 @@ pub(crate) enum Shape {
     Cylinder([f64; 3], [f64; 3], f64),
 }
 
+/// The surface a chamber declaration names: by physical name or by tag.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) enum SurfaceRef {
+    Name(String),
+    Tag(i32),
+}
+
 impl Shape {
     pub(crate) fn contains(&self, p: [f64; 3]) -> bool {
         // A tolerance of a nanometre keeps nodes exactly on a face inside.
@@ -309,7 +316,7 @@ impl Checker {
             }
             "inside" => {
                 let ExprKind::Name(r) = &arg.kind else { return };
-                let Some(shape) = self.regions.get(&r.name).cloned() else {
+                let Some(shape) = self.out.regions.get(&r.name).cloned() else {
                     return;
                 };
                 points.iter().filter(|p| shape.contains(**p)).count()
@@ -330,7 +337,7 @@ impl Checker {
     /// A fixed region must contain at least one node.
     pub(super) fn check_region_nonempty(&mut self, id: &Ident) {
         let Some(mesh) = &self.mesh else { return };
-        let Some(shape) = self.regions.get(&id.name) else {
+        let Some(shape) = self.out.regions.get(&id.name) else {
             return;
         };
         if mesh.nodes.iter().any(|p| shape.contains(*p)) {

@@ -23,6 +23,7 @@ pub use resolution::{Def, DefKind, Resolution};
 
 use crate::diag::{Diagnostic, did_you_mean};
 use crate::front::ast::{Item, Script, Span};
+use std::collections::BTreeMap;
 use std::collections::HashMap;
 use std::path::PathBuf;
 use types::{Ty, Typed, Var};
@@ -42,6 +43,10 @@ pub struct CheckedScript {
     /// Every declaration and every use of a name with what it resolved to (editors: hover,
     /// definition, references).
     pub resolution: Resolution,
+    /// Each region declaration's geometry, evaluated once (binding selects with it).
+    pub(crate) regions: BTreeMap<String, mesh_probe::Shape>,
+    /// Each chamber declaration's surface, by name or tag (binding finds its triangles).
+    pub(crate) surfaces: BTreeMap<String, mesh_probe::SurfaceRef>,
 }
 
 /// A global declaration of the user's script, as the checker saw it.
@@ -300,10 +305,10 @@ struct Checker {
     out: CheckedScript,
     /// The mesh, when a probe could read it.
     mesh: Option<mesh_probe::MeshSummary>,
-    /// Region geometry by name (for "selects no node" checks).
-    regions: HashMap<String, mesh_probe::Shape>,
     /// The shape of the region call checked last (picked up by its declaration).
     last_shape: Option<mesh_probe::Shape>,
+    /// The surface of the `surface(…)` call checked last (picked up by its declaration).
+    last_surface: Option<mesh_probe::SurfaceRef>,
     /// Whether the code being checked is the prelude's (nothing of it enters the resolution
     /// table, whose spans point into the user's script).
     in_prelude: bool,
@@ -336,7 +341,7 @@ impl Checker {
             optimized: Vec::new(),
             out: CheckedScript::default(),
             mesh: None,
-            regions: HashMap::new(),
+            last_surface: None,
             last_shape: None,
             in_prelude: false,
             def_at_span: HashMap::new(),
