@@ -4,15 +4,15 @@
 //! elements, the param and input slots, and the loss lowered over the node sets it reduces.
 //! The compiler does not read meshes: the caller provides one through [`MeshView`].
 
+use super::Resolved;
 use super::loss::{LossKernels, SensorKernels, lower_loss, lower_sensors};
 use super::plan::uniform_name;
 use super::settings::call_parts;
-use super::{Resolved, const_scalar};
 use crate::front::ast::*;
 use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
-use crate::sema::mesh_probe::{Shape, SurfaceRef};
+use crate::sema::mesh_probe::{DeclaredSet, Selector, Shape, SurfaceRef};
 use crate::sema::types::Len;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -126,13 +126,18 @@ impl Resolved {
     pub fn bind(&self, kernels: &SceneModule, mesh: &dyn MeshView) -> Fail<Bound> {
         let program = self.lowering_program();
         let ast = &self.syntax;
-        let regions = &self.regions;
-        let material_of = assign_materials(&program, ast, regions, mesh, kernels)?;
+        let places = Places {
+            program: &program,
+            ast,
+            regions: &self.regions,
+            sets: &self.selections,
+        };
+        let material_of = assign_materials(&places, mesh, kernels)?;
         let (chamber_tris, chamber_mids): (Vec<_>, Vec<_>) =
             chambers(&self.surfaces, mesh, kernels)?.into_iter().unzip();
-        let fixed = fixed_nodes(&program, ast, regions, mesh)?;
-        let node_sets = all_node_sets(&program, ast, regions, mesh)?;
-        let element_sets = all_element_sets(&program, ast, regions, mesh)?;
+        let fixed = fixed_nodes(&places, mesh)?;
+        let node_sets = all_sets(&places, mesh, false)?;
+        let element_sets = all_sets(&places, mesh, true)?;
         let slots = self.slots(&element_sets)?;
         let fields = fields(ast, kernels, mesh, &material_of, &element_sets)?;
         // Group elements by material, so each element kernel runs over a range, and within a
@@ -308,13 +313,6 @@ fn decl<'a>(ast: &'a Script, name: &str) -> Option<(&'a DeclKind, &'a Expr)> {
     })
 }
 
-fn string_arg(e: &Expr) -> Option<&str> {
-    match &e.kind {
-        ExprKind::Str(s) => Some(s),
-        _ => None,
-    }
-}
-
 /// The geometry of region `name`, as the checker evaluated it.
 fn region<'a>(regions: &'a BTreeMap<String, Shape>, name: &str) -> Fail<&'a Shape> {
     regions
@@ -322,15 +320,24 @@ fn region<'a>(regions: &'a BTreeMap<String, Shape>, name: &str) -> Fail<&'a Shap
         .ok_or_else(|| format!("unknown region `{name}`"))
 }
 
-/// Indices selected by a `nodes` (points = nodes) or `elements` (points = centroids) value.
-fn selection(
-    program: &Program,
-    regions: &BTreeMap<String, Shape>,
-    mesh: &dyn MeshView,
-    e: &Expr,
-    elements: bool,
-) -> Fail<Vec<u32>> {
-    let (f, args) = call_parts(e).ok_or("a selection is a call")?;
+/// What binding reads of the checked program: the sets' selectors and the regions' geometry
+/// from the checker, and the syntax of the selection conditions it lowers.
+struct Places<'a> {
+    program: &'a Program<'a>,
+    ast: &'a Script,
+    regions: &'a BTreeMap<String, Shape>,
+    sets: &'a [DeclaredSet],
+}
+
+/// Indices selected by the declared set `name`: nodes, or elements (tested at their
+/// centroids) when `elements`.
+fn selection(places: &Places, mesh: &dyn MeshView, name: &str, elements: bool) -> Fail<Vec<u32>> {
+    let set = places.sets.iter().find(|s| s.name == name).ok_or_else(|| {
+        format!(
+            "unknown {} set `{name}`",
+            if elements { "element" } else { "node" }
+        )
+    })?;
     let nodes = mesh.nodes();
     let tets = mesh.tets();
     let tags = mesh.tet_tags();
@@ -354,16 +361,22 @@ fn selection(
             nodes_of(tets, mesh.tet_mids(), &elems)
         }
     };
-    let second = args.get(1).map(|a| &a.value);
-    Ok(match f {
-        "select" => {
-            let cond = second.ok_or("`select` needs a condition")?;
+    Ok(match &set.selector {
+        Selector::Condition => {
+            // The condition is lowered to a kernel function of x, y, z and evaluated at each
+            // point (the one thing of a selection still read from the syntax tree).
+            let (_, value) =
+                decl(places.ast, name).ok_or_else(|| format!("unknown selection `{name}`"))?;
+            let cond = call_parts(value)
+                .and_then(|(_, args)| args.get(1))
+                .map(|a| &a.value)
+                .ok_or("`select` needs a condition")?;
             let mut k = KernelBuilder::new("select", Domain::Node, "selection");
             let mut env = Env::new();
             for c in ["x", "y", "z"] {
                 env.insert(c.to_string(), LVal::S(k.uniform(c)));
             }
-            let mut lw = ExprLowerer::new(program);
+            let mut lw = ExprLowerer::new(places.program);
             let v = lw
                 .lower(&mut k, &env, cond)
                 .and_then(|v| v.scalar())
@@ -389,11 +402,8 @@ fn selection(
                 .map(|(i, _)| i as u32)
                 .collect()
         }
-        "inside" => {
-            let Some(ExprKind::Name(r)) = second.map(|e| &e.kind) else {
-                return Err("`inside` needs a region name".into());
-            };
-            let shape = region(regions, &r.name)?;
+        Selector::Inside(r) => {
+            let shape = region(places.regions, r)?;
             points
                 .iter()
                 .enumerate()
@@ -401,9 +411,8 @@ fn selection(
                 .map(|(i, _)| i as u32)
                 .collect()
         }
-        "tagged" => tagged(const_scalar(program, second.ok_or("`tagged` needs a tag")?)? as i32),
-        "named" => {
-            let name = second.and_then(string_arg).ok_or("`named` needs a name")?;
+        Selector::Tagged(tag) => tagged(*tag),
+        Selector::Named(name) => {
             if let Some(t) = mesh.tag_by_name(3, name) {
                 tagged(t)
             } else if let Some(t) = mesh.tag_by_name(2, name) {
@@ -421,7 +430,6 @@ fn selection(
                 return Err(format!("the mesh has no part named \"{name}\""));
             }
         }
-        other => return Err(format!("`{other}` is not a selection")),
     })
 }
 
@@ -435,14 +443,13 @@ fn nodes_of(tets: &[[u32; 4]], mids: &[[u32; 6]], elems: &[u32]) -> Vec<u32> {
 }
 
 fn assign_materials(
-    program: &Program,
-    ast: &Script,
-    regions: &BTreeMap<String, Shape>,
+    places: &Places,
     mesh: &dyn MeshView,
     kernels: &SceneModule,
 ) -> Fail<Vec<usize>> {
     let mut of = vec![usize::MAX; mesh.tets().len()];
-    let uses: Vec<(&Ident, Option<&Ident>)> = ast
+    let uses: Vec<(&Ident, Option<&Ident>)> = places
+        .ast
         .sim_block()
         .iter()
         .filter_map(|s| match &s.kind {
@@ -462,9 +469,7 @@ fn assign_materials(
         match set {
             None => of.iter_mut().for_each(|x| *x = m),
             Some(s) => {
-                let (_, value) = decl(ast, &s.name)
-                    .ok_or_else(|| format!("unknown element set `{}`", s.name))?;
-                for e in selection(program, regions, mesh, value, true)? {
+                for e in selection(places, mesh, &s.name, true)? {
                     of[e as usize] = m;
                 }
             }
@@ -516,13 +521,9 @@ fn chambers(
         .collect()
 }
 
-fn fixed_nodes(
-    program: &Program,
-    ast: &Script,
-    regions: &BTreeMap<String, Shape>,
-    mesh: &dyn MeshView,
-) -> Fail<Vec<bool>> {
+fn fixed_nodes(places: &Places, mesh: &dyn MeshView) -> Fail<Vec<bool>> {
     let mut fixed = vec![false; mesh.nodes().len()];
+    let ast = places.ast;
     for s in ast.sim_block() {
         let StmtKind::Fix(names) = &s.kind else {
             continue;
@@ -542,11 +543,10 @@ fn fixed_nodes(
                     _ => break,
                 }
             }
-            let (kind, value) =
-                decl(ast, &name).ok_or_else(|| format!("unknown region `{name}`"))?;
+            let (kind, _) = decl(ast, &name).ok_or_else(|| format!("unknown region `{name}`"))?;
             match kind {
                 DeclKind::Region => {
-                    let shape = region(regions, &name)?;
+                    let shape = region(places.regions, &name)?;
                     for (i, p) in mesh.nodes().iter().enumerate() {
                         if shape.contains(*p) {
                             fixed[i] = true;
@@ -554,7 +554,7 @@ fn fixed_nodes(
                     }
                 }
                 DeclKind::Nodes => {
-                    for i in selection(program, regions, mesh, value, false)? {
+                    for i in selection(places, mesh, &name, false)? {
                         fixed[i as usize] = true;
                     }
                 }
@@ -565,49 +565,20 @@ fn fixed_nodes(
     Ok(fixed)
 }
 
-/// The `nodes` (or `elements`) declarations of a script: name and selection.
-fn declared_sets(ast: &Script, kind: DeclKind) -> impl Iterator<Item = (&Ident, &Expr)> {
-    ast.items.iter().filter_map(move |i| match &i.kind {
-        ItemKind::Decl {
-            kind: k,
-            name,
-            value,
-        } if *k == kind => Some((name, value)),
-        _ => None,
-    })
-}
-
-fn all_node_sets(
-    program: &Program,
-    ast: &Script,
-    regions: &BTreeMap<String, Shape>,
-    mesh: &dyn MeshView,
-) -> Fail<Vec<(String, Vec<u32>)>> {
-    declared_sets(ast, DeclKind::Nodes)
-        .map(|(name, value)| {
-            Ok((
-                name.name.clone(),
-                selection(program, regions, mesh, value, false)?,
-            ))
-        })
-        .collect()
-}
-
-fn all_element_sets(
-    program: &Program,
-    ast: &Script,
-    regions: &BTreeMap<String, Shape>,
-    mesh: &dyn MeshView,
-) -> Fail<Vec<(String, Vec<u32>)>> {
-    declared_sets(ast, DeclKind::Elements)
-        .map(|(name, value)| {
-            // A named set from the mesh file may list an element twice: keep the first.
-            let mut seen = vec![false; mesh.tets().len()];
-            let elements = selection(program, regions, mesh, value, true)?
-                .into_iter()
-                .filter(|&e| !std::mem::replace(&mut seen[e as usize], true))
-                .collect();
-            Ok((name.name.clone(), elements))
+/// Every declared node set (or element set, `elements`) with what it selects, in source order.
+fn all_sets(places: &Places, mesh: &dyn MeshView, elements: bool) -> Fail<Vec<(String, Vec<u32>)>> {
+    places
+        .sets
+        .iter()
+        .filter(|s| s.elements == elements)
+        .map(|s| {
+            let mut selected = selection(places, mesh, &s.name, elements)?;
+            if elements {
+                // A named set from the mesh file may list an element twice: keep the first.
+                let mut seen = vec![false; mesh.tets().len()];
+                selected.retain(|&e| !std::mem::replace(&mut seen[e as usize], true));
+            }
+            Ok((s.name.clone(), selected))
         })
         .collect()
 }

@@ -40,7 +40,7 @@ use crate::ir::{Domain, KernelBuilder};
 use crate::lower::expr::{Env, ExprLowerer, Program, flatten};
 use crate::lower::scene::lower_scene;
 use crate::sema::CheckOptions;
-use crate::sema::mesh_probe::{Shape, SurfaceRef};
+use crate::sema::mesh_probe::{DeclaredSet, Shape, SurfaceRef};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -164,6 +164,8 @@ pub struct Resolved {
     /// The regions' geometry and the chambers' surfaces, as the checker evaluated them.
     regions: BTreeMap<String, Shape>,
     surfaces: BTreeMap<String, SurfaceRef>,
+    /// The node and element sets with their selectors, in source order.
+    selections: Vec<DeclaredSet>,
     syntax: Script,
 }
 
@@ -277,6 +279,7 @@ pub fn compile(
             densities,
             regions: checked_script.regions,
             surfaces: checked_script.surfaces,
+            selections: checked_script.selections,
             syntax,
         },
     })

@@ -510,6 +510,14 @@ impl Checker {
                 if self.expect_type(&t, &want, arg, &format!("`{second}`"))
                     && self.expect_const(&t, arg, "a selection")
                 {
+                    use super::mesh_probe::Selector;
+                    self.last_selector = match (name, &t.value, &arg.kind) {
+                        ("select", ..) => Some(Selector::Condition),
+                        ("named", Some(Value::Str(n)), _) => Some(Selector::Named(n.clone())),
+                        ("tagged", Some(Value::Num(tag)), _) => Some(Selector::Tagged(*tag as i32)),
+                        ("inside", _, ExprKind::Name(r)) => Some(Selector::Inside(r.name.clone())),
+                        _ => None,
+                    };
                     match (name, &t.value) {
                         ("named", Some(Value::Str(n))) => self.check_name_exists(arg, n),
                         ("tagged", Some(Value::Num(tag))) => {

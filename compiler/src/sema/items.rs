@@ -190,6 +190,7 @@ impl Checker {
                 // What the value's region or surface call records is this declaration's.
                 self.last_shape = None;
                 self.last_surface = None;
+                self.last_selector = None;
                 let t = self.check_expr(value);
                 let clean = self.diags.len() == errors_before;
                 let (want, what) = match kind {
@@ -222,10 +223,21 @@ impl Checker {
                             self.out.surfaces.insert(name.name.clone(), surface);
                         }
                     }
-                    DeclKind::Nodes | DeclKind::Elements if clean => {
-                        self.check_selection_nonempty(name, *kind, value)
-                    }
                     _ => {}
+                }
+                if matches!(kind, DeclKind::Nodes | DeclKind::Elements) {
+                    if let Some(selector) = self.last_selector.take()
+                        && !self.out.selections.iter().any(|s| s.name == name.name)
+                    {
+                        self.out.selections.push(super::mesh_probe::DeclaredSet {
+                            name: name.name.clone(),
+                            elements: *kind == DeclKind::Elements,
+                            selector,
+                        });
+                    }
+                    if clean {
+                        self.check_selection_nonempty(name, *kind, value);
+                    }
                 }
                 let obj = match kind {
                     DeclKind::Mesh => Obj::Mesh,

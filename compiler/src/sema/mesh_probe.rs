@@ -94,6 +94,28 @@ pub(crate) enum SurfaceRef {
     Tag(i32),
 }
 
+/// What a node or element set selects by.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) enum Selector {
+    /// `select(mesh, condition)`: the condition at each point (lowered by binding).
+    Condition,
+    /// `inside(mesh, region)`.
+    Inside(String),
+    /// `tagged(mesh, tag)`: the elements of a region tag (or their nodes).
+    Tagged(i32),
+    /// `named(mesh, "name")`: a physical name or named set of the mesh.
+    Named(String),
+}
+
+/// A declared node or element set.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct DeclaredSet {
+    pub name: String,
+    /// Elements (centroids) rather than nodes.
+    pub elements: bool,
+    pub selector: Selector,
+}
+
 impl Shape {
     pub(crate) fn contains(&self, p: [f64; 3]) -> bool {
         // A tolerance of a nanometre keeps nodes exactly on a face inside.

@@ -47,6 +47,8 @@ pub struct CheckedScript {
     pub(crate) regions: BTreeMap<String, mesh_probe::Shape>,
     /// Each chamber declaration's surface, by name or tag (binding finds its triangles).
     pub(crate) surfaces: BTreeMap<String, mesh_probe::SurfaceRef>,
+    /// Each node or element set declaration, in source order, with what it selects by.
+    pub(crate) selections: Vec<mesh_probe::DeclaredSet>,
 }
 
 /// A global declaration of the user's script, as the checker saw it.
@@ -309,6 +311,8 @@ struct Checker {
     last_shape: Option<mesh_probe::Shape>,
     /// The surface of the `surface(…)` call checked last (picked up by its declaration).
     last_surface: Option<mesh_probe::SurfaceRef>,
+    /// The selector of the selection call checked last (picked up by its declaration).
+    last_selector: Option<mesh_probe::Selector>,
     /// Whether the code being checked is the prelude's (nothing of it enters the resolution
     /// table, whose spans point into the user's script).
     in_prelude: bool,
@@ -342,6 +346,7 @@ impl Checker {
             out: CheckedScript::default(),
             mesh: None,
             last_surface: None,
+            last_selector: None,
             last_shape: None,
             in_prelude: false,
             def_at_span: HashMap::new(),
