@@ -415,3 +415,77 @@ fn workgroup_sizes_give_the_same_bits_forward_and_backward() {
     assert!(!bad.status.success(), "a bad size is refused");
     assert!(String::from_utf8_lossy(&bad.stderr).contains("SOFTC_GPU_WG=100: give a power of two"));
 }
+
+#[test]
+fn a_profiled_run_reports_each_kernels_gpu_time() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_softc"))
+        .current_dir(root())
+        .args([
+            "run",
+            "examples/benchmark-1k.soft",
+            "--backend",
+            "gpu",
+            "--steps",
+            "120",
+        ])
+        .env("SOFTC_GPU_PROFILE", "1")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    if !out.status.success() && stderr.contains("no GPU adapter found") {
+        assert!(
+            std::env::var("CI").as_deref() != Ok("true"),
+            "CI=true but no GPU adapter: {stderr}"
+        );
+        eprintln!("note: GPU test skipped: {stderr}");
+        return;
+    }
+    assert!(out.status.success(), "{stderr}");
+    // The same answer as an unprofiled run: only the timing changes.
+    let plain = std::process::Command::new(env!("CARGO_BIN_EXE_softc"))
+        .current_dir(root())
+        .args([
+            "run",
+            "examples/benchmark-1k.soft",
+            "--backend",
+            "gpu",
+            "--steps",
+            "120",
+        ])
+        .env_remove("SOFTC_GPU_PROFILE")
+        .output()
+        .unwrap();
+    assert_eq!(
+        json_without_timings(&out.stdout),
+        json_without_timings(&plain.stdout)
+    );
+    let Some(report) = stderr.split("GPU time per kernel").nth(1) else {
+        // An adapter without timestamp queries has nothing to report.
+        eprintln!("note: no timestamp queries on this adapter");
+        return;
+    };
+    // Every step's kernels, with their dispatch counts: the fused element and pressure
+    // kernels and the node kernel run once per step.
+    let dispatches = |name: &str| -> u64 {
+        report
+            .lines()
+            .find(|l| l.trim_start().starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(0)
+    };
+    assert!(dispatches("integrate") >= 100, "{report}");
+    assert!(
+        dispatches("softc_fused_fem_rubber_pressure_cavity") + dispatches("fem_rubber") >= 100,
+        "{report}"
+    );
+    let shares: f64 = report
+        .lines()
+        .filter_map(|l| l.trim_end().strip_suffix('%'))
+        .filter_map(|l| l.split_whitespace().last()?.parse::<f64>().ok())
+        .sum();
+    assert!(
+        (shares - 100.0).abs() < 1.0,
+        "shares add up to {shares}: {report}"
+    );
+}
