@@ -366,40 +366,55 @@ fn json_without_timings(stdout: &[u8]) -> String {
         .join("\n")
 }
 
-#[test]
-fn workgroup_sizes_give_the_same_bits_forward_and_backward() {
-    let run = |wg: Option<&str>| {
-        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_softc"));
-        cmd.current_dir(root()).args([
+/// `softc run examples/benchmark-1k.soft --backend gpu --steps N [extra]` with the GPU
+/// environment variable `var` set to `value` (or unset); `None` (with a note) when this machine
+/// has no adapter, which fails the test under `CI=true`.
+fn run_1k_on_gpu(
+    steps: &str,
+    extra: &[&str],
+    var: &str,
+    value: Option<&str>,
+) -> Option<std::process::Output> {
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_softc"));
+    cmd.current_dir(root())
+        .args([
             "run",
             "examples/benchmark-1k.soft",
             "--backend",
             "gpu",
             "--steps",
-            "300",
-            "--grad",
-        ]);
-        match wg {
-            Some(n) => cmd.env("SOFTC_GPU_WG", n),
-            None => cmd.env_remove("SOFTC_GPU_WG"),
-        };
-        cmd.output().unwrap()
+            steps,
+        ])
+        .args(extra);
+    match value {
+        Some(v) => cmd.env(var, v),
+        None => cmd.env_remove(var),
     };
-    let default = run(None);
-    let stderr = String::from_utf8_lossy(&default.stderr);
-    if !default.status.success() && stderr.contains("no GPU adapter found") {
+    let out = cmd.output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    if !out.status.success() && stderr.contains("no GPU adapter found") {
         assert!(
             std::env::var("CI").as_deref() != Ok("true"),
             "CI=true but no GPU adapter: {stderr}"
         );
         eprintln!("note: GPU test skipped: {stderr}");
-        return;
+        return None;
     }
+    Some(out)
+}
+
+#[test]
+fn workgroup_sizes_give_the_same_bits_forward_and_backward() {
+    let run = |wg: Option<&str>| run_1k_on_gpu("300", &["--grad"], "SOFTC_GPU_WG", wg);
+    let Some(default) = run(None) else {
+        return;
+    };
+    let stderr = String::from_utf8_lossy(&default.stderr);
     assert!(default.status.success(), "{stderr}");
     let expected = json_without_timings(&default.stdout);
     assert!(expected.contains("\"gradients\""), "{expected}");
     for wg in ["32", "256"] {
-        let out = run(Some(wg));
+        let out = run(Some(wg)).unwrap();
         assert!(
             out.status.success(),
             "{}",
@@ -411,50 +426,20 @@ fn workgroup_sizes_give_the_same_bits_forward_and_backward() {
             "SOFTC_GPU_WG={wg}"
         );
     }
-    let bad = run(Some("100"));
+    let bad = run(Some("100")).unwrap();
     assert!(!bad.status.success(), "a bad size is refused");
     assert!(String::from_utf8_lossy(&bad.stderr).contains("SOFTC_GPU_WG=100: give a power of two"));
 }
 
 #[test]
 fn a_profiled_run_reports_each_kernels_gpu_time() {
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_softc"))
-        .current_dir(root())
-        .args([
-            "run",
-            "examples/benchmark-1k.soft",
-            "--backend",
-            "gpu",
-            "--steps",
-            "120",
-        ])
-        .env("SOFTC_GPU_PROFILE", "1")
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    if !out.status.success() && stderr.contains("no GPU adapter found") {
-        assert!(
-            std::env::var("CI").as_deref() != Ok("true"),
-            "CI=true but no GPU adapter: {stderr}"
-        );
-        eprintln!("note: GPU test skipped: {stderr}");
+    let Some(out) = run_1k_on_gpu("120", &[], "SOFTC_GPU_PROFILE", Some("1")) else {
         return;
-    }
+    };
+    let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     // The same answer as an unprofiled run: only the timing changes.
-    let plain = std::process::Command::new(env!("CARGO_BIN_EXE_softc"))
-        .current_dir(root())
-        .args([
-            "run",
-            "examples/benchmark-1k.soft",
-            "--backend",
-            "gpu",
-            "--steps",
-            "120",
-        ])
-        .env_remove("SOFTC_GPU_PROFILE")
-        .output()
-        .unwrap();
+    let plain = run_1k_on_gpu("120", &[], "SOFTC_GPU_PROFILE", None).unwrap();
     assert_eq!(
         json_without_timings(&out.stdout),
         json_without_timings(&plain.stdout)
