@@ -12,7 +12,7 @@ use crate::front::ast::*;
 use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
-use crate::sema::mesh_probe::{DeclaredSet, Selector, Shape, SurfaceRef};
+use crate::sema::mesh_probe::{DeclaredSet, FixTarget, Selector, Shape, SurfaceRef};
 use crate::sema::types::Len;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -131,6 +131,8 @@ impl Resolved {
             ast,
             regions: &self.regions,
             sets: &self.selections,
+            fixed: &self.fixed,
+            uses: &self.uses,
         };
         let material_of = assign_materials(&places, mesh, kernels)?;
         let (chamber_tris, chamber_mids): (Vec<_>, Vec<_>) =
@@ -327,6 +329,8 @@ struct Places<'a> {
     ast: &'a Script,
     regions: &'a BTreeMap<String, Shape>,
     sets: &'a [DeclaredSet],
+    fixed: &'a [FixTarget],
+    uses: &'a [(String, Option<String>)],
 }
 
 /// Indices selected by the declared set `name`: nodes, or elements (tested at their
@@ -448,15 +452,7 @@ fn assign_materials(
     kernels: &SceneModule,
 ) -> Fail<Vec<usize>> {
     let mut of = vec![usize::MAX; mesh.tets().len()];
-    let uses: Vec<(&Ident, Option<&Ident>)> = places
-        .ast
-        .sim_block()
-        .iter()
-        .filter_map(|s| match &s.kind {
-            StmtKind::Use { material, set } => Some((material, set.as_ref())),
-            _ => None,
-        })
-        .collect();
+    let uses = places.uses;
     if uses.is_empty() {
         of.iter_mut().for_each(|m| *m = 0);
     }
@@ -464,12 +460,12 @@ fn assign_materials(
         let m = kernels
             .materials
             .iter()
-            .position(|x| *x == material.name)
+            .position(|x| x == material)
             .expect("lowered materials include every used one");
         match set {
             None => of.iter_mut().for_each(|x| *x = m),
             Some(s) => {
-                for e in selection(places, mesh, &s.name, true)? {
+                for e in selection(places, mesh, s, true)? {
                     of[e as usize] = m;
                 }
             }
@@ -523,42 +519,17 @@ fn chambers(
 
 fn fixed_nodes(places: &Places, mesh: &dyn MeshView) -> Fail<Vec<bool>> {
     let mut fixed = vec![false; mesh.nodes().len()];
-    let ast = places.ast;
-    for s in ast.sim_block() {
-        let StmtKind::Fix(names) = &s.kind else {
-            continue;
-        };
-        for n in names {
-            let mut name = n.name.clone();
-            // A let may alias a region or node set.
-            for _ in 0..8 {
-                match ast.items.iter().find_map(|i| match &i.kind {
-                    ItemKind::Let(l) if l.name.name == name => Some(&l.value),
-                    _ => None,
-                }) {
-                    Some(Expr {
-                        kind: ExprKind::Name(id),
-                        ..
-                    }) => name = id.name.clone(),
-                    _ => break,
+    for target in places.fixed {
+        if target.region {
+            let shape = region(places.regions, &target.name)?;
+            for (i, p) in mesh.nodes().iter().enumerate() {
+                if shape.contains(*p) {
+                    fixed[i] = true;
                 }
             }
-            let (kind, _) = decl(ast, &name).ok_or_else(|| format!("unknown region `{name}`"))?;
-            match kind {
-                DeclKind::Region => {
-                    let shape = region(places.regions, &name)?;
-                    for (i, p) in mesh.nodes().iter().enumerate() {
-                        if shape.contains(*p) {
-                            fixed[i] = true;
-                        }
-                    }
-                }
-                DeclKind::Nodes => {
-                    for i in selection(places, mesh, &name, false)? {
-                        fixed[i as usize] = true;
-                    }
-                }
-                _ => return Err(format!("`{name}` cannot be fixed")),
+        } else {
+            for i in selection(places, mesh, &target.name, false)? {
+                fixed[i as usize] = true;
             }
         }
     }

@@ -40,7 +40,7 @@ use crate::ir::{Domain, KernelBuilder};
 use crate::lower::expr::{Env, ExprLowerer, Program, flatten};
 use crate::lower::scene::lower_scene;
 use crate::sema::CheckOptions;
-use crate::sema::mesh_probe::{DeclaredSet, Shape, SurfaceRef};
+use crate::sema::mesh_probe::{DeclaredSet, FixTarget, Shape, SurfaceRef};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -166,6 +166,9 @@ pub struct Resolved {
     surfaces: BTreeMap<String, SurfaceRef>,
     /// The node and element sets with their selectors, in source order.
     selections: Vec<DeclaredSet>,
+    /// What the sim block fixes, and its `use` lines.
+    fixed: Vec<FixTarget>,
+    uses: Vec<(String, Option<String>)>,
     syntax: Script,
 }
 
@@ -280,6 +283,8 @@ pub fn compile(
             regions: checked_script.regions,
             surfaces: checked_script.surfaces,
             selections: checked_script.selections,
+            fixed: checked_script.fixed,
+            uses: checked_script.uses,
             syntax,
         },
     })

@@ -107,6 +107,15 @@ pub(crate) enum Selector {
     Named(String),
 }
 
+/// A declaration the sim block fixes the nodes of.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct FixTarget {
+    /// The region or node set declaration.
+    pub name: String,
+    /// A region (its nodes inside) rather than a node set.
+    pub region: bool,
+}
+
 /// A declared node or element set.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) struct DeclaredSet {

@@ -49,6 +49,11 @@ pub struct CheckedScript {
     pub(crate) surfaces: BTreeMap<String, mesh_probe::SurfaceRef>,
     /// Each node or element set declaration, in source order, with what it selects by.
     pub(crate) selections: Vec<mesh_probe::DeclaredSet>,
+    /// What the sim block fixes, in order: declared regions and node sets (a `let` naming
+    /// one resolved to it).
+    pub(crate) fixed: Vec<mesh_probe::FixTarget>,
+    /// The sim block's `use MATERIAL [in SET]` lines, in order.
+    pub(crate) uses: Vec<(String, Option<String>)>,
 }
 
 /// A global declaration of the user's script, as the checker saw it.

@@ -173,7 +173,14 @@ impl Checker {
                 }
                 StmtKind::Fix(names) => {
                     for n in names {
-                        match self.global_kind(n) {
+                        let kind = self.global_kind(n);
+                        if matches!(kind, Some(SymKind::Region | SymKind::Nodes)) {
+                            self.out.fixed.push(super::mesh_probe::FixTarget {
+                                name: self.declaration_behind(&n.name),
+                                region: kind == Some(SymKind::Region),
+                            });
+                        }
+                        match kind {
                             Some(SymKind::Region) => self.check_region_nonempty(n),
                             Some(SymKind::Nodes) | None => {}
                             Some(k) => {
@@ -209,6 +216,9 @@ impl Checker {
                     self.check_closed_loop(value, &what, &sim_lets);
                 }
                 StmtKind::Use { material, set } => {
+                    self.out
+                        .uses
+                        .push((material.name.clone(), set.as_ref().map(|s| s.name.clone())));
                     materials_used = true;
                     whole_mesh_use |= set.is_none();
                     match self.global_kind(material) {
@@ -768,5 +778,27 @@ fn free_names(e: &Expr, out: &mut Vec<String>) {
             }
         }
         _ => e.for_each_child(|c| free_names(c, out)),
+    }
+}
+
+impl Checker {
+    /// The declaration a global name stands for: itself, or what a chain of `let`s naming
+    /// one another leads to (`let clamp = base`, at most 8 links).
+    fn declaration_behind(&self, name: &str) -> String {
+        let mut name = name.to_string();
+        for _ in 0..8 {
+            let next = self.user_items.iter().find_map(|i| match &i.kind {
+                ItemKind::Let(l) if l.name.name == name => match &l.value.kind {
+                    ExprKind::Name(id) => Some(id.name.clone()),
+                    _ => None,
+                },
+                _ => None,
+            });
+            match next {
+                Some(n) => name = n,
+                None => break,
+            }
+        }
+        name
     }
 }
