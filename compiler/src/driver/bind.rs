@@ -12,6 +12,7 @@ use crate::front::ast::*;
 use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
+use crate::sema::ParamInfo;
 use crate::sema::mesh_probe::{DeclaredSet, FixTarget, Selector, Shape, SurfaceRef};
 use crate::sema::types::Len;
 use std::collections::BTreeMap;
@@ -141,7 +142,7 @@ impl Resolved {
         let node_sets = all_sets(&places, mesh, false)?;
         let element_sets = all_sets(&places, mesh, true)?;
         let slots = self.slots(&element_sets)?;
-        let fields = fields(ast, kernels, mesh, &material_of, &element_sets)?;
+        let fields = fields(&self.params, kernels, mesh, &material_of, &element_sets)?;
         // Group elements by material, so each element kernel runs over a range, and within a
         // group by their lowest node, so that the kernels' element order follows the node
         // order whatever order the file lists elements in: the node kernel, walking the nodes,
@@ -557,7 +558,7 @@ fn all_sets(places: &Places, mesh: &dyn MeshView, elements: bool) -> Fail<Vec<(S
 /// The per-element params with their elements (mesh-file indices, the set's order), after
 /// checking that every material reading one is applied only to elements of its set.
 fn fields(
-    ast: &Script,
+    params: &[ParamInfo],
     kernels: &SceneModule,
     mesh: &dyn MeshView,
     material_of: &[usize],
@@ -565,24 +566,21 @@ fn fields(
 ) -> Fail<Vec<FieldSlots>> {
     let n_elements = mesh.tets().len();
     let mut out = Vec::new();
-    for item in &ast.items {
-        let ItemKind::Param(p) = &item.kind else {
-            continue;
-        };
-        let Some(set) = crate::lower::expr::field_set(item) else {
+    for p in params {
+        let [Len::PerElement(set)] = p.ty.shape() else {
             continue;
         };
         let elements = element_sets
             .iter()
-            .find(|(n, _)| *n == set.name)
+            .find(|(n, _)| n == set)
             .map(|(_, e)| e.clone())
-            .ok_or_else(|| format!("unknown element set `{}`", set.name))?;
+            .ok_or_else(|| format!("unknown element set `{set}`"))?;
         let mut member = vec![false; n_elements];
         for &e in &elements {
             member[e as usize] = true;
         }
         for (m, reads) in kernels.material_fields.iter().enumerate() {
-            if !reads.contains(&p.name.name) {
+            if !reads.contains(&p.name) {
                 continue;
             }
             if let Some(e) = (0..n_elements).find(|&e| material_of[e] == m && !member[e]) {
@@ -592,13 +590,13 @@ fn fields(
                      element {e}, which is not in `{}`: apply `{material}` only there (`use \
                      {material} in {}`, after a `use` of another material for the rest of the \
                      mesh)",
-                    p.name.name, set.name, set.name, set.name
+                    p.name, set, set, set
                 ));
             }
         }
         out.push(FieldSlots {
-            name: p.name.name.clone(),
-            set: set.name.clone(),
+            name: p.name.clone(),
+            set: set.clone(),
             elements,
         });
     }
