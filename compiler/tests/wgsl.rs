@@ -368,9 +368,9 @@ fn rows_of_three_vectors_lie_as_vec4s_and_round_trip() {
     assert_eq!(padded.len(), 32);
     assert_eq!(&padded[..8], &[0.0, 1.0, 2.0, 0.0, 3.0, 4.0, 5.0, 0.0]);
     assert_eq!(&padded[16..20], &[12.0, 13.0, 14.0, 0.0]);
-    assert_eq!(corners.unpad(&padded), values);
+    assert_eq!(corners.unpad(padded.into_owned()), values);
     let values: Vec<f64> = (0..14).map(f64::from).collect();
     let padded = shape.pad(&values);
     assert_eq!(&padded[4..8], &[4.0, 5.0, 6.0, 0.0]);
-    assert_eq!(shape.unpad(&padded), values);
+    assert_eq!(shape.unpad(padded.into_owned()), values);
 }

@@ -13,7 +13,7 @@ use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
 use crate::sema::ParamInfo;
-use crate::sema::mesh_probe::{DeclaredSet, FixTarget, Selector, Shape, SurfaceRef};
+use crate::sema::mesh_probe::{MeshRefs, Selector, Shape, SurfaceRef};
 use crate::sema::types::Len;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -130,14 +130,13 @@ impl Resolved {
         let places = Places {
             program: &program,
             ast,
-            regions: &self.regions,
-            sets: &self.selections,
-            fixed: &self.fixed,
-            uses: &self.uses,
+            refs: &self.mesh_refs,
         };
         let material_of = assign_materials(&places, mesh, kernels)?;
         let (chamber_tris, chamber_mids): (Vec<_>, Vec<_>) =
-            chambers(&self.surfaces, mesh, kernels)?.into_iter().unzip();
+            chambers(&self.mesh_refs.surfaces, mesh, kernels)?
+                .into_iter()
+                .unzip();
         let fixed = fixed_nodes(&places, mesh)?;
         let node_sets = all_sets(&places, mesh, false)?;
         let element_sets = all_sets(&places, mesh, true)?;
@@ -328,21 +327,23 @@ fn region<'a>(regions: &'a BTreeMap<String, Shape>, name: &str) -> Fail<&'a Shap
 struct Places<'a> {
     program: &'a Program<'a>,
     ast: &'a Script,
-    regions: &'a BTreeMap<String, Shape>,
-    sets: &'a [DeclaredSet],
-    fixed: &'a [FixTarget],
-    uses: &'a [(String, Option<String>)],
+    refs: &'a MeshRefs,
 }
 
 /// Indices selected by the declared set `name`: nodes, or elements (tested at their
 /// centroids) when `elements`.
 fn selection(places: &Places, mesh: &dyn MeshView, name: &str, elements: bool) -> Fail<Vec<u32>> {
-    let set = places.sets.iter().find(|s| s.name == name).ok_or_else(|| {
-        format!(
-            "unknown {} set `{name}`",
-            if elements { "element" } else { "node" }
-        )
-    })?;
+    let set = places
+        .refs
+        .sets
+        .iter()
+        .find(|s| s.name == name)
+        .ok_or_else(|| {
+            format!(
+                "unknown {} set `{name}`",
+                if elements { "element" } else { "node" }
+            )
+        })?;
     let nodes = mesh.nodes();
     let tets = mesh.tets();
     let tags = mesh.tet_tags();
@@ -408,7 +409,7 @@ fn selection(places: &Places, mesh: &dyn MeshView, name: &str, elements: bool) -
                 .collect()
         }
         Selector::Inside(r) => {
-            let shape = region(places.regions, r)?;
+            let shape = region(&places.refs.regions, r)?;
             points
                 .iter()
                 .enumerate()
@@ -453,7 +454,7 @@ fn assign_materials(
     kernels: &SceneModule,
 ) -> Fail<Vec<usize>> {
     let mut of = vec![usize::MAX; mesh.tets().len()];
-    let uses = places.uses;
+    let uses = &places.refs.uses;
     if uses.is_empty() {
         of.iter_mut().for_each(|m| *m = 0);
     }
@@ -520,9 +521,9 @@ fn chambers(
 
 fn fixed_nodes(places: &Places, mesh: &dyn MeshView) -> Fail<Vec<bool>> {
     let mut fixed = vec![false; mesh.nodes().len()];
-    for target in places.fixed {
+    for target in &places.refs.fixed {
         if target.region {
-            let shape = region(places.regions, &target.name)?;
+            let shape = region(&places.refs.regions, &target.name)?;
             for (i, p) in mesh.nodes().iter().enumerate() {
                 if shape.contains(*p) {
                     fixed[i] = true;
@@ -540,6 +541,7 @@ fn fixed_nodes(places: &Places, mesh: &dyn MeshView) -> Fail<Vec<bool>> {
 /// Every declared node set (or element set, `elements`) with what it selects, in source order.
 fn all_sets(places: &Places, mesh: &dyn MeshView, elements: bool) -> Fail<Vec<(String, Vec<u32>)>> {
     places
+        .refs
         .sets
         .iter()
         .filter(|s| s.elements == elements)

@@ -40,8 +40,7 @@ use crate::ir::{Domain, KernelBuilder};
 use crate::lower::expr::{Env, ExprLowerer, Program, flatten};
 use crate::lower::scene::lower_scene;
 use crate::sema::CheckOptions;
-use crate::sema::mesh_probe::{DeclaredSet, FixTarget, Shape, SurfaceRef};
-use std::collections::BTreeMap;
+use crate::sema::mesh_probe::MeshRefs;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -161,14 +160,8 @@ pub struct Resolved {
     pub chambers: Vec<String>,
     /// Per material (kernel order): its density, kg/m³.
     pub densities: Vec<f64>,
-    /// The regions' geometry and the chambers' surfaces, as the checker evaluated them.
-    regions: BTreeMap<String, Shape>,
-    surfaces: BTreeMap<String, SurfaceRef>,
-    /// The node and element sets with their selectors, in source order.
-    selections: Vec<DeclaredSet>,
-    /// What the sim block fixes, and its `use` lines.
-    fixed: Vec<FixTarget>,
-    uses: Vec<(String, Option<String>)>,
+    /// What the script refers to in its mesh, as the checker evaluated it.
+    mesh_refs: MeshRefs,
     syntax: Script,
 }
 
@@ -280,11 +273,7 @@ pub fn compile(
             materials,
             chambers,
             densities,
-            regions: checked_script.regions,
-            surfaces: checked_script.surfaces,
-            selections: checked_script.selections,
-            fixed: checked_script.fixed,
-            uses: checked_script.uses,
+            mesh_refs: checked_script.mesh_refs,
             syntax,
         },
     })

@@ -215,25 +215,31 @@ impl Checker {
                 match kind {
                     DeclKind::Region => {
                         if let Some(shape) = self.last_shape.take() {
-                            self.out.regions.insert(name.name.clone(), shape);
+                            self.out.mesh_refs.regions.insert(name.name.clone(), shape);
                         }
                     }
                     DeclKind::Chamber => {
                         if let Some(surface) = self.last_surface.take() {
-                            self.out.surfaces.insert(name.name.clone(), surface);
+                            self.out
+                                .mesh_refs
+                                .surfaces
+                                .insert(name.name.clone(), surface);
                         }
                     }
                     _ => {}
                 }
                 if matches!(kind, DeclKind::Nodes | DeclKind::Elements) {
                     if let Some(selector) = self.last_selector.take()
-                        && !self.out.selections.iter().any(|s| s.name == name.name)
+                        && !self.out.mesh_refs.sets.iter().any(|s| s.name == name.name)
                     {
-                        self.out.selections.push(super::mesh_probe::DeclaredSet {
-                            name: name.name.clone(),
-                            elements: *kind == DeclKind::Elements,
-                            selector,
-                        });
+                        self.out
+                            .mesh_refs
+                            .sets
+                            .push(super::mesh_probe::DeclaredSet {
+                                name: name.name.clone(),
+                                elements: *kind == DeclKind::Elements,
+                                selector,
+                            });
                     }
                     if clean {
                         self.check_selection_nonempty(name, *kind, value);
@@ -899,6 +905,26 @@ impl Checker {
                 None
             }
         }
+    }
+
+    /// The declaration a global name stands for: itself, or what a chain of `let`s naming
+    /// one another leads to (`let clamp = base`, at most 8 links).
+    pub(super) fn declaration_behind(&self, name: &str) -> String {
+        let mut name = name.to_string();
+        for _ in 0..8 {
+            let next = self.user_items.iter().find_map(|i| match &i.kind {
+                ItemKind::Let(l) if l.name.name == name => match &l.value.kind {
+                    ExprKind::Name(id) => Some(id.name.clone()),
+                    _ => None,
+                },
+                _ => None,
+            });
+            match next {
+                Some(n) => name = n,
+                None => break,
+            }
+        }
+        name
     }
 
     /// Whether the mesh file exists and has a known format (reported otherwise).

@@ -7,6 +7,7 @@ use super::Checker;
 use super::types::Value;
 use crate::diag::{Diagnostic, did_you_mean};
 use crate::front::ast::*;
+use std::collections::BTreeMap;
 use std::path::Path;
 
 /// What the checker needs to know about a mesh, in SI units.
@@ -105,6 +106,23 @@ pub(crate) enum Selector {
     Tagged(i32),
     /// `named(mesh, "name")`: a physical name or named set of the mesh.
     Named(String),
+}
+
+/// What a script refers to in its mesh, as the checker evaluated it: binding a scene to its
+/// mesh reads this, not the syntax.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct MeshRefs {
+    /// Each region declaration's geometry.
+    pub regions: BTreeMap<String, Shape>,
+    /// Each chamber declaration's surface, by name or tag.
+    pub surfaces: BTreeMap<String, SurfaceRef>,
+    /// Each node or element set declaration, in source order, with what it selects by.
+    pub sets: Vec<DeclaredSet>,
+    /// What the sim block fixes, in order: declared regions and node sets (a `let` naming
+    /// one resolved to it).
+    pub fixed: Vec<FixTarget>,
+    /// The sim block's `use MATERIAL [in SET]` lines, in order.
+    pub uses: Vec<(String, Option<String>)>,
 }
 
 /// A declaration the sim block fixes the nodes of.
@@ -347,7 +365,7 @@ impl Checker {
             }
             "inside" => {
                 let ExprKind::Name(r) = &arg.kind else { return };
-                let Some(shape) = self.out.regions.get(&r.name).cloned() else {
+                let Some(shape) = self.out.mesh_refs.regions.get(&r.name).cloned() else {
                     return;
                 };
                 points.iter().filter(|p| shape.contains(**p)).count()
@@ -368,7 +386,7 @@ impl Checker {
     /// A fixed region must contain at least one node.
     pub(super) fn check_region_nonempty(&mut self, id: &Ident) {
         let Some(mesh) = &self.mesh else { return };
-        let Some(shape) = self.out.regions.get(&id.name) else {
+        let Some(shape) = self.out.mesh_refs.regions.get(&id.name) else {
             return;
         };
         if mesh.nodes.iter().any(|p| shape.contains(*p)) {

@@ -23,7 +23,6 @@ pub use resolution::{Def, DefKind, Resolution};
 
 use crate::diag::{Diagnostic, did_you_mean};
 use crate::front::ast::{Item, Script, Span};
-use std::collections::BTreeMap;
 use std::collections::HashMap;
 use std::path::PathBuf;
 use types::{Ty, Typed, Var};
@@ -43,17 +42,8 @@ pub struct CheckedScript {
     /// Every declaration and every use of a name with what it resolved to (editors: hover,
     /// definition, references).
     pub resolution: Resolution,
-    /// Each region declaration's geometry, evaluated once (binding selects with it).
-    pub(crate) regions: BTreeMap<String, mesh_probe::Shape>,
-    /// Each chamber declaration's surface, by name or tag (binding finds its triangles).
-    pub(crate) surfaces: BTreeMap<String, mesh_probe::SurfaceRef>,
-    /// Each node or element set declaration, in source order, with what it selects by.
-    pub(crate) selections: Vec<mesh_probe::DeclaredSet>,
-    /// What the sim block fixes, in order: declared regions and node sets (a `let` naming
-    /// one resolved to it).
-    pub(crate) fixed: Vec<mesh_probe::FixTarget>,
-    /// The sim block's `use MATERIAL [in SET]` lines, in order.
-    pub(crate) uses: Vec<(String, Option<String>)>,
+    /// What the script refers to in its mesh, evaluated once (binding reads it).
+    pub(crate) mesh_refs: mesh_probe::MeshRefs,
 }
 
 /// A global declaration of the user's script, as the checker saw it.

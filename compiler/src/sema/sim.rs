@@ -175,7 +175,7 @@ impl Checker {
                     for n in names {
                         let kind = self.global_kind(n);
                         if matches!(kind, Some(SymKind::Region | SymKind::Nodes)) {
-                            self.out.fixed.push(super::mesh_probe::FixTarget {
+                            self.out.mesh_refs.fixed.push(super::mesh_probe::FixTarget {
                                 name: self.declaration_behind(&n.name),
                                 region: kind == Some(SymKind::Region),
                             });
@@ -217,6 +217,7 @@ impl Checker {
                 }
                 StmtKind::Use { material, set } => {
                     self.out
+                        .mesh_refs
                         .uses
                         .push((material.name.clone(), set.as_ref().map(|s| s.name.clone())));
                     materials_used = true;
@@ -778,27 +779,5 @@ fn free_names(e: &Expr, out: &mut Vec<String>) {
             }
         }
         _ => e.for_each_child(|c| free_names(c, out)),
-    }
-}
-
-impl Checker {
-    /// The declaration a global name stands for: itself, or what a chain of `let`s naming
-    /// one another leads to (`let clamp = base`, at most 8 links).
-    fn declaration_behind(&self, name: &str) -> String {
-        let mut name = name.to_string();
-        for _ in 0..8 {
-            let next = self.user_items.iter().find_map(|i| match &i.kind {
-                ItemKind::Let(l) if l.name.name == name => match &l.value.kind {
-                    ExprKind::Name(id) => Some(id.name.clone()),
-                    _ => None,
-                },
-                _ => None,
-            });
-            match next {
-                Some(n) => name = n,
-                None => break,
-            }
-        }
-        name
     }
 }

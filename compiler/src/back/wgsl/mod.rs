@@ -128,10 +128,11 @@ impl RowLayout {
         (c / self.lanes, c % self.lanes)
     }
 
-    /// Rows in GPU layout from rows of `width` values (unused lanes 0).
-    pub fn pad(self, values: &[f64]) -> Vec<f64> {
+    /// Rows in GPU layout from rows of `width` values (unused lanes 0); plain rows as they
+    /// are.
+    pub fn pad(self, values: &[f64]) -> std::borrow::Cow<'_, [f64]> {
         if self.padded() == self.width || self.width == 0 {
-            return values.to_vec();
+            return std::borrow::Cow::Borrowed(values);
         }
         let (w, l) = (self.width as usize, self.lanes as usize);
         let mut out = vec![0.0; values.len() / w * self.padded() as usize];
@@ -143,13 +144,13 @@ impl RowLayout {
                 dst[c / l * 4 + c % l] = v;
             }
         }
-        out
+        std::borrow::Cow::Owned(out)
     }
 
-    /// Rows of `width` values from rows in GPU layout.
-    pub fn unpad(self, values: &[f64]) -> Vec<f64> {
+    /// Rows of `width` values from rows in GPU layout; plain rows as they are.
+    pub fn unpad(self, values: Vec<f64>) -> Vec<f64> {
         if self.padded() == self.width || self.width == 0 {
-            return values.to_vec();
+            return values;
         }
         let (w, l) = (self.width as usize, self.lanes as usize);
         values

@@ -275,7 +275,7 @@ impl Core {
             f.spans
                 .iter()
                 .map(|&(to, bytes, row)| {
-                    row.unpad(&self.values(&view[to as usize..(to + bytes) as usize]))
+                    row.unpad(self.values(&view[to as usize..(to + bytes) as usize]))
                 })
                 .collect()
         };
