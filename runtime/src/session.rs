@@ -311,6 +311,16 @@ fn doubtful(
     if let Some(solver) = &summary.solver
         && !solver.converged
     {
+        if solver.position_round_off >= 1e-2 {
+            return Some(format!(
+                "warning: the {} solve's displacements are at the round-off of f32 positions: \
+                 storing its equilibrium (refined in f64) in f32 changed a displacement by \
+                 {:.1} % of the largest (`converged`: false); use `precision = f64` or \
+                 larger loads",
+                solver.kind,
+                100.0 * solver.position_round_off
+            ));
+        }
         return Some(format!(
             "warning: the {} solve did not resolve its last state: the residual is {} N, {:.1} % of its \
              loads (`converged`: false) — the loads are at the round-off of the internal forces \

@@ -3,6 +3,7 @@
 //! static solves for every param kind, and a load past what the body can carry stops with the
 //! last equilibrium named.
 
+use softc::devices::Backend;
 use softc::devices::cpu::Cpu;
 use softc::engine::Simulation;
 use softc::engine::adjoint::{GradOptions, GradientReport};
@@ -836,11 +837,13 @@ fn a_static_body_free_to_rotate_about_its_fixed_nodes_is_held_and_posed() {
     );
 }
 
-/// Issue 29, hostile case 2: an f32 static solve at 1 Pa stopped at the rest state (1/140 of
-/// the answer) and said `converged: true`. A load at the round-off of the f32 internal forces
-/// is now reported unresolved (and `softc run` warns); 3 kPa still converges in f32.
+/// Issue 29, hostile case 2 and build item 4: an f32 static solve at 1 Pa stopped at the rest
+/// state (1/140 of the answer) and said `converged: true`; at 3 kPa it "converged" at a
+/// relative residual of 5.6e-4 against the stated 1e-5. f32 equilibria are now refined with
+/// residuals evaluated in f64: `converged` means the stated tolerance is met, and the stored
+/// displacements equal the f64 solve's to what f32 positions hold.
 #[test]
-fn an_f32_static_solve_of_a_load_it_cannot_resolve_says_so() {
+fn an_f32_static_solve_meets_its_stated_tolerance_by_refinement_in_f64() {
     let solve = |pressure: &str, precision: Precision| {
         let path = beam_script(
             &format!("f32_{}.soft", pressure.replace(' ', "")),
@@ -853,28 +856,63 @@ fn an_f32_static_solve_of_a_load_it_cannot_resolve_says_so() {
         );
         let scene = Scene::load(&path, &[]).unwrap();
         let cpu = Cpu::new(&scene.lowered.adjoint.module, precision, Some(1)).unwrap();
-        let summary = Simulation::new(&scene, cpu).run(None, None).unwrap();
+        let mut sim = Simulation::new(&scene, cpu);
+        let summary = sim.run(None, None).unwrap();
         let warning = softc::session::run_warning(&scene, &summary);
-        (summary.solver.unwrap(), warning)
+        let rest = scene.mesh.nodes.iter().flatten();
+        let u: Vec<f64> = sim
+            .backend
+            .get(scene.lowered.buffers.x)
+            .iter()
+            .zip(rest)
+            .map(|(x, x0)| x - x0)
+            .collect();
+        (summary.solver.unwrap(), warning, u)
     };
-    let (f32_small, warning) = solve("1 Pa", Precision::F32);
-    assert!(!f32_small.converged, "{f32_small:?}");
-    assert!(f32_small.relative_residual > 0.5, "{f32_small:?}");
-    assert!(
-        warning.is_some_and(|w| w.contains("did not resolve") && w.contains("f64")),
-        "no warning"
-    );
-    let (f64_small, warning) = solve("1 Pa", Precision::F64);
-    assert!(
-        f64_small.converged && f64_small.relative_residual < 1e-6,
-        "{f64_small:?}"
-    );
-    assert!(warning.is_none());
-    let (f32_large, _) = solve("3 kPa", Precision::F32);
-    assert!(
-        f32_large.converged && f32_large.relative_residual < 1e-2,
-        "{f32_large:?}"
-    );
+    for pressure in ["1 Pa", "3 kPa", "20 kPa"] {
+        let (f64_solve, warning, u64) = solve(pressure, Precision::F64);
+        assert!(
+            f64_solve.converged && f64_solve.relative_residual < 1e-8,
+            "{f64_solve:?}"
+        );
+        assert!(warning.is_none());
+        let (f32_solve, warning, u32) = solve(pressure, Precision::F32);
+        // The largest displacement error against the largest displacement.
+        let largest = u64.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let error = u64
+            .iter()
+            .zip(&u32)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()))
+            / largest;
+        eprintln!("{pressure}: f32 displacement error {error:e} of the largest, {f32_solve:?}");
+        assert!(f32_solve.refinement_steps >= 1, "{pressure}: {f32_solve:?}");
+        // The refined equilibrium meets the stated tolerance; storing it in f32 rounds it.
+        assert!(
+            f32_solve.relative_residual <= 1e-5,
+            "{pressure}: {f32_solve:?}"
+        );
+        assert!(
+            error <= 1.5 * f32_solve.position_round_off,
+            "{pressure}: {error:e} against {:e}",
+            f32_solve.position_round_off
+        );
+        if pressure == "1 Pa" {
+            // Displacements of ~1e-8 m on coordinates of centimetres: f32 holds them to ~8 %
+            // (unrefined: the rest state, 99.5 % off).
+            assert!(!f32_solve.converged, "{f32_solve:?}");
+            assert!(error < 0.2, "{error:e}");
+            assert!(
+                warning
+                    .is_some_and(|w| w.contains("round-off of f32 positions") && w.contains("f64")),
+                "no warning"
+            );
+        } else {
+            // Unrefined, 3 kPa stopped at 7.6e-4 of its loads and 2.8e-4 of its displacements.
+            assert!(f32_solve.converged, "{pressure}: {f32_solve:?}");
+            assert!(error < 1e-4, "{pressure}: {error:e}");
+            assert!(warning.is_none(), "{pressure}: {warning:?}");
+        }
+    }
 }
 
 /// Issue 29, hostile case 5: implicit Euler gave up on a step whose Newton solve failed ("use

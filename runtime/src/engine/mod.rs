@@ -244,6 +244,10 @@ pub struct Simulation<'s, B: Backend> {
     /// The state (positions, velocities) at the last state check that passed, and its step:
     /// a blow-up is run again step by step from there to find where it went wrong.
     last_good: Option<(u64, Vec<f64>, Vec<f64>)>,
+    /// An f32 static solve's twin: the same kernels compiled for f64 on the CPU, which
+    /// evaluates the residuals that refine its equilibria ([`statics`]); made at the first
+    /// refinement and kept for the next solves.
+    f64_twin: Option<Box<Simulation<'s, crate::devices::cpu::Cpu>>>,
     ids: Ids,
 }
 
@@ -374,6 +378,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             linear_solver: statics::LinearSolver::Auto,
             material_checked: None,
             last_good: None,
+            f64_twin: None,
             ids,
         };
         sim.upload_fields();

@@ -50,6 +50,9 @@ const REUSE_WORTH: usize = 10;
 /// Continuation increments (as a fraction of a state's load path) below which the solve gives
 /// up: no equilibrium beyond.
 const MIN_INCREMENT: f64 = 1.0 / 4096.0;
+/// Newton steps with f64 residuals that refine an f32 equilibrium, at most (each at least
+/// halves the residual; two or three reach the goal).
+const REFINE_STEPS: u64 = 8;
 /// `--linear-solver auto` factors tangents up to this many free dofs and solves larger ones by
 /// multigrid-preconditioned conjugate gradients (measured, `softc bench --solvers --amg`).
 pub const AUTO_MULTIGRID_DOFS: usize = 100_000;
@@ -71,6 +74,11 @@ pub struct SolverReport {
     /// Increments that failed and were retried smaller.
     pub rejected_load_steps: u64,
     pub newton_iterations: u64,
+    /// f32: Newton steps with residuals evaluated in f64 that refined the equilibria.
+    pub refinement_steps: u64,
+    /// f32: the largest change that storing a refined equilibrium's positions in f32 made
+    /// to a displacement, relative to the largest displacement (0 in f64).
+    pub position_round_off: f64,
     pub factorizations: u64,
     /// The last factorization: `cholesky` (symmetric positive definite) or `lu`; for `amg`
     /// the Krylov method of the last solve (`cg`, or `gmres` for a non-symmetric tangent).
@@ -952,7 +960,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.newton(tangent, report, to.0, to.1, goal.tolerance, goal.tolerance)?
         {
             report.load_steps += 1;
-            return self.finish_state(report, to, goal);
+            return self.finish_state(tangent, report, to, goal);
         }
         report.rejected_load_steps += 1;
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
@@ -988,23 +996,129 @@ impl<'s, B: Backend> Simulation<'s, B> {
         })
     }
 
-    /// Record the converged state's residual (left in place for outputs).
+    /// Record the converged state's residual (left in place for outputs). An f32 state is
+    /// first refined with f64 residuals ([`Simulation::refine_in_f64`]).
     fn finish_state(
         &mut self,
+        tangent: &mut Tangent,
         report: &mut SolverReport,
         (t, load): (f64, f64),
-        Goal { scale, .. }: Goal,
+        goal: Goal,
     ) -> Result<(), RunError> {
         let r = self.residual(t, load)?;
-        let r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let mut r_norm = r.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let mut round_off = 0.0;
+        if self.backend.precision() == Precision::F32 {
+            (r_norm, round_off) = self.refine_in_f64(tangent, report, (t, load), goal)?;
+            report.position_round_off = report.position_round_off.max(round_off);
+        }
         report.residual_norm = r_norm;
-        report.relative_residual = if scale > 0.0 { r_norm / scale } else { 0.0 };
-        // Newton converged (by the residual, or by steps at the round-off of positions: in f32
-        // the net force of large element forces cancels only to ~1e-4 of the load). A load so
-        // small that the round-off is a percent of it or more is not resolved: an f32 solve
-        // at 1 Pa stopped at the rest state, 1/140 of the answer, and said "converged".
-        report.converged = report.relative_residual < 1e-2;
+        report.relative_residual = if goal.scale > 0.0 {
+            r_norm / goal.scale
+        } else {
+            0.0
+        };
+        report.converged = match self.backend.precision() {
+            // Refined in f64: the stated tolerance met, and displacements that f32 positions
+            // hold to better than 1 % (at 1 Pa the rounding is 9 % of them).
+            Precision::F32 => r_norm <= goal.tolerance && round_off < 1e-2,
+            // Newton converged (by the residual, or by steps at the round-off of positions:
+            // the net force of large element forces cancels only to their round-off). A load
+            // so small that the round-off is a percent of it or more is not resolved.
+            Precision::F64 => report.relative_residual < 1e-2,
+        };
         Ok(())
+    }
+
+    /// f32 kernels stop Newton at their own round-off: relative residuals of 1e-4–1e-3 at
+    /// everyday loads, and no step at all from rest for a load at the round-off of the
+    /// internal forces (1 Pa: the rest state, 1/140 of the answer). Iterative refinement:
+    /// the residual of positions held in f64 is evaluated by the same kernels compiled for
+    /// f64 on the CPU, and Newton steps on the f32 tangent (its last factorization) correct
+    /// them towards an f64 solve's tolerance while each at least halves that residual. The
+    /// refined positions are stored, rounded to f32, with the f32 forces at them. Returns
+    /// the refined state's f64 residual norm and the largest change the rounding made to a
+    /// displacement, relative to the largest displacement.
+    fn refine_in_f64(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        (t, load): (f64, f64),
+        goal: Goal,
+    ) -> Result<(f64, f64), RunError> {
+        let scene: &'s super::scene::Scene = self.scene;
+        let mut twin = match self.f64_twin.take() {
+            Some(twin) => twin,
+            None => {
+                let cpu =
+                    crate::devices::cpu::Cpu::new(&scene.lowered.module, Precision::F64, None)
+                        .map_err(|e| RunError(format!("the f64 kernels do not compile: {e}")))?;
+                Box::new(Simulation::new(scene, cpu))
+            }
+        };
+        twin.uniforms = self.uniforms.clone();
+        twin.upload_fields();
+        // An f64 solve's goal (goal_at): the stored positions are then the f32 rounding of
+        // the equilibrium, as close as f32 holds it.
+        let target = (1e-10 * goal.scale).max(1e-12 * self.force_scale());
+        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let mut x = self.backend.get(self.ids.x);
+        let mut best: Option<(Vec<f64>, f64)> = None;
+        let outcome = (|| {
+            for _ in 0..=REFINE_STEPS {
+                twin.backend.set(twin.ids.x, &x);
+                let r = twin.residual(t, load)?;
+                let n = norm(&r);
+                let contracted = best.as_ref().is_none_or(|(_, b)| n <= 0.5 * b);
+                if n.is_finite() && best.as_ref().is_none_or(|(_, b)| n < *b) {
+                    best = Some((x.clone(), n));
+                }
+                // Not contracting: the f32 tangent is too far from f64's for more steps to
+                // help.
+                if !contracted || n <= target {
+                    break;
+                }
+                report.refinement_steps += 1;
+                let dx = match f64_newton_step(tangent, report, &mut twin, &x, &r, (t, load))? {
+                    Some(dx) => dx,
+                    None => {
+                        self.newton_direction(tangent, report, &r, false, 1e-8)
+                            .map_err(RunError)?
+                            .0
+                    }
+                };
+                for (xi, d) in x.iter_mut().zip(&dx) {
+                    *xi += d;
+                }
+            }
+            Ok::<(), RunError>(())
+        })();
+        self.f64_twin = Some(twin);
+        outcome?;
+        let Some((mut x, r_norm)) = best else {
+            return Ok((f64::NAN, f64::NAN));
+        };
+        if tangent.pattern.rigid() {
+            x = tangent.pattern.align(&scene.mesh.nodes, &x);
+        }
+        self.backend.set(self.ids.x, &x);
+        self.residual(t, load)?;
+        let stored = self.backend.get(self.ids.x);
+        let rest = scene.mesh.nodes.iter().flatten();
+        let largest = x
+            .iter()
+            .zip(rest)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        let rounding = x
+            .iter()
+            .zip(&stored)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        let round_off = if largest > 0.0 {
+            rounding / largest
+        } else {
+            0.0
+        };
+        Ok((r_norm, round_off))
     }
 
     /// Move the equilibrium from (t0, load0), where the current positions are one, to
@@ -1058,7 +1172,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 }
             }
         }
-        self.finish_state(report, to, goal)
+        self.finish_state(tangent, report, to, goal)
     }
 
     /// A body with no fixed node is in equilibrium only under loads with no net force (a
@@ -1425,4 +1539,66 @@ fn free_motion_description(scene: &super::scene::Scene, motion: Option<FreeMotio
             id(ends.1)
         ),
     }
+}
+
+/// A Newton step of the f64 residual at `x` (whose residual `r` is): GMRES on the f64
+/// tangent's products, taken by central differences of the twin's residual (no f64 matrix
+/// is assembled), preconditioned by the f32 tangent's factorization. The chord step on the
+/// f32 factorization alone stalls at relative residuals of ~5e-6: its round-off is
+/// amplified along the soft (bending) modes. `None` where there is no factorization to
+/// precondition with, or for a body with pinned rigid modes: the chord step is taken there.
+fn f64_newton_step(
+    tangent: &Tangent,
+    report: &mut SolverReport,
+    twin: &mut Simulation<'_, crate::devices::cpu::Cpu>,
+    x: &[f64],
+    r: &[f64],
+    (t, load): (f64, f64),
+) -> Result<Option<Vec<f64>>, RunError> {
+    let Linear::Direct {
+        lu, factored: true, ..
+    } = &tangent.linear
+    else {
+        return Ok(None);
+    };
+    let pattern = &tangent.pattern;
+    if pattern.rigid() {
+        return Ok(None);
+    }
+    let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
+    let scale = norm(x).max(f64::MIN_POSITIVE);
+    let mut residual_at = |v: &[f64], h: f64| -> Result<Vec<f64>, String> {
+        let full = pattern.extend(v);
+        let shifted: Vec<f64> = x.iter().zip(&full).map(|(a, d)| a + h * d).collect();
+        twin.backend.set(twin.ids.x, &shifted);
+        Ok(pattern.restrict(&twin.residual(t, load).map_err(|e| e.0)?))
+    };
+    // K v = −∂r/∂x · v, by central differences with a step of ~1e-6 of the positions'
+    // scale (truncation and round-off both ~1e-11 of the product).
+    let apply = |v: &[f64]| -> Result<Vec<f64>, String> {
+        let h = 1e-6 * scale / norm(v).max(f64::MIN_POSITIVE);
+        let ahead = residual_at(v, h)?;
+        let behind = residual_at(v, -h)?;
+        Ok(ahead
+            .iter()
+            .zip(&behind)
+            .map(|(a, b)| (b - a) / (2.0 * h))
+            .collect())
+    };
+    let precondition = |v: &[f64]| {
+        let mut y = v.to_vec();
+        lu.solve(&mut y);
+        y
+    };
+    let limits = crate::solvers::krylov::KrylovLimits {
+        rtol: 1e-9,
+        restart: 20,
+        max_iterations: 20,
+    };
+    let (dx, stats) =
+        crate::solvers::krylov::gmres(&pattern.restrict(r), apply, precondition, limits)
+            .map_err(RunError)?;
+    report.krylov_iterations += stats.iterations as u64;
+    report.krylov_products += stats.products as u64;
+    Ok((stats.relative_residual < 0.5).then(|| pattern.extend(&dx)))
 }
