@@ -842,3 +842,56 @@ fn a_sliver_element_is_refused_or_gets_a_smaller_safe_dt() {
     assert!(unstable_at_2x, "2 × the estimate {est:e} s is stable");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The scene on the Cranelift backend with the solver kernels of a static solve (the adjoint
+/// module's), f64, one thread.
+fn statics(scene: &Scene) -> Simulation<'_, Cpu> {
+    let module = &scene.lowered.adjoint.module;
+    Simulation::new(scene, Cpu::new(module, Precision::F64, Some(1)).unwrap())
+}
+
+/// **A static solve past the inflation limit point says so, and only there** (issue 29 item
+/// 1). The sphere of [`sphere_inflation_matches_the_closed_form_below_the_limit_point_and_runs_away_above`]
+/// solved statically (a free body): at 0.5 p_lim it converges within 5 % of the closed form
+/// (below it: linear tets are stiff); at 1.3 p_lim the continuation stalls, and the tangent
+/// at its last equilibrium has lost its stiffness along the loads (Bergan's current stiffness
+/// parameter), which the error reports as a limit point. A stall where the tangent keeps most
+/// of it (an element turning inside out: `statics.rs`' balloon) is not called one.
+#[test]
+fn a_static_solve_past_the_limit_point_is_told_by_the_tangent() {
+    let dir = scratch("static-sphere");
+    let mu = 10e3;
+    let (_, p_lim) = sphere_limit_point(mu, 2.0);
+    let script = |p: f64, name: &str| {
+        write(
+            &dir,
+            name,
+            &format!(
+                "mesh body = load(\"{}\")\n\
+                 material gel = neo_hookean(mu: 10 kPa, kappa: 200 kPa, density: 1000 kg/m^3)\n\
+                 chamber inner = surface(body, \"inner\")\n\
+                 sim {{\n  integrator = quasi_static\n  duration = 1 s\n  \
+                 pressure inner = {p} Pa * ramp(t, 1 s)\n}}\n",
+                sphere_mesh(&dir, 2.5).display()
+            ),
+        )
+    };
+    let below = load(&script(0.5 * p_lim, "below.soft"));
+    let s = statics(&below).run(None, None).unwrap();
+    let want = sphere_stretch(mu, 2.0, 0.5 * p_lim);
+    let got = inner_stretch(&below, &s.x);
+    assert!(
+        (want - got) / want < 0.05 && got < want,
+        "λa {got} against {want}"
+    );
+    let beyond = load(&script(1.3 * p_lim, "beyond.soft"));
+    let err = statics(&beyond).run(None, None).unwrap_err().0;
+    eprintln!("{err}");
+    assert!(err.contains("no equilibrium found beyond"), "{err}");
+    // Measured: 1.7 % of the stiffness at rest along the loads, at 1.17 p_lim (the discrete
+    // model is stiffer than the closed form; λa went 1.45, 1.55, 1.64 at 1.1, 1.15, 1.17 p_lim).
+    assert!(
+        err.contains("it is turning singular, a limit point"),
+        "{err}"
+    );
+}

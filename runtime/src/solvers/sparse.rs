@@ -862,7 +862,8 @@ impl SparseSolver {
         })
     }
 
-    fn symmetric(&self, values: &[f64]) -> bool {
+    /// Whether the matrix with these values is symmetric (to the solver's tolerance).
+    pub fn symmetric(&self, values: &[f64]) -> bool {
         symmetric(&self.transpose, self.symmetry, values)
     }
 
