@@ -31,6 +31,9 @@ use softc_compiler::ir::ElementOrder;
 use std::collections::BTreeMap;
 use std::time::Instant;
 
+mod refine;
+mod stall;
+
 /// Newton iterations per load increment before it counts as failed.
 const MAX_NEWTON: u64 = 40;
 /// Damped Newton steps in a row (each along a fresh tangent) that must at least halve the
@@ -50,15 +53,6 @@ const REUSE_WORTH: usize = 10;
 /// Continuation increments (as a fraction of a state's load path) below which the solve gives
 /// up: no equilibrium beyond.
 const MIN_INCREMENT: f64 = 1.0 / 4096.0;
-/// A tangent left with less than this fraction of its stiffness at rest along the loads
-/// (Bergan's current stiffness parameter): it is turning singular, a limit point.
-const LIMIT_POINT_STIFFNESS: f64 = 0.05;
-/// Below this fraction (and above [`LIMIT_POINT_STIFFNESS`]) the load path may be approaching
-/// one (a ballooning wall at 14 %, its Newton stopped by an element turning inside out).
-const APPROACHING_LIMIT_STIFFNESS: f64 = 0.5;
-/// Newton steps with f64 residuals that refine an f32 equilibrium, at most (each at least
-/// halves the residual; two or three reach the goal).
-const REFINE_STEPS: u64 = 8;
 /// `--linear-solver auto` factors tangents up to this many free dofs and solves larger ones by
 /// multigrid-preconditioned conjugate gradients (measured, `softc bench --solvers --amg`).
 pub const AUTO_MULTIGRID_DOFS: usize = 100_000;
@@ -257,62 +251,6 @@ pub(super) enum Newton {
     Failed {
         why: String,
     },
-}
-
-/// What the tangent at the last equilibrium of a stalled continuation says about why.
-enum StiffnessLost {
-    /// Not positive definite (or singular): the equilibrium is unstable, past a limit or
-    /// bifurcation point.
-    Indefinite,
-    /// Positive definite, with this fraction of its stiffness at rest along the loads.
-    Kept(f64),
-    /// Not examined: too large to factor again, matrix-free, or not symmetric (an open
-    /// pressurised surface: LU does not tell definiteness).
-    NotExamined,
-}
-
-impl StiffnessLost {
-    fn explain(&self) -> String {
-        const DYNAMICS: &str = "Lower the loads, or simulate the dynamics with `integrator = \
-                                semi_implicit_euler`";
-        const NEWTON_FAILS: &str = "an element turning inside out (refine the mesh where it \
-                                    deforms most), a material or loads that change abruptly, \
-                                    or an ill-conditioned tangent (a stiff insert, ν close to \
-                                    0.5: use `precision = f64`)";
-        match *self {
-            StiffnessLost::Indefinite => format!(
-                "The tangent stiffness there is not positive definite: the load path has a \
-                 limit point (a snap-through, a ballooning cavity) or a buckling point, which \
-                 a pressure-controlled static solve cannot pass. {DYNAMICS}"
-            ),
-            StiffnessLost::Kept(kept) if kept < LIMIT_POINT_STIFFNESS => format!(
-                "The tangent there keeps {:.1} % of its stiffness at rest along the loads: it is \
-                 turning singular, a limit point of the load path (a snap-through, a \
-                 ballooning cavity) that a pressure-controlled static solve cannot pass. \
-                 {DYNAMICS}",
-                100.0 * kept
-            ),
-            StiffnessLost::Kept(kept) if kept < APPROACHING_LIMIT_STIFFNESS => format!(
-                "The tangent there keeps {:.0} % of its stiffness at rest along the loads: the \
-                 load path may be approaching a limit point (a snap-through, a ballooning \
-                 cavity), but Newton failed before it. Likely causes: {NEWTON_FAILS}. \
-                 {DYNAMICS}",
-                100.0 * kept
-            ),
-            StiffnessLost::Kept(kept) => format!(
-                "This is not a limit point: the tangent there keeps {:.0} % of its stiffness at \
-                 rest along the loads. Newton failed for another reason: {NEWTON_FAILS}. \
-                 Smaller load increments did not help; `integrator = semi_implicit_euler` does \
-                 not need Newton",
-                100.0 * kept
-            ),
-            StiffnessLost::NotExamined => format!(
-                "The load path may have a limit point there (a snap-through, a ballooning \
-                 cavity), which a pressure-controlled static solve cannot pass, or the loads \
-                 are too large for the material. {DYNAMICS}"
-            ),
-        }
-    }
 }
 
 impl<'s, B: Backend> Simulation<'s, B> {
@@ -1092,166 +1030,6 @@ impl<'s, B: Backend> Simulation<'s, B> {
         Ok(())
     }
 
-    /// f32 kernels stop Newton at their own round-off: relative residuals of 1e-4–1e-3 at
-    /// everyday loads, and no step at all from rest for a load at the round-off of the
-    /// internal forces (1 Pa: the rest state, 1/140 of the answer). Iterative refinement:
-    /// the residual of positions held in f64 is evaluated by the same kernels compiled for
-    /// f64 on the CPU, and Newton steps on the f32 tangent (its last factorization) correct
-    /// them towards an f64 solve's tolerance while each at least halves that residual. The
-    /// refined positions are stored, rounded to f32, with the f32 forces at them. Returns
-    /// the refined state's f64 residual norm and the largest change the rounding made to a
-    /// displacement, relative to the largest displacement.
-    fn refine_in_f64(
-        &mut self,
-        tangent: &mut Tangent,
-        report: &mut SolverReport,
-        (t, load): (f64, f64),
-        goal: Goal,
-    ) -> Result<(f64, f64), RunError> {
-        let scene: &'s super::scene::Scene = self.scene;
-        let mut twin = match self.f64_twin.take() {
-            Some(twin) => twin,
-            None => {
-                let cpu =
-                    crate::devices::cpu::Cpu::new(&scene.lowered.module, Precision::F64, None)
-                        .map_err(|e| RunError(format!("the f64 kernels do not compile: {e}")))?;
-                Box::new(Simulation::new(scene, cpu))
-            }
-        };
-        twin.uniforms = self.uniforms.clone();
-        twin.upload_fields();
-        // An f64 solve's goal (goal_at): the stored positions are then the f32 rounding of
-        // the equilibrium, as close as f32 holds it.
-        let target = (1e-10 * goal.scale).max(1e-12 * self.force_scale());
-        let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
-        let mut x = self.backend.get(self.ids.x);
-        let mut best: Option<(Vec<f64>, f64)> = None;
-        let outcome = (|| {
-            for _ in 0..=REFINE_STEPS {
-                twin.backend.set(twin.ids.x, &x);
-                let r = twin.residual(t, load)?;
-                let n = norm(&r);
-                let contracted = best.as_ref().is_none_or(|(_, b)| n <= 0.5 * b);
-                if n.is_finite() && best.as_ref().is_none_or(|(_, b)| n < *b) {
-                    best = Some((x.clone(), n));
-                }
-                // Not contracting: the f32 tangent is too far from f64's for more steps to
-                // help.
-                if !contracted || n <= target {
-                    break;
-                }
-                report.refinement_steps += 1;
-                let dx = match f64_newton_step(tangent, report, &mut twin, &x, &r, (t, load))? {
-                    Some(dx) => dx,
-                    None => {
-                        self.newton_direction(tangent, report, &r, false, 1e-8)
-                            .map_err(RunError)?
-                            .0
-                    }
-                };
-                for (xi, d) in x.iter_mut().zip(&dx) {
-                    *xi += d;
-                }
-            }
-            Ok::<(), RunError>(())
-        })();
-        self.f64_twin = Some(twin);
-        outcome?;
-        let Some((mut x, r_norm)) = best else {
-            return Ok((f64::NAN, f64::NAN));
-        };
-        if tangent.pattern.rigid() {
-            x = tangent.pattern.align(&scene.mesh.nodes, &x);
-        }
-        self.backend.set(self.ids.x, &x);
-        self.residual(t, load)?;
-        let stored = self.backend.get(self.ids.x);
-        let rest = scene.mesh.nodes.iter().flatten();
-        let largest = x
-            .iter()
-            .zip(rest)
-            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-        let rounding = x
-            .iter()
-            .zip(&stored)
-            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
-        let round_off = if largest > 0.0 {
-            rounding / largest
-        } else {
-            0.0
-        };
-        Ok((r_norm, round_off))
-    }
-
-    /// How the tangent's compliance along the loads at the current positions (the last
-    /// equilibrium, at `at`) compares with the rest state's: Bergan's current stiffness
-    /// parameter, what tells a limit point (the tangent turns singular along the load path:
-    /// the compliance along the loads grows without bound) from Newton failing for another
-    /// reason. Each tangent is factored by a direct solver of its own; a tangent too large to
-    /// factor ([`AUTO_MULTIGRID_DOFS`]) or solved matrix-free is not examined.
-    fn stiffness_lost(
-        &mut self,
-        tangent: &mut Tangent,
-        report: &mut SolverReport,
-        (t, load): (f64, f64),
-    ) -> Result<StiffnessLost, RunError> {
-        if tangent.pattern.size() > AUTO_MULTIGRID_DOFS || matches!(tangent.linear, Linear::Krylov)
-        {
-            return Ok(StiffnessLost::NotExamined);
-        }
-        let direct =
-            Linear::direct(&tangent.pattern, self.backend.precision()).map_err(RunError)?;
-        let newton = std::mem::replace(&mut tangent.linear, direct);
-        let x = self.backend.get(self.ids.x);
-        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
-        let mut probe = || -> Result<StiffnessLost, String> {
-            let (last, symmetric, definite) = self.load_compliance(tangent, report, (t, load))?;
-            self.backend.set(self.ids.x, &rest);
-            let (at_rest, ..) = self.load_compliance(tangent, report, (t, 0.0))?;
-            Ok(match symmetric {
-                false => StiffnessLost::NotExamined,
-                true if !definite => StiffnessLost::Indefinite,
-                true => StiffnessLost::Kept(at_rest / last),
-            })
-        };
-        let lost = probe();
-        self.backend.set(self.ids.x, &x);
-        tangent.linear = newton;
-        // A tangent that does not factor (singular at the last equilibrium) is as telling.
-        Ok(lost.unwrap_or(StiffnessLost::Indefinite))
-    }
-
-    /// The tangent's compliance along the loads at the current positions, time `t` and load
-    /// factor `load` (f·K⁻¹f / f·f, m/N, f the loads at full scale at these positions),
-    /// whether the tangent is symmetric, and whether it is positive definite (Cholesky
-    /// succeeded).
-    fn load_compliance(
-        &mut self,
-        tangent: &mut Tangent,
-        report: &mut SolverReport,
-        (t, load): (f64, f64),
-    ) -> Result<(f64, bool, bool), String> {
-        let full = self.residual(t, 1.0).map_err(|e| e.0)?;
-        let none = self.residual(t, 0.0).map_err(|e| e.0)?;
-        // The tangent of this load factor.
-        self.residual(t, load).map_err(|e| e.0)?;
-        self.factor_tangent(tangent, report)?;
-        let definite = report.factorization == "cholesky";
-        let Linear::Direct { lu, values, .. } = &tangent.linear else {
-            return Err("internal error: no factored tangent".into());
-        };
-        let pattern = &tangent.pattern;
-        let mut f: Vec<f64> = full.iter().zip(&none).map(|(a, b)| a - b).collect();
-        if pattern.rigid() {
-            pattern.remove_rigid_motion(&self.backend.get(self.ids.x), &mut f);
-        }
-        let f = pattern.restrict(&f);
-        let mut u = f.clone();
-        lu.solve(&mut u);
-        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
-        Ok((dot(&f, &u) / dot(&f, &f), lu.symmetric(values), definite))
-    }
-
     /// Move the equilibrium from (t0, load0), where the current positions are one, to
     /// (t1, load1) by continuation.
     fn continue_to(
@@ -1669,66 +1447,4 @@ fn free_motion_description(scene: &super::scene::Scene, motion: Option<FreeMotio
             id(ends.1)
         ),
     }
-}
-
-/// A Newton step of the f64 residual at `x` (whose residual `r` is): GMRES on the f64
-/// tangent's products, taken by central differences of the twin's residual (no f64 matrix
-/// is assembled), preconditioned by the f32 tangent's factorization. The chord step on the
-/// f32 factorization alone stalls at relative residuals of ~5e-6: its round-off is
-/// amplified along the soft (bending) modes. `None` where there is no factorization to
-/// precondition with, or for a body with pinned rigid modes: the chord step is taken there.
-fn f64_newton_step(
-    tangent: &Tangent,
-    report: &mut SolverReport,
-    twin: &mut Simulation<'_, crate::devices::cpu::Cpu>,
-    x: &[f64],
-    r: &[f64],
-    (t, load): (f64, f64),
-) -> Result<Option<Vec<f64>>, RunError> {
-    let Linear::Direct {
-        lu, factored: true, ..
-    } = &tangent.linear
-    else {
-        return Ok(None);
-    };
-    let pattern = &tangent.pattern;
-    if pattern.rigid() {
-        return Ok(None);
-    }
-    let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
-    let scale = norm(x).max(f64::MIN_POSITIVE);
-    let mut residual_at = |v: &[f64], h: f64| -> Result<Vec<f64>, String> {
-        let full = pattern.extend(v);
-        let shifted: Vec<f64> = x.iter().zip(&full).map(|(a, d)| a + h * d).collect();
-        twin.backend.set(twin.ids.x, &shifted);
-        Ok(pattern.restrict(&twin.residual(t, load).map_err(|e| e.0)?))
-    };
-    // K v = −∂r/∂x · v, by central differences with a step of ~1e-6 of the positions'
-    // scale (truncation and round-off both ~1e-11 of the product).
-    let apply = |v: &[f64]| -> Result<Vec<f64>, String> {
-        let h = 1e-6 * scale / norm(v).max(f64::MIN_POSITIVE);
-        let ahead = residual_at(v, h)?;
-        let behind = residual_at(v, -h)?;
-        Ok(ahead
-            .iter()
-            .zip(&behind)
-            .map(|(a, b)| (b - a) / (2.0 * h))
-            .collect())
-    };
-    let precondition = |v: &[f64]| {
-        let mut y = v.to_vec();
-        lu.solve(&mut y);
-        y
-    };
-    let limits = crate::solvers::krylov::KrylovLimits {
-        rtol: 1e-9,
-        restart: 20,
-        max_iterations: 20,
-    };
-    let (dx, stats) =
-        crate::solvers::krylov::gmres(&pattern.restrict(r), apply, precondition, limits)
-            .map_err(RunError)?;
-    report.krylov_iterations += stats.iterations as u64;
-    report.krylov_products += stats.products as u64;
-    Ok((stats.relative_residual < 0.5).then(|| pattern.extend(&dx)))
 }

@@ -1,0 +1,140 @@
+//! Why a static continuation stalled (issue 29 item 1): the tangent at the last equilibrium,
+//! against the rest state's, tells a limit point from Newton failing for another reason.
+
+use super::{AUTO_MULTIGRID_DOFS, Linear, SolverReport, Tangent};
+use crate::devices::Backend;
+use crate::engine::{RunError, Simulation};
+
+/// A tangent left with less than this fraction of its stiffness at rest along the loads
+/// (Bergan's current stiffness parameter): it is turning singular, a limit point.
+const LIMIT_POINT_STIFFNESS: f64 = 0.05;
+/// Below this fraction (and above [`LIMIT_POINT_STIFFNESS`]) the load path may be approaching
+/// one (a ballooning wall at 14 %, its Newton stopped by an element turning inside out).
+const APPROACHING_LIMIT_STIFFNESS: f64 = 0.5;
+
+/// What the tangent at the last equilibrium of a stalled continuation says about why.
+pub(super) enum StiffnessLost {
+    /// Not positive definite (or singular): the equilibrium is unstable, past a limit or
+    /// bifurcation point.
+    Indefinite,
+    /// Positive definite, with this fraction of its stiffness at rest along the loads.
+    Kept(f64),
+    /// Not examined: too large to factor again, matrix-free, or not symmetric (an open
+    /// pressurised surface: LU does not tell definiteness).
+    NotExamined,
+}
+
+impl StiffnessLost {
+    pub(super) fn explain(&self) -> String {
+        const DYNAMICS: &str = "Lower the loads, or simulate the dynamics with `integrator = \
+                                semi_implicit_euler`";
+        const NEWTON_FAILS: &str = "an element turning inside out (refine the mesh where it \
+                                    deforms most), a material or loads that change abruptly, \
+                                    or an ill-conditioned tangent (a stiff insert, ν close to \
+                                    0.5: use `precision = f64`)";
+        match *self {
+            StiffnessLost::Indefinite => format!(
+                "The tangent stiffness there is not positive definite: the load path has a \
+                 limit point (a snap-through, a ballooning cavity) or a buckling point, which \
+                 a pressure-controlled static solve cannot pass. {DYNAMICS}"
+            ),
+            StiffnessLost::Kept(kept) if kept < LIMIT_POINT_STIFFNESS => format!(
+                "The tangent there keeps {:.1} % of its stiffness at rest along the loads: it is \
+                 turning singular, a limit point of the load path (a snap-through, a \
+                 ballooning cavity) that a pressure-controlled static solve cannot pass. \
+                 {DYNAMICS}",
+                100.0 * kept
+            ),
+            StiffnessLost::Kept(kept) if kept < APPROACHING_LIMIT_STIFFNESS => format!(
+                "The tangent there keeps {:.0} % of its stiffness at rest along the loads: the \
+                 load path may be approaching a limit point (a snap-through, a ballooning \
+                 cavity), but Newton failed before it. Likely causes: {NEWTON_FAILS}. \
+                 {DYNAMICS}",
+                100.0 * kept
+            ),
+            StiffnessLost::Kept(kept) => format!(
+                "This is not a limit point: the tangent there keeps {:.0} % of its stiffness at \
+                 rest along the loads. Newton failed for another reason: {NEWTON_FAILS}. \
+                 Smaller load increments did not help; `integrator = semi_implicit_euler` does \
+                 not need Newton",
+                100.0 * kept
+            ),
+            StiffnessLost::NotExamined => format!(
+                "The load path may have a limit point there (a snap-through, a ballooning \
+                 cavity), which a pressure-controlled static solve cannot pass, or the loads \
+                 are too large for the material. {DYNAMICS}"
+            ),
+        }
+    }
+}
+
+impl<'s, B: Backend> Simulation<'s, B> {
+    /// How the tangent's compliance along the loads at the current positions (the last
+    /// equilibrium, at `at`) compares with the rest state's: Bergan's current stiffness
+    /// parameter, what tells a limit point (the tangent turns singular along the load path:
+    /// the compliance along the loads grows without bound) from Newton failing for another
+    /// reason. Each tangent is factored by a direct solver of its own; a tangent too large to
+    /// factor ([`AUTO_MULTIGRID_DOFS`]) or solved matrix-free is not examined.
+    pub(super) fn stiffness_lost(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        (t, load): (f64, f64),
+    ) -> Result<StiffnessLost, RunError> {
+        if tangent.pattern.size() > AUTO_MULTIGRID_DOFS || matches!(tangent.linear, Linear::Krylov)
+        {
+            return Ok(StiffnessLost::NotExamined);
+        }
+        let direct =
+            Linear::direct(&tangent.pattern, self.backend.precision()).map_err(RunError)?;
+        let newton = std::mem::replace(&mut tangent.linear, direct);
+        let x = self.backend.get(self.ids.x);
+        let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
+        let mut probe = || -> Result<StiffnessLost, String> {
+            let (last, symmetric, definite) = self.load_compliance(tangent, report, (t, load))?;
+            self.backend.set(self.ids.x, &rest);
+            let (at_rest, ..) = self.load_compliance(tangent, report, (t, 0.0))?;
+            Ok(match symmetric {
+                false => StiffnessLost::NotExamined,
+                true if !definite => StiffnessLost::Indefinite,
+                true => StiffnessLost::Kept(at_rest / last),
+            })
+        };
+        let lost = probe();
+        self.backend.set(self.ids.x, &x);
+        tangent.linear = newton;
+        // A tangent that does not factor (singular at the last equilibrium) is as telling.
+        Ok(lost.unwrap_or(StiffnessLost::Indefinite))
+    }
+
+    /// The tangent's compliance along the loads at the current positions, time `t` and load
+    /// factor `load` (f·K⁻¹f / f·f, m/N, f the loads at full scale at these positions),
+    /// whether the tangent is symmetric, and whether it is positive definite (Cholesky
+    /// succeeded).
+    fn load_compliance(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        (t, load): (f64, f64),
+    ) -> Result<(f64, bool, bool), String> {
+        let full = self.residual(t, 1.0).map_err(|e| e.0)?;
+        let none = self.residual(t, 0.0).map_err(|e| e.0)?;
+        // The tangent of this load factor.
+        self.residual(t, load).map_err(|e| e.0)?;
+        self.factor_tangent(tangent, report)?;
+        let definite = report.factorization == "cholesky";
+        let Linear::Direct { lu, values, .. } = &tangent.linear else {
+            return Err("internal error: no factored tangent".into());
+        };
+        let pattern = &tangent.pattern;
+        let mut f: Vec<f64> = full.iter().zip(&none).map(|(a, b)| a - b).collect();
+        if pattern.rigid() {
+            pattern.remove_rigid_motion(&self.backend.get(self.ids.x), &mut f);
+        }
+        let f = pattern.restrict(&f);
+        let mut u = f.clone();
+        lu.solve(&mut u);
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
+        Ok((dot(&f, &u) / dot(&f, &f), lu.symmetric(values), definite))
+    }
+}
