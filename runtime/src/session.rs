@@ -277,7 +277,8 @@ pub fn vtk_every(scene: &Scene) -> Option<u64> {
 
 /// The warning for a run that ended without error but whose answer is doubtful or rests on
 /// a convention: a static body held at one point or along one line (free to rotate: the
-/// answer is the one without that rotation), a static or implicit solve whose last state did
+/// answer is the one without that rotation), linear tetrahedra of a nearly incompressible
+/// material (they lock), a static or implicit solve whose last state did
 /// not reach its residual (a load below what the precision resolves), or a run whose loss is
 /// taken `at end` while its final state still moves.
 pub fn run_warning(
@@ -297,11 +298,15 @@ pub fn run_warning(
                  not on one line) if the body is meant to be held"
             )
         });
-    let other = doubtful(scene, summary);
-    match (held, other) {
-        (Some(a), Some(b)) => Some(format!("{a}\n{b}")),
-        (a, b) => a.or(b),
-    }
+    let warnings: Vec<String> = [
+        held,
+        crate::engine::incompressibility::locking_warning(scene),
+        doubtful(scene, summary),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    (!warnings.is_empty()).then(|| warnings.join("\n"))
 }
 
 fn doubtful(

@@ -1056,3 +1056,61 @@ fn auto_factors_small_tangents_and_uses_multigrid_beyond_the_threshold() {
     );
     assert_eq!(LinearSolver::Amg.resolve(9, Linear), LinearSolver::Amg);
 }
+
+/// Issue 29, hostile case 4's other half: ν → 0.5 with linear tetrahedra converged to a locked
+/// answer with exit 0 (the verification cuboid's tip at ν = 0.4999: +0.7 µm against −8.5 µm
+/// with quadratic elements). The run now warns, naming the material and its measured K/μ,
+/// for any strain energy (a built-in or a script's own `W`); not at everyday ratios, nor for
+/// quadratic elements.
+#[test]
+fn nearly_incompressible_linear_tetrahedra_are_warned_about() {
+    use softc::engine::incompressibility::{bulk_to_shear, locking_warning};
+    let scene_for = |name: &str, material: &str| {
+        let path = beam_script(
+            name,
+            material,
+            "  integrator = quasi_static\n  duration = 1 s\n  \
+             pressure cavity = 1 kPa * ramp(t, 1 s)",
+            "",
+        );
+        Scene::load(&path, &[]).unwrap()
+    };
+    for (nu, warned) in [(0.45, false), (0.49, false), (0.499, true), (0.4999, true)] {
+        let scene = scene_for(
+            &format!("nu_{nu}.soft"),
+            &format!(
+                "material rubber = neo_hookean(mu: lame_mu(1 MPa, {nu}), kappa: \
+                 bulk_modulus(1 MPa, {nu}), density: 1070 kg/m^3)"
+            ),
+        );
+        let exact = 2.0 * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu));
+        let measured = bulk_to_shear(&scene);
+        assert_eq!(measured.len(), 1);
+        assert_eq!(measured[0].material, "rubber");
+        let ratio = measured[0].ratio;
+        eprintln!("ν = {nu}: K/μ {ratio} against {exact}");
+        assert!(
+            (ratio / exact - 1.0).abs() < 1e-3,
+            "ν = {nu}: {ratio} against {exact}"
+        );
+        assert!(
+            (measured[0].poisson() - nu).abs() < 1e-4,
+            "{}",
+            measured[0].poisson()
+        );
+        let warning = locking_warning(&scene);
+        assert_eq!(warning.is_some(), warned, "ν = {nu}: {warning:?}");
+        if let Some(w) = warning {
+            assert!(w.contains("`rubber`") && w.contains("order 2"), "{w}");
+        }
+    }
+    // A script's own W with the same small-strain moduli (μ = 100 kPa, K = 500 MPa).
+    let own = scene_for(
+        "own_w.soft",
+        "material gel {\n  density = 1000 kg/m^3\n  \
+         W(I1bar, J) = 50 kPa * (I1bar - 3) + 250 MPa * (J - 1)^2\n}",
+    );
+    let ratio = bulk_to_shear(&own)[0].ratio;
+    assert!((ratio / 5000.0 - 1.0).abs() < 1e-3, "{ratio}");
+    assert!(locking_warning(&own).is_some());
+}

@@ -9,6 +9,7 @@
 pub mod adjoint;
 pub mod checkpoint;
 pub mod implicit;
+pub mod incompressibility;
 pub mod loss;
 mod matrix_free;
 pub mod profile;
