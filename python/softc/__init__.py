@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from typing import Any, Dict, Mapping, Optional, Tuple
 
@@ -36,6 +37,14 @@ class ParamError(SimulationError, ValueError):
     ``ValueError``. (A value outside a param's bounds is a :class:`SimulationError` with the
     command line's message.)"""
 
+
+class SoftcWarning(UserWarning):
+    """A run that ended without error but whose answer is doubtful or rests on a convention
+    (the summary's ``warnings``, which ``softc run`` prints): linear tetrahedra of a nearly
+    incompressible material, a static body free to rotate, a state the precision does not
+    resolve, a loss taken ``at end`` while the state still moves."""
+
+
 __all__ = [
     "compile",
     "quantity",
@@ -45,6 +54,7 @@ __all__ = [
     "CompileError",
     "SimulationError",
     "ParamError",
+    "SoftcWarning",
     "__version__",
 ]
 
@@ -279,7 +289,10 @@ class Scene:
                 np.asarray(v, dtype=np.float64).reshape(-1, 3),
             )
         gradients = {name: _shaped(values, shape) for name, shape, values in grads}
-        return json.loads(text), loss, gradients
+        summary = json.loads(text)
+        for message in summary.get("warnings", []):
+            warnings.warn(message, SoftcWarning, stacklevel=3)
+        return summary, loss, gradients
 
     def run(
         self,

@@ -334,3 +334,25 @@ def test_quadratic_scenes_expose_their_10_node_elements_and_match_the_command_li
         2 * h
     )
     assert abs(grads["p0"] - fd) <= 1e-6 * abs(fd)
+
+
+def test_a_doubtful_answer_warns_and_is_listed_in_the_summary(static_pressure, tmp_path):
+    # Linear tetrahedra of a nearly incompressible material (K/μ = 5000) lock: the run ends
+    # without error, so the answer would be taken at face value.
+    script = tmp_path / "incompressible.soft"
+    script.write_text(
+        f'mesh body = load("{ROOT / "meshes" / "bench_1k.msh"}")\n'
+        'chamber cavity = surface(body, "cavity")\n'
+        'nodes base = named(body, "base")\n'
+        "material rubber = neo_hookean(mu: 10 kPa, kappa: 50 MPa, density: 1070 kg/m^3)\n"
+        "sim {\n  integrator = quasi_static\n  duration = 1 s\n  fix base\n"
+        "  pressure cavity = 1 kPa * ramp(t, 1 s)\n}\n"
+    )
+    scene = softc.compile(script)
+    with pytest.warns(softc.SoftcWarning, match="`rubber` is nearly incompressible"):
+        summary = scene.run()
+    assert len(summary["warnings"]) == 1 and "K/μ = 50" in summary["warnings"][0]
+    # The command line lists the same warning in its JSON (and prints it).
+    assert without_timing(summary) == without_timing(cli_json(tmp_path, script))
+    # A settled static answer of an everyday material warns nothing.
+    assert static_pressure.run({"p_max": 12e3})["warnings"] == []

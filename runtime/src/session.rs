@@ -275,16 +275,17 @@ pub fn vtk_every(scene: &Scene) -> Option<u64> {
     scene.resolved.sim.vtk_every
 }
 
-/// The warning for a run that ended without error but whose answer is doubtful or rests on
-/// a convention: a static body held at one point or along one line (free to rotate: the
-/// answer is the one without that rotation), linear tetrahedra of a nearly incompressible
-/// material (they lock), a static or implicit solve whose last state did
-/// not reach its residual (a load below what the precision resolves), or a run whose loss is
-/// taken `at end` while its final state still moves.
-pub fn run_warning(
+/// The warnings for a run that ended without error but whose answer is doubtful or rests on
+/// a convention, each a sentence without the `warning: ` the CLI prints before it: a static
+/// body held at one point or along one line (free to rotate: the answer is the one without
+/// that rotation), linear tetrahedra of a nearly incompressible material (they lock), a static
+/// or implicit solve whose last state did not reach its residual (a load below what the
+/// precision resolves), or a run whose loss is taken `at end` while its final state still
+/// moves. The JSON summary lists them (`warnings`), the Python package warns with them.
+pub fn run_warnings(
     scene: &crate::engine::scene::Scene,
     summary: &crate::engine::RunSummary,
-) -> Option<String> {
+) -> Vec<String> {
     let held = summary
         .solver
         .as_ref()
@@ -298,15 +299,30 @@ pub fn run_warning(
                  not on one line) if the body is meant to be held"
             )
         });
-    let warnings: Vec<String> = [
+    [
         held,
         crate::engine::incompressibility::locking_warning(scene),
         doubtful(scene, summary),
     ]
     .into_iter()
     .flatten()
-    .collect();
-    (!warnings.is_empty()).then(|| warnings.join("\n"))
+    .map(|w| w.trim_start_matches("warning: ").to_string())
+    .collect()
+}
+
+/// [`run_warnings`] as the CLI prints them: one line each, after `warning: `.
+pub fn run_warning(
+    scene: &crate::engine::scene::Scene,
+    summary: &crate::engine::RunSummary,
+) -> Option<String> {
+    let warnings = run_warnings(scene, summary);
+    (!warnings.is_empty()).then(|| {
+        warnings
+            .iter()
+            .map(|w| format!("warning: {w}"))
+            .collect::<Vec<_>>()
+            .join("\n")
+    })
 }
 
 fn doubtful(

@@ -41,6 +41,7 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
     if let Some(solver) = &s.solver {
         json["solver"] = serde_json::to_value(solver).unwrap_or_default();
     }
+    json["warnings"] = crate::session::run_warnings(scene, s).into();
     json
 }
 
