@@ -108,8 +108,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
 /// tangent's products, taken by central differences of the twin's residual (no f64 matrix
 /// is assembled), preconditioned by the f32 tangent's factorization. The chord step on the
 /// f32 factorization alone stalls at relative residuals of ~5e-6: its round-off is
-/// amplified along the soft (bending) modes. `None` where there is no factorization to
-/// precondition with, or for a body with pinned rigid modes: the chord step is taken there.
+/// amplified along the soft (bending) modes. A free body's step, as Newton's, has no rigid
+/// motion (the pinned support takes no reaction). `None` where there is no factorization to
+/// precondition with: the chord step is taken there.
 fn f64_newton_step(
     tangent: &Tangent,
     report: &mut SolverReport,
@@ -125,9 +126,6 @@ fn f64_newton_step(
         return Ok(None);
     };
     let pattern = &tangent.pattern;
-    if pattern.rigid() {
-        return Ok(None);
-    }
     let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
     let scale = norm(x).max(f64::MIN_POSITIVE);
     let mut residual_at = |v: &[f64], h: f64| -> Result<Vec<f64>, String> {
@@ -158,10 +156,17 @@ fn f64_newton_step(
         restart: 20,
         max_iterations: 20,
     };
+    let mut r = r.to_vec();
+    pattern.remove_rigid_motion(x, &mut r);
     let (dx, stats) =
-        crate::solvers::krylov::gmres(&pattern.restrict(r), apply, precondition, limits)
+        crate::solvers::krylov::gmres(&pattern.restrict(&r), apply, precondition, limits)
             .map_err(RunError)?;
     report.krylov_iterations += stats.iterations as u64;
     report.krylov_products += stats.products as u64;
-    Ok((stats.relative_residual < 0.5).then(|| pattern.extend(&dx)))
+    if stats.relative_residual >= 0.5 {
+        return Ok(None);
+    }
+    let mut dx = pattern.extend(&dx);
+    pattern.remove_rigid_motion(x, &mut dx);
+    Ok(Some(dx))
 }
