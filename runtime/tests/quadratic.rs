@@ -402,3 +402,17 @@ fn quadratic_tets_converge_at_order_two_or_more_on_a_curved_smooth_problem() {
         "linear {linear}, quadratic {coarse}"
     );
 }
+
+/// Nearly incompressible materials are warned about on linear tetrahedra only: 10-node tets
+/// are what the warning recommends (K/μ of the every-param-kind scene's Yeoh made ~10⁵).
+#[test]
+fn the_locking_warning_is_for_linear_tetrahedra_only() {
+    use softc::engine::incompressibility::{bulk_to_shear, locking_warning};
+    let stiff = [("d1: 10 /MPa", "d1: 0.001 /MPa")];
+    for (order, warned) in [(1, true), (2, false)] {
+        let path = every_kind(order, &format!("incompressible_{order}.soft"), &stiff);
+        let scene = Scene::load(&path, &[]).unwrap();
+        assert!(bulk_to_shear(&scene)[0].ratio > 1e4, "order {order}");
+        assert_eq!(locking_warning(&scene).is_some(), warned, "order {order}");
+    }
+}
