@@ -399,6 +399,22 @@ fn sphere_mesh(dir: &Path, h: f64) -> PathBuf {
     path
 }
 
+/// A script on the hollow sphere of mesh size `h` (neo-Hookean, μ = 10 kPa, κ = 20 μ) with
+/// the sim block's lines `sim`, written to `dir/name`.
+fn sphere_script(dir: &Path, h: f64, sim: &str, name: &str) -> PathBuf {
+    write(
+        dir,
+        name,
+        &format!(
+            "mesh body = load(\"{}\")\n\
+             material gel = neo_hookean(mu: 10 kPa, kappa: 200 kPa, density: 1000 kg/m^3)\n\
+             chamber inner = surface(body, \"inner\")\n\
+             sim {{\n{sim}}}\n",
+            sphere_mesh(dir, h).display()
+        ),
+    )
+}
+
 /// The nodes of the scene's chambers.
 fn chamber_nodes(scene: &Scene) -> Vec<u32> {
     let mut nodes: Vec<u32> = scene.tris.iter().flatten().copied().collect();
@@ -474,18 +490,11 @@ fn sphere_inflation_matches_the_closed_form_below_the_limit_point_and_runs_away_
     let mu = 10e3;
     let (l_lim, p_lim) = sphere_limit_point(mu, 2.0);
     let script = |h: f64, p: f64, safety: f64, ms: f64, name: &str| {
-        write(
-            &dir,
-            name,
-            &format!(
-                "mesh body = load(\"{}\")\n\
-                 material gel = neo_hookean(mu: 10 kPa, kappa: 200 kPa, density: 1000 kg/m^3)\n\
-                 chamber inner = surface(body, \"inner\")\n\
-                 sim {{\n  dt = auto(safety: {safety})\n  duration = {ms} ms\n  \
-                 damping = 2000 /s\n  pressure inner = {p} Pa * ramp(t, 10 ms)\n}}\n",
-                sphere_mesh(&dir, h).display()
-            ),
-        )
+        let sim = format!(
+            "  dt = auto(safety: {safety})\n  duration = {ms} ms\n  damping = 2000 /s\n  \
+             pressure inner = {p} Pa * ramp(t, 10 ms)\n"
+        );
+        sphere_script(&dir, h, &sim, name)
     };
     // (a) Below the limit point.
     let p = 0.5 * p_lim;
@@ -863,18 +872,11 @@ fn a_static_solve_past_the_limit_point_is_told_by_the_tangent() {
     let mu = 10e3;
     let (_, p_lim) = sphere_limit_point(mu, 2.0);
     let script = |p: f64, name: &str| {
-        write(
-            &dir,
-            name,
-            &format!(
-                "mesh body = load(\"{}\")\n\
-                 material gel = neo_hookean(mu: 10 kPa, kappa: 200 kPa, density: 1000 kg/m^3)\n\
-                 chamber inner = surface(body, \"inner\")\n\
-                 sim {{\n  integrator = quasi_static\n  duration = 1 s\n  \
-                 pressure inner = {p} Pa * ramp(t, 1 s)\n}}\n",
-                sphere_mesh(&dir, 2.5).display()
-            ),
-        )
+        let sim = format!(
+            "  integrator = quasi_static\n  duration = 1 s\n  \
+             pressure inner = {p} Pa * ramp(t, 1 s)\n"
+        );
+        sphere_script(&dir, 2.5, &sim, name)
     };
     let below = load(&script(0.5 * p_lim, "below.soft"));
     let s = statics(&below).run(None, None).unwrap();
