@@ -1048,38 +1048,63 @@ fn the_material_check_follows_a_trained_material_constant() {
 }
 
 /// `--linear-solver auto` (the default) factors a tangent up to the threshold and solves a
-/// larger one by multigrid; an explicit choice stays what it is.
+/// larger one by multigrid; for quadratic elements of a nearly incompressible material (where
+/// multigrid's CG crawls) up to a larger one; an explicit choice stays what it is.
 #[test]
 fn auto_factors_small_tangents_and_uses_multigrid_beyond_the_threshold() {
     use softc::engine::statics::{
-        AUTO_MULTIGRID_DOFS, AUTO_MULTIGRID_DOFS_QUADRATIC, LinearSolver,
+        AUTO_DIRECT_BULK_TO_SHEAR, AUTO_MULTIGRID_DOFS, AUTO_MULTIGRID_DOFS_NEARLY_INCOMPRESSIBLE,
+        AUTO_MULTIGRID_DOFS_QUADRATIC, LinearSolver,
     };
     use softc_compiler::ir::ElementOrder::{Linear, Quadratic};
     assert_eq!(LinearSolver::default(), LinearSolver::Auto);
     let auto = LinearSolver::Auto;
+    let everyday = || 4.0;
+    let nearly_incompressible = || AUTO_DIRECT_BULK_TO_SHEAR;
+    let unasked = || -> f64 { panic!("K/μ asked for where it does not decide") };
     assert_eq!(
-        auto.resolve(AUTO_MULTIGRID_DOFS, Linear),
+        auto.resolve(AUTO_MULTIGRID_DOFS, Linear, unasked),
         LinearSolver::Direct
     );
     assert_eq!(
-        auto.resolve(AUTO_MULTIGRID_DOFS + 1, Linear),
+        auto.resolve(AUTO_MULTIGRID_DOFS + 1, Linear, unasked),
         LinearSolver::Amg
     );
     // Quadratic tangents fill more when factored: multigrid from fewer dofs on.
     const { assert!(AUTO_MULTIGRID_DOFS_QUADRATIC < AUTO_MULTIGRID_DOFS) };
     assert_eq!(
-        auto.resolve(AUTO_MULTIGRID_DOFS_QUADRATIC, Quadratic),
+        auto.resolve(AUTO_MULTIGRID_DOFS_QUADRATIC, Quadratic, unasked),
         LinearSolver::Direct
     );
     assert_eq!(
-        auto.resolve(AUTO_MULTIGRID_DOFS_QUADRATIC + 1, Quadratic),
+        auto.resolve(AUTO_MULTIGRID_DOFS_QUADRATIC + 1, Quadratic, everyday),
+        LinearSolver::Amg
+    );
+    // Unless the material is nearly incompressible.
+    assert_eq!(
+        auto.resolve(
+            AUTO_MULTIGRID_DOFS_QUADRATIC + 1,
+            Quadratic,
+            nearly_incompressible
+        ),
+        LinearSolver::Direct
+    );
+    assert_eq!(
+        auto.resolve(
+            AUTO_MULTIGRID_DOFS_NEARLY_INCOMPRESSIBLE + 1,
+            Quadratic,
+            nearly_incompressible
+        ),
         LinearSolver::Amg
     );
     assert_eq!(
-        LinearSolver::Direct.resolve(10 * AUTO_MULTIGRID_DOFS, Quadratic),
+        LinearSolver::Direct.resolve(10 * AUTO_MULTIGRID_DOFS, Quadratic, unasked),
         LinearSolver::Direct
     );
-    assert_eq!(LinearSolver::Amg.resolve(9, Linear), LinearSolver::Amg);
+    assert_eq!(
+        LinearSolver::Amg.resolve(9, Linear, unasked),
+        LinearSolver::Amg
+    );
 }
 
 /// Issue 29, hostile case 4's other half: ν → 0.5 with linear tetrahedra converged to a locked

@@ -31,7 +31,8 @@ pub struct RunArgs {
     #[arg(long, value_name = "NAME")]
     pub adapter: Option<String>,
     /// How static and implicit solves solve Newton's linear systems: `auto` (default) is
-    /// `direct` up to 100,000 free dofs (20,000 for quadratic elements) and `amg` beyond;
+    /// `direct` up to 100,000 free dofs (20,000 for quadratic elements, 80,000 for those of
+    /// a nearly incompressible material) and `amg` beyond;
     /// `direct` assembles the sparse
     /// tangent and factors it on the host; `amg` solves the assembled tangent by conjugate
     /// gradients preconditioned by algebraic multigrid (memory about linear in the mesh);

@@ -63,6 +63,17 @@ pub const AUTO_MULTIGRID_DOFS: usize = 100_000;
 /// 46.7k dofs in 29 s factored against 11 s by multigrid; 5.7k dofs 2.1 s against 2.3 s).
 pub const AUTO_MULTIGRID_DOFS_QUADRATIC: usize = 20_000;
 
+/// As [`AUTO_MULTIGRID_DOFS_QUADRATIC`] for nearly incompressible materials (K/μ at least
+/// [`AUTO_DIRECT_BULK_TO_SHEAR`]), where multigrid-preconditioned CG needs many more iterations
+/// (measured, quadratic verification cuboid, 46.7k dofs, 3 kPa, 2 cores, wall seconds direct
+/// against amg: K/μ = 10: 4.7 / 5.5; 50: 3.6 / 7.1; 100: 5.7 / 11.2; 500: 7.8 / 30.6; 5,000:
+/// 31 / no equilibrium after 280 s, crawling at 75 % of the load; direct takes 1.0 GB there,
+/// amg 0.4 GB).
+pub const AUTO_MULTIGRID_DOFS_NEARLY_INCOMPRESSIBLE: usize = 80_000;
+/// The K/μ from which `auto` factors quadratic tangents up to
+/// [`AUTO_MULTIGRID_DOFS_NEARLY_INCOMPRESSIBLE`] dofs.
+pub const AUTO_DIRECT_BULK_TO_SHEAR: f64 = 50.0;
+
 /// What the solver did, for the JSON summary.
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct SolverReport {
@@ -127,7 +138,9 @@ pub enum LinearSolver {
     /// factor.
     Amg,
     /// `direct` up to [`AUTO_MULTIGRID_DOFS`] free dofs, `amg` beyond (measured: `softc bench
-    /// --solvers`). The default.
+    /// --solvers`); for quadratic elements up to [`AUTO_MULTIGRID_DOFS_QUADRATIC`], or
+    /// [`AUTO_MULTIGRID_DOFS_NEARLY_INCOMPRESSIBLE`] for nearly incompressible materials. The
+    /// default.
     #[default]
     Auto,
     /// Matrix-free GMRES with a block-Jacobi preconditioner on the backend's tangent products:
@@ -138,10 +151,23 @@ pub enum LinearSolver {
 
 impl LinearSolver {
     /// The solver `auto` stands for on a tangent of `dofs` free dofs of elements of `order`
-    /// (others: themselves).
-    pub fn resolve(self, dofs: usize, order: ElementOrder) -> LinearSolver {
+    /// (others: themselves); `bulk_to_shear` gives the materials' largest K/μ, asked for only
+    /// where it decides.
+    pub fn resolve(
+        self,
+        dofs: usize,
+        order: ElementOrder,
+        bulk_to_shear: impl FnOnce() -> f64,
+    ) -> LinearSolver {
         let limit = match order {
             ElementOrder::Linear => AUTO_MULTIGRID_DOFS,
+            ElementOrder::Quadratic
+                if dofs > AUTO_MULTIGRID_DOFS_QUADRATIC
+                    && self == LinearSolver::Auto
+                    && bulk_to_shear() >= AUTO_DIRECT_BULK_TO_SHEAR =>
+            {
+                AUTO_MULTIGRID_DOFS_NEARLY_INCOMPRESSIBLE
+            }
             ElementOrder::Quadratic => AUTO_MULTIGRID_DOFS_QUADRATIC,
         };
         match self {
@@ -1174,7 +1200,15 @@ impl<'s, B: Backend> Simulation<'s, B> {
             }
             pattern = pattern.with_edge_ends(ends);
         }
-        let choice = match self.linear_solver.resolve(pattern.size(), order) {
+        let bulk_to_shear = || {
+            super::incompressibility::bulk_to_shear(scene)
+                .iter()
+                .fold(0.0, |m, b| b.ratio.max(m))
+        };
+        let choice = match self
+            .linear_solver
+            .resolve(pattern.size(), order, bulk_to_shear)
+        {
             LinearSolver::Krylov if pattern.rigid() => {
                 return Err(RunError(format!(
                     "the matrix-free linear solver cannot hold a body's free rigid motions \
