@@ -103,8 +103,13 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let lost = probe();
         self.backend.set(self.ids.x, &x);
         tangent.linear = newton;
-        // A tangent that does not factor (singular at the last equilibrium) is as telling.
-        Ok(lost.unwrap_or(StiffnessLost::Indefinite))
+        // A tangent that does not factor because it is singular is as telling; one that
+        // cannot be examined (non-finite entries) tells nothing.
+        Ok(match lost {
+            Ok(lost) => lost,
+            Err(e) if e.contains("singular") => StiffnessLost::Indefinite,
+            Err(_) => StiffnessLost::NotExamined,
+        })
     }
 
     /// The tangent's compliance along the loads at the current positions, time `t` and load
