@@ -1163,4 +1163,16 @@ fn nearly_incompressible_linear_tetrahedra_are_warned_about() {
     let ratio = bulk_to_shear(&own)[0].ratio;
     assert!((ratio / 5000.0 - 1.0).abs() < 1e-3, "{ratio}");
     assert!(locking_warning(&own).is_some());
+    // At a run's param values (what `auto` decides by): a trained shear modulus.
+    let trained = scene_for(
+        "trained_mu.soft",
+        "param mu: pressure = 100 kPa
+         material rubber = neo_hookean(mu: mu, kappa: 1 MPa, density: 1070 kg/m^3)",
+    );
+    let cpu = Cpu::new(&trained.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let mut sim = Simulation::new(&trained, cpu);
+    sim.uniforms.set_named("param.mu", 1e3);
+    let at = |u| softc::engine::incompressibility::bulk_to_shear_at(&trained, u)[0].ratio;
+    assert!((at(None) / 10.0 - 1.0).abs() < 1e-3, "{}", at(None));
+    assert!((at(Some(&sim.uniforms)) / 1000.0 - 1.0).abs() < 1e-3);
 }

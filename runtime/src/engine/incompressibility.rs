@@ -10,8 +10,8 @@
 
 use super::Simulation;
 use super::scene::Scene;
-use crate::devices::Backend;
 use crate::devices::interp::Interpreter;
+use crate::devices::{Backend, Uniforms};
 use softc_compiler::ir::ElementOrder;
 
 /// K/μ above which linear tetrahedra are warned about (ν ≈ 0.498).
@@ -44,10 +44,20 @@ impl BulkToShear {
 /// material. Materials without an energy kernel (springs) or without shear stiffness are left
 /// out.
 pub fn bulk_to_shear(scene: &Scene) -> Vec<BulkToShear> {
+    bulk_to_shear_at(scene, None)
+}
+
+/// [`bulk_to_shear`] at the param values of `uniforms` (a run's, an optimization's current
+/// ones), else at the script's.
+pub fn bulk_to_shear_at(scene: &Scene, uniforms: Option<&Uniforms>) -> Vec<BulkToShear> {
     let Some(energy) = scene.lowered.buffers.elem_energy else {
         return Vec::new();
     };
     let mut sim = Simulation::new(scene, Interpreter::new(&scene.lowered.module));
+    if let Some(u) = uniforms {
+        sim.uniforms = u.clone();
+        sim.upload_fields();
+    }
     let nodes = &scene.mesh.nodes;
     let n = nodes.len().max(1) as f64;
     let centre = [0, 1, 2].map(|d| nodes.iter().map(|p| p[d]).sum::<f64>() / n);

@@ -1201,7 +1201,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             pattern = pattern.with_edge_ends(ends);
         }
         let bulk_to_shear = || {
-            super::incompressibility::bulk_to_shear(scene)
+            super::incompressibility::bulk_to_shear_at(scene, Some(&self.uniforms))
                 .iter()
                 .fold(0.0, |m, b| b.ratio.max(m))
         };
