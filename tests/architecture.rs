@@ -296,3 +296,24 @@ fn the_ide_layer_has_no_resolver_of_its_own() {
         found.join("\n")
     );
 }
+
+/// Lowering and the driver read sema's checked program (`sema::hir`: declarations by id, names
+/// resolved once by the checker, expressions typed), never the syntax tree: what they compile
+/// is what the checker checked, and a new construct is added to the checked program once.
+#[test]
+fn lowering_and_the_driver_do_not_read_the_syntax_tree() {
+    let mut found = mentions(
+        "compiler/src/lower",
+        &["front::ast", "ast::", "front::parse"],
+    );
+    found.extend(mentions(
+        "compiler/src/driver",
+        &["front::ast", "ast::", "front::parse"],
+    ));
+    assert!(
+        found.is_empty(),
+        "lower/ or driver/ reads the syntax tree; read sema's checked program (sema::hir) \
+         instead:\n{}",
+        found.join("\n")
+    );
+}

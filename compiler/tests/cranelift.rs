@@ -10,7 +10,6 @@ use softc_compiler::ir::{
     ArgSource, BinOp, Buffer, BufferId, BuiltKernel, CmpOp, Domain, ElementOrder, Func, Inst,
     Kernel, KernelBuilder, Module, Store, UnOp, V, interp,
 };
-use softc_compiler::lower::expr::Program;
 use softc_compiler::lower::fem::element_force_kernel;
 use softc_compiler::sema;
 
@@ -473,9 +472,9 @@ use common::{MATERIALS, NAMES};
 /// One module per material, holding the element force kernel.
 fn fem_modules() -> Vec<(String, Module)> {
     let ast = parse(MATERIALS).unwrap();
-    let (_, diags) = sema::check(&ast, &Default::default());
+    let (checked, diags) = sema::check(&ast, &Default::default());
     assert!(diags.iter().all(|d| !d.is_error()), "{diags:?}");
-    let program = Program::new(&ast, sema::prelude_ast());
+    let program = checked.program;
     NAMES
         .iter()
         .map(|n| {

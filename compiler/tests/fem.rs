@@ -6,7 +6,6 @@
 
 use softc_compiler::front::parse;
 use softc_compiler::ir::{ArgSource, Kernel, Module, interp};
-use softc_compiler::lower::expr::Program;
 use softc_compiler::lower::fem::{
     element_diagnostics_kernel, element_force_kernel, material_density,
 };
@@ -79,9 +78,9 @@ fn run_one(module: &Module, k: &Kernel, tet: &Tet) -> ([[f64; 3]; 4], f64) {
 
 fn kernels() -> Vec<(String, Module, Kernel)> {
     let ast = parse(MATERIALS).unwrap();
-    let (_, diags) = sema::check(&ast, &Default::default());
+    let (checked, diags) = sema::check(&ast, &Default::default());
     assert!(diags.iter().all(|d| !d.is_error()), "{diags:?}");
-    let program = Program::new(&ast, sema::prelude_ast());
+    let program = checked.program;
     NAMES
         .iter()
         .map(|n| {
@@ -271,7 +270,7 @@ fn materials_without_i2bar_generate_no_i2bar_terms() {
 #[test]
 fn densities_are_constants_in_si() {
     let ast = parse(MATERIALS).unwrap();
-    let program = Program::new(&ast, sema::prelude_ast());
+    let program = sema::check(&ast, &Default::default()).0.program;
     assert_eq!(material_density(&program, "yeoh3").unwrap(), 1070.0);
     assert!((material_density(&program, "custom").unwrap() - 1200.0).abs() < 1e-9);
 }

@@ -8,7 +8,6 @@
 use softc_compiler::driver::quadratic_rest_shape;
 use softc_compiler::front::parse;
 use softc_compiler::ir::{ArgSource, Domain, ElementOrder, Kernel, KernelBuilder, Module, interp};
-use softc_compiler::lower::expr::Program;
 use softc_compiler::lower::fem::{element_diagnostics_kernel, element_force_kernel};
 use softc_compiler::lower::quadratic::store_pressure_forces;
 use softc_compiler::passes::simplify::simplify_module;
@@ -20,9 +19,9 @@ use common::{MATERIALS, NAMES};
 /// (name, module, force kernel, diagnostics kernel) per material, for `order`.
 fn kernels(order: ElementOrder) -> Vec<(String, Module, Kernel, Kernel)> {
     let ast = parse(MATERIALS).unwrap();
-    let (_, diags) = sema::check(&ast, &Default::default());
+    let (checked, diags) = sema::check(&ast, &Default::default());
     assert!(diags.iter().all(|d| !d.is_error()), "{diags:?}");
-    let program = Program::new(&ast, sema::prelude_ast());
+    let program = checked.program;
     NAMES
         .iter()
         .map(|n| {

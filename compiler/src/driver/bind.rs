@@ -8,11 +8,11 @@ use super::Resolved;
 use super::loss::{LossKernels, SensorKernels, lower_loss, lower_sensors};
 use super::plan::uniform_name;
 use super::settings::call_parts;
-use crate::front::ast::*;
 use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
 use crate::sema::ParamInfo;
+use crate::sema::hir::DeclKind;
 use crate::sema::mesh_probe::{MeshRefs, Selector, Shape, SurfaceRef};
 use crate::sema::types::Len;
 use std::collections::BTreeMap;
@@ -125,11 +125,9 @@ type Fail<T> = Result<T, String>;
 impl Resolved {
     /// Bind the program to a mesh (elements in file order).
     pub fn bind(&self, kernels: &SceneModule, mesh: &dyn MeshView) -> Fail<Bound> {
-        let program = self.lowering_program();
-        let ast = &self.syntax;
+        let program = &self.program;
         let places = Places {
-            program: &program,
-            ast,
+            program,
             refs: &self.mesh_refs,
         };
         let material_of = assign_materials(&places, mesh, kernels)?;
@@ -179,10 +177,9 @@ impl Resolved {
         } else {
             Default::default()
         };
-        let loss = lower_loss(&program, ast, &node_sets, &element_sets, &node_weights)?;
+        let loss = lower_loss(program, &node_sets, &element_sets, &node_weights)?;
         let sensors = lower_sensors(
-            &program,
-            ast,
+            program,
             &kernels.sensors,
             &node_sets,
             &element_sets,
@@ -304,17 +301,6 @@ impl Resolved {
     }
 }
 
-fn decl<'a>(ast: &'a Script, name: &str) -> Option<(&'a DeclKind, &'a Expr)> {
-    ast.items.iter().find_map(|i| match &i.kind {
-        ItemKind::Decl {
-            kind,
-            name: n,
-            value,
-        } if n.name == name => Some((kind, value)),
-        _ => None,
-    })
-}
-
 /// The geometry of region `name`, as the checker evaluated it.
 fn region<'a>(regions: &'a BTreeMap<String, Shape>, name: &str) -> Fail<&'a Shape> {
     regions
@@ -323,10 +309,9 @@ fn region<'a>(regions: &'a BTreeMap<String, Shape>, name: &str) -> Fail<&'a Shap
 }
 
 /// What binding reads of the checked program: the sets' selectors and the regions' geometry
-/// from the checker, and the syntax of the selection conditions it lowers.
+/// as the checker evaluated them, and the selection conditions it lowers.
 struct Places<'a> {
-    program: &'a Program<'a>,
-    ast: &'a Script,
+    program: &'a Program,
     refs: &'a MeshRefs,
 }
 
@@ -370,9 +355,11 @@ fn selection(places: &Places, mesh: &dyn MeshView, name: &str, elements: bool) -
     Ok(match &set.selector {
         Selector::Condition => {
             // The condition is lowered to a kernel function of x, y, z and evaluated at each
-            // point (the one thing of a selection still read from the syntax tree).
-            let (_, value) =
-                decl(places.ast, name).ok_or_else(|| format!("unknown selection `{name}`"))?;
+            // point.
+            let value = match places.program.find(name).map(|(_, d)| &d.kind) {
+                Some(DeclKind::Nodes(v) | DeclKind::Elements(v)) => v,
+                _ => return Err(format!("unknown selection `{name}`")),
+            };
             let cond = call_parts(value)
                 .and_then(|(_, args)| args.get(1))
                 .map(|a| &a.value)

@@ -4,9 +4,9 @@
 //! run's length is not known here (`dt = auto` is estimated on the device): `t_end` and `dt`
 //! are arguments, and so are the loss window's ends.
 
-use crate::front::ast::{ItemKind, LossWhen, Script};
 use crate::ir::{Builder, Domain, Func, Inst, KernelBuilder, V, ad, interp};
 use crate::lower::expr::{Env, ExprLowerer, Program};
+use crate::sema::hir::{Expr, LossWhen, Span};
 use std::collections::HashMap;
 
 /// What one argument of the loss reads.
@@ -157,7 +157,7 @@ pub struct SensorKernels {
     /// `sensor.I.C`.
     pub uniform: String,
     /// Where the reduction is written (for messages).
-    pub span: crate::front::ast::Span,
+    pub span: Span,
     /// Its value from its arguments, and the value followed by the derivatives.
     pub func: Func,
     pub grad: Func,
@@ -174,20 +174,14 @@ impl SensorKernels {
 /// Lower the scene's sensors over the mesh's sets, one per scalar of each.
 pub(super) fn lower_sensors(
     program: &Program,
-    ast: &Script,
-    sensors: &[crate::front::ast::Expr],
+    sensors: &[Expr],
     node_sets: &[(String, Vec<u32>)],
     element_sets: &[(String, Vec<u32>)],
     node_weights: &HashMap<String, Vec<f64>>,
 ) -> Result<Vec<SensorKernels>, String> {
-    let sim_lets: HashMap<_, _> = (ast.sim_block().iter())
-        .filter_map(|s| match &s.kind {
-            crate::front::ast::StmtKind::Let(l) => Some((l.name.name.clone(), l.value.clone())),
-            _ => None,
-        })
-        .collect();
+    let sim_lets = program.sim_lets();
     // A sensor lowered into a fresh function (each scalar gets its own: its own arguments).
-    let lower = |e: &crate::front::ast::Expr| {
+    let lower = |e: &Expr| {
         let mut lw = ExprLowerer::new(program);
         lw.runtime_names = vec!["t_end", "dt"];
         lw.sim_lets = sim_lets.clone();
@@ -229,15 +223,11 @@ pub(super) fn lower_sensors(
 /// Lower the script's loss; `None` without one.
 pub(super) fn lower_loss(
     program: &Program,
-    ast: &Script,
     node_sets: &[(String, Vec<u32>)],
     element_sets: &[(String, Vec<u32>)],
     node_weights: &HashMap<String, Vec<f64>>,
 ) -> Result<Option<LossKernels>, String> {
-    let Some(decl) = ast.items.iter().find_map(|i| match &i.kind {
-        ItemKind::Loss(l) => Some(l),
-        _ => None,
-    }) else {
+    let Some(decl) = &program.loss else {
         return Ok(None);
     };
     let mut lw = ExprLowerer::new(program);
@@ -252,8 +242,8 @@ pub(super) fn lower_loss(
         .map_err(|e| format!("the loss cannot be evaluated: {e}"))?;
     let (func, grad, args) = host_function(k, v, "the loss")?;
     let window = match &decl.when {
-        LossWhen::Default | LossWhen::AtEnd(_) => None,
-        LossWhen::Over { from, to, .. } => {
+        LossWhen::AtEnd => None,
+        LossWhen::Over { from, to } => {
             let end = |e| -> Result<WindowEnd, String> {
                 let mut c = ExprLowerer::new(program);
                 c.runtime_names = vec!["t_end", "dt"];

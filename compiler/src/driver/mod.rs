@@ -12,8 +12,9 @@ pub mod bind;
 pub mod loss;
 pub mod plan;
 pub mod settings;
-pub mod variant;
 
+pub use crate::front::variant::Variant;
+pub use crate::sema::units::parse_quantity;
 pub use bind::{Bound, FieldSlots, MeshView, ParamSlots, SlotKind};
 pub use loss::{LossArg, LossKernels, LossWindow, SensorKernels};
 pub use plan::{
@@ -23,7 +24,6 @@ pub use plan::{
 pub use settings::{
     CheckpointSpec, CsvLog, DtChoice, ForceModelKind, GradSettings, Integrator, SimSettings,
 };
-pub use variant::Variant;
 
 // What the runtime needs of the compiler's other layers, in one place.
 pub use crate::lower::fem::{REST_SHAPE_WIDTH, rest_shape};
@@ -35,11 +35,11 @@ pub use crate::sema::mesh_probe::{MeshProbe, MeshSummary};
 pub use crate::sema::units::Dim;
 
 use crate::diag::{Diagnostic, SourceFile};
-use crate::front::ast::{Expr, Script};
 use crate::ir::{Domain, KernelBuilder};
 use crate::lower::expr::{Env, ExprLowerer, Program, flatten};
 use crate::lower::scene::lower_scene;
 use crate::sema::CheckOptions;
+use crate::sema::hir::Expr;
 use crate::sema::mesh_probe::MeshRefs;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -162,7 +162,8 @@ pub struct Resolved {
     pub densities: Vec<f64>,
     /// What the script refers to in its mesh, as the checker evaluated it.
     mesh_refs: MeshRefs,
-    syntax: Script,
+    /// The checked program (selections and the loss are lowered from it once a mesh is bound).
+    program: crate::sema::hir::Program,
 }
 
 /// The mesh a script loads.
@@ -218,10 +219,9 @@ pub fn compile(
     }
     let checked_script = checked.script.unwrap_or_default();
     let source = text.to_string();
-    let syntax = crate::front::parse(&source).map_err(|d| fail(vec![d], None))?;
     let lower_err = |e: String| fail(Vec::new(), Some(e));
-    let program = Program::new(&syntax, crate::sema::prelude_ast());
-    let kernels = lower_scene(&program, &syntax).map_err(|e| CompileFailure {
+    let program = &checked_script.program;
+    let kernels = lower_scene(program).map_err(|e| CompileFailure {
         in_kernels: true,
         ..lower_err(e.to_string())
     })?;
@@ -229,35 +229,24 @@ pub fn compile(
         .base_dir
         .clone()
         .unwrap_or_else(|| PathBuf::from("."));
-    let mesh = settings::mesh_decl(&program, &syntax, &base).map_err(&lower_err)?;
-    let sim =
-        SimSettings::resolve(&program, &syntax, checked_script.duration).map_err(&lower_err)?;
-    let grad = GradSettings::resolve(&program, &syntax).map_err(&lower_err)?;
-    let mut inputs = plan::inputs(&program, &syntax).map_err(&lower_err)?;
-    for input in &mut inputs {
-        let checked = checked_script
-            .globals
-            .iter()
-            .find(|g| g.kind == crate::sema::SymKind::Input && g.name == input.name);
-        if let Some(crate::sema::types::Ty::Num { dim, .. }) = checked.and_then(|g| g.ty.as_ref()) {
-            input.dim = *dim;
-        }
-    }
-    let optimize = OptimizeSpec::resolve(&program, &syntax, &checked_script.params, &inputs)
-        .map_err(&lower_err)?;
+    let mesh = settings::mesh_decl(program, &base).map_err(&lower_err)?;
+    let sim = SimSettings::resolve(program, checked_script.duration).map_err(&lower_err)?;
+    let grad = GradSettings::resolve(program).map_err(&lower_err)?;
+    let inputs = plan::inputs(program).map_err(&lower_err)?;
+    let optimize =
+        OptimizeSpec::resolve(program, &checked_script.params, &inputs).map_err(&lower_err)?;
     let densities = kernels
         .materials
         .iter()
-        .map(|m| crate::lower::fem::material_density(&program, m).map_err(|e| e.to_string()))
+        .map(|m| crate::lower::fem::material_density(program, m).map_err(|e| e.to_string()))
         .collect::<Result<_, _>>()
         .map_err(&lower_err)?;
     let warnings = checked.diagnostics;
     // The resolved scene's materials and chambers, read from the script (the reference oracle
     // takes them from here, not from the kernels it checks).
     let materials =
-        crate::lower::scene::scene_materials(&syntax).map_err(|e| lower_err(e.to_string()))?;
-    let chambers = crate::lower::scene::scene_chambers(&syntax);
-    drop(program);
+        crate::lower::scene::scene_materials(program).map_err(|e| lower_err(e.to_string()))?;
+    let chambers = crate::lower::scene::scene_chambers(program);
     Ok(Compiled {
         kernels,
         program: Resolved {
@@ -274,23 +263,12 @@ pub fn compile(
             chambers,
             densities,
             mesh_refs: checked_script.mesh_refs,
-            syntax,
+            program: checked_script.program,
         },
     })
 }
 
 impl Resolved {
-    /// The checked syntax tree. For the independent reference oracle (which must read the
-    /// script itself, not the lowering it checks) and editor tooling; nothing else needs it.
-    pub fn syntax(&self) -> &Script {
-        &self.syntax
-    }
-
-    /// The prelude's syntax tree (the built-in materials), for the reference oracle.
-    pub fn prelude_syntax() -> &'static Script {
-        crate::sema::prelude_ast()
-    }
-
     /// The physical dimension of a param or input given by name (`p_max`, or an entry
     /// `beta.3`): what a value set from outside the script (`softc run --set`) must have.
     pub fn value_dim(&self, name: &str) -> Option<Dim> {
@@ -302,10 +280,6 @@ impl Resolved {
             };
         }
         self.inputs.iter().find(|i| i.name == base).map(|i| i.dim)
-    }
-
-    fn lowering_program(&self) -> Program<'_> {
-        Program::new(&self.syntax, crate::sema::prelude_ast())
     }
 }
 
@@ -332,42 +306,4 @@ pub(crate) fn const_scalar(program: &Program, e: &Expr) -> Result<f64, String> {
         .first()
         .copied()
         .ok_or_else(|| "expected a number".to_string())
-}
-
-/// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end: the
-/// value in SI units and its dimension.
-pub fn parse_quantity(text: &str) -> Result<(f64, Dim), String> {
-    use crate::front::ast::{ExprKind, Item, ItemKind, UnaryOp};
-    let src = format!("let __value = {text}");
-    let ast = crate::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
-    let Some(Item {
-        kind: ItemKind::Let(l),
-        ..
-    }) = ast.items.first()
-    else {
-        return Err(format!("`{text}` is not a value"));
-    };
-    // A leading minus sign: `-3kPa` (the grammar reads it as negation of `3kPa`).
-    let (value_expr, sign) = match &l.value.kind {
-        ExprKind::Unary {
-            op: UnaryOp::Neg,
-            operand,
-        } => (&**operand, -1.0),
-        _ => (&l.value, 1.0),
-    };
-    let (num, dim) = match &value_expr.kind {
-        ExprKind::Number { value, unit, .. } => {
-            let mut factor = 1.0;
-            let mut dim = Dim::NONE;
-            for f in unit.iter().flat_map(|u| &u.factors) {
-                let (k, d) = crate::sema::units::unit(&f.name)
-                    .ok_or_else(|| format!("unknown unit `{}` in `{text}`", f.name))?;
-                factor *= k.powi(f.power);
-                dim = dim.times(d.powi(f.power).unwrap_or(d));
-            }
-            (sign * value * factor, dim)
-        }
-        _ => return Err(format!("`{text}` is not a number with a unit")),
-    };
-    Ok((num, dim))
 }

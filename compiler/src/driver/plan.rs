@@ -4,10 +4,11 @@
 
 use super::settings::call_or_name;
 use super::{const_scalar, const_values};
-use crate::front::ast::*;
 use crate::ir::{Domain, Func, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, Program};
 use crate::sema::ParamInfo;
+use crate::sema::hir::{Arg, Expr, ExprKind, StmtKind, named_arg};
+use crate::sema::types::{Len, Ty};
 
 /// The update rule and its coefficients.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -128,14 +129,11 @@ pub struct OptimizeSpec {
 impl OptimizeSpec {
     pub(super) fn resolve(
         program: &Program,
-        ast: &Script,
         params: &[ParamInfo],
         inputs: &[InputDecl],
     ) -> Result<Option<OptimizeSpec>, String> {
-        let Some(decl) = ast.items.iter().find_map(|i| match &i.kind {
-            ItemKind::Optimize(o) => Some(o),
-            _ => None,
-        }) else {
+        let ast = program;
+        let Some(decl) = &program.optimize else {
             return Ok(None);
         };
         let konst = |e: &Expr| const_scalar(program, e);
@@ -144,10 +142,10 @@ impl OptimizeSpec {
         };
         let mut targets = Vec::new();
         for target in &decl.targets {
-            if !params.iter().any(|p| p.name == target.name) {
-                return Err(format!("`{}` is not a param", target.name));
+            if !params.iter().any(|p| p.name == *target) {
+                return Err(format!("`{target}` is not a param"));
             }
-            targets.push(target.name.clone());
+            targets.push(target.clone());
         }
         let (name, args) = call_or_name(&decl.optimizer)
             .ok_or_else(|| "the optimizer must be gd, sgd, adam or nadam".to_string())?;
@@ -207,14 +205,14 @@ impl OptimizeSpec {
             .max(0.0) as u64;
         let mut stop = None;
         let mut validate = None;
-        for s in decl.body.iter().flatten() {
+        for s in &decl.body {
             match &s.kind {
                 StmtKind::Stop(e) => stop = Some(StopCondition::compile(program, e)?),
                 StmtKind::Validate { input, source } => {
                     let index = inputs
                         .iter()
-                        .position(|i| i.name == input.name)
-                        .ok_or_else(|| format!("`{}` is not an input", input.name))?;
+                        .position(|i| i.name == *input)
+                        .ok_or_else(|| format!("`{input}` is not an input"))?;
                     let per = inputs[index].uniforms.len().max(1);
                     let all = const_values(program, source)?;
                     validate = Some((index, all.chunks(per).map(|c| c.to_vec()).collect()));
@@ -242,23 +240,17 @@ impl OptimizeSpec {
     }
 }
 
-fn named_arg<'a>(args: &'a [Arg], name: &str) -> Option<&'a Expr> {
-    args.iter()
-        .find(|a| a.name.as_ref().is_some_and(|n| n.name == name))
-        .map(|a| &a.value)
-}
-
 /// The script's inputs with their per-scene values.
-pub(super) fn inputs(program: &Program, ast: &Script) -> Result<Vec<InputDecl>, String> {
+pub(super) fn inputs(program: &Program) -> Result<Vec<InputDecl>, String> {
     let mut out = Vec::new();
-    for item in &ast.items {
-        let ItemKind::Input(decl) = &item.kind else {
+    for d in program.user_decls() {
+        let crate::sema::hir::DeclKind::Input(decl) = &d.kind else {
             continue;
         };
         let shape = shape_of(&decl.ty);
         let per: usize = shape.iter().product::<usize>().max(1);
         let uniforms: Vec<String> = (0..per)
-            .map(|i| uniform_name(&format!("input.{}", decl.name.name), &shape, i))
+            .map(|i| uniform_name(&format!("input.{}", d.name), &shape, i))
             .collect();
         let source = match call_or_name(&decl.source) {
             Some(("circle_quadrants", args)) => {
@@ -307,9 +299,8 @@ pub(super) fn inputs(program: &Program, ast: &Script) -> Result<Vec<InputDecl>, 
             _ => vec![0.0; per],
         };
         out.push(InputDecl {
-            name: decl.name.name.clone(),
-            // Filled from the checked types by `compile`.
-            dim: crate::sema::units::Dim::NONE,
+            name: d.name.clone(),
+            dim: decl.ty.dim().unwrap_or(crate::sema::units::Dim::NONE),
             shape,
             uniforms,
             source,
@@ -320,11 +311,10 @@ pub(super) fn inputs(program: &Program, ast: &Script) -> Result<Vec<InputDecl>, 
 }
 
 /// The fixed lengths of a declared type's shape (0 for a set axis).
-pub(super) fn shape_of(ty: &TypeExpr) -> Vec<usize> {
-    ty.shape
-        .iter()
+pub(super) fn shape_of(ty: &Ty) -> Vec<usize> {
+    (ty.shape().iter())
         .map(|s| match s {
-            ShapeItem::Len(n, _) => n.parse().unwrap_or(0),
+            Len::Fixed(n) => *n,
             _ => 0,
         })
         .collect()

@@ -3,8 +3,8 @@
 
 use super::const_scalar;
 use crate::back::Precision;
-use crate::front::ast::*;
 use crate::lower::expr::Program;
+use crate::sema::hir::{Arg, Callee, Expr, ExprKind, Name, StmtKind};
 use std::path::{Path, PathBuf};
 
 /// How the time step is chosen.
@@ -57,19 +57,16 @@ pub struct SimSettings {
 }
 
 impl SimSettings {
-    pub(super) fn resolve(
-        program: &Program,
-        ast: &Script,
-        duration: Option<f64>,
-    ) -> Result<SimSettings, String> {
+    pub(super) fn resolve(program: &Program, duration: Option<f64>) -> Result<SimSettings, String> {
+        let ast = program;
         let setting = |name: &str| {
             ast.sim_setting(name)
                 .map(|e| const_scalar(program, e))
                 .transpose()
         };
-        let integrator = match ast.sim_setting("integrator").map(|e| &e.kind) {
-            Some(ExprKind::Name(n)) if n.name == "quasi_static" => Integrator::QuasiStatic,
-            Some(ExprKind::Name(n)) if n.name == "implicit_euler" => Integrator::ImplicitEuler,
+        let integrator = match ast.sim_setting("integrator").and_then(Expr::implicit_name) {
+            Some("quasi_static") => Integrator::QuasiStatic,
+            Some("implicit_euler") => Integrator::ImplicitEuler,
             _ => Integrator::SemiImplicitEuler,
         };
         if integrator == Integrator::QuasiStatic {
@@ -85,18 +82,16 @@ impl SimSettings {
                 steps: Some(steps),
                 duration: Some(t_end),
                 mass_scaling: 1.0,
-                ..Self::outputs_and_model(program, ast)?
+                ..Self::outputs_and_model(program)?
             });
         }
         let dt = match ast.sim_setting("dt") {
             None => return Err("the sim block has no `dt`".into()),
-            Some(e) => match &e.kind {
-                ExprKind::Name(n) if n.name == "auto" => DtChoice::Auto { safety: 0.9 },
-                ExprKind::Call { callee, args } if matches!(&callee.kind, ExprKind::Name(n) if n.name == "auto") => {
-                    DtChoice::Auto {
-                        safety: const_scalar(program, &args[0].value)?,
-                    }
-                }
+            Some(e) => match e.builtin_call() {
+                Some(("auto", [])) => DtChoice::Auto { safety: 0.9 },
+                Some(("auto", args)) => DtChoice::Auto {
+                    safety: const_scalar(program, &args[0].value)?,
+                },
                 _ => DtChoice::Given(const_scalar(program, e)?),
             },
         };
@@ -108,28 +103,22 @@ impl SimSettings {
             steps,
             duration,
             mass_scaling,
-            ..Self::outputs_and_model(program, ast)?
+            ..Self::outputs_and_model(program)?
         })
     }
 
     /// The settings both integrators read: precision, force model, outputs.
-    fn outputs_and_model(program: &Program, ast: &Script) -> Result<SimSettings, String> {
-        let precision = match ast.sim_setting("precision").map(|e| &e.kind) {
-            Some(ExprKind::Name(n)) if n.name == "f64" => Some(Precision::F64),
-            Some(ExprKind::Name(n)) if n.name == "f32" => Some(Precision::F32),
+    fn outputs_and_model(program: &Program) -> Result<SimSettings, String> {
+        let ast = program;
+        let precision = match ast.sim_setting("precision").and_then(Expr::implicit_name) {
+            Some("f64") => Some(Precision::F64),
+            Some("f32") => Some(Precision::F32),
             _ => None,
         };
         let model = match ast.sim_setting("model").map(|e| &e.kind) {
             Some(ExprKind::Call { args, .. }) => {
-                let alpha = args
-                    .iter()
-                    .find(|a| {
-                        a.name
-                            .as_ref()
-                            .is_some_and(|n| n.name == "volume_stiffness")
-                    })
-                    .or_else(|| args.first().filter(|a| a.name.is_none()))
-                    .map(|a| const_scalar(program, &a.value))
+                let alpha = arg(args, "volume_stiffness", 0)
+                    .map(|a| const_scalar(program, a))
                     .transpose()?
                     .unwrap_or(0.0);
                 ForceModelKind::Springs {
@@ -140,27 +129,30 @@ impl SimSettings {
         };
         let mut vtk_every = None;
         let mut csv = Vec::new();
-        for stmt in ast.sim_block() {
+        for stmt in &ast.sim {
             let StmtKind::Output { what, every, steps } = &stmt.kind else {
                 continue;
             };
             match &what.kind {
-                ExprKind::Name(n) if n.name == "vtk" && *steps && vtk_every.is_none() => {
-                    if let ExprKind::Number { value, .. } = &every.kind {
+                ExprKind::Name(n)
+                    if n.implicit() == Some("vtk") && *steps && vtk_every.is_none() =>
+                {
+                    // A count of steps has no unit: its number is as written.
+                    if let ExprKind::Num(value) = &every.kind {
                         vtk_every = Some(*value as u64);
                     }
                 }
-                ExprKind::Call { callee, args } => {
-                    let (ExprKind::Name(f), Some(ExprKind::Name(set))) =
-                        (&callee.kind, args.first().map(|a| &a.value.kind))
+                ExprKind::Call {
+                    callee: Callee::Builtin(f),
+                    args,
+                } if f == "csv" => {
+                    let Some(ExprKind::Name(Name::Global(set))) =
+                        args.first().map(|a| &a.value.kind)
                     else {
                         continue;
                     };
-                    if f.name != "csv" {
-                        continue;
-                    }
                     csv.push(CsvLog {
-                        set: set.name.clone(),
+                        set: program.decl(*set).name.clone(),
                         every: const_scalar(program, every)?,
                         in_steps: *steps,
                     });
@@ -223,12 +215,13 @@ pub struct GradSettings {
 }
 
 impl GradSettings {
-    pub(super) fn resolve(program: &Program, ast: &Script) -> Result<GradSettings, String> {
+    pub(super) fn resolve(program: &Program) -> Result<GradSettings, String> {
+        let ast = program;
         let constant = |e: &Expr| const_scalar(program, e);
         let mut o = GradSettings::default();
         if let Some(e) = ast.optimize_setting("checkpoint") {
             o.checkpoint = Some(match &e.kind {
-                ExprKind::Name(n) if n.name == "store_all" => CheckpointSpec::StoreAll,
+                ExprKind::Name(n) if n.implicit() == Some("store_all") => CheckpointSpec::StoreAll,
                 ExprKind::Call { callee, args } => {
                     let k = args
                         .first()
@@ -236,8 +229,8 @@ impl GradSettings {
                         .transpose()?
                         .unwrap_or(1.0)
                         .max(1.0) as u64;
-                    match &callee.kind {
-                        ExprKind::Name(n) if n.name == "periodic" => CheckpointSpec::Periodic(k),
+                    match callee {
+                        Callee::Builtin(n) if n == "periodic" => CheckpointSpec::Periodic(k),
                         _ => CheckpointSpec::Revolve(k as usize),
                     }
                 }
@@ -255,23 +248,8 @@ impl GradSettings {
 }
 
 /// The script's `mesh … = load("FILE", unit: …)`, or `mesh_override` in its place.
-pub(super) fn mesh_decl(
-    program: &Program,
-    ast: &Script,
-    base: &Path,
-) -> Result<super::MeshDecl, String> {
-    let value = ast
-        .items
-        .iter()
-        .find_map(|i| match &i.kind {
-            ItemKind::Decl {
-                kind: DeclKind::Mesh,
-                value,
-                ..
-            } => Some(value),
-            _ => None,
-        })
-        .ok_or("the script declares no mesh")?;
+pub(super) fn mesh_decl(program: &Program, base: &Path) -> Result<super::MeshDecl, String> {
+    let value = program.mesh().ok_or("the script declares no mesh")?;
     let ExprKind::Call { args, .. } = &value.kind else {
         return Err("the mesh is not loaded".into());
     };
@@ -288,34 +266,25 @@ pub(super) fn mesh_decl(
         path: base.join(&written),
         written,
         unit,
-        order: crate::lower::scene::element_order(ast),
+        order: crate::lower::scene::element_order(program),
         span,
     })
 }
 
-/// The argument named `name`, or the positional one at `pos`.
-pub(super) fn arg<'a>(args: &'a [Arg], name: &str, pos: usize) -> Option<&'a Expr> {
-    args.iter()
-        .find(|a| a.name.as_ref().is_some_and(|n| n.name == name))
-        .or_else(|| args.get(pos).filter(|a| a.name.is_none()))
-        .map(|a| &a.value)
-}
+pub(super) use crate::sema::hir::arg;
 
-/// A call's callee name and arguments.
+/// A call of a built-in function: its name and arguments.
 pub(super) fn call_parts(e: &Expr) -> Option<(&str, &[Arg])> {
     match &e.kind {
-        ExprKind::Call { callee, args } => match &callee.kind {
-            ExprKind::Name(n) => Some((n.name.as_str(), args.as_slice())),
-            _ => None,
-        },
+        ExprKind::Call {
+            callee: Callee::Builtin(f),
+            args,
+        } => Some((f.as_str(), args.as_slice())),
         _ => None,
     }
 }
 
 /// As [`call_parts`], with a bare name taken as a call without arguments (`adam`, `cosine`).
 pub(super) fn call_or_name(e: &Expr) -> Option<(&str, &[Arg])> {
-    match &e.kind {
-        ExprKind::Name(n) => Some((n.name.as_str(), &[])),
-        _ => call_parts(e),
-    }
+    e.builtin_call()
 }

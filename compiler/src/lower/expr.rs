@@ -14,9 +14,9 @@
 //! or let), it is the uniform `param.NAME.i`, `i` the element's position in the field's set.
 
 use super::LowerError;
-use crate::front::ast::*;
 use crate::ir::{ArgSource, BinOp, BufferId, CmpOp, KernelBuilder, UnOp, V};
-use crate::sema::units;
+use crate::sema::hir::{self, Arg, Callee, DeclKind, Expr, ExprKind, Name, ReduceOp, UnaryOp};
+use crate::sema::types::Len;
 use std::collections::HashMap;
 
 /// The fraction of a window's width before its start from which `window(t, w)` counts `t` in
@@ -48,76 +48,8 @@ impl LVal {
     }
 }
 
-/// The declarations names resolve to: the user's script, then the prelude (a user's
-/// declaration shadows a prelude one of the same name), indexed by name once.
-pub struct Program<'a> {
-    by_name: HashMap<&'a str, &'a Item>,
-}
-
-impl<'a> Program<'a> {
-    pub fn new(user: &'a Script, prelude: &'a Script) -> Self {
-        let mut by_name = HashMap::new();
-        for item in user.items.iter().chain(prelude.items.iter()) {
-            if let Some(name) = item_name(item) {
-                by_name.entry(name).or_insert(item);
-            }
-        }
-        Program { by_name }
-    }
-
-    pub fn find(&self, name: &str) -> Option<&'a Item> {
-        self.by_name.get(name).copied()
-    }
-
-    /// The declared node sets (`false`) and element sets (`true`), by name.
-    pub fn sets(&self) -> Vec<(&'a str, bool)> {
-        let mut sets: Vec<_> = (self.by_name.iter())
-            .filter_map(|(&name, item)| match &item.kind {
-                ItemKind::Decl {
-                    kind: DeclKind::Nodes,
-                    ..
-                } => Some((name, false)),
-                ItemKind::Decl {
-                    kind: DeclKind::Elements,
-                    ..
-                } => Some((name, true)),
-                _ => None,
-            })
-            .collect();
-        sets.sort();
-        sets
-    }
-
-    /// Whether `e` is a reduction over a declared node or element set.
-    pub fn is_set_reduction(&self, e: &Expr) -> Option<&'a str> {
-        let ExprKind::Reduce { domain, .. } = &e.kind else {
-            return None;
-        };
-        let ExprKind::Name(set) = &domain.kind else {
-            return None;
-        };
-        match self.find(&set.name)?.kind {
-            ItemKind::Decl {
-                kind: DeclKind::Nodes | DeclKind::Elements,
-                ref name,
-                ..
-            } => Some(name.name.as_str()),
-            _ => None,
-        }
-    }
-}
-
-pub fn item_name(i: &Item) -> Option<&str> {
-    Some(match &i.kind {
-        ItemKind::Decl { name, .. } => &name.name,
-        ItemKind::Material(m) => &m.name.name,
-        ItemKind::Param(p) => &p.name.name,
-        ItemKind::Input(p) => &p.name.name,
-        ItemKind::Let(l) => &l.name.name,
-        ItemKind::Fn(f) => &f.name.name,
-        _ => return None,
-    })
-}
+/// The checked program names resolve to (sema's [`hir::Program`]).
+pub use crate::sema::hir::Program;
 
 /// Local bindings (function parameters, template parameters, invariants, reduction variables).
 pub type Env = HashMap<String, LVal>;
@@ -157,8 +89,8 @@ struct Inlined {
     binders: Vec<(String, u32, bool)>,
 }
 
-pub struct ExprLowerer<'p, 'a> {
-    pub program: &'p Program<'a>,
+pub struct ExprLowerer<'p> {
+    pub program: &'p Program,
     /// Constants the scene fixes (e.g. `t_end`, `dt`), by name.
     pub constants: HashMap<String, f64>,
     /// Names whose values are known only when the code runs (`t_end` and `dt` in a loss,
@@ -198,8 +130,8 @@ pub struct ExprLowerer<'p, 'a> {
     pub sensors: Option<Vec<Expr>>,
 }
 
-impl<'p, 'a> ExprLowerer<'p, 'a> {
-    pub fn new(program: &'p Program<'a>) -> Self {
+impl<'p> ExprLowerer<'p> {
+    pub fn new(program: &'p Program) -> Self {
         ExprLowerer {
             program,
             constants: HashMap::new(),
@@ -266,29 +198,18 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         e: &Expr,
     ) -> Result<LVal, LowerError> {
         match &e.kind {
-            ExprKind::Number { value, unit, .. } => {
-                let factor = match unit {
-                    Some(u) => unit_factor(u)?,
-                    None => 1.0,
-                };
-                Ok(LVal::S(k.b.constant(value * factor)))
-            }
-            ExprKind::Array { items, unit } => {
-                let factor = match unit {
-                    Some(u) => unit_factor(u)?,
-                    None => 1.0,
-                };
+            ExprKind::Num(value) => Ok(LVal::S(k.b.constant(*value))),
+            ExprKind::Array { items, scale } => {
                 let mut out = Vec::with_capacity(items.len());
                 for it in items {
                     let v = self.lower(k, env, it)?;
-                    out.push(map_scalars(k, &v, &mut |k, x| k.b.scale(factor, x))?);
+                    out.push(map_scalars(k, &v, &mut |k, x| k.b.scale(*scale, x))?);
                 }
                 Ok(LVal::A(out))
             }
             ExprKind::Bool(b) => Ok(LVal::S(k.b.constant(if *b { 1.0 } else { 0.0 }))),
             ExprKind::Str(_) => Err(LowerError::new("strings have no value in a kernel")),
-            ExprKind::Paren(inner) => self.lower(k, env, inner),
-            ExprKind::Name(id) => self.name(k, env, &id.name),
+            ExprKind::Name(name) => self.name(k, env, name),
             ExprKind::Unary { op, operand } => {
                 let v = self.lower(k, env, operand)?;
                 map_scalars(k, &v, &mut |k, x| match op {
@@ -314,68 +235,54 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 let b = self.lower(k, env, otherwise)?;
                 zip_scalars(k, &a, &b, &mut |k, x, y| k.b.select(c, x, y))
             }
-            ExprKind::Field { base, field } => {
+            ExprKind::Field { base, axis } => {
                 let b = self.lower(k, env, base)?;
-                let i = match field.name.as_str() {
-                    "x" => 0,
-                    "y" => 1,
-                    _ => 2,
-                };
                 b.items()?
-                    .get(i)
+                    .get(*axis)
                     .cloned()
                     .ok_or_else(|| LowerError::new("component of a vector shorter than 3"))
             }
             ExprKind::Index { base, indices } => {
                 // Node state `x[n]`, `x0[n]`, `v[n]` of a node bound by a reduction: uniforms
                 // `state.x.NODE.d` the host fills in.
-                if let (ExprKind::Name(b), [ExprKind::Name(n)]) = (
-                    &base.kind,
-                    indices
-                        .iter()
-                        .map(|i| &i.kind)
-                        .collect::<Vec<_>>()
-                        .as_slice(),
-                ) && ["x", "x0", "v"].contains(&b.name.as_str())
-                    && !env.contains_key(&b.name)
-                    && let Some(&node) = self.node_binders.get(&n.name)
+                if let (ExprKind::Name(Name::Implicit(b)), [index]) =
+                    (&base.kind, indices.as_slice())
+                    && ["x", "x0", "v"].contains(&b.as_str())
+                    && let ExprKind::Name(Name::Local(n)) = &index.kind
+                    && let Some(&node) = self.node_binders.get(n)
                 {
                     return Ok(LVal::A(
                         (0..3)
-                            .map(|d| LVal::S(k.uniform(&format!("state.{}.{node}.{d}", b.name))))
+                            .map(|d| LVal::S(k.uniform(&format!("state.{b}.{node}.{d}"))))
                             .collect(),
                     ));
                 }
                 // A field at an element bound by a reduction: `param.NAME.i`.
-                if let (ExprKind::Name(b), [index]) = (&base.kind, indices.as_slice())
-                    && !env.contains_key(&b.name)
-                    && let Some(set) = self.program.find(&b.name).and_then(field_set)
+                if let (ExprKind::Name(Name::Global(id)), [index]) =
+                    (&base.kind, indices.as_slice())
+                    && let DeclKind::Param(p) = &self.program.decl(*id).kind
+                    && let Some(set) = p.field_set()
                 {
-                    let ExprKind::Name(ev) = &index.kind else {
+                    let name = &self.program.decl(*id).name;
+                    let ExprKind::Name(Name::Local(ev)) = &index.kind else {
                         return Err(LowerError::new(format!(
-                            "the per-element param `{}` is indexed by an element of a reduction",
-                            b.name
+                            "the per-element param `{name}` is indexed by an element of a reduction"
                         )));
                     };
-                    let element = *self.element_binders.get(&ev.name).ok_or_else(|| {
+                    let element = *self.element_binders.get(ev).ok_or_else(|| {
                         LowerError::new(format!(
-                            "`{}` is not an element bound by a reduction over an element set",
-                            ev.name
+                            "`{ev}` is not an element bound by a reduction over an element set"
                         ))
                     })?;
-                    let members = self.element_sets.get(&set.name).ok_or_else(|| {
-                        LowerError::new(format!(
-                            "the element set `{}` has no elements here",
-                            set.name
-                        ))
+                    let members = self.element_sets.get(set).ok_or_else(|| {
+                        LowerError::new(format!("the element set `{set}` has no elements here"))
                     })?;
                     let i = members.iter().position(|&m| m == element).ok_or_else(|| {
                         LowerError::new(format!(
-                            "element {element} is not in `{}`, the set of the per-element param `{}`",
-                            set.name, b.name
+                            "element {element} is not in `{set}`, the set of the per-element param `{name}`"
                         ))
                     })?;
-                    return Ok(LVal::S(k.uniform(&format!("param.{}.{i}", b.name))));
+                    return Ok(LVal::S(k.uniform(&format!("param.{name}.{i}"))));
                 }
                 let mut v = self.lower(k, env, base)?;
                 for ie in indices {
@@ -398,7 +305,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 body,
             } => {
                 if self.sensors.is_some()
-                    && let Some(set) = self.program.is_set_reduction(e)
+                    && let Some(set) = self.program.set_reduction(e)
                     && !self.node_sets.contains_key(set)
                     && !self.element_sets.contains_key(set)
                 {
@@ -406,43 +313,53 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                 }
                 self.reduce(k, env, *op, var, domain, body)
             }
-            ExprKind::Call { callee, args } => {
-                let ExprKind::Name(f) = &callee.kind else {
-                    return Err(LowerError::new("only named functions can be called"));
-                };
-                self.call(k, env, &f.name, args)
-            }
+            ExprKind::Call { callee, args } => self.call(k, env, callee, args),
         }
     }
 
-    fn name(&mut self, k: &mut KernelBuilder, env: &Env, name: &str) -> Result<LVal, LowerError> {
-        if let Some(v) = env.get(name) {
-            return Ok(v.clone());
-        }
-        if let Some(c) = self.constants.get(name) {
-            return Ok(LVal::S(k.b.constant(*c)));
-        }
-        if self.runtime_names.contains(&name) {
-            return Ok(LVal::S(k.uniform(name)));
-        }
+    fn name(&mut self, k: &mut KernelBuilder, env: &Env, name: &Name) -> Result<LVal, LowerError> {
         match name {
-            "t" | "dt" => return Ok(LVal::S(k.uniform(name))),
-            "pi" => return Ok(LVal::S(k.b.constant(std::f64::consts::PI))),
-            _ => {}
+            Name::Local(n) => {
+                if let Some(v) = env.get(n) {
+                    return Ok(v.clone());
+                }
+                if self.in_sim_scope
+                    && let Some(value) = self.sim_lets.get(n).cloned()
+                {
+                    return self.inline(k, &format!("sim.{n}"), &Env::new(), &value);
+                }
+                Err(LowerError::new(format!("`{n}` has no value in a kernel")))
+            }
+            Name::Implicit(n) => {
+                // Coordinates inside `select` are bound by the caller.
+                if let Some(v) = env.get(n) {
+                    return Ok(v.clone());
+                }
+                if let Some(c) = self.constants.get(n) {
+                    return Ok(LVal::S(k.b.constant(*c)));
+                }
+                if self.runtime_names.contains(&n.as_str()) {
+                    return Ok(LVal::S(k.uniform(n)));
+                }
+                match n.as_str() {
+                    "t" | "dt" => Ok(LVal::S(k.uniform(n))),
+                    "pi" => Ok(LVal::S(k.b.constant(std::f64::consts::PI))),
+                    _ => Err(LowerError::new(format!("`{n}` has no value in a kernel"))),
+                }
+            }
+            Name::Global(id) => self.global(k, *id),
         }
-        if self.in_sim_scope
-            && let Some(value) = self.sim_lets.get(name).cloned()
-        {
-            return self.inline(k, &format!("sim.{name}"), &Env::new(), &value);
-        }
-        let item = self
-            .program
-            .find(name)
-            .ok_or_else(|| LowerError::new(format!("`{name}` has no value in a kernel")))?;
-        match &item.kind {
-            ItemKind::Let(l) => self.inline_global(k, name, &Env::new(), &l.value),
-            ItemKind::Param(p) => {
-                if field_set(item).is_some() {
+    }
+
+    /// The value of the declaration `id` read by name.
+    fn global(&mut self, k: &mut KernelBuilder, id: hir::DeclId) -> Result<LVal, LowerError> {
+        let program = self.program;
+        let decl = program.decl(id);
+        let name = decl.name.as_str();
+        match &decl.kind {
+            DeclKind::Let(value) => self.inline_global(k, name, &Env::new(), value),
+            DeclKind::Param(p) => {
+                if p.field_set().is_some() {
                     let buffer = self.element_fields.get(name).ok_or_else(|| {
                         LowerError::new(format!(
                             "the per-element param `{name}` has a value only in an element's \
@@ -455,9 +372,9 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
                         component: 0,
                     })));
                 }
-                Ok(uniforms(k, &format!("param.{name}"), &p.ty))
+                Ok(uniforms(k, &format!("param.{name}"), p.ty.shape()))
             }
-            ItemKind::Input(i) => Ok(uniforms(k, &format!("input.{name}"), &i.ty)),
+            DeclKind::Input(i) => Ok(uniforms(k, &format!("input.{name}"), i.ty.shape())),
             _ => Err(LowerError::new(format!(
                 "`{name}` has no value in a kernel"
             ))),
@@ -535,7 +452,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         l: &LVal,
         r: &LVal,
     ) -> Result<LVal, LowerError> {
-        use crate::front::ast::BinOp as A;
+        use hir::BinOp as A;
         let ir = match op {
             A::Add => BinOp::Add,
             A::Sub => BinOp::Sub,
@@ -575,7 +492,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         k: &mut KernelBuilder,
         env: &Env,
         op: ReduceOp,
-        var: &Ident,
+        var: &str,
         domain: &Expr,
         body: &Expr,
     ) -> Result<LVal, LowerError> {
@@ -583,55 +500,51 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         if op == ReduceOp::AreaMean {
             return self.area_mean(k, env, var, domain, body);
         }
-        if let ExprKind::Name(set) = &domain.kind
+        let set = match &domain.kind {
+            ExprKind::Name(Name::Global(id)) => Some(self.program.decl(*id)),
+            _ => None,
+        };
+        if let Some(set) = set
             && let Some(elements) = self.element_sets.get(&set.name).cloned()
         {
             // Over the elements of a set, in the set's order.
             for element in elements {
-                self.element_binders.insert(var.name.clone(), element);
+                self.element_binders.insert(var.to_string(), element);
                 let t = self.lower(k, env, body);
-                self.element_binders.remove(&var.name);
+                self.element_binders.remove(var);
                 terms.push(t?);
             }
-        } else if let ExprKind::Name(set) = &domain.kind
+        } else if let Some(set) = set
             && let Some(nodes) = self.node_sets.get(&set.name).cloned()
         {
             // Over the nodes of a set, in index order (a fixed order: reproducible sums).
             for node in nodes {
-                self.node_binders.insert(var.name.clone(), node);
+                self.node_binders.insert(var.to_string(), node);
                 let t = self.lower(k, env, body);
-                self.node_binders.remove(&var.name);
+                self.node_binders.remove(var);
                 terms.push(t?);
             }
         } else {
             let ExprKind::Binary {
-                op: crate::front::ast::BinOp::Range,
+                op: hir::BinOp::Range,
                 lhs,
                 rhs,
             } = &domain.kind
             else {
-                if let ExprKind::Name(set) = &domain.kind
-                    && let Some(Item {
-                        kind:
-                            ItemKind::Decl {
-                                kind: kind @ (DeclKind::Nodes | DeclKind::Elements),
-                                ..
-                            },
-                        ..
-                    }) = self.program.find(&set.name)
+                if let Some(set) = set
+                    && matches!(set.kind, DeclKind::Nodes(_) | DeclKind::Elements(_))
                 {
                     return Err(LowerError::new(format!(
                         "a reduction over the {} `{}` is evaluated only in the loss (and the \
                          lets it uses): the simulation's kernels are compiled before the mesh \
                          says which entities the set holds",
-                        kind.noun(),
+                        set.kind.noun(),
                         set.name
                     )));
                 }
-                return Err(LowerError::new(format!(
-                    "the reduction's domain `{}` is not a known node set or range",
-                    crate::fmt::expr(domain)
-                )));
+                return Err(LowerError::new(
+                    "the reduction's domain is not a known node set or range",
+                ));
             };
             let lo = self.lower(k, env, lhs)?.scalar()?;
             let hi = self.lower(k, env, rhs)?.scalar()?;
@@ -640,7 +553,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             };
             for i in (lo as i64)..(hi as i64) {
                 let mut inner = env.clone();
-                inner.insert(var.name.clone(), LVal::S(k.b.constant(i as f64)));
+                inner.insert(var.to_string(), LVal::S(k.b.constant(i as f64)));
                 terms.push(self.lower(k, &inner, body)?);
             }
         }
@@ -667,13 +580,14 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         &mut self,
         k: &mut KernelBuilder,
         env: &Env,
-        var: &Ident,
+        var: &str,
         domain: &Expr,
         body: &Expr,
     ) -> Result<LVal, LowerError> {
-        let ExprKind::Name(set) = &domain.kind else {
+        let ExprKind::Name(Name::Global(id)) = &domain.kind else {
             return Err(LowerError::new("`area_mean` runs over a node set"));
         };
+        let set = self.program.decl(*id);
         let (Some(nodes), Some(weights)) = (
             self.node_sets.get(&set.name).cloned(),
             self.node_weights.get(&set.name).cloned(),
@@ -697,9 +611,9 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
             if w == 0.0 {
                 continue;
             }
-            self.node_binders.insert(var.name.clone(), node);
+            self.node_binders.insert(var.to_string(), node);
             let t = self.lower(k, env, body);
-            self.node_binders.remove(&var.name);
+            self.node_binders.remove(var);
             let t = map_scalars(k, &t?, &mut |k, x| k.b.scale(w / total, x))?;
             acc = Some(match acc {
                 None => t,
@@ -713,21 +627,30 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         &mut self,
         k: &mut KernelBuilder,
         env: &Env,
-        name: &str,
+        callee: &Callee,
         args: &[Arg],
     ) -> Result<LVal, LowerError> {
-        // User functions and controllers: inline with their parameters bound.
-        if let Some(item) = self.program.find(name)
-            && let ItemKind::Fn(f) = &item.kind
-        {
-            let params: Vec<(&str, Option<&Expr>)> = f
-                .params
-                .iter()
-                .map(|p| (p.name.name.as_str(), p.default.as_ref()))
-                .collect();
-            let bound = self.bind(k, env, &params, args)?;
-            return self.inline_global(k, name, &bound, &f.body);
-        }
+        let program = self.program;
+        let name = match callee {
+            Callee::Builtin(name) => name.as_str(),
+            // User functions and controllers: inline with their parameters bound.
+            Callee::Decl(id) => {
+                let decl = program.decl(*id);
+                let DeclKind::Fn(f) = &decl.kind else {
+                    return Err(LowerError::new(format!(
+                        "`{}` cannot be evaluated inside a kernel",
+                        decl.name
+                    )));
+                };
+                let params: Vec<(&str, Option<&Expr>)> = f
+                    .params
+                    .iter()
+                    .map(|p| (p.name.as_str(), p.default.as_ref()))
+                    .collect();
+                let bound = self.bind(k, env, &params, args)?;
+                return self.inline_global(k, &decl.name, &bound, &f.body);
+            }
+        };
         let vals: Vec<LVal> = args
             .iter()
             .map(|a| self.lower(k, env, &a.value))
@@ -830,7 +753,7 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
         let mut pos = 0;
         for a in args {
             let pname = match &a.name {
-                Some(n) => n.name.clone(),
+                Some(n) => n.clone(),
                 None => {
                     let p = params
                         .get(pos)
@@ -854,36 +777,14 @@ impl<'p, 'a> ExprLowerer<'p, 'a> {
     }
 }
 
-type BinOp_ = crate::front::ast::BinOp;
-
-/// The element set of a per-element param (a field), `None` for any other item.
-pub fn field_set(item: &Item) -> Option<&Ident> {
-    let ItemKind::Param(p) = &item.kind else {
-        return None;
-    };
-    p.ty.shape.iter().find_map(|s| match s {
-        ShapeItem::Set(id) => Some(id),
-        _ => None,
-    })
-}
-
-fn unit_factor(u: &Unit) -> Result<f64, LowerError> {
-    let mut f = 1.0;
-    for fac in &u.factors {
-        let (k, _) = units::unit(&fac.name)
-            .ok_or_else(|| LowerError::new(format!("unknown unit `{}`", fac.name)))?;
-        f *= k.powi(fac.power);
-    }
-    Ok(f)
-}
+type BinOp_ = hir::BinOp;
 
 /// Uniforms for a param or input of the given declared shape: `NAME` or `NAME.i.j`.
-fn uniforms(k: &mut KernelBuilder, prefix: &str, ty: &TypeExpr) -> LVal {
-    let dims: Vec<usize> = ty
-        .shape
+fn uniforms(k: &mut KernelBuilder, prefix: &str, shape: &[Len]) -> LVal {
+    let dims: Vec<usize> = shape
         .iter()
         .map(|s| match s {
-            ShapeItem::Len(n, _) => n.parse().unwrap_or(0),
+            Len::Fixed(n) => *n,
             _ => 0,
         })
         .collect();

@@ -34,8 +34,8 @@
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, LVal, Program};
-use crate::front::ast::*;
 use crate::ir::{ArgSource, BufferId, Builder, Domain, KernelBuilder, Module, V, ad};
+use crate::sema::hir::{Callee, DeclKind, Expr, ExprKind, MaterialBody, Name, Stmt, StmtKind};
 use std::collections::HashMap;
 
 /// Per-element params readable in an element kernel: the buffer of each, by param name.
@@ -65,21 +65,17 @@ pub fn declare_fields(
 /// The per-element params (fields) a material's constants read, by name, in the order they
 /// appear: names in its template arguments (or its body), through `let`s and `fn`s.
 pub fn material_fields(program: &Program, material: &str) -> Result<Vec<String>, LowerError> {
-    let item = program
-        .find(material)
-        .ok_or_else(|| LowerError::new(format!("unknown material `{material}`")))?;
-    let ItemKind::Material(m) = &item.kind else {
-        return Err(LowerError::new(format!("`{material}` is not a material")));
-    };
+    let m = material_decl(program, material)?;
     let mut found = Vec::new();
     let mut stack: Vec<(&Expr, usize)> = Vec::new();
     match &m.body {
-        MaterialBody::Expr(e) => stack.push((e, 0)),
+        MaterialBody::Instance(e) => stack.push((e, 0)),
         MaterialBody::Block(stmts) => {
             for s in stmts {
                 match &s.kind {
-                    StmtKind::Let(l) => stack.push((&l.value, 0)),
-                    StmtKind::Assign { value, .. } => stack.push((value, 0)),
+                    StmtKind::Let { value, .. } | StmtKind::Assign { value, .. } => {
+                        stack.push((value, 0))
+                    }
                     StmtKind::Energy { body, .. } => stack.push((body, 0)),
                     _ => {}
                 }
@@ -90,24 +86,43 @@ pub fn material_fields(program: &Program, material: &str) -> Result<Vec<String>,
         if depth > 64 {
             return Err(LowerError::new("definitions nested too deeply"));
         }
-        // Names (callees included: they are children of their call).
-        if let ExprKind::Name(id) = &e.kind
-            && let Some(item) = program.find(&id.name)
-        {
-            match &item.kind {
-                ItemKind::Param(p)
-                    if super::expr::field_set(item).is_some() && !found.contains(&p.name.name) =>
-                {
-                    found.push(p.name.name.clone());
+        // Names and callees: the declarations they read.
+        let id = match &e.kind {
+            ExprKind::Name(Name::Global(id))
+            | ExprKind::Call {
+                callee: Callee::Decl(id),
+                ..
+            } => Some(*id),
+            _ => None,
+        };
+        if let Some(id) = id {
+            let decl = program.decl(id);
+            match &decl.kind {
+                DeclKind::Param(p) if p.field_set().is_some() && !found.contains(&decl.name) => {
+                    found.push(decl.name.clone());
                 }
-                ItemKind::Let(l) => stack.push((&l.value, depth + 1)),
-                ItemKind::Fn(f) => stack.push((&f.body, depth + 1)),
+                DeclKind::Let(value) => stack.push((value, depth + 1)),
+                DeclKind::Fn(f) => stack.push((&f.body, depth + 1)),
                 _ => {}
             }
         }
         e.for_each_child(|c| stack.push((c, depth)));
     }
     Ok(found)
+}
+
+/// The declaration of the material `name`.
+fn material_decl<'p>(
+    program: &'p Program,
+    name: &str,
+) -> Result<&'p crate::sema::hir::Material, LowerError> {
+    let (_, decl) = program
+        .find(name)
+        .ok_or_else(|| LowerError::new(format!("unknown material `{name}`")))?;
+    let DeclKind::Material(m) = &decl.kind else {
+        return Err(LowerError::new(format!("`{name}` is not a material")));
+    };
+    Ok(m)
 }
 
 /// Stand-ins for the field buffers of a material whose constants are evaluated outside an
@@ -442,7 +457,7 @@ pub fn material_is_isochoric(program: &Program, material: &str) -> Result<bool, 
     let fields = placeholder_fields(program, material)?;
     let (stmts, _) = material_body(program, &mut k, material, &fields)?;
     Ok(!stmts.iter().any(|s| match &s.kind {
-        StmtKind::Energy { args, .. } => args.iter().any(|a| a.name == "I1"),
+        StmtKind::Energy { args, .. } => args.iter().any(|a| a == "I1"),
         _ => false,
     }))
 }
@@ -462,19 +477,19 @@ pub fn material_energy(
     let mut env = env;
     for s in stmts {
         match &s.kind {
-            StmtKind::Let(l) => {
-                let v = lw.lower(k, &env, &l.value)?;
-                env.insert(l.name.name.clone(), v);
+            StmtKind::Let { name, value } => {
+                let v = lw.lower(k, &env, value)?;
+                env.insert(name.clone(), v);
             }
-            StmtKind::Energy { args, body, .. } => {
+            StmtKind::Energy { args, body } => {
                 for a in args {
-                    let v = match a.name.as_str() {
+                    let v = match a.as_str() {
                         "I1bar" => inv.i1b,
                         "I2bar" => inv.i2b,
                         "I1" => inv.i1,
                         _ => inv.j,
                     };
-                    env.insert(a.name.clone(), LVal::S(v));
+                    env.insert(a.clone(), LVal::S(v));
                 }
                 return lw.lower(k, &env, body)?.scalar();
             }
@@ -495,11 +510,11 @@ pub fn material_density(program: &Program, material: &str) -> Result<f64, LowerE
     lw.element_fields = fields;
     for s in stmts {
         match &s.kind {
-            StmtKind::Let(l) => {
-                let v = lw.lower(&mut k, &env, &l.value)?;
-                env.insert(l.name.name.clone(), v);
+            StmtKind::Let { name, value } => {
+                let v = lw.lower(&mut k, &env, value)?;
+                env.insert(name.clone(), v);
             }
-            StmtKind::Assign { name, value } if name.name == "density" => {
+            StmtKind::Assign { name, value } if name == "density" => {
                 let v = lw.lower(&mut k, &env, value)?.scalar()?;
                 return k.b.func.constant(v).ok_or_else(|| {
                     LowerError::new(format!("the density of `{material}` must be a constant"))
@@ -514,49 +529,40 @@ pub fn material_density(program: &Program, material: &str) -> Result<f64, LowerE
 }
 
 /// The statements of a material's body and the bindings of its template parameters.
-fn material_body<'a>(
-    program: &Program<'a>,
+fn material_body<'p>(
+    program: &'p Program,
     k: &mut KernelBuilder,
     material: &str,
     fields: &Fields,
-) -> Result<(&'a [Stmt], Env), LowerError> {
-    let item = program
-        .find(material)
-        .ok_or_else(|| LowerError::new(format!("unknown material `{material}`")))?;
-    let ItemKind::Material(m) = &item.kind else {
-        return Err(LowerError::new(format!("`{material}` is not a material")));
-    };
-    match &m.body {
+) -> Result<(&'p [Stmt], Env), LowerError> {
+    match &material_decl(program, material)?.body {
         MaterialBody::Block(stmts) => Ok((stmts, Env::new())),
-        MaterialBody::Expr(e) => {
-            let ExprKind::Call { callee, args } = &e.kind else {
+        MaterialBody::Instance(e) => {
+            let ExprKind::Call {
+                callee: Callee::Decl(t),
+                args,
+            } = &e.kind
+            else {
                 return Err(LowerError::new(
                     "a material is a call to a material template",
                 ));
             };
-            let ExprKind::Name(t) = &callee.kind else {
-                return Err(LowerError::new(
-                    "a material is a call to a material template",
-                ));
-            };
-            let template = program.find(&t.name).ok_or_else(|| {
-                LowerError::new(format!("unknown material template `{}`", t.name))
-            })?;
-            let ItemKind::Material(tm) = &template.kind else {
+            let template = program.decl(*t);
+            let DeclKind::Material(tm) = &template.kind else {
                 return Err(LowerError::new(format!(
                     "`{}` is not a material template",
-                    t.name
+                    template.name
                 )));
             };
             let (Some(params), MaterialBody::Block(stmts)) = (&tm.params, &tm.body) else {
                 return Err(LowerError::new(format!(
                     "`{}` is not a material template",
-                    t.name
+                    template.name
                 )));
             };
             let ps: Vec<(&str, Option<&Expr>)> = params
                 .iter()
-                .map(|p| (p.name.name.as_str(), p.default.as_ref()))
+                .map(|p| (p.name.as_str(), p.default.as_ref()))
                 .collect();
             let mut lw = ExprLowerer::new(program);
             lw.element_fields = fields.clone();

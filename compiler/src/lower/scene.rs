@@ -10,11 +10,11 @@ use super::fem::{
     material_is_isochoric,
 };
 use super::springs::{SpringBuffers, spring_force_kernel};
-use crate::front::ast::*;
 use crate::ir::{ArgSource, BufferId, CmpOp, Domain, ElementOrder, KernelBuilder, Module, V};
 use crate::passes::adjoint::{Adjoint, adjoint};
 use crate::passes::simplify::simplify_module;
 use crate::passes::tangent::{JacobianPart, directional_derivative, force_jacobian};
+use crate::sema::hir::{Callee, DeclKind, Expr, ExprKind, Program as Script, StmtKind, arg};
 
 /// The module of a scene plus what the host needs to run it.
 #[derive(Debug, Clone)]
@@ -61,20 +61,14 @@ struct SimScope {
 
 impl SimScope {
     fn of(script: &Script) -> Self {
-        let lets = (script.sim_block().iter())
-            .filter_map(|s| match &s.kind {
-                StmtKind::Let(l) => Some((l.name.name.clone(), l.value.clone())),
-                _ => None,
-            })
-            .collect();
         SimScope {
-            lets,
+            lets: script.sim_lets(),
             sensors: Vec::new(),
         }
     }
 
     /// A lowerer of the block's expressions; [`SimScope::keep`] takes its sensors back.
-    fn lowerer<'p, 'a>(&mut self, program: &'p Program<'a>) -> ExprLowerer<'p, 'a> {
+    fn lowerer<'p>(&mut self, program: &'p Program) -> ExprLowerer<'p> {
         let mut lw = ExprLowerer::new(program);
         lw.sim_lets = self.lets.clone();
         lw.sensors = Some(std::mem::take(&mut self.sensors));
@@ -132,53 +126,40 @@ impl SceneBuffers {
 /// The element order a checked script's mesh declaration asks for: `load(…, order: 2)` is
 /// quadratic, anything else (no `order`, `order: 1`) linear.
 pub fn element_order(script: &Script) -> ElementOrder {
-    let order = script.items.iter().find_map(|i| match &i.kind {
-        ItemKind::Decl {
-            kind: DeclKind::Mesh,
-            value,
-            ..
-        } => match &value.kind {
-            ExprKind::Call { args, .. } => args
-                .iter()
-                .find(|a| a.name.as_ref().is_some_and(|n| n.name == "order"))
-                .map(|a| &a.value),
-            _ => None,
-        },
+    let order = script.mesh().and_then(|mesh| match &mesh.kind {
+        ExprKind::Call { args, .. } => hir_named(args, "order"),
         _ => None,
     });
     match order.map(|e| &e.kind) {
-        Some(ExprKind::Number {
-            value, unit: None, ..
-        }) if *value == 2.0 => ElementOrder::Quadratic,
+        // An order with a unit is refused by the checker.
+        Some(ExprKind::Num(value)) if *value == 2.0 => ElementOrder::Quadratic,
         _ => ElementOrder::Linear,
     }
 }
 
+use crate::sema::hir::named_arg as hir_named;
+
 /// Lower the scene described by a checked script.
-pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, LowerError> {
-    if !script
-        .items
-        .iter()
-        .any(|i| matches!(i.kind, ItemKind::Sim(_)))
-    {
+pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
+    let script = program;
+    if !script.has_sim {
         return Err(LowerError::new("the script has no sim block"));
     }
-    let sim = script.sim_block();
-    let integrator = match script.sim_setting("integrator").map(|e| &e.kind) {
-        Some(ExprKind::Name(n)) => n.name.as_str(),
-        _ => "semi_implicit_euler",
-    };
+    let sim = &script.sim;
+    let integrator = (script.sim_setting("integrator"))
+        .and_then(Expr::implicit_name)
+        .unwrap_or("semi_implicit_euler");
     let quasi_static = integrator == "quasi_static";
     // Per-element params: one value per element of one set.
-    for item in &script.items {
-        if let ItemKind::Param(p) = &item.kind
-            && let Some(set) = super::expr::field_set(item)
-            && p.ty.shape.len() != 1
+    for decl in script.user_decls() {
+        if let DeclKind::Param(p) = &decl.kind
+            && let Some(set) = p.field_set()
+            && p.ty.shape().len() != 1
         {
             return Err(LowerError::new(format!(
                 "the per-element param `{}` has more than one axis; a per-element param has \
                  exactly one, its element set (`{}[{}]`), and one scalar value per element",
-                p.name.name, p.name.name, set.name
+                decl.name, decl.name, set
             )));
         }
     }
@@ -234,12 +215,12 @@ pub fn lower_scene(program: &Program, script: &Script) -> Result<SceneModule, Lo
                 module.order,
                 x_buf,
                 tri_force,
-                &chamber.name,
+                chamber,
                 value,
                 quasi_static,
                 &mut scope,
             )?);
-            chambers.push(chamber.name.clone());
+            chambers.push(chamber.clone());
         }
     }
     if chambers.is_empty() {
@@ -532,19 +513,17 @@ impl MatrixFree {
 /// or the script's one material when it has no `use`.
 pub fn scene_materials(script: &Script) -> Result<Vec<String>, LowerError> {
     let mut materials: Vec<String> = Vec::new();
-    for s in script.sim_block() {
+    for s in &script.sim {
         if let StmtKind::Use { material, .. } = &s.kind
-            && !materials.contains(&material.name)
+            && !materials.contains(material)
         {
-            materials.push(material.name.clone());
+            materials.push(material.clone());
         }
     }
     if materials.is_empty() {
-        let declared: Vec<&str> = script
-            .items
-            .iter()
-            .filter_map(|i| match &i.kind {
-                ItemKind::Material(m) if m.params.is_none() => Some(m.name.name.as_str()),
+        let declared: Vec<&str> = (script.user_decls())
+            .filter_map(|d| match &d.kind {
+                DeclKind::Material(m) if m.params.is_none() => Some(d.name.as_str()),
                 _ => None,
             })
             .collect();
@@ -558,11 +537,9 @@ pub fn scene_materials(script: &Script) -> Result<Vec<String>, LowerError> {
 
 /// The chambers with a pressure, in kernel order (the sim block's order).
 pub fn scene_chambers(script: &Script) -> Vec<String> {
-    script
-        .sim_block()
-        .iter()
+    (script.sim.iter())
         .filter_map(|s| match &s.kind {
-            StmtKind::Pressure { chamber, .. } => Some(chamber.name.clone()),
+            StmtKind::Pressure { chamber, .. } => Some(chamber.clone()),
             _ => None,
         })
         .collect()
@@ -586,17 +563,16 @@ enum ForceModel<'a> {
 }
 
 fn force_model(script: &Script) -> Result<ForceModel<'_>, LowerError> {
-    match script.sim_setting("model").map(|e| &e.kind) {
-        None => Ok(ForceModel::Fem),
-        Some(ExprKind::Name(n)) if n.name == "fem" => Ok(ForceModel::Fem),
-        Some(ExprKind::Call { callee, args }) if matches!(&callee.kind, ExprKind::Name(n) if n.name == "springs") =>
-        {
-            let alpha = args
-                .iter()
-                .find(|a| a.name.as_ref().is_some_and(|n| n.name == "volume_stiffness"))
-                .or_else(|| args.first().filter(|a| a.name.is_none()))
-                .map(|a| &a.value)
-                .ok_or_else(|| {
+    let Some(model) = script.sim_setting("model") else {
+        return Ok(ForceModel::Fem);
+    };
+    match &model.kind {
+        ExprKind::Name(n) if n.implicit() == Some("fem") => Ok(ForceModel::Fem),
+        ExprKind::Call {
+            callee: Callee::Builtin(f),
+            args,
+        } if f == "springs" => {
+            let alpha = arg(args, "volume_stiffness", 0).ok_or_else(|| {
                     LowerError::new(
                         "`springs(…)` needs its volume stiffness, e.g. `springs(volume_stiffness: 1 kPa/mm)`",
                     )
@@ -605,7 +581,7 @@ fn force_model(script: &Script) -> Result<ForceModel<'_>, LowerError> {
                 volume_stiffness: alpha,
             })
         }
-        Some(_) => Err(LowerError::new(
+        _ => Err(LowerError::new(
             "`model` is `fem` or `springs(volume_stiffness: …)`",
         )),
     }

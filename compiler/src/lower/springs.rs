@@ -21,8 +21,8 @@
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, Program};
 use super::fem::{Invariants, declare_fields, material_energy};
-use crate::front::ast::Expr;
 use crate::ir::{ArgSource, BufferId, Domain, KernelBuilder, Module, V, ad};
+use crate::sema::hir::Expr;
 
 /// The six edges of a tet as corner pairs, in the order of the `edge_l0` buffer.
 pub const TET_EDGES: [(u32, u32); 6] = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)];

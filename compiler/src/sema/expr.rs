@@ -11,6 +11,8 @@ impl Checker {
     /// `(-8)^(1/3)`) is an error here, so no infinity or NaN reaches the simulation.
     pub(super) fn check_expr(&mut self, e: &Expr) -> Typed {
         let t = self.check_expr_kind(e);
+        let key = (self.in_prelude, e.span.start, e.span.end);
+        self.hir.types.entry(key).or_insert_with(|| t.ty.clone());
         if let Some(v) = &t.value {
             let mut xs = Vec::new();
             v.flatten(&mut xs);
@@ -339,15 +341,27 @@ impl Checker {
 
     fn check_name(&mut self, id: &Ident) -> Typed {
         let name = id.name.as_str();
-        if let Some((t, def)) = self.lookup_local_def(name) {
+        if let Some((t, def, implicit)) = self.lookup_local_def(name) {
             self.record_use(id, def);
+            let to = if implicit {
+                super::hir::Name::Implicit(name.to_string())
+            } else {
+                super::hir::Name::Local(name.to_string())
+            };
+            self.resolve_name(id, to);
             return t;
         }
         // Not a local: the script can only have declared it as a global (implicit names such
         // as `t` and `x` are reserved).
         match self.globals.get(name).copied() {
-            Some(g) => self.record_global_use(id, g),
-            None => self.record_use(id, None),
+            Some(g) => {
+                self.record_global_use(id, g);
+                self.resolve_name(id, super::hir::Name::Global(g));
+            }
+            None => {
+                self.record_use(id, None);
+                self.resolve_name(id, super::hir::Name::Implicit(name.to_string()));
+            }
         }
         match name {
             "t" if self.ctx.time => return Typed::of(Ty::scalar(Dim::TIME), Var::Time),
@@ -893,14 +907,16 @@ impl Checker {
             return Typed::error();
         };
         let name = id.name.as_str();
-        if let Some((_, def)) = self.lookup_local_def(name) {
+        if let Some((_, def, _)) = self.lookup_local_def(name) {
             self.record_use(id, def);
+            self.resolve_name(id, super::hir::Name::Local(name.to_string()));
             let msg = format!("`{name}` is a value, not a function");
             self.err(Diagnostic::error("E0110", id.span, msg));
             return Typed::error();
         }
         if let Some(&gid) = self.globals.get(name) {
             self.record_global_use(id, gid);
+            self.resolve_name(id, super::hir::Name::Global(gid));
             self.syms[gid].used = true;
             let kind = self.syms[gid].kind;
             return match kind {
@@ -915,6 +931,7 @@ impl Checker {
             };
         }
         self.record_use(id, None);
+        self.resolve_name(id, super::hir::Name::Implicit(name.to_string()));
         if super::builtins::FUNCTIONS.contains(&name) {
             return self.check_builtin(e, id, args);
         }

@@ -840,6 +840,7 @@ impl Checker {
                                 // Listing all three invariants and using two is fine.
                                 warn_unused: false,
                                 def: None,
+                                implicit: false,
                             },
                         );
                     }

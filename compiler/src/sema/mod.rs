@@ -9,6 +9,7 @@
 
 mod builtins;
 mod expr;
+pub mod hir;
 mod items;
 pub mod mesh_probe;
 mod optimize;
@@ -44,6 +45,9 @@ pub struct CheckedScript {
     pub resolution: Resolution,
     /// What the script refers to in its mesh, evaluated once (binding reads it).
     pub(crate) mesh_refs: mesh_probe::MeshRefs,
+    /// The checked program: declarations by id, names resolved, expressions typed (lowering
+    /// and the driver read it, not the syntax tree).
+    pub program: hir::Program,
 }
 
 /// A global declaration of the user's script, as the checker saw it.
@@ -96,6 +100,7 @@ pub fn check(script: &Script, options: &CheckOptions) -> (CheckedScript, Vec<Dia
     c.register(&script.items, false);
     c.check_items(&script.items, false);
     c.finish(&script.items);
+    c.out.program = c.build_program(prelude, script);
     c.out.globals = c
         .syms
         .iter()
@@ -259,6 +264,9 @@ struct Local {
     warn_unused: bool,
     /// Its entry in the resolution table (`None` for implicit names and in the prelude).
     def: Option<usize>,
+    /// A name the language binds here whose value comes from the run (`loss`, `grad_norm`,
+    /// `iteration` in a stop condition), not a binding lowering inlines.
+    implicit: bool,
 }
 
 /// Implicit names visible in the expression being checked.
@@ -316,6 +324,9 @@ struct Checker {
     global_defs: HashMap<usize, usize>,
     /// Uses recorded so far (a body checked twice, e.g. folded at a call, records once).
     seen_uses: std::collections::HashSet<(usize, usize)>,
+    /// Each name's resolution and each expression's type, prelude and script alike, for the
+    /// checked program ([`hir`]).
+    hir: hir::Tables,
 }
 
 impl Checker {
@@ -347,6 +358,7 @@ impl Checker {
             def_at_span: HashMap::new(),
             global_defs: HashMap::new(),
             seen_uses: std::collections::HashSet::new(),
+            hir: hir::Tables::default(),
         }
     }
 
@@ -391,6 +403,13 @@ impl Checker {
         }
     }
 
+    /// Record for the checked program what the name written at `id` refers to (the first
+    /// check of a body decides: a body checked again resolves alike).
+    fn resolve_name(&mut self, id: &crate::front::ast::Ident, to: hir::Name) {
+        let key = (self.in_prelude, id.span.start, id.span.end);
+        self.hir.names.entry(key).or_insert(to);
+    }
+
     /// The resolution-table entry of a parameter of `owner` (a function, controller or
     /// material template).
     fn param_def(
@@ -429,11 +448,11 @@ impl Checker {
 
     /// Look a name up in the local scopes, innermost first, marking it used; with the local's
     /// resolution-table entry.
-    fn lookup_local_def(&mut self, name: &str) -> Option<(Typed, Option<usize>)> {
+    fn lookup_local_def(&mut self, name: &str) -> Option<(Typed, Option<usize>, bool)> {
         for scope in self.scopes.iter_mut().rev() {
             if let Some(l) = scope.get_mut(name) {
                 l.used = true;
-                return Some((l.typed.clone(), l.def));
+                return Some((l.typed.clone(), l.def, l.implicit));
             }
         }
         None
@@ -491,6 +510,7 @@ impl Checker {
                 used: false,
                 warn_unused,
                 def,
+                implicit: false,
             },
         );
     }

@@ -147,6 +147,7 @@ impl Checker {
                                 used: false,
                                 warn_unused: false,
                                 def: None,
+                                implicit: true,
                             },
                         );
                     }

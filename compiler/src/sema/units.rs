@@ -226,3 +226,41 @@ pub fn unit_hint(name: &str) -> Option<&'static str> {
         _ => return None,
     })
 }
+
+/// Parse a value with its unit (`2.5kPa`, `20 us`) with the language's own front end: the
+/// value in SI units and its dimension.
+pub fn parse_quantity(text: &str) -> Result<(f64, Dim), String> {
+    use crate::front::ast::{ExprKind, Item, ItemKind, UnaryOp};
+    let src = format!("let __value = {text}");
+    let ast = crate::front::parse(&src).map_err(|d| format!("`{text}`: {}", d.message))?;
+    let Some(Item {
+        kind: ItemKind::Let(l),
+        ..
+    }) = ast.items.first()
+    else {
+        return Err(format!("`{text}` is not a value"));
+    };
+    // A leading minus sign: `-3kPa` (the grammar reads it as negation of `3kPa`).
+    let (value_expr, sign) = match &l.value.kind {
+        ExprKind::Unary {
+            op: UnaryOp::Neg,
+            operand,
+        } => (&**operand, -1.0),
+        _ => (&l.value, 1.0),
+    };
+    let (num, dim) = match &value_expr.kind {
+        ExprKind::Number { value, unit, .. } => {
+            let mut factor = 1.0;
+            let mut dim = Dim::NONE;
+            for f in unit.iter().flat_map(|u| &u.factors) {
+                let (k, d) = self::unit(&f.name)
+                    .ok_or_else(|| format!("unknown unit `{}` in `{text}`", f.name))?;
+                factor *= k.powi(f.power);
+                dim = dim.times(d.powi(f.power).unwrap_or(d));
+            }
+            (sign * value * factor, dim)
+        }
+        _ => return Err(format!("`{text}` is not a number with a unit")),
+    };
+    Ok((num, dim))
+}

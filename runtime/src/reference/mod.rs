@@ -133,10 +133,29 @@ struct SpringEdge {
     volumes: Vec<(usize, f64)>,
 }
 
+/// The oracle's own parse of a script's text: it reads the script itself, not the compiler's
+/// checked program whose lowering it checks. Kept for the process's life, one per distinct
+/// text (the oracle runs in tests and in `softc bench`'s check, on a handful of scripts).
+fn parsed(source: &str) -> Result<&'static softc_compiler::front::ast::Script, String> {
+    use std::collections::HashMap;
+    use std::sync::{Mutex, OnceLock};
+    type Cache = Mutex<HashMap<String, &'static softc_compiler::front::ast::Script>>;
+    static CACHE: OnceLock<Cache> = OnceLock::new();
+    let mut cache = (CACHE.get_or_init(Default::default).lock())
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    if let Some(s) = cache.get(source) {
+        return Ok(s);
+    }
+    let script = softc_compiler::front::parse(source).map_err(|d| d.message)?;
+    let script: &'static _ = Box::leak(Box::new(script));
+    cache.insert(source.to_string(), script);
+    Ok(script)
+}
+
 impl<'a> Reference<'a> {
     pub fn new(scene: &'a Scene) -> Result<Self, String> {
-        let syntax = scene.resolved.syntax();
-        let prelude = softc_compiler::driver::Resolved::prelude_syntax();
+        let syntax = parsed(&scene.source)?;
+        let prelude = softc_compiler::sema::prelude_ast();
         let mut ev = Evaluator::new(syntax, prelude, &scene.uniforms);
         // Closed-loop control: the sim block's lets and the node sets its reductions read.
         for s in syntax.sim_block() {

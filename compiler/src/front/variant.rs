@@ -1,9 +1,9 @@
-//! A variant of a script, as a compile option: another mesh file and other `sim` settings
+//! A variant of a script, as a compile option (a rewrite of its text, so a front-end matter): another mesh file and other `sim` settings
 //! (`bench --tradeoff` runs one script at several resolutions, precisions, models and
 //! time-step safeties). The compiler applies it to the text at the spans it parsed, so the
 //! variant is checked and compiled like any script, and its text can be saved to reproduce it.
 
-use crate::front::ast::{DeclKind, ExprKind, ItemKind, StmtKind};
+use super::ast::{DeclKind, ExprKind, ItemKind, StmtKind};
 use std::path::PathBuf;
 
 /// What a variant changes.
@@ -26,7 +26,7 @@ impl Variant {
 
     /// The script's text with the variant applied.
     pub fn apply(&self, source: &str) -> Result<String, String> {
-        let ast = crate::front::parse(source).map_err(|d| d.message)?;
+        let ast = super::parse(source).map_err(|d| d.message)?;
         // Edits as (start, end, replacement), applied back to front.
         let mut edits: Vec<(usize, usize, String)> = Vec::new();
         if let Some(order) = self.order {
@@ -96,9 +96,7 @@ impl Variant {
 }
 
 /// The script's mesh declaration's call: its span and arguments.
-fn mesh_call(
-    ast: &crate::front::ast::Script,
-) -> Result<(crate::front::ast::Span, &[crate::front::ast::Arg]), String> {
+fn mesh_call(ast: &super::ast::Script) -> Result<(super::ast::Span, &[super::ast::Arg]), String> {
     ast.items
         .iter()
         .find_map(|item| match &item.kind {
