@@ -22,6 +22,9 @@
 
 use faer::Side;
 use faer::linalg::solvers::Solve;
+use faer::sparse::linalg::cholesky::{
+    IntranodeLbltRef, LdltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
+};
 use faer::sparse::linalg::solvers::{Llt, Lu, SymbolicLlt, SymbolicLu};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 
@@ -704,6 +707,73 @@ pub fn symmetric(transpose: &[usize], relative: f64, values: &[f64]) -> bool {
         .all(|(v, &t)| (v - values[t]).abs() <= tol)
 }
 
+/// The negative eigenvalues of an LBLᵀ factorization's block diagonal B: a 1×1 pivot's
+/// sign, and a 2×2 pivot [[d₁, b], [b, d₂]] has one when its determinant is negative, two when
+/// it is positive and d₁ < 0.
+fn lblt_negative_pivots(symbolic: &SymbolicCholesky<usize>, f: &Lblt) -> usize {
+    use faer::sparse::linalg::cholesky::SymbolicCholeskyRaw;
+    // B's diagonal: in a supernodal factor, the diagonal of each supernode's column-major
+    // block (its columns, then its pattern's rows); in a simplicial one, each column's
+    // diagonal entry (no pivoting: no 2×2 blocks).
+    let diagonal: Vec<f64> = match symbolic.raw() {
+        SymbolicCholeskyRaw::Supernodal(s) => {
+            let mut d = Vec::with_capacity(s.nrows());
+            for k in 0..s.n_supernodes() {
+                let (begin, end) = (s.supernode_begin()[k], s.supernode_end()[k]);
+                let size = end - begin;
+                let rows = size + s.supernode(k).pattern().len();
+                let start = s.col_ptr_for_val()[k];
+                d.extend((0..size).map(|j| f.values[start + j * rows + j]));
+            }
+            d
+        }
+        SymbolicCholeskyRaw::Simplicial(s) => (0..s.nrows())
+            .map(|j| {
+                let (col_ptr, row_idx) = (s.col_ptr(), s.row_idx());
+                (col_ptr[j]..col_ptr[j + 1])
+                    .find(|&k| row_idx[k] == j)
+                    .map_or(0.0, |k| f.values[k])
+            })
+            .collect(),
+    };
+    let mut negative = 0;
+    let mut j = 0;
+    while j < diagonal.len() {
+        let b = f.subdiag[j];
+        if b == 0.0 || j + 1 == diagonal.len() {
+            negative += usize::from(diagonal[j] < 0.0);
+            j += 1;
+        } else {
+            let det = diagonal[j] * diagonal[j + 1] - b * b;
+            negative += if det < 0.0 {
+                1
+            } else if diagonal[j] < 0.0 {
+                2
+            } else {
+                0
+            };
+            j += 2;
+        }
+    }
+    negative
+}
+
+/// The product of the CSC matrix (`pattern`, `values`) with `v`.
+fn multiply_csc(
+    pattern: faer::sparse::SymbolicSparseColMatRef<'_, usize>,
+    values: &[f64],
+    v: &[f64],
+) -> Vec<f64> {
+    let mut out = vec![0.0; pattern.nrows()];
+    let (col_ptr, row_idx) = (pattern.col_ptr(), pattern.row_idx());
+    for (col, &x) in v.iter().enumerate() {
+        for k in col_ptr[col]..col_ptr[col + 1] {
+            out[row_idx[k]] += values[k] * x;
+        }
+    }
+    out
+}
+
 fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
@@ -821,8 +891,11 @@ fn three_two_one(rest: &[[f64; 3]]) -> Result<Vec<usize>, String> {
 
 /// The factorization of the assembled tangent: Cholesky (LLᵀ) when it is symmetric positive
 /// definite — a stable equilibrium of a conservative load, the common case, several times
-/// faster than LU — else LU with partial pivoting (an open pressurised surface, an unstable
-/// state). Symbolic parts are computed once and reused.
+/// faster than LU; a symmetric indefinite one (a Newton iterate away from equilibrium, a free
+/// body's linearized rotations under load, a state past a limit point) by LBLᵀ with
+/// Bunch–Kaufman pivoting inside the supernodes, on the same symbolic factorization, when a
+/// test solve shows it accurate; else LU with partial pivoting (an open pressurised surface).
+/// Symbolic parts are computed once and reused.
 pub struct SparseSolver {
     symbolic: SymbolicSparseColMat<usize>,
     /// The position of each entry's transpose (the pattern is structurally symmetric).
@@ -830,17 +903,37 @@ pub struct SparseSolver {
     /// Relative tolerance of the symmetry test (the entries' round-off).
     symmetry: f64,
     symbolic_llt: Option<SymbolicLlt<usize>>,
+    /// The symbolic Cholesky factorization LBLᵀ runs on.
+    symbolic_lblt: Option<SymbolicCholesky<usize>>,
     symbolic_lu: Option<SymbolicLu<usize>>,
     factor: Option<Factor>,
     /// Whether the matrix can be positive definite (always, since a free body's rigid modes
     /// are pinned rather than held by multipliers).
     may_be_definite: bool,
+    /// The inertia of the last factorization: its number of negative eigenvalues (0 for a
+    /// Cholesky factorization; `None` for LU, which does not tell).
+    negative_eigenvalues: Option<usize>,
 }
 
 enum Factor {
     Llt(Llt<usize, f64>),
+    Lblt(Lblt),
     Lu(Box<Lu<usize, f64>>),
 }
+
+/// The numeric part of an LDLᵀ factorization, or of an LBLᵀ one (faer's intranode
+/// Bunch–Kaufman): L's values, B's subdiagonal (its 2×2 pivots, zero for LDLᵀ) and the
+/// pivoting permutation (empty for LDLᵀ).
+struct Lblt {
+    values: Vec<f64>,
+    subdiag: Vec<f64>,
+    forward: Vec<usize>,
+    inverse: Vec<usize>,
+}
+
+/// The largest relative error of an LBLᵀ solve accepted: above it, unpivoted-across-supernodes
+/// elimination lost accuracy, and LU is used.
+const LBLT_TEST_TOLERANCE: f64 = 1e-8;
 
 impl SparseSolver {
     pub fn new(p: &BlockPattern, symmetry: f64) -> Result<Self, String> {
@@ -856,9 +949,11 @@ impl SparseSolver {
             transpose: p.transpose_map()?,
             symmetry,
             symbolic_llt: None,
+            symbolic_lblt: None,
             symbolic_lu: None,
             factor: None,
             may_be_definite: true,
+            negative_eigenvalues: None,
         })
     }
 
@@ -868,9 +963,15 @@ impl SparseSolver {
     }
 
     /// Factor the matrix with these values (the pattern's order). Returns which
-    /// factorization was used (`"cholesky"` or `"lu"`).
+    /// factorization was used (`"cholesky"`, `"lblt"` or `"lu"`).
     pub fn factor(&mut self, values: &[f64]) -> Result<&'static str, String> {
-        let mat = SparseColMatRef::new(self.symbolic.as_ref(), values);
+        let was_indefinite = self.negative_eigenvalues.is_some_and(|n| n > 0);
+        self.negative_eigenvalues = None;
+        // An indefinite tangent (Newton away from equilibrium) is usually followed by another:
+        // LBLᵀ first then, rather than a Cholesky factorization that fails part way.
+        if was_indefinite && self.symmetric(values) && self.factor_lblt(values)? {
+            return Ok("lblt");
+        }
         if self.may_be_definite && self.symmetric(values) {
             if self.symbolic_llt.is_none() {
                 self.symbolic_llt = Some(
@@ -879,9 +980,14 @@ impl SparseSolver {
                 );
             }
             let symbolic = self.symbolic_llt.clone().expect("computed");
+            let mat = SparseColMatRef::new(self.symbolic.as_ref(), values);
             if let Ok(llt) = Llt::try_new_with_symbolic(symbolic, mat, Side::Lower) {
                 self.factor = Some(Factor::Llt(llt));
+                self.negative_eigenvalues = Some(0);
                 return Ok("cholesky");
+            }
+            if !was_indefinite && self.factor_lblt(values)? {
+                return Ok("lblt");
             }
         }
         if self.symbolic_lu.is_none() {
@@ -891,9 +997,99 @@ impl SparseSolver {
             );
         }
         let symbolic = self.symbolic_lu.clone().expect("computed");
+        let mat = SparseColMatRef::new(self.symbolic.as_ref(), values);
         let lu = Lu::try_new_with_symbolic(symbolic, mat).map_err(|e| format!("{e:?}"))?;
         self.factor = Some(Factor::Lu(Box::new(lu)));
         Ok("lu")
+    }
+
+    /// Factor a symmetric matrix by LBLᵀ and keep it if a test solve (of K·1) is accurate;
+    /// whether it was kept.
+    fn factor_lblt(&mut self, values: &[f64]) -> Result<bool, String> {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        if self.symbolic_lblt.is_none() {
+            self.symbolic_lblt = Some(
+                factorize_symbolic_cholesky(
+                    self.symbolic.as_ref(),
+                    Side::Lower,
+                    SymmetricOrdering::Amd,
+                    Default::default(),
+                )
+                .map_err(|e| format!("symbolic LBLᵀ factorization failed: {e:?}"))?,
+            );
+        }
+        let symbolic = self.symbolic_lblt.as_ref().expect("computed");
+        let n = symbolic.nrows();
+        let mut f = Lblt {
+            values: vec![0.0; symbolic.len_val()],
+            subdiag: vec![0.0; n],
+            forward: Vec::new(),
+            inverse: Vec::new(),
+        };
+        let mat = SparseColMatRef::new(self.symbolic.as_ref(), values);
+        // LDLᵀ without pivoting first: the same supernodal kernels as Cholesky. Bunch–Kaufman
+        // pivoting (inside supernodes) where it meets a zero pivot or loses accuracy.
+        let scratch =
+            symbolic.factorize_numeric_ldlt_scratch::<f64>(faer::Par::Seq, Default::default());
+        let mut buffer = MemBuffer::try_new(scratch).map_err(|e| format!("{e:?}"))?;
+        let ldlt = symbolic.factorize_numeric_ldlt(
+            &mut f.values,
+            mat,
+            Side::Lower,
+            Default::default(),
+            faer::Par::Seq,
+            MemStack::new(&mut buffer),
+            Default::default(),
+        );
+        if ldlt.is_err() {
+            f.forward = vec![0; n];
+            f.inverse = vec![0; n];
+            let scratch = symbolic.factorize_numeric_intranode_lblt_scratch::<f64>(
+                faer::Par::Seq,
+                Default::default(),
+            );
+            let mut buffer = MemBuffer::try_new(scratch).map_err(|e| format!("{e:?}"))?;
+            symbolic.factorize_numeric_intranode_lblt(
+                &mut f.values,
+                &mut f.subdiag,
+                &mut f.forward,
+                &mut f.inverse,
+                mat,
+                Side::Lower,
+                faer::Par::Seq,
+                MemStack::new(&mut buffer),
+                Default::default(),
+            );
+        }
+        let negative = lblt_negative_pivots(symbolic, &f);
+        let previous = self.factor.replace(Factor::Lblt(f));
+        // The test: K·1 solved back to 1.
+        let ones = vec![1.0; n];
+        let mut y = multiply_csc(self.symbolic.as_ref(), values, &ones);
+        self.solve(&mut y);
+        let error = y.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
+        if error.is_finite() && error <= LBLT_TEST_TOLERANCE {
+            self.negative_eigenvalues = Some(negative);
+            return Ok(true);
+        }
+        self.factor = previous;
+        Ok(false)
+    }
+
+    /// Whether faer chose its supernodal factorization for these values (tests).
+    #[cfg(test)]
+    fn symbolic_lblt_raw_is_supernodal(&mut self, values: &[f64]) -> Option<bool> {
+        use faer::sparse::linalg::cholesky::SymbolicCholeskyRaw;
+        self.factor_lblt(values).ok()?;
+        let raw = self.symbolic_lblt.as_ref()?.raw();
+        Some(matches!(raw, SymbolicCholeskyRaw::Supernodal(_)))
+    }
+
+    /// The number of negative eigenvalues of the last factored matrix (Sylvester's law of
+    /// inertia: those of LBLᵀ's block diagonal B), when the factorization tells: Cholesky (0)
+    /// and LBLᵀ do, LU does not.
+    pub fn negative_eigenvalues(&self) -> Option<usize> {
+        self.negative_eigenvalues
     }
 
     /// Solve K·y = b in place.
@@ -902,6 +1098,7 @@ impl SparseSolver {
         let rhs = faer::MatMut::from_column_major_slice_mut(b, n, 1);
         match self.factor.as_ref().expect("factored") {
             Factor::Llt(f) => f.solve_in_place(rhs),
+            Factor::Lblt(f) => self.solve_lblt(f, rhs),
             Factor::Lu(f) => f.solve_in_place(rhs),
         }
     }
@@ -912,14 +1109,112 @@ impl SparseSolver {
         let rhs = faer::MatMut::from_column_major_slice_mut(b, n, 1);
         match self.factor.as_ref().expect("factored") {
             Factor::Llt(f) => f.solve_in_place(rhs),
+            // Symmetric: Kᵀ = K.
+            Factor::Lblt(f) => self.solve_lblt(f, rhs),
             Factor::Lu(f) => f.solve_transpose_in_place(rhs),
         }
+    }
+
+    fn solve_lblt(&self, f: &Lblt, rhs: faer::MatMut<'_, f64>) {
+        use faer::dyn_stack::{MemBuffer, MemStack};
+        let symbolic = self.symbolic_lblt.as_ref().expect("factored by LBLᵀ");
+        let n = symbolic.nrows();
+        let mut buffer = MemBuffer::new(symbolic.solve_in_place_scratch::<f64>(1, faer::Par::Seq));
+        let stack = MemStack::new(&mut buffer);
+        if f.forward.is_empty() {
+            LdltRef::new(symbolic, &f.values).solve_in_place_with_conj(
+                faer::Conj::No,
+                rhs,
+                faer::Par::Seq,
+                stack,
+            );
+            return;
+        }
+        let perm = faer::perm::PermRef::new_checked(&f.forward, &f.inverse, n);
+        IntranodeLbltRef::new(symbolic, &f.values, &f.subdiag, perm).solve_in_place_with_conj(
+            faer::Conj::No,
+            rhs,
+            faer::Par::Seq,
+            stack,
+        );
     }
 }
 
 #[cfg(test)]
 mod rigid_tests {
     use super::*;
+
+    /// A symmetric, strictly diagonally dominant matrix on the pattern of a 12³-cell grid of
+    /// 8-node cells (6,591 dofs, large enough for faer's supernodal factorization): its
+    /// eigenvalues have the signs of its diagonal (shrinking the off-diagonal part to zero never
+    /// makes it singular), so `negative` diagonal entries are its inertia.
+    fn dominant(negative: &dyn Fn(usize) -> bool) -> (BlockPattern, Vec<f64>) {
+        let n = 13;
+        let node = |i: usize, j: usize, k: usize| (i + n * (j + n * k)) as u32;
+        let mut cells = Vec::new();
+        for k in 0..n - 1 {
+            for j in 0..n - 1 {
+                for i in 0..n - 1 {
+                    for (a, b, c) in [(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)] {
+                        cells.push(node(i + a, j + b, k + c));
+                    }
+                    for (a, b, c) in [(0, 0, 1), (1, 0, 1), (0, 1, 1), (1, 1, 1)] {
+                        cells.push(node(i + a, j + b, k + c));
+                    }
+                }
+            }
+        }
+        let rest: Vec<[f64; 3]> = (0..n * n * n)
+            .map(|p| [(p % n) as f64, ((p / n) % n) as f64, (p / (n * n)) as f64])
+            .collect();
+        let mut fixed = vec![false; rest.len()];
+        fixed[0] = true;
+        let pattern = BlockPattern::new(&fixed, (&cells, 8), (&[], 3), false, &rest).unwrap();
+        let column_of = |k: usize| pattern.col_ptr.partition_point(|&p| p <= k) - 1;
+        let values = (pattern.row_idx.iter().enumerate())
+            .map(|(k, &row)| {
+                let col = column_of(k);
+                let (a, b) = (row.min(col) as f64, row.max(col) as f64);
+                match row == col {
+                    true if negative(row) => -100.0,
+                    true => 100.0,
+                    // At most 81 of them per row, each under 0.5 in size.
+                    false => 0.45 * (0.7 * a + 1.3 * b).sin(),
+                }
+            })
+            .collect();
+        (pattern, values)
+    }
+
+    #[test]
+    fn an_indefinite_symmetric_tangent_is_factored_by_lblt_with_its_inertia() {
+        let negative = |row: usize| row % 97 == 5;
+        let (pattern, values) = dominant(&negative);
+        let want = (0..pattern.size()).filter(|&r| negative(r)).count();
+        let mut solver = SparseSolver::new(&pattern, 1e-12).unwrap();
+        assert!(matches!(
+            solver.symbolic_lblt_raw_is_supernodal(&values),
+            Some(true)
+        ));
+        for _ in 0..2 {
+            // The second time straight by LBLᵀ (the last one was indefinite).
+            assert_eq!(solver.factor(&values).unwrap(), "lblt");
+            assert_eq!(solver.negative_eigenvalues(), Some(want));
+            let x: Vec<f64> = (0..pattern.size()).map(|i| (i as f64).cos()).collect();
+            let mut b = multiply_csc(solver.symbolic.as_ref(), &values, &x);
+            solver.solve_transpose(&mut b);
+            let error = b
+                .iter()
+                .zip(&x)
+                .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
+            assert!(error < 1e-12, "{error}");
+        }
+        // A definite one goes back to Cholesky.
+        let (_, definite) = dominant(&|_| false);
+        assert_eq!(solver.factor(&definite).unwrap(), "lblt");
+        assert_eq!(solver.negative_eigenvalues(), Some(0));
+        assert_eq!(solver.factor(&definite).unwrap(), "cholesky");
+    }
 
     fn rest() -> Vec<[f64; 3]> {
         vec![

@@ -15,8 +15,9 @@ const APPROACHING_LIMIT_STIFFNESS: f64 = 0.5;
 /// What the tangent at the last equilibrium of a stalled continuation says about why.
 pub(super) enum StiffnessLost {
     /// Not positive definite (or singular): the equilibrium is unstable, past a limit or
-    /// bifurcation point.
-    Indefinite,
+    /// bifurcation point; with the number of negative eigenvalues (the inertia of its LBLᵀ
+    /// factorization) where known.
+    Indefinite(Option<usize>),
     /// Positive definite, with this fraction of its stiffness at rest along the loads.
     Kept(f64),
     /// Not examined: too large to factor again, matrix-free, or not symmetric (an open
@@ -33,10 +34,15 @@ impl StiffnessLost {
                                     or an ill-conditioned tangent (a stiff insert, ν close to \
                                     0.5: use `precision = f64`)";
         match *self {
-            StiffnessLost::Indefinite => format!(
-                "The tangent stiffness there is not positive definite: the load path has a \
+            StiffnessLost::Indefinite(negative) => format!(
+                "The tangent stiffness there is not positive definite{}: the load path has a \
                  limit point (a snap-through, a ballooning cavity) or a buckling point, which \
-                 a pressure-controlled static solve cannot pass. {DYNAMICS}"
+                 a pressure-controlled static solve cannot pass. {DYNAMICS}",
+                match negative {
+                    Some(1) => " (one negative eigenvalue)".to_string(),
+                    Some(n) if n > 1 => format!(" ({n} negative eigenvalues)"),
+                    _ => String::new(),
+                }
             ),
             StiffnessLost::Kept(kept) if kept < LIMIT_POINT_STIFFNESS => format!(
                 "The tangent there keeps {:.1} % of its stiffness at rest along the loads: it is \
@@ -91,12 +97,12 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let x = self.backend.get(self.ids.x);
         let rest: Vec<f64> = self.scene.mesh.nodes.iter().flatten().copied().collect();
         let mut probe = || -> Result<StiffnessLost, String> {
-            let (last, symmetric, definite) = self.load_compliance(tangent, report, (t, load))?;
+            let (last, symmetric, negative) = self.load_compliance(tangent, report, (t, load))?;
             self.backend.set(self.ids.x, &rest);
             let (at_rest, ..) = self.load_compliance(tangent, report, (t, 0.0))?;
             Ok(match symmetric {
                 false => StiffnessLost::NotExamined,
-                true if !definite => StiffnessLost::Indefinite,
+                true if negative != Some(0) => StiffnessLost::Indefinite(negative),
                 true => StiffnessLost::Kept(at_rest / last),
             })
         };
@@ -107,27 +113,26 @@ impl<'s, B: Backend> Simulation<'s, B> {
         // cannot be examined (non-finite entries) tells nothing.
         Ok(match lost {
             Ok(lost) => lost,
-            Err(e) if e.contains("singular") => StiffnessLost::Indefinite,
+            Err(e) if e.contains("singular") => StiffnessLost::Indefinite(None),
             Err(_) => StiffnessLost::NotExamined,
         })
     }
 
     /// The tangent's compliance along the loads at the current positions, time `t` and load
     /// factor `load` (f·K⁻¹f / f·f, m/N, f the loads at full scale at these positions),
-    /// whether the tangent is symmetric, and whether it is positive definite (Cholesky
-    /// succeeded).
+    /// whether the tangent is symmetric, and its number of negative eigenvalues (0: positive
+    /// definite; from Cholesky or LBLᵀ, `None` after LU).
     fn load_compliance(
         &mut self,
         tangent: &mut Tangent,
         report: &mut SolverReport,
         (t, load): (f64, f64),
-    ) -> Result<(f64, bool, bool), String> {
+    ) -> Result<(f64, bool, Option<usize>), String> {
         let full = self.residual(t, 1.0).map_err(|e| e.0)?;
         let none = self.residual(t, 0.0).map_err(|e| e.0)?;
         // The tangent of this load factor.
         self.residual(t, load).map_err(|e| e.0)?;
         self.factor_tangent(tangent, report)?;
-        let definite = report.factorization == "cholesky";
         let Linear::Direct { lu, values, .. } = &tangent.linear else {
             return Err("internal error: no factored tangent".into());
         };
@@ -140,6 +145,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let mut u = f.clone();
         lu.solve(&mut u);
         let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(p, q)| p * q).sum::<f64>();
-        Ok((dot(&f, &u) / dot(&f, &f), lu.symmetric(values), definite))
+        Ok((
+            dot(&f, &u) / dot(&f, &f),
+            lu.symmetric(values),
+            lu.negative_eigenvalues(),
+        ))
     }
 }
