@@ -13,6 +13,30 @@ pub mod lower;
 pub mod passes;
 pub mod sema;
 
+/// The shipped example scripts, `(path, text)` in name order, for the unit tests that check
+/// something on every one of them.
+#[cfg(test)]
+pub(crate) fn example_scripts() -> Vec<(std::path::PathBuf, String)> {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples");
+    let mut paths: Vec<_> = (std::fs::read_dir(&dir).unwrap())
+        .map(|entry| entry.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "soft"))
+        .collect();
+    paths.sort();
+    assert!(
+        paths.len() >= 15,
+        "{} examples in {}",
+        paths.len(),
+        dir.display()
+    );
+    (paths.into_iter())
+        .map(|p| {
+            let text = std::fs::read_to_string(&p).unwrap();
+            (p, text)
+        })
+        .collect()
+}
+
 pub use driver::{CompileFailure, CompileOptions, Compiled, compile};
 pub use front::decode;
 pub use sema::CheckOptions;

@@ -1197,17 +1197,13 @@ mod tests {
     fn prelude_and_examples_parse() {
         let prelude = include_str!("../sema/prelude.soft");
         parse(prelude).unwrap();
-        for f in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/../examples")).unwrap() {
-            let path = f.unwrap().path();
-            if path.extension().is_some_and(|e| e == "soft") {
-                let text = std::fs::read_to_string(&path).unwrap();
-                let checked = crate::check_source(&text, &Default::default());
-                let file = crate::diag::SourceFile::new("x", &text);
-                for d in &checked.diagnostics {
-                    eprintln!("{}: {}", path.display(), file.render(d));
-                }
-                assert!(checked.diagnostics.is_empty());
+        for (path, text) in crate::example_scripts() {
+            let checked = crate::check_source(&text, &Default::default());
+            let file = crate::diag::SourceFile::new("x", &text);
+            for d in &checked.diagnostics {
+                eprintln!("{}: {}", path.display(), file.render(d));
             }
+            assert!(checked.diagnostics.is_empty());
         }
     }
 }

@@ -1,11 +1,11 @@
-//! Lowering of checked expressions into kernel IR.
+//! Lowering of checked expressions (sema's checked program, [`crate::sema::hir`]) into kernel IR.
 //!
-//! The checker has already established types and units, so lowering works on SI numbers:
-//! arrays become lists of scalars, functions and lets are inlined, `if` becomes `select`,
-//! reductions over integer ranges are unrolled. Names resolve through an environment of local
-//! bindings, then through the script's and the prelude's declarations; params and inputs
-//! become uniforms of the kernel (`param.NAME[.i]`, `input.NAME[.i]`), `t` becomes the
-//! uniform `t`.
+//! The checker has already established types and units and resolved every name, so lowering
+//! works on SI numbers: arrays become lists of scalars, functions and lets are inlined, `if`
+//! becomes `select`, reductions over integer ranges are unrolled. A local name takes its value
+//! from the bindings of the definition being inlined (or the sim block's lets), a declaration's
+//! from the declaration; params and inputs become uniforms of the kernel (`param.NAME[.i]`,
+//! `input.NAME[.i]`), `t` becomes the uniform `t`.
 //!
 //! A per-element param (`param mu: pressure[soft_part]`, a *field*) has two forms: passed whole
 //! (a material constant), it is an `Own` read of the element buffer `param.NAME` — available
