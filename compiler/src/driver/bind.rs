@@ -7,7 +7,6 @@
 use super::Resolved;
 use super::loss::{LossKernels, SensorKernels, lower_loss, lower_sensors};
 use super::plan::uniform_name;
-use super::settings::call_parts;
 use crate::ir::{Domain, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, LVal, Program};
 use crate::lower::scene::SceneModule;
@@ -360,7 +359,8 @@ fn selection(places: &Places, mesh: &dyn MeshView, name: &str, elements: bool) -
                 Some(DeclKind::Nodes(v) | DeclKind::Elements(v)) => v,
                 _ => return Err(format!("unknown selection `{name}`")),
             };
-            let cond = call_parts(value)
+            let cond = value
+                .builtin_call()
                 .and_then(|(_, args)| args.get(1))
                 .map(|a| &a.value)
                 .ok_or("`select` needs a condition")?;

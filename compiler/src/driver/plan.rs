@@ -2,7 +2,6 @@
 //! settings as numbers, the stop condition as a compiled function of the loss, the gradient
 //! norm and the iteration, and every input's per-scene values.
 
-use super::settings::call_or_name;
 use super::{const_scalar, const_values};
 use crate::ir::{Domain, Func, KernelBuilder, interp};
 use crate::lower::expr::{Env, ExprLowerer, Program};
@@ -132,7 +131,6 @@ impl OptimizeSpec {
         params: &[ParamInfo],
         inputs: &[InputDecl],
     ) -> Result<Option<OptimizeSpec>, String> {
-        let ast = program;
         let Some(decl) = &program.optimize else {
             return Ok(None);
         };
@@ -147,7 +145,9 @@ impl OptimizeSpec {
             }
             targets.push(target.clone());
         }
-        let (name, args) = call_or_name(&decl.optimizer)
+        let (name, args) = decl
+            .optimizer
+            .builtin_call()
             .ok_or_else(|| "the optimizer must be gd, sgd, adam or nadam".to_string())?;
         let lr = opt_arg(args, "lr", 0.01)?;
         let optimizer = match name {
@@ -169,8 +169,8 @@ impl OptimizeSpec {
             }
             other => return Err(format!("unknown optimizer `{other}`")),
         };
-        let setting = |n: &str| ast.optimize_setting(n);
-        let schedule = match setting("lr_schedule").and_then(call_or_name) {
+        let setting = |n: &str| program.optimize_setting(n);
+        let schedule = match setting("lr_schedule").and_then(Expr::builtin_call) {
             None | Some(("constant", _)) => LrScheduleSpec::Constant,
             Some(("exponential", a)) => LrScheduleSpec::Exponential {
                 gamma: opt_arg(a, "gamma", 1.0)?,
@@ -184,7 +184,7 @@ impl OptimizeSpec {
             },
             Some((other, _)) => return Err(format!("unknown lr_schedule `{other}`")),
         };
-        let normalize = match setting("normalize").and_then(call_or_name) {
+        let normalize = match setting("normalize").and_then(Expr::builtin_call) {
             None | Some(("none", _)) => NormalizeSpec::None,
             Some(("auto", _)) => NormalizeSpec::Auto,
             Some(("magnitude", a)) => NormalizeSpec::Magnitude {
@@ -252,7 +252,7 @@ pub(super) fn inputs(program: &Program) -> Result<Vec<InputDecl>, String> {
         let uniforms: Vec<String> = (0..per)
             .map(|i| uniform_name(&format!("input.{}", d.name), &shape, i))
             .collect();
-        let source = match call_or_name(&decl.source) {
+        let source = match decl.source.builtin_call() {
             Some(("circle_quadrants", args)) => {
                 let radius = named_arg(args, "radius")
                     .map(|e| const_scalar(program, e))

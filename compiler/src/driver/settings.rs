@@ -4,7 +4,7 @@
 use super::const_scalar;
 use crate::back::Precision;
 use crate::lower::expr::Program;
-use crate::sema::hir::{Arg, Callee, Expr, ExprKind, Name, StmtKind};
+use crate::sema::hir::{Callee, Expr, ExprKind, Name, StmtKind, arg};
 use std::path::{Path, PathBuf};
 
 /// How the time step is chosen.
@@ -58,20 +58,23 @@ pub struct SimSettings {
 
 impl SimSettings {
     pub(super) fn resolve(program: &Program, duration: Option<f64>) -> Result<SimSettings, String> {
-        let ast = program;
         let setting = |name: &str| {
-            ast.sim_setting(name)
+            program
+                .sim_setting(name)
                 .map(|e| const_scalar(program, e))
                 .transpose()
         };
-        let integrator = match ast.sim_setting("integrator").and_then(Expr::implicit_name) {
+        let integrator = match program
+            .sim_setting("integrator")
+            .and_then(Expr::implicit_name)
+        {
             Some("quasi_static") => Integrator::QuasiStatic,
             Some("implicit_euler") => Integrator::ImplicitEuler,
             _ => Integrator::SemiImplicitEuler,
         };
         if integrator == Integrator::QuasiStatic {
             let steps = setting("steps")?.map(|s| s as u64).unwrap_or(1).max(1);
-            let t_end = match (duration, ast.sim_setting("dt")) {
+            let t_end = match (duration, program.sim_setting("dt")) {
                 (Some(d), _) => d,
                 (None, Some(dt)) => const_scalar(program, dt)? * steps as f64,
                 (None, None) => return Err("a quasi-static sim block needs `duration`".into()),
@@ -85,7 +88,7 @@ impl SimSettings {
                 ..Self::outputs_and_model(program)?
             });
         }
-        let dt = match ast.sim_setting("dt") {
+        let dt = match program.sim_setting("dt") {
             None => return Err("the sim block has no `dt`".into()),
             Some(e) => match e.builtin_call() {
                 Some(("auto", [])) => DtChoice::Auto { safety: 0.9 },
@@ -109,13 +112,15 @@ impl SimSettings {
 
     /// The settings both integrators read: precision, force model, outputs.
     fn outputs_and_model(program: &Program) -> Result<SimSettings, String> {
-        let ast = program;
-        let precision = match ast.sim_setting("precision").and_then(Expr::implicit_name) {
+        let precision = match program
+            .sim_setting("precision")
+            .and_then(Expr::implicit_name)
+        {
             Some("f64") => Some(Precision::F64),
             Some("f32") => Some(Precision::F32),
             _ => None,
         };
-        let model = match ast.sim_setting("model").map(|e| &e.kind) {
+        let model = match program.sim_setting("model").map(|e| &e.kind) {
             Some(ExprKind::Call { args, .. }) => {
                 let alpha = arg(args, "volume_stiffness", 0)
                     .map(|a| const_scalar(program, a))
@@ -129,7 +134,7 @@ impl SimSettings {
         };
         let mut vtk_every = None;
         let mut csv = Vec::new();
-        for stmt in &ast.sim {
+        for stmt in &program.sim {
             let StmtKind::Output { what, every, steps } = &stmt.kind else {
                 continue;
             };
@@ -216,10 +221,9 @@ pub struct GradSettings {
 
 impl GradSettings {
     pub(super) fn resolve(program: &Program) -> Result<GradSettings, String> {
-        let ast = program;
         let constant = |e: &Expr| const_scalar(program, e);
         let mut o = GradSettings::default();
-        if let Some(e) = ast.optimize_setting("checkpoint") {
+        if let Some(e) = program.optimize_setting("checkpoint") {
             o.checkpoint = Some(match &e.kind {
                 ExprKind::Name(n) if n.implicit() == Some("store_all") => CheckpointSpec::StoreAll,
                 ExprKind::Call { callee, args } => {
@@ -237,10 +241,10 @@ impl GradSettings {
                 _ => CheckpointSpec::Auto,
             });
         }
-        if let Some(e) = ast.optimize_setting("memory_budget") {
+        if let Some(e) = program.optimize_setting("memory_budget") {
             o.memory_budget = Some(constant(e)? as u64);
         }
-        if let Some(e) = ast.optimize_setting("truncate") {
+        if let Some(e) = program.optimize_setting("truncate") {
             o.truncate = Some(constant(e)?.max(1.0) as u64);
         }
         Ok(o)
@@ -269,22 +273,4 @@ pub(super) fn mesh_decl(program: &Program, base: &Path) -> Result<super::MeshDec
         order: crate::lower::scene::element_order(program),
         span,
     })
-}
-
-pub(super) use crate::sema::hir::arg;
-
-/// A call of a built-in function: its name and arguments.
-pub(super) fn call_parts(e: &Expr) -> Option<(&str, &[Arg])> {
-    match &e.kind {
-        ExprKind::Call {
-            callee: Callee::Builtin(f),
-            args,
-        } => Some((f.as_str(), args.as_slice())),
-        _ => None,
-    }
-}
-
-/// As [`call_parts`], with a bare name taken as a call without arguments (`adam`, `cosine`).
-pub(super) fn call_or_name(e: &Expr) -> Option<(&str, &[Arg])> {
-    e.builtin_call()
 }

@@ -14,7 +14,7 @@ use crate::ir::{ArgSource, BufferId, CmpOp, Domain, ElementOrder, KernelBuilder,
 use crate::passes::adjoint::{Adjoint, adjoint};
 use crate::passes::simplify::simplify_module;
 use crate::passes::tangent::{JacobianPart, directional_derivative, force_jacobian};
-use crate::sema::hir::{Callee, DeclKind, Expr, ExprKind, Program as Script, StmtKind, arg};
+use crate::sema::hir::{Callee, DeclKind, Expr, ExprKind, StmtKind, arg};
 
 /// The module of a scene plus what the host needs to run it.
 #[derive(Debug, Clone)]
@@ -60,9 +60,9 @@ struct SimScope {
 }
 
 impl SimScope {
-    fn of(script: &Script) -> Self {
+    fn of(program: &Program) -> Self {
         SimScope {
-            lets: script.sim_lets(),
+            lets: program.sim_lets(),
             sensors: Vec::new(),
         }
     }
@@ -125,8 +125,8 @@ impl SceneBuffers {
 
 /// The element order a checked script's mesh declaration asks for: `load(…, order: 2)` is
 /// quadratic, anything else (no `order`, `order: 1`) linear.
-pub fn element_order(script: &Script) -> ElementOrder {
-    let order = script.mesh().and_then(|mesh| match &mesh.kind {
+pub fn element_order(program: &Program) -> ElementOrder {
+    let order = program.mesh().and_then(|mesh| match &mesh.kind {
         ExprKind::Call { args, .. } => hir_named(args, "order"),
         _ => None,
     });
@@ -139,19 +139,18 @@ pub fn element_order(script: &Script) -> ElementOrder {
 
 use crate::sema::hir::named_arg as hir_named;
 
-/// Lower the scene described by a checked script.
+/// Lower the scene described by a checked program.
 pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
-    let script = program;
-    if !script.has_sim {
+    if !program.has_sim {
         return Err(LowerError::new("the script has no sim block"));
     }
-    let sim = &script.sim;
-    let integrator = (script.sim_setting("integrator"))
+    let sim = &program.sim;
+    let integrator = (program.sim_setting("integrator"))
         .and_then(Expr::implicit_name)
         .unwrap_or("semi_implicit_euler");
     let quasi_static = integrator == "quasi_static";
     // Per-element params: one value per element of one set.
-    for decl in script.user_decls() {
+    for decl in program.user_decls() {
         if let DeclKind::Param(p) = &decl.kind
             && let Some(set) = p.field_set()
             && p.ty.shape().len() != 1
@@ -164,11 +163,11 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
         }
     }
     let mut module = Module {
-        order: element_order(script),
+        order: element_order(program),
         ..Module::default()
     };
-    let materials = scene_materials(script)?;
-    let model = force_model(script)?;
+    let materials = scene_materials(program)?;
+    let model = force_model(program)?;
     if module.order == ElementOrder::Quadratic && !matches!(model, ForceModel::Fem) {
         return Err(LowerError::new(
             "the spring mesh works on linear tetrahedra: use `model = fem` with `order: 2`, \
@@ -200,7 +199,7 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
             .push(matches!(model, ForceModel::Fem) && !material_is_isochoric(program, m)?);
     }
 
-    let mut scope = SimScope::of(script);
+    let mut scope = SimScope::of(program);
     let mut chambers = Vec::new();
     let tri_force = module.buffer(
         "tri_force",
@@ -230,7 +229,7 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
     // a step reads, so the adjoint pass copies them (same indices) and derives nothing from them.
     let diagnostics;
     let (mut adjoint, statics) = if quasi_static {
-        let node = equilibrium_kernel(program, &mut module, script, !chambers.is_empty())?;
+        let node = equilibrium_kernel(program, &mut module, !chambers.is_empty())?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         simplify_module(&mut module);
@@ -239,13 +238,7 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
             StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), false)?;
         (adjoint, Some(statics))
     } else if integrator == "implicit_euler" {
-        let node = implicit_euler_kernel(
-            program,
-            &mut module,
-            script,
-            !chambers.is_empty(),
-            &mut scope,
-        )?;
+        let node = implicit_euler_kernel(program, &mut module, !chambers.is_empty(), &mut scope)?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         simplify_module(&mut module);
@@ -274,18 +267,12 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
             StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), true)?;
         (adjoint, Some(statics))
     } else {
-        let node = node_kernel(
-            program,
-            &mut module,
-            script,
-            !chambers.is_empty(),
-            &mut scope,
-        )?;
+        let node = node_kernel(program, &mut module, !chambers.is_empty(), &mut scope)?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
         simplify_module(&mut module);
         let mut scale = Vec::new();
-        if let Some(e) = script.optimize_setting("gradient_scale") {
+        if let Some(e) = program.optimize_setting("gradient_scale") {
             scale.push(("v", constant(program, e, "gradient_scale")?));
         }
         let adjoint = adjoint(&module, &[("x", "x_next"), ("v", "v_next")], &scale)
@@ -511,9 +498,9 @@ impl MatrixFree {
 
 /// The materials a scene uses, in kernel order: as the sim block's `use` lines first name them,
 /// or the script's one material when it has no `use`.
-pub fn scene_materials(script: &Script) -> Result<Vec<String>, LowerError> {
+pub fn scene_materials(program: &Program) -> Result<Vec<String>, LowerError> {
     let mut materials: Vec<String> = Vec::new();
-    for s in &script.sim {
+    for s in &program.sim {
         if let StmtKind::Use { material, .. } = &s.kind
             && !materials.contains(material)
         {
@@ -521,7 +508,7 @@ pub fn scene_materials(script: &Script) -> Result<Vec<String>, LowerError> {
         }
     }
     if materials.is_empty() {
-        let declared: Vec<&str> = (script.user_decls())
+        let declared: Vec<&str> = (program.user_decls())
             .filter_map(|d| match &d.kind {
                 DeclKind::Material(m) if m.params.is_none() => Some(d.name.as_str()),
                 _ => None,
@@ -536,8 +523,8 @@ pub fn scene_materials(script: &Script) -> Result<Vec<String>, LowerError> {
 }
 
 /// The chambers with a pressure, in kernel order (the sim block's order).
-pub fn scene_chambers(script: &Script) -> Vec<String> {
-    (script.sim.iter())
+pub fn scene_chambers(program: &Program) -> Vec<String> {
+    (program.sim.iter())
         .filter_map(|s| match &s.kind {
             StmtKind::Pressure { chamber, .. } => Some(chamber.clone()),
             _ => None,
@@ -562,8 +549,8 @@ enum ForceModel<'a> {
     Springs { volume_stiffness: &'a Expr },
 }
 
-fn force_model(script: &Script) -> Result<ForceModel<'_>, LowerError> {
-    let Some(model) = script.sim_setting("model") else {
+fn force_model(program: &Program) -> Result<ForceModel<'_>, LowerError> {
+    let Some(model) = program.sim_setting("model") else {
         return Ok(ForceModel::Fem);
     };
     match &model.kind {
@@ -644,11 +631,10 @@ fn pressure_kernel(
 /// The `damping` rate in kernel `k` (it may follow a schedule or, closed-loop, a sensor).
 fn damping_rate(
     program: &Program,
-    script: &Script,
     k: &mut KernelBuilder,
     scope: &mut SimScope,
 ) -> Result<Option<V>, LowerError> {
-    let Some(e) = script.sim_setting("damping") else {
+    let Some(e) = program.sim_setting("damping") else {
         return Ok(None);
     };
     let mut lw = scope.lowerer(program);
@@ -664,7 +650,6 @@ fn damping_rate(
 fn node_kernel(
     program: &Program,
     module: &mut Module,
-    script: &Script,
     pressure: bool,
     scope: &mut SimScope,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
@@ -677,12 +662,12 @@ fn node_kernel(
     let elem_force = module.buffer_named("elem_force").expect("declared");
     let tri_force = module.buffer_named("tri_force");
     let mut k = KernelBuilder::new("integrate", Domain::Node, "sim");
-    let beta = damping_rate(program, script, &mut k, scope)?;
+    let beta = damping_rate(program, &mut k, scope)?;
     let mut lw = ExprLowerer::new(program);
-    let gravity = script.sim_setting("gravity");
+    let gravity = program.sim_setting("gravity");
     // Gravity acts on the physical mass: with `mass_scaling = s` the scaled inertia m·s
     // meets the force m·g, an acceleration g/s (the steady state does not depend on s).
-    let scaling = match script.sim_setting("mass_scaling") {
+    let scaling = match program.sim_setting("mass_scaling") {
         Some(e) => constant(program, e, "mass_scaling")?,
         None => 1.0,
     };
@@ -743,7 +728,6 @@ fn node_kernel(
 fn equilibrium_kernel(
     program: &Program,
     module: &mut Module,
-    script: &Script,
     pressure: bool,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
     module.buffer("x", Domain::Node, 3, "node positions, m");
@@ -767,7 +751,7 @@ fn equilibrium_kernel(
     let tri_force = module.buffer_named("tri_force");
     let mut k = KernelBuilder::new("equilibrium", Domain::Node, "sim");
     let mut lw = ExprLowerer::new(program);
-    let g = match script.sim_setting("gravity") {
+    let g = match program.sim_setting("gravity") {
         Some(e) => Some(super::expr::flatten(&lw.lower(&mut k, &Env::new(), e)?)),
         None => None,
     };
@@ -807,7 +791,6 @@ fn equilibrium_kernel(
 fn implicit_euler_kernel(
     program: &Program,
     module: &mut Module,
-    script: &Script,
     pressure: bool,
     scope: &mut SimScope,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
@@ -843,13 +826,13 @@ fn implicit_euler_kernel(
     let elem_force = module.buffer_named("elem_force").expect("declared");
     let tri_force = module.buffer_named("tri_force");
     let mut k = KernelBuilder::new("implicit_euler", Domain::Node, "sim");
-    let beta = damping_rate(program, script, &mut k, scope)?;
+    let beta = damping_rate(program, &mut k, scope)?;
     let mut lw = ExprLowerer::new(program);
-    let scaling = match script.sim_setting("mass_scaling") {
+    let scaling = match program.sim_setting("mass_scaling") {
         Some(e) => constant(program, e, "mass_scaling")?,
         None => 1.0,
     };
-    let g = match script.sim_setting("gravity") {
+    let g = match program.sim_setting("gravity") {
         Some(e) => Some(super::expr::flatten(&lw.lower(&mut k, &Env::new(), e)?)),
         None => None,
     };

@@ -289,14 +289,7 @@ impl BlockPattern {
 
     /// K·v for the matrix with these values (the pattern's order), over the free dofs.
     pub fn multiply(&self, values: &[f64], v: &[f64]) -> Vec<f64> {
-        let mut out = vec![0.0; self.size()];
-        for (col, &vc) in v.iter().enumerate().take(self.size()) {
-            let range = self.col_ptr[col]..self.col_ptr[col + 1];
-            for (a, &row) in values[range.clone()].iter().zip(&self.row_idx[range]) {
-                out[row] += a * vc;
-            }
-        }
-        out
+        multiply_csc((&self.col_ptr, &self.row_idx), values, v)
     }
 
     /// Remove the rigid motion from a node-major vector `v` of a free body at positions `x`:
@@ -758,17 +751,15 @@ fn lblt_negative_pivots(symbolic: &SymbolicCholesky<usize>, f: &Lblt) -> usize {
     negative
 }
 
-/// The product of the CSC matrix (`pattern`, `values`) with `v`.
-fn multiply_csc(
-    pattern: faer::sparse::SymbolicSparseColMatRef<'_, usize>,
-    values: &[f64],
-    v: &[f64],
-) -> Vec<f64> {
-    let mut out = vec![0.0; pattern.nrows()];
-    let (col_ptr, row_idx) = (pattern.col_ptr(), pattern.row_idx());
-    for (col, &x) in v.iter().enumerate() {
-        for k in col_ptr[col]..col_ptr[col + 1] {
-            out[row_idx[k]] += values[k] * x;
+/// The product of the square CSC matrix (`col_ptr`, `row_idx`, `values`) with `v`, column by
+/// column (a fixed summation order).
+fn multiply_csc((col_ptr, row_idx): (&[usize], &[usize]), values: &[f64], v: &[f64]) -> Vec<f64> {
+    let size = col_ptr.len() - 1;
+    let mut out = vec![0.0; size];
+    for (col, &vc) in v.iter().enumerate().take(size) {
+        let range = col_ptr[col]..col_ptr[col + 1];
+        for (a, &row) in values[range.clone()].iter().zip(&row_idx[range]) {
+            out[row] += a * vc;
         }
     }
     out
@@ -1065,7 +1056,8 @@ impl SparseSolver {
         let previous = self.factor.replace(Factor::Lblt(f));
         // The test: K·1 solved back to 1.
         let ones = vec![1.0; n];
-        let mut y = multiply_csc(self.symbolic.as_ref(), values, &ones);
+        let csc = (self.symbolic.col_ptr(), self.symbolic.row_idx());
+        let mut y = multiply_csc(csc, values, &ones);
         self.solve(&mut y);
         let error = y.iter().fold(0.0f64, |m, v| m.max((v - 1.0).abs()));
         if error.is_finite() && error <= LBLT_TEST_TOLERANCE {
@@ -1201,7 +1193,7 @@ mod rigid_tests {
             assert_eq!(solver.factor(&values).unwrap(), "lblt");
             assert_eq!(solver.negative_eigenvalues(), Some(want));
             let x: Vec<f64> = (0..pattern.size()).map(|i| (i as f64).cos()).collect();
-            let mut b = multiply_csc(solver.symbolic.as_ref(), &values, &x);
+            let mut b = pattern.multiply(&values, &x);
             solver.solve_transpose(&mut b);
             let error = b
                 .iter()
