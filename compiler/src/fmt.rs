@@ -288,6 +288,21 @@ impl Formatter<'_> {
             StmtKind::Pressure { chamber, value } => {
                 format!("pressure {} = {}", chamber.name, expr(value))
             }
+            StmtKind::Contact {
+                body,
+                obstacle,
+                args,
+            } if args.is_empty() => format!("contact {} with {}", body.name, obstacle.name),
+            StmtKind::Contact {
+                body,
+                obstacle,
+                args,
+            } => format!(
+                "contact {} with {} {}",
+                body.name,
+                obstacle.name,
+                call_args(args)
+            ),
             StmtKind::Use { material, set } => match set {
                 Some(set) => format!("use {} in {}", material.name, set.name),
                 None => format!("use {}", material.name),
@@ -305,6 +320,18 @@ impl Formatter<'_> {
         };
         self.out.push_str(&text);
     }
+}
+
+/// `(a, name: b)`.
+fn call_args(args: &[Arg]) -> String {
+    let args: Vec<String> = args
+        .iter()
+        .map(|a| match &a.name {
+            Some(n) => format!("{}: {}", n.name, expr(&a.value)),
+            None => expr(&a.value),
+        })
+        .collect();
+    format!("({})", args.join(", "))
 }
 
 fn let_decl(l: &LetDecl) -> String {
@@ -400,16 +427,7 @@ pub fn expr(e: &Expr) -> String {
             BinOp::Pow | BinOp::Range => format!("{}{}{}", expr(lhs), op.symbol(), expr(rhs)),
             _ => format!("{} {} {}", expr(lhs), op.symbol(), expr(rhs)),
         },
-        ExprKind::Call { callee, args } => {
-            let args: Vec<String> = args
-                .iter()
-                .map(|a| match &a.name {
-                    Some(n) => format!("{}: {}", n.name, expr(&a.value)),
-                    None => expr(&a.value),
-                })
-                .collect();
-            format!("{}({})", expr(callee), args.join(", "))
-        }
+        ExprKind::Call { callee, args } => format!("{}{}", expr(callee), call_args(args)),
         ExprKind::Index { base, indices } => {
             let idx: Vec<String> = indices.iter().map(expr).collect();
             format!("{}[{}]", expr(base), idx.join(", "))

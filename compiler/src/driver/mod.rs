@@ -28,7 +28,7 @@ pub use settings::{
 // What the runtime needs of the compiler's other layers, in one place.
 pub use crate::lower::fem::{REST_SHAPE_WIDTH, rest_shape};
 pub use crate::lower::quadratic::quadratic_rest_shape;
-pub use crate::lower::scene::{ImplicitStep, MatrixFree, SceneModule, StaticKernels};
+pub use crate::lower::scene::{ImplicitStep, MatrixFree, NodeJacobian, SceneModule, StaticKernels};
 pub use crate::lower::springs::TET_EDGES;
 pub use crate::sema::ParamInfo;
 pub use crate::sema::mesh_probe::{MeshProbe, MeshSummary};

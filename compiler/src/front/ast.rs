@@ -76,6 +76,8 @@ pub enum DeclKind {
     Chamber,
     Nodes,
     Elements,
+    /// `obstacle NAME = plane(…)` or `sphere(…)`: a rigid body the mesh may touch.
+    Obstacle,
 }
 
 impl DeclKind {
@@ -87,6 +89,7 @@ impl DeclKind {
             DeclKind::Chamber => "chamber",
             DeclKind::Nodes => "node set",
             DeclKind::Elements => "element set",
+            DeclKind::Obstacle => "obstacle",
         }
     }
 
@@ -97,6 +100,7 @@ impl DeclKind {
             DeclKind::Chamber => "chamber",
             DeclKind::Nodes => "nodes",
             DeclKind::Elements => "elements",
+            DeclKind::Obstacle => "obstacle",
         }
     }
 }
@@ -278,6 +282,12 @@ pub enum StmtKind {
     Use {
         material: Ident,
         set: Option<Ident>,
+    },
+    /// `contact BODY with OBSTACLE (gap: …, stiffness: …)`: BODY the mesh or a node set.
+    Contact {
+        body: Ident,
+        obstacle: Ident,
+        args: Vec<Arg>,
     },
     Output {
         what: Expr,

@@ -225,13 +225,13 @@ fn rule_description(r: Rule) -> Option<&'static str> {
         | kw_true | kw_false | kw_if | kw_not => "an expression",
         EOI => "end of file",
         mesh_decl | material_decl | region_decl | chamber_decl | nodes_decl | elements_decl
-        | param_decl | input_decl | fn_decl | controller_decl | sim_block | loss_decl
+        | obstacle_decl | kw_obstacle | param_decl | input_decl | fn_decl | controller_decl | sim_block | loss_decl
         | optimize_decl | kw_mesh | kw_material | kw_region | kw_chamber | kw_nodes
         | kw_elements | kw_param | kw_input | kw_fn | kw_controller | kw_sim | kw_loss
         | kw_optimize => "a declaration",
         let_decl | kw_let => "`let`",
         fix_stmt | kw_fix | pressure_stmt | kw_pressure | use_stmt | kw_use | output_stmt
-        | kw_output | assign => "a statement",
+        | kw_output | contact_stmt | kw_contact | assign => "a statement",
         stop_stmt | kw_stop | validate_stmt | kw_validate => "a statement",
         energy_def => "`W(I1bar, I2bar, J) = …`",
         add_op | mul_op | cmp_op | pow_op | range_op | kw_and | kw_or => "an operator",
@@ -422,6 +422,8 @@ fn is_punct(r: Rule) -> bool {
             | kw_iterations
             | kw_fix
             | kw_pressure
+            | kw_obstacle
+            | kw_contact
             | kw_use
             | kw_output
             | kw_every
@@ -452,12 +454,14 @@ fn build_item(p: Pair<Rule>) -> Result<Item> {
         | Rule::region_decl
         | Rule::chamber_decl
         | Rule::nodes_decl
-        | Rule::elements_decl => {
+        | Rule::elements_decl
+        | Rule::obstacle_decl => {
             let kind = match rule {
                 Rule::mesh_decl => DeclKind::Mesh,
                 Rule::region_decl => DeclKind::Region,
                 Rule::chamber_decl => DeclKind::Chamber,
                 Rule::nodes_decl => DeclKind::Nodes,
+                Rule::obstacle_decl => DeclKind::Obstacle,
                 _ => DeclKind::Elements,
             };
             let mut it = content(p);
@@ -764,6 +768,20 @@ fn build_stmt(p: Pair<Rule>) -> Result<Stmt> {
             let set = it.next().map(ident);
             StmtKind::Use { material, set }
         }
+        Rule::contact_stmt => {
+            let mut it = content(p);
+            let body = ident(it.next().unwrap());
+            let obstacle = ident(it.next().unwrap());
+            let args = match it.next() {
+                Some(q) => call_args(q)?.0,
+                None => Vec::new(),
+            };
+            StmtKind::Contact {
+                body,
+                obstacle,
+                args,
+            }
+        }
         Rule::output_stmt => {
             let mut it = content(p);
             let what = build_expr(it.next().unwrap())?;
@@ -787,6 +805,26 @@ fn build_stmt(p: Pair<Rule>) -> Result<Stmt> {
 
 /// An expression with its tree depth, so chains can be refused before they grow unbounded.
 type Built = (Expr, usize);
+
+/// A call's arguments and their deepest tree depth.
+fn call_args(q: Pair<Rule>) -> Result<(Vec<Arg>, usize)> {
+    let mut args = Vec::new();
+    let mut d = 0;
+    for a in content(q) {
+        let mut name = None;
+        let mut value = None;
+        for part in content(a) {
+            match part.as_rule() {
+                Rule::arg_name => name = Some(ident(part)),
+                _ => value = Some(expr(part)?),
+            }
+        }
+        let v = value.unwrap();
+        d = d.max(v.1);
+        args.push(Arg { name, value: v.0 });
+    }
+    Ok((args, d))
+}
 
 fn build_expr(p: Pair<Rule>) -> Result<Expr> {
     Ok(expr(p)?.0)
@@ -950,21 +988,8 @@ fn expr(p: Pair<Rule>) -> Result<Built> {
                 let whole = acc.0.span.to(qs);
                 acc = match q.as_rule() {
                     Rule::call_args => {
-                        let mut args = Vec::new();
-                        let mut d = acc.1;
-                        for a in content(q) {
-                            let mut name = None;
-                            let mut value = None;
-                            for part in content(a) {
-                                match part.as_rule() {
-                                    Rule::arg_name => name = Some(ident(part)),
-                                    _ => value = Some(expr(part)?),
-                                }
-                            }
-                            let v = value.unwrap();
-                            d = d.max(v.1);
-                            args.push(Arg { name, value: v.0 });
-                        }
+                        let (args, depth) = call_args(q)?;
+                        let d = acc.1.max(depth);
                         node(
                             ExprKind::Call {
                                 callee: Box::new(acc.0),

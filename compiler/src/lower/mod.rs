@@ -1,6 +1,7 @@
 //! Lowering from a checked script to kernel IR: materials to strain energies, strain energies
 //! to element force kernels (the compiler differentiates W), and the other forces of a scene.
 
+pub mod contact;
 pub mod expr;
 pub mod fem;
 pub mod quadratic;

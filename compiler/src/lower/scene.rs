@@ -4,6 +4,7 @@
 //! away when absent, constants folded into the code.
 
 use super::LowerError;
+use super::contact::{contact_kernels, has_contact, node_contact_force};
 use super::expr::{Env, ExprLowerer, Program};
 use super::fem::{
     FemBuffers, element_diagnostics_kernel, element_force_kernel, material_fields,
@@ -47,6 +48,9 @@ pub struct SceneModule {
     pub buffers: SceneBuffers,
     /// `integrator = quasi_static`: the equilibrium solve's kernels.
     pub statics: Option<StaticKernels>,
+    /// `contact … with …` statements: their buffers and the kernels that report them and
+    /// limit Newton steps (static and implicit solves only).
+    pub contacts: Option<super::contact::Contacts>,
     /// Closed-loop control: the reductions over node or element sets that pressures and
     /// damping read; the kernels read sensor `i` as the uniforms `sensor.i.C`
     /// ([`ExprLowerer::sensors`]).
@@ -228,19 +232,27 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
     // The diagnostics kernels follow the node kernel: not part of a step, and writing no buffer
     // a step reads, so the adjoint pass copies them (same indices) and derives nothing from them.
     let diagnostics;
+    let contacts;
     let (mut adjoint, statics) = if quasi_static {
         let node = equilibrium_kernel(program, &mut module, !chambers.is_empty())?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
+        contacts = contact_kernels(program, &mut module)?;
         simplify_module(&mut module);
         let mut adjoint = adjoint(&module, &[("x", "residual")], &[]).map_err(LowerError::new)?;
-        let statics =
-            StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), false)?;
+        let statics = StaticKernels::add(
+            &mut adjoint.module,
+            materials.len(),
+            chambers.len(),
+            false,
+            contacts.is_some(),
+        )?;
         (adjoint, Some(statics))
     } else if integrator == "implicit_euler" {
         let node = implicit_euler_kernel(program, &mut module, !chambers.is_empty(), &mut scope)?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
+        contacts = contact_kernels(program, &mut module)?;
         simplify_module(&mut module);
         // The step's inputs besides the iterate x: the state it starts from. Their adjoints
         // (∂residual/∂x_prev, ∂residual/∂v_prev transposed) carry the gradient back a step;
@@ -263,10 +275,22 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
             &[],
         )
         .map_err(LowerError::new)?;
-        let statics =
-            StaticKernels::add(&mut adjoint.module, materials.len(), chambers.len(), true)?;
+        let statics = StaticKernels::add(
+            &mut adjoint.module,
+            materials.len(),
+            chambers.len(),
+            true,
+            contacts.is_some(),
+        )?;
         (adjoint, Some(statics))
     } else {
+        if has_contact(program) {
+            return Err(LowerError::new(
+                "contact needs `integrator = quasi_static` or `integrator = implicit_euler`: \
+                 explicit runs (semi-implicit Euler) have no contact yet",
+            ));
+        }
+        contacts = None;
         let node = node_kernel(program, &mut module, !chambers.is_empty(), &mut scope)?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
@@ -298,6 +322,7 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
         material_fields: fields_of,
         diagnostics,
         statics,
+        contacts,
         sensors: scope.sensors,
     })
 }
@@ -320,9 +345,11 @@ pub struct StaticKernels {
     /// Per chamber (kernel order): the kernel writing its triangles' ∂f/∂x (triangle × 81).
     pub chamber_jacobians: Vec<usize>,
     pub tri_dforce: Option<BufferId>,
-    /// `integrator = implicit_euler`: the residual's own dependence on each node's position
-    /// (inertia and damping, node × 9), and the state a step starts from (node × 3 each).
+    /// `integrator = implicit_euler`: the state a step starts from (node × 3 each).
     pub implicit: Option<ImplicitStep>,
+    /// The residual's own dependence on each node's position (node × 9): inertia and damping
+    /// of an implicit step, contact with obstacles. `None` where it has none.
+    pub node_jacobian: Option<NodeJacobian>,
     /// What a matrix-free (Krylov) solve runs instead of assembling the tangent.
     pub matrix_free: MatrixFree,
 }
@@ -351,10 +378,15 @@ pub struct MatrixFree {
 /// What a backward Euler step adds to the equilibrium machinery.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ImplicitStep {
-    pub node_jacobian: usize,
-    pub node_dforce: BufferId,
     pub x_prev: BufferId,
     pub v_prev: BufferId,
+}
+
+/// The kernel writing ∂residual_n/∂x_n of each node into `dforce` (node × 9).
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeJacobian {
+    pub kernel: usize,
+    pub dforce: BufferId,
 }
 
 impl StaticKernels {
@@ -364,6 +396,7 @@ impl StaticKernels {
         materials: usize,
         chambers: usize,
         implicit: bool,
+        contact: bool,
     ) -> Result<Self, LowerError> {
         let id = |m: &Module, n: &str| {
             m.buffer_named(n)
@@ -395,13 +428,19 @@ impl StaticKernels {
         } else {
             None
         };
-        let implicit = if implicit {
+        let node_jacobian = if implicit || contact {
             let node = materials + chambers;
             let built = force_jacobian(m, node, residual, x, "node_dforce", JacobianPart::Full)
                 .map_err(LowerError::new)?;
+            Some(NodeJacobian {
+                kernel: m.push_kernel(built),
+                dforce: id(m, "node_dforce")?,
+            })
+        } else {
+            None
+        };
+        let implicit = if implicit {
             Some(ImplicitStep {
-                node_jacobian: m.push_kernel(built),
-                node_dforce: id(m, "node_dforce")?,
                 x_prev: id(m, "x_prev")?,
                 v_prev: id(m, "v_prev")?,
             })
@@ -416,6 +455,7 @@ impl StaticKernels {
             chamber_jacobians,
             tri_dforce,
             implicit,
+            node_jacobian,
             matrix_free,
         })
     }
@@ -533,7 +573,7 @@ pub fn scene_chambers(program: &Program) -> Vec<String> {
 }
 
 /// The value of a constant setting.
-fn constant(program: &Program, e: &Expr, what: &str) -> Result<f64, LowerError> {
+pub(super) fn constant(program: &Program, e: &Expr, what: &str) -> Result<f64, LowerError> {
     let mut k = KernelBuilder::new("constant", Domain::Single, what);
     let v = ExprLowerer::new(program)
         .lower(&mut k, &Env::new(), e)?
@@ -730,7 +770,7 @@ fn equilibrium_kernel(
     module: &mut Module,
     pressure: bool,
 ) -> Result<crate::ir::BuiltKernel, LowerError> {
-    module.buffer("x", Domain::Node, 3, "node positions, m");
+    let x = module.buffer("x", Domain::Node, 3, "node positions, m");
     module.buffer(
         "v",
         Domain::Node,
@@ -770,10 +810,14 @@ fn equilibrium_kernel(
         let lm = k.b.mul(load, m);
         g.into_iter().map(|gd| k.b.mul(lm, gd)).collect::<Vec<_>>()
     });
+    let contact = node_contact_force(program, module, &mut k, x)?;
     for d in 0..3u32 {
         let mut f = gathered_force(&mut k, elem_force, tri_force.filter(|_| pressure), d);
         if let Some(mg) = &mg {
             f = k.b.add(f, mg[d as usize]);
+        }
+        if let Some(c) = &contact {
+            f = k.b.add(f, c[d as usize]);
         }
         let r = k.b.select(free, f, zero);
         k.store(residual, d, r);
@@ -848,6 +892,7 @@ fn implicit_euler_kernel(
     let zero = k.b.constant(0.0);
     let free = k.b.cmp(CmpOp::Eq, is_fixed, zero);
     let h2 = k.b.mul(h, h);
+    let contact = node_contact_force(program, module, &mut k, x)?;
     for d in 0..3u32 {
         let own = |k: &mut KernelBuilder, buffer| {
             k.load(ArgSource::Own {
@@ -857,6 +902,9 @@ fn implicit_euler_kernel(
         };
         let (xd, xp, vp) = (own(&mut k, x), own(&mut k, x_prev), own(&mut k, v_prev));
         let mut f = gathered_force(&mut k, elem_force, tri_force.filter(|_| pressure), d);
+        if let Some(c) = &contact {
+            f = k.b.add(f, c[d as usize]);
+        }
         if let Some(g) = &g {
             let gs = k.b.scale(1.0 / scaling, g[d as usize]);
             let mg = k.b.mul(m, gs);

@@ -201,6 +201,8 @@ pub enum DeclKind {
     Chamber(Expr),
     Nodes(Expr),
     Elements(Expr),
+    /// `obstacle NAME = plane(point: …, normal: …)` or `sphere(center: …, radius: …)`.
+    Obstacle(Expr),
     Material(Material),
     Param(Param),
     Input(Input),
@@ -217,6 +219,7 @@ impl DeclKind {
             DeclKind::Chamber(_) => "chamber",
             DeclKind::Nodes(_) => "node set",
             DeclKind::Elements(_) => "element set",
+            DeclKind::Obstacle(_) => "obstacle",
             DeclKind::Material(_) => "material",
             DeclKind::Param(_) => "param",
             DeclKind::Input(_) => "input",
@@ -308,6 +311,12 @@ pub enum StmtKind {
     Use {
         material: String,
         set: Option<String>,
+    },
+    /// `contact BODY with OBSTACLE (gap: …, stiffness: …)`: BODY the mesh or a node set.
+    Contact {
+        body: String,
+        obstacle: String,
+        args: Vec<Arg>,
     },
     Output {
         what: Expr,
@@ -487,6 +496,7 @@ impl Checker {
                         syn::DeclKind::Chamber => DeclKind::Chamber(v),
                         syn::DeclKind::Nodes => DeclKind::Nodes(v),
                         syn::DeclKind::Elements => DeclKind::Elements(v),
+                        syn::DeclKind::Obstacle => DeclKind::Obstacle(v),
                     }
                 }
                 syn::ItemKind::Material(m) => DeclKind::Material(Material {
@@ -597,6 +607,15 @@ impl Builder<'_> {
             .collect()
     }
 
+    fn args(&self, args: &[syn::Arg]) -> Vec<Arg> {
+        args.iter()
+            .map(|a| Arg {
+                name: a.name.as_ref().map(|n| n.name.clone()),
+                value: self.expr(&a.value),
+            })
+            .collect()
+    }
+
     fn stmts(&self, stmts: &[syn::Stmt]) -> Vec<Stmt> {
         stmts
             .iter()
@@ -625,6 +644,15 @@ impl Builder<'_> {
                     syn::StmtKind::Use { material, set } => StmtKind::Use {
                         material: material.name.clone(),
                         set: set.as_ref().map(|s| s.name.clone()),
+                    },
+                    syn::StmtKind::Contact {
+                        body,
+                        obstacle,
+                        args,
+                    } => StmtKind::Contact {
+                        body: body.name.clone(),
+                        obstacle: obstacle.name.clone(),
+                        args: self.args(args),
                     },
                     syn::StmtKind::Output { what, every, steps } => StmtKind::Output {
                         what: self.expr(what),
@@ -680,13 +708,7 @@ impl Builder<'_> {
                 };
                 ExprKind::Call {
                     callee,
-                    args: args
-                        .iter()
-                        .map(|a| Arg {
-                            name: a.name.as_ref().map(|n| n.name.clone()),
-                            value: self.expr(&a.value),
-                        })
-                        .collect(),
+                    args: self.args(args),
                 }
             }
             syn::ExprKind::Index { base, indices } => ExprKind::Index {

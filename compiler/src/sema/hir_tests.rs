@@ -116,6 +116,7 @@ fn every_example_is_checked_into_a_typed_program() {
                 DeclKind::Mesh(e)
                 | DeclKind::Region(e)
                 | DeclKind::Chamber(e)
+                | DeclKind::Obstacle(e)
                 | DeclKind::Nodes(e)
                 | DeclKind::Elements(e)
                 | DeclKind::Let(e) => walk(e, &mut exprs),

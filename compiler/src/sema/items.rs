@@ -17,6 +17,8 @@ pub(super) struct SimInfo {
     /// `window(t, width)` uses: width and span.
     pub windows: Vec<(f64, Span)>,
     pub pressured: Vec<String>,
+    /// The (body, obstacle) pairs of the `contact` statements so far.
+    pub contacts: Vec<(String, String)>,
     pub seen: bool,
     /// The integrator solves for the state (`implicit_euler`, `quasi_static`): closed-loop
     /// sensors are evaluated at its iterates, which have positions only.
@@ -185,6 +187,11 @@ impl Checker {
     /// Check one global declaration; records signatures of functions and templates.
     pub(super) fn check_decl(&mut self, id: usize, item: &Item) -> Typed {
         match &item.kind {
+            ItemKind::Decl {
+                kind: DeclKind::Obstacle,
+                value,
+                ..
+            } => self.check_obstacle(value),
             ItemKind::Decl { kind, name, value } => {
                 let errors_before = self.diags.len();
                 // What the value's region or surface call records is this declaration's.
@@ -197,6 +204,7 @@ impl Checker {
                     DeclKind::Mesh => (Obj::Mesh, "`load(\"file.msh\")`"),
                     DeclKind::Region => (Obj::Region, "`box(min: …, max: …)` or `sphere(…)`"),
                     DeclKind::Chamber => (Obj::Surface, "`surface(mesh, \"name\")`"),
+                    DeclKind::Obstacle => (Obj::Obstacle, "`plane(…)` or `sphere(…)`"),
                     DeclKind::Nodes | DeclKind::Elements => (
                         Obj::Selection,
                         "`select(mesh, condition)`, `named(mesh, \"name\")`, `tagged(mesh, tag)` or `inside(mesh, region)`",
@@ -249,6 +257,7 @@ impl Checker {
                     DeclKind::Mesh => Obj::Mesh,
                     DeclKind::Region => Obj::Region,
                     DeclKind::Chamber => Obj::Surface,
+                    DeclKind::Obstacle => Obj::Obstacle,
                     DeclKind::Nodes => Obj::NodeSet,
                     DeclKind::Elements => Obj::ElementSet,
                 };

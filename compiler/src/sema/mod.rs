@@ -8,6 +8,7 @@
 //! accepted everywhere.
 
 mod builtins;
+mod contact;
 mod expr;
 pub mod hir;
 mod items;
@@ -165,6 +166,7 @@ pub enum SymKind {
     Chamber,
     Nodes,
     Elements,
+    Obstacle,
     Param,
     Input,
     Let,
@@ -185,6 +187,7 @@ impl SymKind {
                     DeclKind::Chamber => SymKind::Chamber,
                     DeclKind::Nodes => SymKind::Nodes,
                     DeclKind::Elements => SymKind::Elements,
+                    DeclKind::Obstacle => SymKind::Obstacle,
                 },
             ),
             ItemKind::Material(m) if m.params.is_some() => (&m.name, SymKind::MaterialTemplate),
@@ -211,6 +214,7 @@ impl SymKind {
             SymKind::Chamber => "chamber",
             SymKind::Nodes => "node set",
             SymKind::Elements => "element set",
+            SymKind::Obstacle => "obstacle",
             SymKind::Param => "param",
             SymKind::Input => "input",
             SymKind::Let => "let binding",

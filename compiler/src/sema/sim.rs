@@ -215,6 +215,15 @@ impl Checker {
                     self.expect_type(&t, &p, value, &what);
                     self.check_closed_loop(value, &what, &sim_lets);
                 }
+                StmtKind::Contact {
+                    body,
+                    obstacle,
+                    args,
+                } => {
+                    let mut seen = std::mem::take(&mut self.sim.contacts);
+                    self.check_contact(body, obstacle, args, s.span, &mut seen);
+                    self.sim.contacts = seen;
+                }
                 StmtKind::Use { material, set } => {
                     self.out
                         .mesh_refs

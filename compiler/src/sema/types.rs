@@ -33,6 +33,8 @@ pub enum Obj {
     NodeSet,
     ElementSet,
     Surface,
+    /// A rigid obstacle (`plane(…)`, `sphere(…)` in an `obstacle` declaration).
+    Obstacle,
     Material,
     MaterialTemplate,
     Optimizer,
@@ -64,6 +66,7 @@ impl Obj {
             Obj::NodeSet => "a node set",
             Obj::ElementSet => "an element set",
             Obj::Surface => "a chamber surface",
+            Obj::Obstacle => "an obstacle",
             Obj::Material => "a material",
             Obj::MaterialTemplate => "a material template",
             Obj::Optimizer => "an optimizer",

@@ -190,6 +190,7 @@ impl<B: Backend> Simulation<'_, B> {
             }
             _ => None,
         };
+        report.contact = self.contact_report(t_end)?;
         Ok(StaticRun {
             summary: RunSummary {
                 loss: loss_value,

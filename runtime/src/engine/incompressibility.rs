@@ -50,8 +50,73 @@ pub fn bulk_to_shear(scene: &Scene) -> Vec<BulkToShear> {
 /// [`bulk_to_shear`] at the param values of `uniforms` (a run's, an optimization's current
 /// ones), else at the script's.
 pub fn bulk_to_shear_at(scene: &Scene, uniforms: Option<&Uniforms>) -> Vec<BulkToShear> {
+    let e = PROBE_STRAIN;
+    let [dilation, shear] = probe_energies(scene, uniforms, [[1.0 + e; 3], pure_shear()]);
+    let mut out = Vec::new();
+    for (k, (dilated, sheared)) in dilation.iter().zip(&shear).enumerate() {
+        let ratio = dilated
+            .iter()
+            .zip(sheared)
+            .filter(|(_, s)| **s > 0.0)
+            .map(|(d, s)| 4.0 / 9.0 * d / s)
+            .filter(|r| r.is_finite())
+            .fold(f64::NAN, f64::max);
+        if ratio.is_finite() {
+            out.push(BulkToShear {
+                material: scene.lowered.materials[k].clone(),
+                ratio,
+            });
+        }
+    }
+    out
+}
+
+/// The pure shear F = diag(1 + ε, 1/(1 + ε), 1) of the probes.
+fn pure_shear() -> [f64; 3] {
+    let e = PROBE_STRAIN;
+    [1.0 + e, 1.0 / (1.0 + e), 1.0]
+}
+
+/// The largest small-strain shear modulus μ (Pa) over the probed elements of every material,
+/// from the pure shear's energy V·W = 2·μ·ε²·V (at the param values of `uniforms`, else at
+/// the script's); `None` without energy kernels (springs). Linear tetrahedra.
+pub fn shear_modulus_at(scene: &Scene, uniforms: Option<&Uniforms>) -> Option<f64> {
+    let [shear] = probe_energies(scene, uniforms, [pure_shear()]);
+    let nodes = &scene.mesh.nodes;
+    // Corners in kernel element order, as the material ranges count them.
+    let conn = scene.elem_conn();
+    let volume = |e: usize| {
+        let t: [[f64; 3]; 4] = std::array::from_fn(|c| nodes[conn[4 * e + c] as usize]);
+        let d = |i: usize| [0, 1, 2].map(|c| t[i][c] - t[0][c]);
+        let (a, b, c) = (d(1), d(2), d(3));
+        (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+            + a[2] * (b[0] * c[1] - b[1] * c[0]))
+            .abs()
+            / 6.0
+    };
+    let e2 = PROBE_STRAIN * PROBE_STRAIN;
+    let mu = (scene.material_ranges.iter().zip(&shear))
+        .flat_map(|(range, energies)| {
+            energies
+                .iter()
+                .enumerate()
+                .map(move |(i, w)| w / (2.0 * e2 * volume(range.start + i)))
+        })
+        .filter(|m| m.is_finite())
+        .fold(f64::NAN, f64::max);
+    mu.is_finite().then_some(mu)
+}
+
+/// The energies (`elem_energy`, V·W) of the first [`PROBED`] elements of each material under
+/// each homogeneous stretch of the mesh about its centre, evaluated in the interpreter (f64);
+/// empty for a material without an energy kernel.
+fn probe_energies<const N: usize>(
+    scene: &Scene,
+    uniforms: Option<&Uniforms>,
+    stretches: [[f64; 3]; N],
+) -> [Vec<Vec<f64>>; N] {
     let Some(energy) = scene.lowered.buffers.elem_energy else {
-        return Vec::new();
+        return std::array::from_fn(|_| Vec::new());
     };
     let mut sim = Simulation::new(scene, Interpreter::new(&scene.lowered.module));
     if let Some(u) = uniforms {
@@ -61,7 +126,7 @@ pub fn bulk_to_shear_at(scene: &Scene, uniforms: Option<&Uniforms>) -> Vec<BulkT
     let nodes = &scene.mesh.nodes;
     let n = nodes.len().max(1) as f64;
     let centre = [0, 1, 2].map(|d| nodes.iter().map(|p| p[d]).sum::<f64>() / n);
-    let mut energies = |stretch: [f64; 3]| -> Vec<Vec<f64>> {
+    stretches.map(|stretch| {
         let x: Vec<f64> = nodes
             .iter()
             .flat_map(|p| [0, 1, 2].map(|d| centre[d] + stretch[d] * (p[d] - centre[d])))
@@ -81,27 +146,7 @@ pub fn bulk_to_shear_at(scene: &Scene, uniforms: Option<&Uniforms>) -> Vec<BulkT
             });
         }
         out
-    };
-    let e = PROBE_STRAIN;
-    let dilation = energies([1.0 + e; 3]);
-    let shear = energies([1.0 + e, 1.0 / (1.0 + e), 1.0]);
-    let mut out = Vec::new();
-    for (k, (dilated, sheared)) in dilation.iter().zip(&shear).enumerate() {
-        let ratio = dilated
-            .iter()
-            .zip(sheared)
-            .filter(|(_, s)| **s > 0.0)
-            .map(|(d, s)| 4.0 / 9.0 * d / s)
-            .filter(|r| r.is_finite())
-            .fold(f64::NAN, f64::max);
-        if ratio.is_finite() {
-            out.push(BulkToShear {
-                material: scene.lowered.materials[k].clone(),
-                ratio,
-            });
-        }
-    }
-    out
+    })
 }
 
 /// The warning for linear tetrahedra of a material whose K/μ exceeds [`LOCKING_RATIO`].

@@ -136,10 +136,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
                 &tri,
             );
         }
-        if let Some(step) = &statics.implicit {
-            self.backend
-                .run(step.node_jacobian, 0..nodes, &self.uniforms)?;
-            let own = self.backend.get(step.node_dforce);
+        if let Some(jacobian) = &statics.node_jacobian {
+            self.backend.run(jacobian.kernel, 0..nodes, &self.uniforms)?;
+            let own = self.backend.get(jacobian.dforce);
             for (n, block) in blocks.iter_mut().enumerate() {
                 for i in 0..9 {
                     block[i] -= own[n * 9 + i];

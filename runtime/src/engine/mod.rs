@@ -8,6 +8,7 @@
 
 pub mod adjoint;
 pub mod checkpoint;
+pub mod contact;
 pub mod implicit;
 pub mod incompressibility;
 pub mod loss;
@@ -309,6 +310,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let (t, dt) = (uniforms.intern("t"), uniforms.intern("dt"));
         uniforms.set(t, 0.0);
         uniforms.set(dt, 0.0);
+        // Contact stiffnesses: set per solve (`prepare_contact`); none before.
+        for i in 0..scene.lowered.contacts.as_ref().map_or(0, |c| c.pairs.len()) {
+            let id = uniforms.intern(&format!("contact.{i}.stiffness"));
+            uniforms.set(id, 0.0);
+        }
         // Closed-loop sensors and their tangent directions: set before any kernel reads
         // them (a sensor at each step's or iterate's state; a direction where a product asks).
         for s in &scene.sensors {

@@ -122,6 +122,8 @@ pub struct SolverReport {
     pub multigrid_setups: u64,
     pub multigrid_levels: usize,
     pub operator_complexity: f64,
+    /// Each `contact` statement's forces and distances at the last state.
+    pub contact: Vec<super::contact::ContactReport>,
 }
 
 /// How a static or implicit solve solves its linear systems ([`Simulation::linear_solver`]).
@@ -383,12 +385,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .tri_dforce
             .map(|b| self.backend.get(b))
             .unwrap_or_default();
-        let node = match &statics.implicit {
-            Some(step) => {
+        let node = match &statics.node_jacobian {
+            Some(own) => {
                 let nodes = 0..self.scene.mesh.nodes.len();
-                self.backend
-                    .run(step.node_jacobian, nodes, &self.uniforms)?;
-                self.backend.get(step.node_dforce)
+                self.backend.run(own.kernel, nodes, &self.uniforms)?;
+                self.backend.get(own.dforce)
             }
             None => Vec::new(),
         };
@@ -576,7 +577,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
             let x0 = self.backend.get(self.ids.x);
             // Backtracking on ‖r‖; steps that invert an element or make a force non-finite
             // are refused.
-            let mut alpha = 1.0;
+            // No step may carry a node into an obstacle (the barrier is infinite there).
+            let mut alpha = self.contact_step_limit(&dx)?;
             let mut accepted = None;
             let mut why = String::from("the residual stopped decreasing");
             for _ in 0..12 {
@@ -1242,6 +1244,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         };
         let tangent = Tangent::new(pattern, self.backend.precision(), choice)?;
         self.reset();
+        self.prepare_contact(report.free_motion.clone())?;
         // Non-physical constants (E ≤ 0, ν out of (−1, 0.5)) have no stable equilibrium: a
         // solve returned the rest state (E = 0) or an unstable stationary point with exit 0.
         let material = self.material_values();
@@ -1301,7 +1304,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let warm = self.warm_start.take();
         for k in 1..=steps {
             let t = k as f64 * h;
-            let from = if k == 1 { (t, 0.0) } else { (t - h, 1.0) };
+            // The first state's loads grow from rest; a moving obstacle moves from where it
+            // was at t = 0 too (the rest state is clear of it only there).
+            let moving = scene.lowered.contacts.is_some();
+            let from = match k {
+                1 if moving => (0.0, 0.0),
+                1 => (t, 0.0),
+                _ => (t - h, 1.0),
+            };
             let solved = match warm
                 .as_ref()
                 .filter(|w| k == 1 && w.len() == 3 * scene.mesh.nodes.len())
@@ -1375,6 +1385,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         } else {
             None
         };
+        report.contact = self.contact_report(t_end)?;
         let x = self.backend.get(self.ids.x);
         Ok(StaticRun {
             summary: RunSummary {

@@ -1,0 +1,348 @@
+//! Frictionless contact of the mesh's surface nodes with rigid obstacles (SPEC §6.7), as a
+//! smooth barrier energy in the node kernels, so that static and implicit solves stay energy
+//! minimizations and their tangents, adjoints and Jacobian products come from the same passes.
+//!
+//! Node n of contact i (its lumped boundary area A_n > 0, filled by the host in the buffer
+//! `contact_area.i`) at signed distance d from obstacle i gets the energy κ_n·b(d) of IPC's
+//! clamped log barrier (Li et al. 2020), with gap ĝ:
+//!
+//!   b(d) = −(d − ĝ)²·ln(d/ĝ) for 0 < d < ĝ, 0 beyond;   κ_n = k·A_n/ĝ,
+//!
+//! k the contact stiffness (a pressure: the uniform `contact.i.stiffness`). Its force is
+//! −κ_n·b'(d)·∇d = k·A_n·g(d/ĝ)·∇d with g(r) = (1 − r)(1/r − 1 − 2 ln r): the contact pressure
+//! at gap d is k·g(d/ĝ), zero and flat at d = ĝ (b is C² there), unbounded as d → 0.
+//! Obstacles: a plane, d = n̂·(x − p), ∇d = n̂; a sphere, d = ‖x − c‖ − r, ∇d = (x − c)/‖x − c‖.
+//! Both distances are convex in x, so d(x + α·v) ≥ d(x) + α·∇d·v: the step limit
+//! [`step_kernel`] computes from that line is conservative.
+
+use super::LowerError;
+use super::expr::{Env, ExprLowerer, Program, flatten};
+use crate::ir::{ArgSource, BinOp, BufferId, CmpOp, Domain, KernelBuilder, Module, UnOp, V};
+use crate::sema::hir::{Callee, DeclKind, Expr, ExprKind, StmtKind, arg};
+
+/// The fraction of the linearized distance to an obstacle a Newton step may cover.
+pub const STEP_FRACTION: f64 = 0.8;
+
+/// The step limit where no obstacle limits a node (finite: WGSL has no infinity literal).
+pub const NO_LIMIT: f64 = 1e30;
+
+/// One `contact BODY with OBSTACLE` statement, as the host needs it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Contact {
+    pub body: String,
+    pub obstacle: String,
+    /// ĝ, m.
+    pub gap: f64,
+    /// k as written (Pa); `None`: the host estimates it from the materials.
+    pub stiffness: Option<f64>,
+    /// Node × 1: the lumped boundary area of each contact node (m²), 0 for other nodes.
+    pub area: BufferId,
+    /// The uniform holding k.
+    pub stiffness_uniform: String,
+    /// Node × 3 and node × 1: each node's contact force (N) and signed distance (m), written
+    /// by `report_kernel` (an index in the scene's module and in its adjoint module).
+    pub force: BufferId,
+    pub distance: BufferId,
+    pub report_kernel: usize,
+}
+
+/// The contacts of a scene and the kernel limiting Newton steps to stay clear of obstacles.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Contacts {
+    pub pairs: Vec<Contact>,
+    /// Node × 3: the step v a position update x + α·v takes (the host fills it).
+    pub step: BufferId,
+    /// Node × 1: the largest α that keeps each contact node clear ([`NO_LIMIT`] where none limits it).
+    pub step_limit: BufferId,
+    pub step_kernel: usize,
+}
+
+/// A statement's shape before lowering: what the node kernels need.
+struct Statement<'p> {
+    shape: &'p Expr,
+    gap: f64,
+    stiffness: Option<f64>,
+    body: String,
+    obstacle: String,
+}
+
+fn statements(program: &Program) -> Result<Vec<Statement<'_>>, LowerError> {
+    let mut out = Vec::new();
+    for s in &program.sim {
+        let StmtKind::Contact {
+            body,
+            obstacle,
+            args,
+        } = &s.kind
+        else {
+            continue;
+        };
+        let shape = (program.find(obstacle))
+            .and_then(|(_, d)| match &d.kind {
+                DeclKind::Obstacle(e) => Some(e),
+                _ => None,
+            })
+            .ok_or_else(|| LowerError::new(format!("`{obstacle}` is not an obstacle")))?;
+        let number = |name: &str, i: usize| -> Result<Option<f64>, LowerError> {
+            arg(args, name, i)
+                .map(|e| match &e.kind {
+                    ExprKind::Num(v) => Ok(*v),
+                    _ => super::scene::constant(program, e, name),
+                })
+                .transpose()
+        };
+        let gap = number("gap", 0)?.ok_or_else(|| LowerError::new("`contact` needs its `gap`"))?;
+        out.push(Statement {
+            shape,
+            gap,
+            stiffness: number("stiffness", 1)?,
+            body: body.clone(),
+            obstacle: obstacle.clone(),
+        });
+    }
+    Ok(out)
+}
+
+/// Whether the scene has contact.
+pub fn has_contact(program: &Program) -> bool {
+    (program.sim.iter()).any(|s| matches!(s.kind, StmtKind::Contact { .. }))
+}
+
+fn area_buffer(module: &mut Module, i: usize) -> BufferId {
+    module.buffer(
+        &format!("contact_area.{i}"),
+        Domain::Node,
+        1,
+        "lumped boundary area of each contact node (0 elsewhere), m^2",
+    )
+}
+
+/// An obstacle's signed distance d and its gradient ∇d at the node position `x`.
+fn distance(
+    program: &Program,
+    k: &mut KernelBuilder,
+    shape: &Expr,
+    x: [V; 3],
+) -> Result<(V, [V; 3]), LowerError> {
+    let ExprKind::Call {
+        callee: Callee::Builtin(name),
+        args,
+    } = &shape.kind
+    else {
+        return Err(LowerError::new("an obstacle is `plane(…)` or `sphere(…)`"));
+    };
+    let mut lw = ExprLowerer::new(program);
+    let mut vector = |k: &mut KernelBuilder, pname: &str, i: usize| -> Result<Vec<V>, LowerError> {
+        let e = arg(args, pname, i)
+            .ok_or_else(|| LowerError::new(format!("the obstacle has no `{pname}`")))?;
+        Ok(flatten(&lw.lower(k, &Env::new(), e)?))
+    };
+    let tiny = k.b.constant(1e-30);
+    match name.as_str() {
+        "plane" => {
+            let p = vector(k, "point", 0)?;
+            let n = vector(k, "normal", 1)?;
+            let sq: Vec<V> = n.iter().map(|&c| k.b.mul(c, c)).collect();
+            let n2 = k.b.sum(&sq);
+            let len = k.b.un(UnOp::Sqrt, n2);
+            let unit = [0, 1, 2].map(|d| k.b.div(n[d], len));
+            let terms: Vec<V> = (0..3)
+                .map(|d| {
+                    let r = k.b.sub(x[d], p[d]);
+                    k.b.mul(unit[d], r)
+                })
+                .collect();
+            Ok((k.b.sum(&terms), unit))
+        }
+        "sphere" => {
+            let c = vector(k, "center", 0)?;
+            let r = vector(k, "radius", 1)?[0];
+            let rel = [0, 1, 2].map(|d| k.b.sub(x[d], c[d]));
+            let sq: Vec<V> = rel.iter().map(|&c| k.b.mul(c, c)).collect();
+            let rho2 = k.b.sum(&sq);
+            let rho = k.b.un(UnOp::Sqrt, rho2);
+            let rho = k.b.bin(BinOp::Max, rho, tiny);
+            let grad = rel.map(|c| k.b.div(c, rho));
+            Ok((k.b.sub(rho, r), grad))
+        }
+        other => Err(LowerError::new(format!(
+            "`{other}(…)` is not an obstacle shape"
+        ))),
+    }
+}
+
+/// The node's own position, component by component.
+fn own_position(k: &mut KernelBuilder, x: BufferId) -> [V; 3] {
+    [0, 1, 2].map(|d| {
+        k.load(ArgSource::Own {
+            buffer: x,
+            component: d,
+        })
+    })
+}
+
+/// The contact force (and d) of statement `i` on the node at `x`, zero off the contact set
+/// and beyond the gap. A contact node at d ≤ 0 (inside the obstacle) gets a non-finite force.
+fn barrier_force(
+    program: &Program,
+    module: &mut Module,
+    k: &mut KernelBuilder,
+    i: usize,
+    st: &Statement,
+    x: [V; 3],
+) -> Result<([V; 3], V), LowerError> {
+    let (d, grad) = distance(program, k, st.shape, x)?;
+    let area_buf = area_buffer(module, i);
+    let area = k.load(ArgSource::Own {
+        buffer: area_buf,
+        component: 0,
+    });
+    let stiffness = k.uniform(&format!("contact.{i}.stiffness"));
+    let b = &mut k.b;
+    let zero = b.constant(0.0);
+    let one = b.constant(1.0);
+    let r = b.scale(1.0 / st.gap, d);
+    let near = b.cmp(CmpOp::Lt, r, one);
+    let member = b.cmp(CmpOp::Gt, area, zero);
+    let active = b.select(member, near, zero);
+    // Off the set or beyond the gap r = 1, where g(1) = 0: no ln or 1/r of a distance that
+    // may be anything (a node the contact does not concern may be anywhere).
+    let r = b.select(active, r, one);
+    let inv = b.div(one, r);
+    let ln = b.un(UnOp::Ln, r);
+    let two_ln = b.scale(2.0, ln);
+    let t = b.sub(inv, one);
+    let t = b.sub(t, two_ln);
+    let s = b.sub(one, r);
+    let g = b.mul(s, t);
+    let ka = b.mul(stiffness, area);
+    let magnitude = b.mul(ka, g);
+    Ok((grad.map(|c| b.mul(magnitude, c)), d))
+}
+
+/// The summed contact force on the node at `x` (the node kernels add it to the net force),
+/// or `None` without contact. Quadratic meshes and explicit integration have no contact yet.
+pub fn node_contact_force(
+    program: &Program,
+    module: &mut Module,
+    k: &mut KernelBuilder,
+    x: BufferId,
+) -> Result<Option<[V; 3]>, LowerError> {
+    let statements = statements(program)?;
+    if statements.is_empty() {
+        return Ok(None);
+    }
+    if module.order != crate::ir::ElementOrder::Linear {
+        return Err(LowerError::new(
+            "contact works on linear tetrahedra for now: load the mesh with `order: 1`",
+        ));
+    }
+    let pos = own_position(k, x);
+    let mut total: Option<[V; 3]> = None;
+    for (i, st) in statements.iter().enumerate() {
+        let (f, _) = barrier_force(program, module, k, i, st, pos)?;
+        total = Some(match total {
+            None => f,
+            Some(t) => [0, 1, 2].map(|d| k.b.add(t[d], f[d])),
+        });
+    }
+    Ok(total)
+}
+
+/// The contact kernels that are not part of a step, pushed onto `module` (after its node
+/// kernel, like the element diagnostics: they write no buffer a step reads): per statement the
+/// report of each node's force and distance, and the Newton step limit.
+pub fn contact_kernels(
+    program: &Program,
+    module: &mut Module,
+) -> Result<Option<Contacts>, LowerError> {
+    let statements = statements(program)?;
+    if statements.is_empty() {
+        return Ok(None);
+    }
+    let x = module.buffer("x", Domain::Node, 3, "node positions, m");
+    let mut pairs = Vec::new();
+    for (i, st) in statements.iter().enumerate() {
+        let force = module.buffer(
+            &format!("contact_force.{i}"),
+            Domain::Node,
+            3,
+            "force of the obstacle on each node, N",
+        );
+        let distance = module.buffer(
+            &format!("contact_distance.{i}"),
+            Domain::Node,
+            1,
+            "signed distance of each node from the obstacle, m",
+        );
+        let mut k = KernelBuilder::new(
+            &format!("contact_report_{i}"),
+            Domain::Node,
+            &format!("contact {} with {}", st.body, st.obstacle),
+        );
+        let pos = own_position(&mut k, x);
+        let (f, d) = barrier_force(program, module, &mut k, i, st, pos)?;
+        for (c, &fc) in f.iter().enumerate() {
+            k.store(force, c as u32, fc);
+        }
+        k.store(distance, 0, d);
+        let report_kernel = module.push_kernel(k.finish());
+        pairs.push(Contact {
+            body: st.body.clone(),
+            obstacle: st.obstacle.clone(),
+            gap: st.gap,
+            stiffness: st.stiffness,
+            area: area_buffer(module, i),
+            stiffness_uniform: format!("contact.{i}.stiffness"),
+            force,
+            distance,
+            report_kernel,
+        });
+    }
+    let step = module.buffer(
+        "contact_step",
+        Domain::Node,
+        3,
+        "a position update the step limit is computed for, m",
+    );
+    let step_limit = module.buffer(
+        "contact_step_limit",
+        Domain::Node,
+        1,
+        "largest fraction of the update that keeps the node clear of every obstacle",
+    );
+    let mut k = KernelBuilder::new("contact_step_limit", Domain::Node, "contact");
+    let pos = own_position(&mut k, x);
+    let v = own_position(&mut k, step);
+    let mut limit = k.b.constant(NO_LIMIT);
+    for (i, st) in statements.iter().enumerate() {
+        let (d, grad) = distance(program, &mut k, st.shape, pos)?;
+        let area = k.load(ArgSource::Own {
+            buffer: area_buffer(module, i),
+            component: 0,
+        });
+        let b = &mut k.b;
+        let terms: Vec<V> = (0..3).map(|c| b.mul(grad[c], v[c])).collect();
+        let slope = b.sum(&terms);
+        let zero = b.constant(0.0);
+        let approaching = b.cmp(CmpOp::Lt, slope, zero);
+        let member = b.cmp(CmpOp::Gt, area, zero);
+        let limited = b.select(member, approaching, zero);
+        // Guard the quotient where it is not taken: slope −1 there.
+        let minus_one = b.constant(-1.0);
+        let safe = b.select(limited, slope, minus_one);
+        let reach = b.div(d, safe);
+        let reach = b.scale(-STEP_FRACTION, reach);
+        let inf = b.constant(NO_LIMIT);
+        let alpha = b.select(limited, reach, inf);
+        limit = b.bin(BinOp::Min, limit, alpha);
+    }
+    k.store(step_limit, 0, limit);
+    let step_kernel = module.push_kernel(k.finish());
+    Ok(Some(Contacts {
+        pairs,
+        step,
+        step_limit,
+        step_kernel,
+    }))
+}

@@ -1,0 +1,206 @@
+//! Checking of rigid obstacles (`obstacle NAME = plane(…)` / `sphere(…)`) and of the sim
+//! block's `contact BODY with OBSTACLE (…)` statements (SPEC §6.7).
+//!
+//! An obstacle's shape is its own call, not a region: its position may follow the time `t`
+//! (a moving plate) or a param (a trainable pose), which a region's constant geometry may not.
+
+use super::types::{Obj, Ty, Typed, Var};
+use super::units::Dim;
+use super::{Checker, SymKind};
+use crate::diag::Diagnostic;
+use crate::front::ast::{Arg, Expr, ExprKind, Ident};
+
+/// The shapes an obstacle can have, with their arguments (all required).
+const SHAPES: &[(&str, &[&str])] = &[
+    ("plane", &["point", "normal"]),
+    ("sphere", &["center", "radius"]),
+];
+
+impl Checker {
+    /// The type of an obstacle declaration's value: `Obj::Obstacle`, or an error reported.
+    pub(super) fn check_obstacle(&mut self, value: &Expr) -> Typed {
+        let call = match &value.kind {
+            ExprKind::Call { callee, args } => match &callee.kind {
+                ExprKind::Name(id) => Some((id, args)),
+                _ => None,
+            },
+            _ => None,
+        };
+        let shape = call.and_then(|(id, args)| {
+            let (_, params) = SHAPES.iter().find(|(n, _)| *n == id.name)?;
+            Some((id, *params, args))
+        });
+        let Some((id, params, args)) = shape else {
+            let found = match call {
+                Some((id, _)) if matches!(id.name.as_str(), "box" | "cylinder") => {
+                    format!("`{}(…)`, which obstacles do not have yet", id.name)
+                }
+                _ => "something else".to_string(),
+            };
+            self.err(
+                Diagnostic::error(
+                    "E0203",
+                    value.span,
+                    format!(
+                        "an obstacle is declared with `plane(point: …, normal: …)` or \
+                         `sphere(center: …, radius: …)`, found {found}"
+                    ),
+                )
+                .with_hint("e.g. `obstacle floor = plane(point: [0, 0, 0] mm, normal: [0, 0, 1])`"),
+            );
+            return Typed::error();
+        };
+        let slots: Vec<(&str, bool)> = params.iter().map(|p| (*p, true)).collect();
+        let Some(bound) = self.bind(&id.name, value.span, &slots, args) else {
+            return Typed::error();
+        };
+        let mut ok = true;
+        for (pname, slot) in params.iter().zip(bound) {
+            let arg = slot.expect("required");
+            // An obstacle may move: its geometry may read `t`.
+            let outer = std::mem::replace(&mut self.ctx.time, true);
+            let t = self.check_expr(arg);
+            self.ctx.time = outer;
+            let want = match *pname {
+                "radius" => Ty::scalar(Dim::LENGTH),
+                "normal" => Ty::vec3(Dim::NONE),
+                _ => Ty::vec3(Dim::LENGTH),
+            };
+            let what = format!("the obstacle's `{pname}`");
+            if !self.expect_type(&t, &want, arg, &what) {
+                ok = false;
+                continue;
+            }
+            if t.var == Var::State {
+                self.err(Diagnostic::error(
+                    "E0321",
+                    arg.span,
+                    format!(
+                        "{what} may follow the time `t` or a param, but not the simulation state"
+                    ),
+                ));
+                ok = false;
+            }
+            match (*pname, &t.value) {
+                ("radius", _) if t.num().is_some_and(|r| r <= 0.0) => {
+                    self.err(Diagnostic::error(
+                        "E0321",
+                        arg.span,
+                        "the radius must be positive",
+                    ));
+                    ok = false;
+                }
+                ("normal", Some(v)) => {
+                    let mut xs = Vec::new();
+                    v.flatten(&mut xs);
+                    if xs.iter().all(|c| *c == 0.0) {
+                        self.err(
+                            Diagnostic::error("E0321", arg.span, "the normal is zero")
+                                .with_hint("the normal points from the plane into the free side"),
+                        );
+                        ok = false;
+                    }
+                }
+                _ => {}
+            }
+        }
+        let key = (self.in_prelude, value.span.start, value.span.end);
+        let ty = if ok {
+            Ty::Obj(Obj::Obstacle)
+        } else {
+            Ty::Error
+        };
+        self.hir.types.entry(key).or_insert_with(|| ty.clone());
+        self.hir
+            .types
+            .entry((self.in_prelude, id.span.start, id.span.end))
+            .or_insert(Ty::Error);
+        Typed::of(ty, Var::Const)
+    }
+
+    /// `contact BODY with OBSTACLE (gap: …, stiffness: …)`; `seen` the pairs already declared.
+    pub(super) fn check_contact(
+        &mut self,
+        body: &Ident,
+        obstacle: &Ident,
+        args: &[Arg],
+        span: crate::front::ast::Span,
+        seen: &mut Vec<(String, String)>,
+    ) {
+        match self.global_kind(body) {
+            Some(SymKind::Mesh | SymKind::Nodes) | None => {}
+            Some(k) => self.wrong_kind(
+                body,
+                k,
+                "`contact` takes the mesh or a node set (its surface nodes touch the obstacle)",
+                None,
+            ),
+        }
+        match self.global_kind(obstacle) {
+            Some(SymKind::Obstacle) | None => {}
+            Some(k) => self.wrong_kind(
+                obstacle,
+                k,
+                "`contact … with` takes an obstacle",
+                Some("declare it with `obstacle NAME = plane(point: …, normal: …)`"),
+            ),
+        }
+        let pair = (body.name.clone(), obstacle.name.clone());
+        if seen.contains(&pair) {
+            let msg = format!(
+                "the contact of `{}` with `{}` is declared twice",
+                body.name, obstacle.name
+            );
+            self.err(Diagnostic::error("E0326", span, msg));
+        }
+        seen.push(pair);
+        // `gap` is required, but reported here (with a hint), not by `bind`.
+        let params = [("gap", false), ("stiffness", false), ("friction", false)];
+        let Some(bound) = self.bind("contact", span, &params, args) else {
+            return;
+        };
+        if bound[0].is_none() {
+            self.err(
+                Diagnostic::error(
+                    "E0106",
+                    span,
+                    "`contact` needs its `gap`: the distance within which the barrier acts",
+                )
+                .with_hint(format!(
+                    "e.g. `contact {} with {} (gap: 0.1 mm)`, a fraction of the smallest element",
+                    body.name, obstacle.name
+                )),
+            );
+        }
+        let wants = [
+            ("gap", Ty::scalar(Dim::LENGTH)),
+            (
+                "stiffness",
+                Ty::scalar(super::units::named_dim("pressure").unwrap()),
+            ),
+        ];
+        for ((pname, want), slot) in wants.iter().zip(&bound) {
+            let Some(arg) = slot else { continue };
+            let t = self.check_expr(arg);
+            let what = format!("the contact's `{pname}`");
+            if self.expect_type(&t, want, arg, &what)
+                && self.expect_const(&t, arg, &what)
+                && t.num().is_some_and(|v| v <= 0.0)
+            {
+                let msg = format!("{what} must be positive");
+                self.err(Diagnostic::error("E0321", arg.span, msg));
+            }
+        }
+        if let Some(friction) = bound[2] {
+            self.check_expr(friction);
+            self.err(
+                Diagnostic::error(
+                    "E0326",
+                    friction.span,
+                    "friction in contact is not supported yet: contact is frictionless",
+                )
+                .with_hint("remove `friction`; the obstacle then pushes along its normal only"),
+            );
+        }
+    }
+}
