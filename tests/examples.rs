@@ -98,6 +98,22 @@ fn fmt_canonicalizes_layout() {
 }
 
 #[test]
+fn fmt_canonicalizes_obstacles_and_contact() {
+    let messy = "obstacle   floor=plane(point:[0,0,-1]mm,normal:[0,0,1])\n\
+                 sim{contact  body  with floor(gap:0.1 mm,stiffness:1 MPa);contact tip with floor\n\
+                 contact tip with ball ( 0.2 mm )}\n";
+    let want = "obstacle floor = plane(point: [0, 0, -1] mm, normal: [0, 0, 1])\n\
+                sim {\n  contact body with floor (gap: 0.1 mm, stiffness: 1 MPa)\n  \
+                contact tip with floor\n  contact tip with ball (0.2 mm)\n}\n";
+    let once = softc_compiler::fmt::format_source(messy).unwrap();
+    assert_eq!(once, want);
+    assert_eq!(shape(messy), shape(&once));
+    // `obstacle` and `contact` stay usable as names.
+    let names = "let contact = 2 mm\nlet obstacle = contact * 2\n";
+    assert_eq!(softc_compiler::fmt::format_source(names).unwrap(), names);
+}
+
+#[test]
 fn fmt_rewrites_files_in_place_and_refuses_broken_ones() {
     let dir = std::env::temp_dir().join(format!("softc-fmt-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

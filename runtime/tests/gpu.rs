@@ -1471,3 +1471,29 @@ fn implicit_euler_on_the_gpu_matrix_free_matches_the_cpu() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n"));
 }
+
+#[test]
+fn contact_on_the_gpu_matches_the_cpu() {
+    // The finger pressing its tip on a table: the barrier, its step limit and its report run
+    // as WGSL (f32, refined in f64), against the CPU in f64.
+    let scene = Scene::load(&root().join("examples/finger_on_table.soft"), &[]).unwrap();
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let reference = Simulation::new(&scene, cpu).run(None, None).unwrap();
+    let Some(gpu) = gpu(&scene.lowered.adjoint.module, Precision::F32) else {
+        return;
+    };
+    let run = Simulation::new(&scene, gpu).run(None, None).unwrap();
+    let (want, got) = (reference.solver.unwrap(), run.solver.unwrap());
+    assert!(got.converged, "{got:?}");
+    let (want, got) = (&want.contact[0], &got.contact[0]);
+    assert!(
+        got.min_distance > 0.0 && got.active_nodes == want.active_nodes,
+        "{got:?}"
+    );
+    assert!(
+        (got.force[2] - want.force[2]).abs() < 1e-3 * want.force[2],
+        "{got:?} {want:?}"
+    );
+    let (a, b) = (reference.loss.unwrap(), run.loss.unwrap());
+    assert!((a - b).abs() < 1e-5 * a.abs(), "loss {b} against {a}");
+}

@@ -225,10 +225,10 @@ fn rule_description(r: Rule) -> Option<&'static str> {
         | kw_true | kw_false | kw_if | kw_not => "an expression",
         EOI => "end of file",
         mesh_decl | material_decl | region_decl | chamber_decl | nodes_decl | elements_decl
-        | obstacle_decl | kw_obstacle | param_decl | input_decl | fn_decl | controller_decl | sim_block | loss_decl
-        | optimize_decl | kw_mesh | kw_material | kw_region | kw_chamber | kw_nodes
-        | kw_elements | kw_param | kw_input | kw_fn | kw_controller | kw_sim | kw_loss
-        | kw_optimize => "a declaration",
+        | obstacle_decl | kw_obstacle | param_decl | input_decl | fn_decl | controller_decl
+        | sim_block | loss_decl | optimize_decl | kw_mesh | kw_material | kw_region
+        | kw_chamber | kw_nodes | kw_elements | kw_param | kw_input | kw_fn | kw_controller
+        | kw_sim | kw_loss | kw_optimize => "a declaration",
         let_decl | kw_let => "`let`",
         fix_stmt | kw_fix | pressure_stmt | kw_pressure | use_stmt | kw_use | output_stmt
         | kw_output | contact_stmt | kw_contact | assign => "a statement",

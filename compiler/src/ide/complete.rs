@@ -4,8 +4,9 @@ use super::docs::setting_doc;
 use super::hover::{fmt_num, kind_word, prelude_item};
 use super::lex::is_ident_char;
 use super::{
-    Analysis, BUILTIN_DOCS, CONSTANT_DOCS, CONTEXTUAL_KEYWORDS, DefKind, KEYWORDS, REDUCTIONS,
-    RESERVED_DOCS, Tok, TokKind, is_keyword, prelude_signatures,
+    Analysis, BUILTIN_DOCS, CONSTANT_DOCS, CONTACT_ARGS, CONTACT_DOC, CONTEXTUAL_KEYWORDS, DefKind,
+    KEYWORDS, OBSTACLE_SHAPE_DOCS, REDUCTIONS, RESERVED_DOCS, Tok, TokKind, is_keyword,
+    opens_contact_args, prelude_signatures,
 };
 use crate::front::ast::*;
 use crate::sema::units::{self, Dim};
@@ -65,6 +66,11 @@ impl Analysis<'_> {
             }
             Ctx::Args(callee) => {
                 let params = self.params_of(&callee);
+                let callee = if callee == CONTACT_ARGS {
+                    "contact"
+                } else {
+                    &callee
+                };
                 for p in params {
                     push(
                         &p,
@@ -73,6 +79,20 @@ impl Analysis<'_> {
                         Some(format!("{p}: ")),
                     );
                 }
+            }
+            Ctx::ObstacleShape => {
+                for b in OBSTACLE_SHAPE_DOCS
+                    .iter()
+                    .chain(BUILTIN_DOCS.iter().filter(|b| b.name == "sphere"))
+                {
+                    push(
+                        b.name,
+                        CompletionKind::Function,
+                        b.signature.to_string(),
+                        None,
+                    );
+                }
+                return out;
             }
             Ctx::TopLevel => {
                 for (k, d) in KEYWORDS.iter().chain(CONTEXTUAL_KEYWORDS) {
@@ -84,6 +104,7 @@ impl Analysis<'_> {
                             | "chamber"
                             | "nodes"
                             | "elements"
+                            | "obstacle"
                             | "param"
                             | "input"
                             | "let"
@@ -102,7 +123,7 @@ impl Analysis<'_> {
                 let (settings, kws): (&[&str], &[&str]) = match ctx {
                     Ctx::Sim => (
                         sema::SIM_SETTINGS,
-                        &["let", "fix", "pressure", "use", "output"],
+                        &["let", "fix", "pressure", "contact", "use", "output"],
                     ),
                     Ctx::Optimize => (sema::OPTIMIZE_SETTINGS, &["stop", "validate"]),
                     _ => (&["density"], &["let"]),
@@ -201,8 +222,12 @@ impl Analysis<'_> {
         out
     }
 
-    /// Parameter names of a callee: a built-in, a prelude template/function, or the script's.
+    /// Parameter names of a callee: a built-in, a prelude template/function, or the script's
+    /// (or [`CONTACT_ARGS`]: those of a `contact` statement).
     pub(super) fn params_of(&self, callee: &str) -> Vec<String> {
+        if callee == CONTACT_ARGS {
+            return CONTACT_DOC.params.iter().map(|p| p.to_string()).collect();
+        }
         if let Some(script) = &self.script {
             for item in &script.items {
                 match &item.kind {
@@ -237,6 +262,7 @@ impl Analysis<'_> {
         }
         BUILTIN_DOCS
             .iter()
+            .chain(OBSTACLE_SHAPE_DOCS)
             .find(|b| b.name == callee)
             .map(|b| b.params.iter().map(|p| p.to_string()).collect())
             .unwrap_or_default()
@@ -348,9 +374,13 @@ enum Ctx {
     Unit,
     /// After `:` in a declaration: a dimension name.
     Type,
-    /// Inside the argument list of a call to the named function.
+    /// Inside the argument list of a call to the named function (or of a `contact` statement:
+    /// [`CONTACT_ARGS`]).
     Args(String),
-    /// A name of one of these kinds: `pressure CHAMBER`, `fix REGION`, `use MATERIAL`, …
+    /// After `obstacle NAME =`: the shapes an obstacle can have.
+    ObstacleShape,
+    /// A name of one of these kinds: `pressure CHAMBER`, `fix REGION`, `use MATERIAL`,
+    /// `contact BODY with OBSTACLE`, …
     Names(&'static [SymKind]),
     Expr,
 }
@@ -396,6 +426,16 @@ fn context_at(text: &str, tokens: &[Tok], offset: usize) -> Ctx {
     if let Some(kinds) = statement_names(text, &before) {
         return Ctx::Names(kinds);
     }
+    // `obstacle NAME = `: a shape.
+    if stack.is_empty()
+        && let [.., kw, name, eq] = before.as_slice()
+        && word(kw) == "obstacle"
+        && name.kind == TokKind::Ident
+        && word(eq) == "="
+        && before.len() - 3 == statement_start(text, &before)
+    {
+        return Ctx::ObstacleShape;
+    }
     if let Some(&open) = stack.last() {
         let o = word(before[open]);
         let prev = |k: usize| open.checked_sub(k).map(|j| word(before[j]));
@@ -405,6 +445,17 @@ fn context_at(text: &str, tokens: &[Tok], offset: usize) -> Ctx {
             if is_decl {
                 if last == Some(":") {
                     return Ctx::Type;
+                }
+                return Ctx::Expr;
+            }
+            // `contact BODY with OBSTACLE (`: the statement's arguments.
+            let words: Vec<&str> = before[open.saturating_sub(4)..open]
+                .iter()
+                .map(|t| word(t))
+                .collect();
+            if opens_contact_args(&words) {
+                if matches!(last, Some("(" | ",")) {
+                    return Ctx::Args(CONTACT_ARGS.to_string());
                 }
                 return Ctx::Expr;
             }
@@ -469,11 +520,9 @@ fn context_at(text: &str, tokens: &[Tok], offset: usize) -> Ctx {
     Ctx::Expr
 }
 
-/// In a statement that names declarations (`pressure CHAMBER`, `fix A, B`, `use M in SET`,
-/// `optimize P, Q with`, `validate INPUT`): the kinds of names that fit at the cursor.
-fn statement_names(text: &str, before: &[&Tok]) -> Option<&'static [SymKind]> {
+/// Where the current statement starts in `before`: back to a line start, `{` or `;`.
+fn statement_start(text: &str, before: &[&Tok]) -> usize {
     let word = |t: &Tok| &text[t.span.start..t.span.end];
-    // The tokens of the current statement: back to a line start, `{` or `;`.
     let mut start = before.len();
     while start > 0 {
         let t = before[start - 1];
@@ -487,6 +536,16 @@ fn statement_names(text: &str, before: &[&Tok]) -> Option<&'static [SymKind]> {
             break;
         }
     }
+    start
+}
+
+/// In a statement that names declarations (`pressure CHAMBER`, `fix A, B`, `use M in SET`,
+/// `contact BODY with OBSTACLE`, `optimize P, Q with`, `validate INPUT`): the kinds of names
+/// that fit at the cursor.
+fn statement_names(text: &str, before: &[&Tok]) -> Option<&'static [SymKind]> {
+    let word = |t: &Tok| &text[t.span.start..t.span.end];
+    // The tokens of the current statement.
+    let start = statement_start(text, before);
     let stmt: Vec<&str> = before[start..].iter().map(|t| word(t)).collect();
     let list = |rest: &[&str]| {
         // `A, B, ` — names separated by commas, ending with a comma.
@@ -502,6 +561,8 @@ fn statement_names(text: &str, before: &[&Tok]) -> Option<&'static [SymKind]> {
         ["fix", rest @ ..] if list(rest) => Some(&[SymKind::Region, SymKind::Nodes]),
         ["use"] => Some(&[SymKind::Material]),
         ["use", _, "in"] => Some(&[SymKind::Elements]),
+        ["contact"] => Some(&[SymKind::Mesh, SymKind::Nodes]),
+        ["contact", body, "with"] if !is_keyword(body) => Some(&[SymKind::Obstacle]),
         ["optimize", rest @ ..] if list(rest) => Some(&[SymKind::Param]),
         ["validate"] => Some(&[SymKind::Input]),
         _ => None,
@@ -545,6 +606,7 @@ fn ends_in_operator(last: Option<&str>) -> bool {
                 | "fix"
                 | "use"
                 | "pressure"
+                | "contact"
                 | "output"
                 | "over"
         )

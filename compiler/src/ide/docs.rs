@@ -36,7 +36,7 @@ pub const KEYWORDS: &[(&str, &str)] = &[
     ),
     (
         "sim",
-        "the simulation block: settings, `fix`, `pressure`, `use`, `output`",
+        "the simulation block: settings, `fix`, `pressure`, `contact`, `use`, `output`",
     ),
     (
         "optimize",
@@ -53,7 +53,10 @@ pub const KEYWORDS: &[(&str, &str)] = &[
     ("stop", "`stop when CONDITION` ends the optimization"),
     ("when", "`stop when CONDITION`"),
     ("validate", "`validate INPUT from SOURCE`"),
-    ("with", "`optimize … with OPTIMIZER`"),
+    (
+        "with",
+        "`optimize … with OPTIMIZER`; `contact BODY with OBSTACLE`",
+    ),
     ("for", "`for N iterations`"),
     ("iterations", "`for N iterations`"),
     ("from", "`input NAME: TYPE from SOURCE`"),
@@ -86,6 +89,16 @@ pub const CONTEXTUAL_KEYWORDS: &[(&str, &str)] = &[
     (
         "pressure",
         "`pressure CHAMBER = EXPR` in `sim`; in types, the dimension of pressure",
+    ),
+    (
+        "obstacle",
+        "declares a rigid obstacle: `obstacle NAME = plane(point: …, normal: …)` or \
+         `sphere(center: …, radius: …)`",
+    ),
+    (
+        "contact",
+        "`contact BODY with OBSTACLE (gap: …, stiffness: …)` in `sim`: frictionless barrier \
+         contact of the mesh (or a node set's surface nodes) with an obstacle",
     ),
 ];
 
@@ -252,9 +265,9 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
     ),
     b!(
         "sphere",
-        "sphere(center: length[3], radius: length) -> region",
+        "sphere(center: length[3], radius: length) -> region | obstacle",
         ["center", "radius"],
-        "Ball."
+        "Ball: a region; in an `obstacle` declaration a rigid ball the body stays outside of (its arguments may then follow `t` or params)."
     ),
     b!(
         "cylinder",
@@ -377,6 +390,27 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
         "Targets on a circle, one per quadrant per batch (thesis §6)."
     ),
 ];
+
+/// The shapes of an `obstacle` declaration that are not also built-in functions (`sphere` is
+/// one: [`BUILTIN_DOCS`] documents both of its uses). Their arguments may follow `t` or params.
+pub const OBSTACLE_SHAPE_DOCS: &[BuiltinDoc] = &[b!(
+    "plane",
+    "plane(point: length[3], normal: 1[3]) -> obstacle",
+    ["point", "normal"],
+    "A rigid plane through `point`; the half-space behind `normal` (normalized) is solid, the \
+     body stays on the side the normal points to. Only in an `obstacle` declaration."
+)];
+
+/// The arguments of the sim statement `contact BODY with OBSTACLE (…)`.
+pub const CONTACT_DOC: BuiltinDoc = b!(
+    "contact",
+    "contact BODY with OBSTACLE (gap: length, stiffness?: pressure)",
+    ["gap", "stiffness"],
+    "Frictionless barrier contact: each boundary node of BODY within `gap` (a positive \
+     constant) of the obstacle is pushed away by a log barrier that grows without bound at the \
+     obstacle; `stiffness` (a positive constant, default about the body's Young's modulus) \
+     scales it. Needs `quasi_static` or `implicit_euler`."
+);
 
 /// Built-in constants (SPEC 9.6).
 pub const CONSTANT_DOCS: &[(&str, &str)] = &[

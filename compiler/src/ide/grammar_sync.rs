@@ -9,7 +9,7 @@ fn read(rel: &str) -> String {
     std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
-/// Words of every `(a|b|c)` alternation in the grammar's regexes.
+/// Words of every `(a|b|c)` alternation and `(word)` group in the grammar's regexes.
 fn grammar_words() -> HashSet<String> {
     let g: serde_json::Value = serde_json::from_str(&read(
         "lang-spec/editors/vscode/syntaxes/soft.tmLanguage.json",
@@ -37,7 +37,7 @@ fn grammar_words() -> HashSet<String> {
             let Some(inner) = part.split(')').next() else {
                 continue;
             };
-            if inner.contains('|')
+            if !inner.is_empty()
                 && inner
                     .chars()
                     .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '|')
@@ -61,6 +61,26 @@ fn keywords_match_the_pest_grammar() {
     assert_eq!(ours, from_pest);
 }
 
+/// Every keyword rule of the grammar (`kw_obstacle = @{ "obstacle" … }`) is a reserved keyword
+/// or a documented contextual one.
+#[test]
+fn every_keyword_rule_is_documented() {
+    let pest = read("compiler/src/front/soft.pest");
+    let mut rules: Vec<&str> = pest
+        .lines()
+        .filter(|l| l.starts_with("kw_"))
+        .filter_map(|l| l.split('"').nth(1))
+        .collect();
+    let mut ours: Vec<&str> = KEYWORDS
+        .iter()
+        .chain(CONTEXTUAL_KEYWORDS)
+        .map(|(k, _)| *k)
+        .collect();
+    rules.sort();
+    ours.sort();
+    assert_eq!(ours, rules);
+}
+
 #[test]
 fn the_textmate_grammar_knows_every_built_in_name() {
     let words = grammar_words();
@@ -70,6 +90,8 @@ fn the_textmate_grammar_knows_every_built_in_name() {
     names.extend(sema::RESERVED_NAMES.iter().map(|s| s.to_string()));
     names.extend(units::NAMED_DIMS.iter().map(|(s, _)| s.to_string()));
     names.extend(KEYWORDS.iter().map(|(s, _)| s.to_string()));
+    names.extend(CONTEXTUAL_KEYWORDS.iter().map(|(s, _)| s.to_string()));
+    names.extend(OBSTACLE_SHAPE_DOCS.iter().map(|b| b.name.to_string()));
     names.extend(prelude_signatures().into_iter().map(|(n, _)| n));
     names.extend(REDUCTIONS.iter().map(|s| s.to_string()));
     let missing: Vec<&String> = names.iter().filter(|n| !words.contains(*n)).collect();

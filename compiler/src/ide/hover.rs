@@ -2,8 +2,9 @@
 
 use super::docs::setting_doc;
 use super::{
-    Analysis, BUILTIN_DOCS, CONSTANT_DOCS, CONTEXTUAL_KEYWORDS, Def, DefKind, KEYWORDS, REDUCTIONS,
-    RESERVED_DOCS, Tok, TokKind,
+    Analysis, BUILTIN_DOCS, CONSTANT_DOCS, CONTACT_ARGS, CONTACT_DOC, CONTEXTUAL_KEYWORDS, Def,
+    DefKind, KEYWORDS, OBSTACLE_SHAPE_DOCS, REDUCTIONS, RESERVED_DOCS, Tok, TokKind,
+    opens_contact_args,
 };
 use crate::front::ast::*;
 use crate::sema::types::Ty;
@@ -54,8 +55,15 @@ impl Analysis<'_> {
         if !self.params_of(&callee).iter().any(|p| p == word) {
             return None;
         }
+        if callee == CONTACT_ARGS {
+            return Some(format!(
+                "argument `{word}` of `contact`\n\n```soft\n{}\n```\n\n{}",
+                CONTACT_DOC.signature, CONTACT_DOC.doc
+            ));
+        }
         let sig = BUILTIN_DOCS
             .iter()
+            .chain(OBSTACLE_SHAPE_DOCS)
             .find(|b| b.name == callee)
             .map(|b| b.signature.to_string())
             .or_else(|| {
@@ -110,6 +118,13 @@ impl Analysis<'_> {
                 }
                 "(" => {
                     if depth == 0 {
+                        let words: Vec<&str> = toks[i.saturating_sub(4)..i]
+                            .iter()
+                            .map(|t| &self.text[t.span.start..t.span.end])
+                            .collect();
+                        if opens_contact_args(&words) {
+                            return Some(CONTACT_ARGS.to_string());
+                        }
                         let prev = toks.get(i.checked_sub(1)?)?;
                         return (prev.kind == TokKind::Ident)
                             .then(|| self.text[prev.span.start..prev.span.end].to_string());
@@ -254,6 +269,7 @@ pub(super) fn kind_word(k: SymKind) -> &'static str {
         SymKind::Chamber => "chamber",
         SymKind::Nodes => "nodes",
         SymKind::Elements => "elements",
+        SymKind::Obstacle => "obstacle",
         SymKind::Param => "param",
         SymKind::Input => "input",
         SymKind::Let => "let",
@@ -437,6 +453,12 @@ pub fn builtin_hover(word: &str, called: bool) -> Option<String> {
     {
         return Some(format!(
             "```soft\n{}\n```\n\nbuilt-in function. {}",
+            b.signature, b.doc
+        ));
+    }
+    if let Some(b) = OBSTACLE_SHAPE_DOCS.iter().find(|b| b.name == word) {
+        return Some(format!(
+            "```soft\n{}\n```\n\nobstacle shape. {}",
             b.signature, b.doc
         ));
     }

@@ -25,8 +25,8 @@ mod tests;
 pub use crate::sema::{Def, DefKind, Resolution};
 pub use complete::{Completion, CompletionKind};
 pub use docs::{
-    BUILTIN_DOCS, BuiltinDoc, CONSTANT_DOCS, CONTEXTUAL_KEYWORDS, KEYWORDS, REDUCTIONS,
-    RESERVED_DOCS,
+    BUILTIN_DOCS, BuiltinDoc, CONSTANT_DOCS, CONTACT_DOC, CONTEXTUAL_KEYWORDS, KEYWORDS,
+    OBSTACLE_SHAPE_DOCS, REDUCTIONS, RESERVED_DOCS,
 };
 pub use hover::{builtin_hover, eval_dim, prelude_signatures};
 pub use lex::{Tok, TokKind, is_keyword, tokenize};
@@ -34,6 +34,18 @@ pub use outline::Symbol;
 
 use crate::front::ast::*;
 use crate::sema::{CheckOptions, CheckedScript, GlobalInfo};
+
+/// The callee name under which [`Analysis::params_of`] knows the arguments of the sim statement
+/// `contact BODY with OBSTACLE (…)`: not an identifier, so no function of the script has it.
+pub(crate) const CONTACT_ARGS: &str = "contact BODY with OBSTACLE";
+
+/// Whether a `(` right after these words (the nearest last) opens the arguments of
+/// `contact BODY with OBSTACLE (…)`.
+pub(crate) fn opens_contact_args(words: &[&str]) -> bool {
+    let name =
+        |w: &str| w.starts_with(|c: char| c.is_ascii_alphabetic() || c == '_') && !is_keyword(w);
+    matches!(words, [.., "contact", body, "with", obstacle] if name(body) && name(obstacle))
+}
 
 /// A script parsed, resolved and checked, ready to answer editor questions.
 pub struct Analysis<'a> {
@@ -121,6 +133,7 @@ impl<'a> Analysis<'a> {
                 "chamber" => "chamber",
                 "nodes" => "nodes",
                 "elements" => "elements",
+                "obstacle" => "obstacle",
                 "param" => "param",
                 "input" => "input",
                 "let" => "let",

@@ -184,6 +184,73 @@ fn completion_contexts() {
     assert!(names("sim {\n  pressure ch = ").contains(&"p".to_string()));
 }
 
+/// Obstacles and contact: hover on the keywords, the shape, its and the statement's
+/// arguments and the obstacle's name; definitions; completion of the names and arguments.
+#[test]
+fn obstacles_and_contact() {
+    let text = "mesh body = load(\"b.msh\")\nnodes tip = select(body, x > 1 mm)\n\
+                obstacle floor = plane(point: [0, 0, -1] mm, normal: [0, 0, 1])\n\
+                sim {\n  integrator = quasi_static\n  \
+                contact body with floor (gap: 0.1 mm, stiffness: 1 MPa)\n}\n";
+    let a = Analysis::new(text);
+    assert!(a.script.is_some());
+    let hover = |needle: &str| a.hover(at(text, needle)).map(|h| h.0).unwrap_or_default();
+    let h = hover("floor (");
+    assert!(h.contains("obstacle floor = plane(point:"), "{h}");
+    assert!(h.contains("an obstacle"), "{h}");
+    let h = hover("plane(");
+    assert!(h.contains("obstacle shape"), "{h}");
+    let h = hover("point:");
+    assert!(h.contains("argument `point` of `plane`"), "{h}");
+    let h = hover("gap:");
+    assert!(h.contains("argument `gap` of `contact`"), "{h}");
+    assert!(h.contains("stiffness?: pressure"), "{h}");
+    assert!(hover("stiffness:").contains("argument `stiffness` of `contact`"));
+    assert!(hover("contact body").contains("keyword"));
+    assert!(hover("obstacle floor").contains("keyword"));
+    let def = a.definition(at(text, "floor (")).unwrap();
+    assert_eq!(def.start, text.find("floor =").unwrap());
+    assert_eq!(a.references(def.start).len(), 2);
+    assert!(
+        a.symbols()
+            .iter()
+            .any(|s| s.name == "floor" && s.kind == "obstacle")
+    );
+    // While the script does not parse, the obstacle is still found.
+    let broken = format!("{text}let oops = (\n");
+    let b = Analysis::new(&broken);
+    assert!(b.script.is_none());
+    assert_eq!(b.definition(at(&broken, "floor (")), Some(def));
+
+    let kw = |text: &str| -> Vec<String> {
+        Analysis::new(text)
+            .completions(text.len())
+            .into_iter()
+            .map(|c| c.label)
+            .collect()
+    };
+    let decls = "mesh body = load(\"b.msh\")\nnodes tip = select(body, x > 1 mm)\n\
+                 region r = box(min: [0, 0, 0] mm, max: [1, 1, 1] mm)\n\
+                 obstacle floor = plane(point: [0, 0, -1] mm, normal: [0, 0, 1])\n";
+    let names = |tail: &str| kw(&format!("{decls}{tail}"));
+    assert!(kw("obs").contains(&"obstacle".to_string()));
+    assert!(names("sim {\n  con").contains(&"contact".to_string()));
+    assert_eq!(names("obstacle ball = "), ["plane", "sphere"]);
+    assert_eq!(names("sim {\n  contact "), ["body", "tip"]);
+    assert_eq!(names("sim {\n  contact tip with "), ["floor"]);
+    // The statement's arguments first (then what a positional argument may be).
+    let args = names("sim {\n  contact tip with floor (");
+    assert_eq!(args[..2], ["gap", "stiffness"], "{args:?}");
+    let args = names("sim {\n  contact tip with floor (gap: 1 mm, st");
+    assert_eq!(args[0], "stiffness", "{args:?}");
+    assert!(names("sim {\n  contact tip with floor (gap: 1 ").contains(&"mm".to_string()));
+    assert_eq!(names("obstacle wall = plane(")[..2], ["point", "normal"]);
+    // The same without a parse (the text ends inside the statement).
+    let unparsed = "obstacle wall = plane(point: [0, 0, 0] mm, normal: [1, 0, 0])\n\
+                    sim {\n  contact body with ";
+    assert_eq!(kw(unparsed), ["wall"]);
+}
+
 #[test]
 fn never_panics_on_odd_text() {
     for text in [

@@ -146,13 +146,8 @@ fn distance(
             let n2 = k.b.sum(&sq);
             let len = k.b.un(UnOp::Sqrt, n2);
             let unit = [0, 1, 2].map(|d| k.b.div(n[d], len));
-            let terms: Vec<V> = (0..3)
-                .map(|d| {
-                    let r = k.b.sub(x[d], p[d]);
-                    k.b.mul(unit[d], r)
-                })
-                .collect();
-            Ok((k.b.sum(&terms), unit))
+            let r = [0, 1, 2].map(|d| k.b.sub(x[d], p[d]));
+            Ok((dot(k, unit, r), unit))
         }
         "sphere" => {
             let c = vector(k, "center", 0)?;
@@ -169,6 +164,16 @@ fn distance(
             "`{other}(…)` is not an obstacle shape"
         ))),
     }
+}
+
+/// a·b, leaving out the products with a constant zero of `a` (a plane's normal along an axis
+/// reads one coordinate).
+fn dot(k: &mut KernelBuilder, a: [V; 3], b: [V; 3]) -> V {
+    let kept: Vec<usize> = (0..3)
+        .filter(|&d| k.b.func.constant(a[d]) != Some(0.0))
+        .collect();
+    let terms: Vec<V> = kept.into_iter().map(|d| k.b.mul(a[d], b[d])).collect();
+    k.b.sum(&terms)
 }
 
 /// The node's own position, component by component.
@@ -321,9 +326,8 @@ pub fn contact_kernels(
             buffer: area_buffer(module, i),
             component: 0,
         });
+        let slope = dot(&mut k, grad, v);
         let b = &mut k.b;
-        let terms: Vec<V> = (0..3).map(|c| b.mul(grad[c], v[c])).collect();
-        let slope = b.sum(&terms);
         let zero = b.constant(0.0);
         let approaching = b.cmp(CmpOp::Lt, slope, zero);
         let member = b.cmp(CmpOp::Gt, area, zero);

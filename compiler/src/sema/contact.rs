@@ -1,5 +1,5 @@
 //! Checking of rigid obstacles (`obstacle NAME = plane(…)` / `sphere(…)`) and of the sim
-//! block's `contact BODY with OBSTACLE (…)` statements (SPEC §6.7).
+//! block's `contact BODY with OBSTACLE (…)` statements (SPEC 5.11, 6.6).
 //!
 //! An obstacle's shape is its own call, not a region: its position may follow the time `t`
 //! (a moving plate) or a param (a trainable pose), which a region's constant geometry may not.

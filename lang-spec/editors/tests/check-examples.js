@@ -53,7 +53,7 @@ const registry = new vsctm.Registry({
 
 function checkFile(grammar, file) {
   const text = fs.readFileSync(file, 'utf8');
-  const declared = new Set([...text.matchAll(/\b(?:mesh|region|chamber|nodes|elements|param|input|let|fn|controller|material)\s+([A-Za-z_]\w*)/g)].map((m) => m[1]));
+  const declared = new Set([...text.matchAll(/\b(?:mesh|region|chamber|nodes|elements|obstacle|param|input|let|fn|controller|material)\s+([A-Za-z_]\w*)/g)].map((m) => m[1]));
   const errors = [];
   let state = vsctm.INITIAL;
   const lines = text.split('\n');

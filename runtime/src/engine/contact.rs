@@ -92,8 +92,8 @@ impl<B: Backend> Simulation<'_, B> {
             let stiffness = match c.stiffness {
                 Some(k) => k,
                 None => *estimate.get_or_insert_with(|| {
-                    3.0 * super::incompressibility::shear_modulus_at(scene, Some(&self.uniforms))
-                        .unwrap_or(0.0)
+                    // At the script's params: a constant of the scene, which gradients hold.
+                    3.0 * super::incompressibility::shear_modulus_at(scene, None).unwrap_or(0.0)
                 }),
             };
             if !(stiffness > 0.0 && stiffness.is_finite()) {

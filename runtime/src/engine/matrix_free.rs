@@ -137,7 +137,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
             );
         }
         if let Some(jacobian) = &statics.node_jacobian {
-            self.backend.run(jacobian.kernel, 0..nodes, &self.uniforms)?;
+            self.backend
+                .run(jacobian.kernel, 0..nodes, &self.uniforms)?;
             let own = self.backend.get(jacobian.dforce);
             for (n, block) in blocks.iter_mut().enumerate() {
                 for i in 0..9 {

@@ -468,7 +468,9 @@ impl Server {
         let a = self.analysis(doc);
         fn conv(s: &ide::Symbol, text: &str, idx: &LineIndex) -> Value {
             let kind = match s.kind {
-                "mesh" | "region" | "chamber" | "nodes" | "elements" => lt::SymbolKind::OBJECT,
+                "mesh" | "region" | "chamber" | "nodes" | "elements" | "obstacle" => {
+                    lt::SymbolKind::OBJECT
+                }
                 "material" => lt::SymbolKind::CLASS,
                 "param" => lt::SymbolKind::FIELD,
                 "input" => lt::SymbolKind::PROPERTY,

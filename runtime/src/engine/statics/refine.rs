@@ -40,6 +40,10 @@ impl<'s, B: Backend> Simulation<'s, B> {
         };
         twin.uniforms = self.uniforms.clone();
         twin.upload_fields();
+        // The contact nodes' areas, as `prepare_contact` filled them here.
+        for c in (self.scene.lowered.contacts.iter()).flat_map(|c| &c.pairs) {
+            twin.backend.set(c.area, &self.backend.get(c.area));
+        }
         // An f64 solve's goal (goal_at): the stored positions are then the f32 rounding of
         // the equilibrium, as close as f32 holds it.
         let target = (1e-10 * goal.scale).max(1e-12 * self.force_scale());
