@@ -66,9 +66,9 @@ fn a_cube_pressed_by_a_plane_has_the_uniform_pressure_of_uniaxial_strain() {
     let scene = load(&fixture());
     let mut sim = simulation(&scene);
     let run = sim.run(None, None).unwrap();
-    let solver = run.solver.unwrap();
+    let solver = run.solver.as_ref().unwrap();
     assert!(solver.converged, "{solver:?}");
-    let report = &solver.contact[0];
+    let report = &run.contact[0];
     let gap = 0.1 * MM;
     // The 5 × 5 nodes of the pressed face, none inside the obstacle or beyond the gap.
     assert_eq!(report.active_nodes, 25, "{report:?}");
@@ -164,7 +164,7 @@ fn a_sphere_pressed_into_a_face_stays_outside_and_pushes_along_its_axis() {
     let scene = load(&path);
     let mut sim = simulation(&scene);
     let run = sim.run(None, None).unwrap();
-    let report = &run.solver.unwrap().contact[0];
+    let report = &run.contact[0];
     assert!(report.min_distance > 0.0, "{report:?}");
     assert!(report.active_nodes >= 1, "{report:?}");
     let f = report.force;
@@ -194,7 +194,7 @@ fn an_implicit_run_with_contact_keeps_its_nodes_outside() {
     let scene = load(&path);
     let mut sim = simulation(&scene);
     let run = sim.run(None, None).unwrap();
-    let report = &run.solver.unwrap().contact[0];
+    let report = &run.contact[0];
     assert!(report.min_distance > 0.0, "{report:?}");
     assert!(report.force[0] > 0.0, "{report:?}");
     assert!(run.x.iter().all(|p| p[0] > 0.5 * MM - 1e-12));
@@ -217,13 +217,93 @@ fn contact_that_cannot_be_solved_is_a_clear_error() {
     // Nothing holds the cube sideways.
     let free = error("free.soft", &[("  fix held\n", "")]);
     assert!(free.contains("free to move rigidly"), "{free}");
-    // Explicit runs have no contact yet.
-    let explicit = error(
-        "explicit.soft",
+}
+
+/// The cube dropped on a floor 1 mm below it at 100 g (an impact at 1.4 m/s), no node held,
+/// with explicit steps of `dt`.
+fn drop_scene(name: &str, dt: &str) -> PathBuf {
+    let step = format!("dt = {dt}\n  gravity = [-1000, 0, 0] m/s^2");
+    variant(
+        name,
         &[
-            ("integrator = quasi_static", "dt = auto"),
+            ("integrator = quasi_static", &step),
+            ("duration = 1 s", "duration = 4 ms"),
             ("  steps = 4\n", ""),
+            ("  fix held\n", ""),
+            ("-0.05 mm + rise * ramp(t, 1 s)", "-1 mm + rise - 0.55 mm"),
         ],
-    );
-    assert!(explicit.contains("contact needs"), "{explicit}");
+    )
+}
+
+#[test]
+fn an_explicit_drop_on_the_floor_never_enters_it() {
+    // At 100 µs steps (the elastic limit is 113 µs) the impact covers 0.14 mm, 1.4 gaps, per
+    // step: predicted positions lie inside the floor, and the projection stops them.
+    let scene = load(&drop_scene("drop.soft", "100 us"));
+    let mut sim = simulation(&scene);
+    let floor = -MM;
+    let mut lowest = f64::MAX;
+    // 20 runs of 10 steps (the state carries over), every node checked after each.
+    for _ in 0..20 {
+        let run = sim.run(None, Some(10)).unwrap();
+        let min = run.x.iter().map(|p| p[0]).fold(f64::MAX, f64::min);
+        assert!(
+            min > floor,
+            "a node at x = {min} m, below the floor at {floor} m"
+        );
+        lowest = lowest.min(min);
+        assert!(run.contact[0].min_distance > 0.0, "{:?}", run.contact[0]);
+    }
+    // It reached the floor (within the gap) and was stopped there.
+    assert!(lowest < floor + 0.1 * MM, "lowest {lowest} m");
+}
+
+#[test]
+fn gradients_through_explicit_contact_match_central_differences() {
+    // A fixed step (`dt = auto` would follow μ): 0.07 mm of the impact per step.
+    let scene = load(&drop_scene("drop_grad.soft", "50 us"));
+    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
+    let g = Simulation::new(&scene, cpu)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    for (name, step) in [("param.rise", 1e-4 * MM), ("param.mu", 10.0)] {
+        let loss_at = |v: f64| {
+            let mut sim = simulation(&scene);
+            sim.uniforms.set_named(name, v);
+            sim.run(None, None).unwrap().loss.unwrap()
+        };
+        let p = scene.uniforms[name];
+        let fd = (loss_at(p + step) - loss_at(p - step)) / (2.0 * step);
+        let adj = g.gradients[name];
+        eprintln!("{name}: adjoint {adj:e}, central {fd:e}");
+        assert!(
+            (adj - fd).abs() < 1e-5 * fd.abs(),
+            "{name}: adjoint {adj:e}, central {fd:e}"
+        );
+    }
+}
+
+#[test]
+fn an_explicit_drop_on_the_gpu_matches_the_cpu() {
+    use softc::devices::gpu::Gpu;
+    // The projection's 12 Newton iterations as WGSL (f32) against the CPU in f64: lavapipe in
+    // CI (CI=true requires an adapter), any GPU elsewhere.
+    let scene = load(&drop_scene("drop_gpu.soft", "100 us"));
+    let reference = simulation(&scene).run(None, None).unwrap();
+    let gpu = match Gpu::new(&scene.lowered.adjoint.module, Precision::F32, None) {
+        Ok(g) => g,
+        Err(e) if e.starts_with("no GPU adapter found") => {
+            assert!(std::env::var("CI").as_deref() != Ok("true"), "{e}");
+            eprintln!("note: GPU test skipped: {e}");
+            return;
+        }
+        Err(e) => panic!("{e}"),
+    };
+    let run = Simulation::new(&scene, gpu).run(None, None).unwrap();
+    let worst = (run.x.iter().zip(&reference.x))
+        .flat_map(|(a, b)| (0..3).map(move |d| (a[d] - b[d]).abs()))
+        .fold(0.0f64, f64::max);
+    assert!(worst < 1e-3 * MM, "positions differ by {worst} m");
+    assert!(run.contact[0].min_distance > 0.0, "{:?}", run.contact[0]);
+    assert!(run.x.iter().all(|p| p[0] > -MM));
 }

@@ -1,6 +1,8 @@
 //! Frictionless contact of the mesh's surface nodes with rigid obstacles (SPEC §6.7), as a
 //! smooth barrier energy in the node kernels, so that static and implicit solves stay energy
-//! minimizations and their tangents, adjoints and Jacobian products come from the same passes.
+//! minimizations and their tangents, adjoints and Jacobian products come from the same passes;
+//! explicit steps solve the same barrier implicitly for each node's normal motion
+//! ([`project_step`]).
 //!
 //! Node n of contact i (its lumped boundary area A_n > 0, filled by the host in the buffer
 //! `contact_area.i`) at signed distance d from obstacle i gets the energy κ_n·b(d) of IPC's
@@ -101,11 +103,6 @@ fn statements(program: &Program) -> Result<Vec<Statement<'_>>, LowerError> {
         });
     }
     Ok(out)
-}
-
-/// Whether the scene has contact.
-pub fn has_contact(program: &Program) -> bool {
-    (program.sim.iter()).any(|s| matches!(s.kind, StmtKind::Contact { .. }))
 }
 
 fn area_buffer(module: &mut Module, i: usize) -> BufferId {
@@ -225,8 +222,8 @@ fn barrier_force(
     Ok((grad.map(|c| b.mul(magnitude, c)), d))
 }
 
-/// The summed contact force on the node at `x` (the node kernels add it to the net force),
-/// or `None` without contact. Quadratic meshes and explicit integration have no contact yet.
+/// The summed contact force on the node at `x` (the static and implicit node kernels add it to
+/// the net force), or `None` without contact. Quadratic meshes have no contact yet.
 pub fn node_contact_force(
     program: &Program,
     module: &mut Module,
@@ -237,11 +234,7 @@ pub fn node_contact_force(
     if statements.is_empty() {
         return Ok(None);
     }
-    if module.order != crate::ir::ElementOrder::Linear {
-        return Err(LowerError::new(
-            "contact works on linear tetrahedra for now: load the mesh with `order: 1`",
-        ));
-    }
+    linear_only(module)?;
     let pos = own_position(k, x);
     let mut total: Option<[V; 3]> = None;
     for (i, st) in statements.iter().enumerate() {
@@ -252,6 +245,124 @@ pub fn node_contact_force(
         });
     }
     Ok(total)
+}
+
+fn linear_only(module: &Module) -> Result<(), LowerError> {
+    if module.order != crate::ir::ElementOrder::Linear {
+        return Err(LowerError::new(
+            "contact works on linear tetrahedra for now: load the mesh with `order: 1`",
+        ));
+    }
+    Ok(())
+}
+
+/// Newton iterations of an explicit step's contact projection (unrolled in the node kernel).
+pub const PROJECTION_ITERATIONS: usize = 12;
+
+/// What a semi-implicit Euler step predicts for one node before contact: its position now, the
+/// step's new position and velocity, its (scaled) mass, the step and whether it is free.
+pub struct Predicted {
+    pub x: [V; 3],
+    pub x_new: [V; 3],
+    pub v_new: [V; 3],
+    pub mass: V,
+    pub dt: V,
+    pub free: V,
+}
+
+/// A node's position and velocity after an explicit step's contact projection.
+pub type Projected = ([V; 3], [V; 3]);
+
+/// An explicit step's contact, implicit in the positions (so no step size limit of its own and
+/// no node ever inside an obstacle): for each statement in turn, a contact node predicted at
+/// r̃ = d̃/ĝ < 1 moves by s = ĝ·(r − r̃) along the obstacle's normal ∇d at the predicted
+/// position, where r solves the balance of the correction's inertia and the barrier's force
+/// there, m·s/dt² = k·A·g(r):
+///
+///   h(r) = r − r̃ − c·g(r) = 0,   c = dt²·k·A/(m·ĝ),
+///
+/// h increasing and concave on (0, 1) with h(1) > 0, so the root is in (0, 1). Newton from the
+/// left climbs to it monotonically and from the right lands left of it; it starts at the
+/// node's distance before the step and never goes below a tenth of its last iterate (positive).
+/// The velocity gains s/dt along the normal (a perfectly inelastic normal impulse, as backward
+/// Euler's). Returns the new position and velocity, or `None` without contact.
+pub fn project_step(
+    program: &Program,
+    module: &mut Module,
+    k: &mut KernelBuilder,
+    state: Predicted,
+) -> Result<Option<Projected>, LowerError> {
+    let statements = statements(program)?;
+    if statements.is_empty() {
+        return Ok(None);
+    }
+    linear_only(module)?;
+    let (mut x1, mut v1) = (state.x_new, state.v_new);
+    for (i, st) in statements.iter().enumerate() {
+        let (d_new, normal) = distance(program, k, st.shape, x1)?;
+        let (d_now, _) = distance(program, k, st.shape, state.x)?;
+        let area = k.load(ArgSource::Own {
+            buffer: area_buffer(module, i),
+            component: 0,
+        });
+        let stiffness = k.uniform(&format!("contact.{i}.stiffness"));
+        let b = &mut k.b;
+        let (zero, one, tenth) = (b.constant(0.0), b.constant(1.0), b.constant(0.1));
+        let r_new = b.scale(1.0 / st.gap, d_new);
+        let member = b.cmp(CmpOp::Gt, area, zero);
+        let near = b.cmp(CmpOp::Lt, r_new, one);
+        let active = b.select(member, near, zero);
+        let active = b.select(state.free, active, zero);
+        let dt2 = b.mul(state.dt, state.dt);
+        let ka = b.mul(stiffness, area);
+        let pull = b.mul(dt2, ka);
+        let mg = b.scale(st.gap, state.mass);
+        let c = b.div(pull, mg);
+        // Start where the node is, inside (0, 1]; 0.5 where the projection is not taken (its
+        // value is discarded, but must stay finite).
+        let r_now = b.scale(1.0 / st.gap, d_now);
+        let start = b.bin(BinOp::Min, r_now, one);
+        let floor = b.constant(1e-6);
+        let start = b.bin(BinOp::Max, start, floor);
+        let half = b.constant(0.5);
+        let mut r = b.select(active, start, half);
+        let target = b.select(active, r_new, half);
+        for _ in 0..PROJECTION_ITERATIONS {
+            let inv = b.div(one, r);
+            let ln = b.un(UnOp::Ln, r);
+            let two_ln = b.scale(2.0, ln);
+            let q = b.sub(inv, one);
+            let q = b.sub(q, two_ln);
+            let s = b.sub(one, r);
+            let g = b.mul(s, q);
+            // g'(r) = −q − (1 − r)(1/r² + 2/r)
+            let inv2 = b.mul(inv, inv);
+            let two_inv = b.scale(2.0, inv);
+            let w = b.add(inv2, two_inv);
+            let sw = b.mul(s, w);
+            let qsw = b.add(q, sw);
+            let dg = b.neg(qsw);
+            let cg = b.mul(c, g);
+            let h = b.sub(r, target);
+            let h = b.sub(h, cg);
+            let cdg = b.mul(c, dg);
+            let dh = b.sub(one, cdg);
+            let step = b.div(h, dh);
+            let next = b.sub(r, step);
+            let low = b.mul(tenth, r);
+            r = b.bin(BinOp::Max, next, low);
+        }
+        let moved = b.sub(r, r_new);
+        let shift = b.scale(st.gap, moved);
+        let shift = b.select(active, shift, zero);
+        for d in 0..3 {
+            let dx = b.mul(shift, normal[d]);
+            x1[d] = b.add(x1[d], dx);
+            let dv = b.div(dx, state.dt);
+            v1[d] = b.add(v1[d], dv);
+        }
+    }
+    Ok(Some((x1, v1)))
 }
 
 /// The contact kernels that are not part of a step, pushed onto `module` (after its node

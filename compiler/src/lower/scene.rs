@@ -4,7 +4,7 @@
 //! away when absent, constants folded into the code.
 
 use super::LowerError;
-use super::contact::{contact_kernels, has_contact, node_contact_force};
+use super::contact::{contact_kernels, node_contact_force};
 use super::expr::{Env, ExprLowerer, Program};
 use super::fem::{
     FemBuffers, element_diagnostics_kernel, element_force_kernel, material_fields,
@@ -49,7 +49,7 @@ pub struct SceneModule {
     /// `integrator = quasi_static`: the equilibrium solve's kernels.
     pub statics: Option<StaticKernels>,
     /// `contact … with …` statements: their buffers and the kernels that report them and
-    /// limit Newton steps (static and implicit solves only).
+    /// limit Newton steps (the step limit serves static and implicit solves).
     pub contacts: Option<super::contact::Contacts>,
     /// Closed-loop control: the reductions over node or element sets that pressures and
     /// damping read; the kernels read sensor `i` as the uniforms `sensor.i.C`
@@ -284,16 +284,10 @@ pub fn lower_scene(program: &Program) -> Result<SceneModule, LowerError> {
         )?;
         (adjoint, Some(statics))
     } else {
-        if has_contact(program) {
-            return Err(LowerError::new(
-                "contact needs `integrator = quasi_static` or `integrator = implicit_euler`: \
-                 explicit runs (semi-implicit Euler) have no contact yet",
-            ));
-        }
-        contacts = None;
         let node = node_kernel(program, &mut module, !chambers.is_empty(), &mut scope)?;
         module.push_kernel(node);
         diagnostics = push_all(&mut module, &mut diagnostic_kernels);
+        contacts = contact_kernels(program, &mut module)?;
         simplify_module(&mut module);
         let mut scale = Vec::new();
         if let Some(e) = program.optimize_setting("gradient_scale") {
@@ -730,6 +724,8 @@ fn node_kernel(
     });
     let zero = k.b.constant(0.0);
     let free = k.b.cmp(CmpOp::Eq, is_fixed, zero);
+    let (mut x_new, mut v_new) = ([zero; 3], [zero; 3]);
+    let mut x_now = [zero; 3];
     for d in 0..3u32 {
         let f = gathered_force(&mut k, elem_force, tri_force.filter(|_| pressure), d);
         let xv = k.load(ArgSource::Own {
@@ -752,9 +748,26 @@ fn node_kernel(
         let v1 = k.b.add(vv, dv);
         let v1 = k.b.select(free, v1, zero);
         let dx = k.b.mul(dt, v1);
-        let x1 = k.b.add(xv, dx);
-        k.store(x_next, d, x1);
-        k.store(v_next, d, v1);
+        x_new[d as usize] = k.b.add(xv, dx);
+        v_new[d as usize] = v1;
+        x_now[d as usize] = xv;
+    }
+    // Contact is implicit in the positions: the predicted step is projected to where the
+    // barrier's force balances the inertia of the normal correction.
+    let state = super::contact::Predicted {
+        x: x_now,
+        x_new,
+        v_new,
+        mass: m,
+        dt,
+        free,
+    };
+    if let Some((x1, v1)) = super::contact::project_step(program, module, &mut k, state)? {
+        (x_new, v_new) = (x1, v1);
+    }
+    for d in 0..3u32 {
+        k.store(x_next, d, x_new[d as usize]);
+        k.store(v_next, d, v_new[d as usize]);
     }
     Ok(k.finish())
 }

@@ -466,6 +466,7 @@ impl<B: Backend> Simulation<'_, B> {
         }
         let start = std::time::Instant::now();
         self.upload_fields();
+        self.prepare_contact()?;
         let (dt, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
         self.uniforms.set(self.ids.dt, dt);
@@ -821,8 +822,12 @@ impl<B: Backend> Simulation<'_, B> {
         }
         let gradients = self.collect_gradients(direct)?;
         let backward_seconds = back_start.elapsed().as_secs_f64();
+        // The contact at the final state, as a forward run reports it.
+        self.backend.set(self.ids.x, &final_state.0);
+        let contact = self.contact_report(steps as f64 * dt)?;
         Ok(GradientReport {
             summary: RunSummary {
+                contact,
                 loss: Some(loss_value),
                 steps,
                 dt,

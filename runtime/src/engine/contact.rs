@@ -6,7 +6,7 @@
 use super::{RunError, Simulation};
 use crate::devices::Backend;
 use crate::text::Sig;
-use softc_compiler::lower::contact::{Contact, NO_LIMIT};
+use softc_compiler::driver::{Contact, NO_LIMIT};
 
 /// One contact statement's outcome, for the JSON summary (`solver.contact`).
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
@@ -52,20 +52,25 @@ impl<B: Backend> Simulation<'_, B> {
         (self.scene.lowered.contacts.as_ref()).map_or(&[], |c| &c.pairs)
     }
 
-    /// Fill the contact buffers and stiffnesses, and refuse a body that starts inside an
-    /// obstacle or that, free to move rigidly, a static solve cannot hold. `free_motion`: the
-    /// rigid motions a static solve's fixed nodes leave free, described.
-    pub(super) fn prepare_contact(&mut self, free_motion: Option<String>) -> Result<(), RunError> {
-        if self.contacts().is_empty() {
-            return Ok(());
-        }
-        if let Some(motion) = free_motion {
-            return Err(RunError(format!(
+    /// A static solve's refusal of contact on a body its fixed nodes leave free to move
+    /// rigidly (`free_motion`, described): frictionless contact does not hold it sideways.
+    pub(super) fn refuse_free_contact(&self, free_motion: Option<String>) -> Result<(), RunError> {
+        match free_motion {
+            Some(motion) if !self.contacts().is_empty() => Err(RunError(format!(
                 "this body touches obstacles but is free to move rigidly ({motion}): a static \
                  solve with contact needs fixed nodes that hold it (`fix REGION`), since \
                  frictionless contact does not hold it sideways. Simulate the motion with \
-                 `integrator = implicit_euler`"
-            )));
+                 `integrator = implicit_euler` or `semi_implicit_euler`"
+            ))),
+            _ => Ok(()),
+        }
+    }
+
+    /// Fill the contact buffers and stiffnesses, and refuse a start state (the current
+    /// positions, at t = 0) with a node inside an obstacle.
+    pub(super) fn prepare_contact(&mut self) -> Result<(), RunError> {
+        if self.contacts().is_empty() {
+            return Ok(());
         }
         let scene = self.scene;
         let areas = boundary_areas(&scene.mesh);

@@ -190,9 +190,10 @@ impl<B: Backend> Simulation<'_, B> {
             }
             _ => None,
         };
-        report.contact = self.contact_report(t_end)?;
+        let contact = self.contact_report(t_end)?;
         Ok(StaticRun {
             summary: RunSummary {
+                contact,
                 loss: loss_value,
                 steps,
                 dt: h,

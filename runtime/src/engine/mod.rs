@@ -117,6 +117,8 @@ pub struct RunSummary {
     pub v: Vec<[f64; 3]>,
     /// What the equilibrium solver did (`integrator = quasi_static` only).
     pub solver: Option<statics::SolverReport>,
+    /// Each `contact` statement's forces and distances at the final state.
+    pub contact: Vec<contact::ContactReport>,
 }
 
 /// How much a run's final state still moves (issue 20 item 11: a run past a limit point ended
@@ -564,6 +566,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
         }
         let start = std::time::Instant::now();
         self.upload_fields();
+        self.prepare_contact()?;
         let (dt, estimate) = self.resolve_dt(dt_override)?;
         let steps = steps_override.unwrap_or_else(|| self.scene.steps_for(dt));
         self.uniforms.set(self.ids.dt, dt);
@@ -581,6 +584,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             self.write_vtk(steps as f64 * dt)?;
         }
         let mut summary = self.summary(steps, dt, estimate, start);
+        summary.contact = self.contact_report(steps as f64 * dt)?;
         summary.loss = loss_fn
             .map(|l| {
                 let value = match l.window {
@@ -616,6 +620,7 @@ impl<'s, B: Backend> Simulation<'s, B> {
             x: xs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
             v: vs.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
             solver: None,
+            contact: Vec::new(),
         }
     }
 

@@ -122,8 +122,6 @@ pub struct SolverReport {
     pub multigrid_setups: u64,
     pub multigrid_levels: usize,
     pub operator_complexity: f64,
-    /// Each `contact` statement's forces and distances at the last state.
-    pub contact: Vec<super::contact::ContactReport>,
 }
 
 /// How a static or implicit solve solves its linear systems ([`Simulation::linear_solver`]).
@@ -1244,7 +1242,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         };
         let tangent = Tangent::new(pattern, self.backend.precision(), choice)?;
         self.reset();
-        self.prepare_contact(report.free_motion.clone())?;
+        self.refuse_free_contact(report.free_motion.clone())?;
+        self.prepare_contact()?;
         // Non-physical constants (E ≤ 0, ν out of (−1, 0.5)) have no stable equilibrium: a
         // solve returned the rest state (E = 0) or an unstable stationary point with exit 0.
         let material = self.material_values();
@@ -1385,10 +1384,11 @@ impl<'s, B: Backend> Simulation<'s, B> {
         } else {
             None
         };
-        report.contact = self.contact_report(t_end)?;
+        let contact = self.contact_report(t_end)?;
         let x = self.backend.get(self.ids.x);
         Ok(StaticRun {
             summary: RunSummary {
+                contact,
                 loss: loss_value,
                 steps,
                 dt: h,

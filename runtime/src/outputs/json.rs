@@ -41,6 +41,9 @@ pub fn summary_json(scene: &Scene, s: &RunSummary, backend: &str) -> serde_json:
     if let Some(solver) = &s.solver {
         json["solver"] = serde_json::to_value(solver).unwrap_or_default();
     }
+    if !s.contact.is_empty() {
+        json["contact"] = serde_json::to_value(&s.contact).unwrap_or_default();
+    }
     json["warnings"] = crate::session::run_warnings(scene, s).into();
     json
 }

@@ -199,6 +199,13 @@ impl<'a> Reference<'a> {
             return Err(format!("element {} has no material", scene.mesh.tet_id(e)));
         }
         let sim = syntax.sim_block();
+        // The oracle has no contact: it would silently let the body pass through.
+        if sim
+            .iter()
+            .any(|s| matches!(s.kind, StmtKind::Contact { .. }))
+        {
+            return Err("the reference simulator has no contact with obstacles".into());
+        }
         let pressure_stmts: Vec<(&str, &Expr)> = sim
             .iter()
             .filter_map(|s| match &s.kind {
@@ -816,6 +823,7 @@ impl<'a> Reference<'a> {
             x: x.iter().map(|p| [p[0], p[1], p[2]]).collect(),
             v: v.iter().map(|p| [p[0], p[1], p[2]]).collect(),
             solver: None,
+            contact: Vec::new(),
         })
     }
 }
