@@ -822,9 +822,17 @@ impl<B: Backend> Simulation<'_, B> {
         }
         let gradients = self.collect_gradients(direct)?;
         let backward_seconds = back_start.elapsed().as_secs_f64();
-        // The contact at the final state, as a forward run reports it.
-        self.backend.set(self.ids.x, &final_state.0);
-        let contact = self.contact_report(steps as f64 * dt)?;
+        // The contact at the final state, as a forward run reports it; the positions the
+        // backward pass left are kept (a next gradient starts from them).
+        let contact = if self.scene.lowered.contacts.is_some() {
+            let left = self.backend.get(self.ids.x);
+            self.backend.set(self.ids.x, &final_state.0);
+            let report = self.contact_report(steps as f64 * dt);
+            self.backend.set(self.ids.x, &left);
+            report?
+        } else {
+            Vec::new()
+        };
         Ok(GradientReport {
             summary: RunSummary {
                 contact,
