@@ -103,3 +103,45 @@ pub(super) fn area_weights(
         })
         .collect()
 }
+
+/// The contact nodes of each `contact` statement (in order): the boundary nodes of its body
+/// (the mesh, or a node set's nodes on the boundary surface), in node order, each with its
+/// lumped boundary area — a third of the area of each boundary triangle it is a corner of
+/// (linear meshes: contact needs them).
+pub(super) fn contact_nodes(
+    mesh: &dyn MeshView,
+    contacts: &[crate::lower::contact::ContactBody],
+    node_sets: &[(String, Vec<u32>)],
+) -> Vec<crate::lower::contact::ContactNodes> {
+    if contacts.is_empty() {
+        return Vec::new();
+    }
+    let nodes = mesh.nodes();
+    let mut area = vec![0.0; nodes.len()];
+    for t in boundary_triangles(mesh) {
+        let x: Vec<[f64; 3]> = t.iter().take(3).map(|&n| nodes[n as usize]).collect();
+        for (&n, w) in t.iter().zip(triangle_weights(&x)) {
+            area[n as usize] += w;
+        }
+    }
+    contacts
+        .iter()
+        .map(|c| {
+            let members: Vec<u32> = match node_sets.iter().find(|(name, _)| *name == c.body) {
+                Some((_, set)) => {
+                    let mut set = set.clone();
+                    set.sort_unstable();
+                    set.dedup();
+                    set
+                }
+                None => (0..nodes.len() as u32).collect(),
+            };
+            let (nodes, areas) = members
+                .into_iter()
+                .filter(|&n| area[n as usize] > 0.0)
+                .map(|n| (n, area[n as usize]))
+                .unzip();
+            crate::lower::contact::ContactNodes { nodes, areas }
+        })
+        .collect()
+}

@@ -110,6 +110,8 @@ pub struct Bound {
     pub loss: Option<LossKernels>,
     /// Closed-loop control's sensors, one per scalar (uniform `sensor.I.C`).
     pub sensors: Vec<SensorKernels>,
+    /// Per `contact` statement: its nodes and their boundary areas.
+    pub contacts: Vec<crate::lower::contact::ContactNodes>,
 }
 
 impl Bound {
@@ -176,7 +178,9 @@ impl Resolved {
         } else {
             Default::default()
         };
-        let loss = lower_loss(program, &node_sets, &element_sets, &node_weights)?;
+        let contacts =
+            super::area::contact_nodes(mesh, &crate::lower::contact::bodies(program), &node_sets);
+        let loss = lower_loss(program, &node_sets, &element_sets, &node_weights, &contacts)?;
         let sensors = lower_sensors(
             program,
             &kernels.sensors,
@@ -197,6 +201,7 @@ impl Resolved {
             slots,
             loss,
             sensors,
+            contacts,
         })
     }
 

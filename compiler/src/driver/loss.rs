@@ -226,11 +226,13 @@ pub(super) fn lower_loss(
     node_sets: &[(String, Vec<u32>)],
     element_sets: &[(String, Vec<u32>)],
     node_weights: &HashMap<String, Vec<f64>>,
+    contacts: &[crate::lower::contact::ContactNodes],
 ) -> Result<Option<LossKernels>, String> {
     let Some(decl) = &program.loss else {
         return Ok(None);
     };
     let mut lw = ExprLowerer::new(program);
+    lw.contact_nodes = Some(contacts.to_vec());
     lw.runtime_names = vec!["t_end", "dt"];
     lw.node_sets = node_sets.iter().cloned().collect::<HashMap<_, _>>();
     lw.node_weights = node_weights.clone();

@@ -26,7 +26,7 @@ pub use settings::{
 };
 
 // What the runtime needs of the compiler's other layers, in one place.
-pub use crate::lower::contact::{Contact, Contacts, NO_LIMIT};
+pub use crate::lower::contact::{Contact, ContactNodes, Contacts, NO_LIMIT};
 pub use crate::lower::fem::{REST_SHAPE_WIDTH, rest_shape};
 pub use crate::lower::quadratic::quadratic_rest_shape;
 pub use crate::lower::scene::{ImplicitStep, MatrixFree, NodeJacobian, SceneModule, StaticKernels};

@@ -210,6 +210,13 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
         "`x` limited to [lo, hi]; all of one dimension."
     ),
     b!(
+        "force",
+        "force(obstacle) -> force[3]",
+        ["obstacle"],
+        "The total force (N) the obstacle exerts on the bodies in contact with it at the state \
+         the loss reads, summed over their contact nodes: a loss term (`force(table).z`)."
+    ),
+    b!(
         "norm",
         "norm(v: array) -> scalar of v's dimension",
         ["v"],
@@ -409,7 +416,7 @@ pub const CONTACT_DOC: BuiltinDoc = b!(
     "Frictionless barrier contact: each boundary node of BODY within `gap` (a positive \
      constant) of the obstacle is pushed away by a log barrier that grows without bound at the \
      obstacle; `stiffness` (a positive constant, default about the body's Young's modulus) \
-     scales it. Needs `quasi_static` or `implicit_euler`."
+     scales it. In every integrator (explicit steps solve it implicitly per node)."
 );
 
 /// Built-in constants (SPEC 9.6).

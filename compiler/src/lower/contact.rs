@@ -59,6 +59,65 @@ pub struct Contacts {
     pub step_kernel: usize,
 }
 
+/// A `contact` statement's body, as binding to the mesh needs it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ContactBody {
+    /// The mesh or a node set.
+    pub body: String,
+}
+
+/// The contact nodes of one statement (node indices, ascending) and the lumped boundary area of
+/// each (m²), as binding to the mesh finds them; the host fills `contact_area.i` from them and
+/// `force(…)` in the loss sums over them.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ContactNodes {
+    pub nodes: Vec<u32>,
+    pub areas: Vec<f64>,
+}
+
+/// The bodies of the scene's `contact` statements, in order.
+pub fn bodies(program: &Program) -> Vec<ContactBody> {
+    (program.sim.iter())
+        .filter_map(|s| match &s.kind {
+            StmtKind::Contact { body, .. } => Some(ContactBody { body: body.clone() }),
+            _ => None,
+        })
+        .collect()
+}
+
+/// The total force (N) obstacle `obstacle` exerts through its statements' contact nodes at the
+/// positions `state.x.N.d` (the loss's reading of the node state): `force(OBSTACLE)`.
+pub fn total_force(
+    program: &Program,
+    k: &mut KernelBuilder,
+    obstacle: &str,
+    nodes: &[ContactNodes],
+) -> Result<[V; 3], LowerError> {
+    let zero = k.b.constant(0.0);
+    let mut total = [zero; 3];
+    let statements = statements(program)?;
+    if !statements.iter().any(|st| st.obstacle == obstacle) {
+        return Err(LowerError::new(format!(
+            "`force({obstacle})` is always zero: the sim block has no `contact … with {obstacle}`"
+        )));
+    }
+    for (i, st) in statements.iter().enumerate() {
+        if st.obstacle != obstacle {
+            continue;
+        }
+        let set = nodes
+            .get(i)
+            .ok_or_else(|| LowerError::new("a contact without its nodes"))?;
+        for (&n, &a) in set.nodes.iter().zip(&set.areas) {
+            let pos = [0, 1, 2].map(|d| k.uniform(&format!("state.x.{n}.{d}")));
+            let area = k.b.constant(a);
+            let (f, _) = barrier(program, k, i, st, pos, area)?;
+            total = [0, 1, 2].map(|d| k.b.add(total[d], f[d]));
+        }
+    }
+    Ok(total)
+}
+
 /// A statement's shape before lowering: what the node kernels need.
 struct Statement<'p> {
     shape: &'p Expr,
@@ -193,12 +252,24 @@ fn barrier_force(
     st: &Statement,
     x: [V; 3],
 ) -> Result<([V; 3], V), LowerError> {
-    let (d, grad) = distance(program, k, st.shape, x)?;
     let area_buf = area_buffer(module, i);
     let area = k.load(ArgSource::Own {
         buffer: area_buf,
         component: 0,
     });
+    barrier(program, k, i, st, x, area)
+}
+
+/// [`barrier_force`] for a node of boundary area `area`.
+fn barrier(
+    program: &Program,
+    k: &mut KernelBuilder,
+    i: usize,
+    st: &Statement,
+    x: [V; 3],
+    area: V,
+) -> Result<([V; 3], V), LowerError> {
+    let (d, grad) = distance(program, k, st.shape, x)?;
     let stiffness = k.uniform(&format!("contact.{i}.stiffness"));
     let b = &mut k.b;
     let zero = b.constant(0.0);

@@ -128,6 +128,8 @@ pub struct ExprLowerer<'p> {
     /// component; the host evaluates the reduction at the state a step starts from (or at a
     /// static iterate) and sets them ([`crate::driver::SensorKernels`]).
     pub sensors: Option<Vec<Expr>>,
+    /// The loss: each `contact` statement's nodes, over which `force(OBSTACLE)` sums.
+    pub contact_nodes: Option<Vec<super::contact::ContactNodes>>,
 }
 
 impl<'p> ExprLowerer<'p> {
@@ -148,6 +150,7 @@ impl<'p> ExprLowerer<'p> {
             sim_lets: HashMap::new(),
             in_sim_scope: true,
             sensors: None,
+            contact_nodes: None,
         }
     }
 
@@ -623,6 +626,20 @@ impl<'p> ExprLowerer<'p> {
         Ok(acc.expect("a positive total weight has a term"))
     }
 
+    /// `force(OBSTACLE)` in the loss: the total force of the obstacle on the body, summed over
+    /// the contact nodes of its statements at the state's positions.
+    fn contact_force(&mut self, k: &mut KernelBuilder, args: &[Arg]) -> Result<LVal, LowerError> {
+        let obstacle = match args.first().map(|a| &a.value.kind) {
+            Some(ExprKind::Name(Name::Global(id))) => self.program.decl(*id).name.clone(),
+            _ => return Err(LowerError::new("`force` takes an obstacle")),
+        };
+        let nodes = self.contact_nodes.as_ref().ok_or_else(|| {
+            LowerError::new("`force(…)` reads the contact at a state: the loss may read it")
+        })?;
+        let f = super::contact::total_force(self.program, k, &obstacle, nodes)?;
+        Ok(LVal::A(f.iter().map(|&v| LVal::S(v)).collect()))
+    }
+
     fn call(
         &mut self,
         k: &mut KernelBuilder,
@@ -651,6 +668,9 @@ impl<'p> ExprLowerer<'p> {
                 return self.inline_global(k, &decl.name, &bound, &f.body);
             }
         };
+        if name == "force" {
+            return self.contact_force(k, args);
+        }
         let vals: Vec<LVal> = args
             .iter()
             .map(|a| self.lower(k, env, &a.value))

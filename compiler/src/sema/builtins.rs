@@ -57,6 +57,7 @@ pub const FUNCTIONS: &[&str] = &[
     "tagged",
     "inside",
     // simulation
+    "force",
     "auto",
     "springs",
     "csv",
@@ -250,6 +251,7 @@ impl Checker {
                     }
                 }
             }
+            "force" => self.check_contact_force(e, args),
             "dot" | "cross" => {
                 let Some(s) = self.bind(name, sp, &[("a", true), ("b", true)], args) else {
                     return Typed::error();

@@ -118,6 +118,50 @@ impl Checker {
         Typed::of(ty, Var::Const)
     }
 
+    /// `force(OBSTACLE)`: the total force (N, force[3]) the obstacle exerts on the bodies in
+    /// contact with it, at the state the loss reads.
+    pub(super) fn check_contact_force(&mut self, e: &Expr, args: &[Arg]) -> Typed {
+        let Some(s) = self.bind("force", e.span, &[("obstacle", true)], args) else {
+            return Typed::error();
+        };
+        let arg = s[0].expect("required");
+        let ExprKind::Name(id) = &arg.kind else {
+            self.err(Diagnostic::error(
+                "E0203",
+                arg.span,
+                "`force` takes the name of an obstacle, e.g. `force(table)`",
+            ));
+            return Typed::error();
+        };
+        match self.global_kind(id) {
+            Some(SymKind::Obstacle) => {
+                self.check_expr(arg);
+            }
+            Some(k) => {
+                self.wrong_kind(id, k, "`force` takes an obstacle", None);
+                return Typed::error();
+            }
+            None => {
+                self.check_expr(arg);
+                return Typed::error();
+            }
+        }
+        if !self.ctx.contact_force {
+            self.err(
+                Diagnostic::error(
+                    "E0320",
+                    e.span,
+                    "`force(…)` cannot be used here: it is the contact force at a state the \
+                     loss reads",
+                )
+                .with_hint("read it in the loss (or a top-level `let` the loss uses)"),
+            );
+            return Typed::error();
+        }
+        let force = super::units::named_dim("force").expect("a dimension");
+        Typed::of(Ty::vec3(force), Var::State)
+    }
+
     /// `contact BODY with OBSTACLE (gap: …, stiffness: …)`; `seen` the pairs already declared.
     pub(super) fn check_contact(
         &mut self,

@@ -284,6 +284,8 @@ struct Ctx {
     coords: bool,
     /// The expression must not depend on params/inputs (geometry), reported by the caller.
     in_controller: bool,
+    /// `force(OBSTACLE)` (the loss and top-level lets, which the loss may read).
+    contact_force: bool,
 }
 
 struct Checker {

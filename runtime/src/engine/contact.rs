@@ -25,28 +25,6 @@ pub struct ContactReport {
     pub stiffness: f64,
 }
 
-/// The lumped boundary area of every node (a third of each boundary triangle's area), m².
-fn boundary_areas(mesh: &crate::mesh::Mesh) -> Vec<f64> {
-    let mut area = vec![0.0; mesh.nodes.len()];
-    for face in mesh.boundary_faces() {
-        let [a, b, c] = face.nodes.map(|n| mesh.nodes[n as usize]);
-        let (u, v) = (
-            [0, 1, 2].map(|d| b[d] - a[d]),
-            [0, 1, 2].map(|d| c[d] - a[d]),
-        );
-        let n = [
-            u[1] * v[2] - u[2] * v[1],
-            u[2] * v[0] - u[0] * v[2],
-            u[0] * v[1] - u[1] * v[0],
-        ];
-        let third = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt() / 6.0;
-        for node in face.nodes {
-            area[node as usize] += third;
-        }
-    }
-    area
-}
-
 impl<B: Backend> Simulation<'_, B> {
     fn contacts(&self) -> &[Contact] {
         (self.scene.lowered.contacts.as_ref()).map_or(&[], |c| &c.pairs)
@@ -73,18 +51,13 @@ impl<B: Backend> Simulation<'_, B> {
             return Ok(());
         }
         let scene = self.scene;
-        let areas = boundary_areas(&scene.mesh);
         let mut estimate = None;
         for (i, c) in self.contacts().to_vec().iter().enumerate() {
-            let set = scene.node_sets.iter().find(|(name, _)| *name == c.body);
-            let mut area = vec![0.0; areas.len()];
-            match set {
-                Some((_, nodes)) => {
-                    for &n in nodes {
-                        area[n as usize] = areas[n as usize];
-                    }
+            let mut area = vec![0.0; scene.mesh.nodes.len()];
+            if let Some(set) = scene.contact_nodes.get(i) {
+                for (&n, &a) in set.nodes.iter().zip(&set.areas) {
+                    area[n as usize] = a;
                 }
-                None => area.clone_from(&areas),
             }
             if area.iter().all(|&a| a == 0.0) {
                 return Err(RunError(format!(

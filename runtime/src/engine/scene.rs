@@ -66,6 +66,8 @@ pub struct Scene {
     pub fixed: Vec<bool>,
     /// Every declared node set with its nodes (for outputs).
     pub node_sets: Vec<(String, Vec<u32>)>,
+    /// Per `contact` statement: its nodes and their lumped boundary areas.
+    pub contact_nodes: Vec<softc_compiler::driver::ContactNodes>,
     /// Every declared element set with its elements, as indices of the mesh file's element
     /// order (before the grouping by material), in the set's order.
     pub element_sets: Vec<(String, Vec<u32>)>,
@@ -205,6 +207,7 @@ impl Scene {
             slots: bound.slots,
             loss: bound.loss,
             sensors: bound.sensors,
+            contact_nodes: bound.contacts,
             dt: resolved.sim.dt,
             steps: resolved.sim.steps,
             duration: resolved.sim.duration,
