@@ -346,3 +346,30 @@ fn the_contact_force_is_a_loss_term_with_exact_gradients() {
         );
     }
 }
+
+#[test]
+fn the_vtk_frames_carry_the_contact_pressure() {
+    let scene = load(&fixture());
+    let dir = std::env::temp_dir().join(format!("softc-contact-vtk-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut sim = simulation(&scene);
+    sim.vtk = Some(Box::new(softc::outputs::vtk::VtkOutput::new(
+        &dir, "press", 1,
+    )));
+    sim.run(None, None).unwrap();
+    let frames: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "vtu"))
+        .collect();
+    assert!(!frames.is_empty(), "no frames in {}", dir.display());
+    for f in frames {
+        let text = std::fs::read_to_string(&f).unwrap();
+        assert!(
+            text.contains("Name=\"contact_pressure_Pa\""),
+            "{}",
+            f.display()
+        );
+    }
+}

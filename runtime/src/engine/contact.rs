@@ -118,6 +118,27 @@ impl<B: Backend> Simulation<'_, B> {
         Ok(limit.iter().fold(1.0f64, |a, &l| a.min(l)))
     }
 
+    /// Each node's contact pressure (Pa) at the current positions and time `t`: the norm of
+    /// the obstacles' force on it over its boundary area, summed over the statements; empty
+    /// without contact.
+    pub(super) fn contact_pressure(&mut self, t: f64) -> Result<Vec<f64>, RunError> {
+        if self.contacts().is_empty() {
+            return Ok(Vec::new());
+        }
+        self.contact_report(t)?;
+        let mut pressure = vec![0.0; self.scene.mesh.nodes.len()];
+        for c in self.contacts().to_vec() {
+            let (area, force) = (self.backend.get(c.area), self.backend.get(c.force));
+            for (n, p) in pressure.iter_mut().enumerate() {
+                if area[n] > 0.0 {
+                    let f = &force[3 * n..3 * n + 3];
+                    *p += (f[0] * f[0] + f[1] * f[1] + f[2] * f[2]).sqrt() / area[n];
+                }
+            }
+        }
+        Ok(pressure)
+    }
+
     /// Each contact's force, active nodes and smallest distance at the current positions and
     /// time `t`.
     pub(super) fn contact_report(&mut self, t: f64) -> Result<Vec<ContactReport>, RunError> {

@@ -813,12 +813,14 @@ impl<'s, B: Backend> Simulation<'s, B> {
             .map(|b| self.backend.get(b))
             .unwrap_or_default();
         let j = self.backend.get(self.ids.elem_j);
+        let contact_pressure = self.contact_pressure(t)?;
         let frame = Frame {
             t,
             x: &x,
             v: &v,
             energy: &energy,
             j: &j,
+            contact_pressure: &contact_pressure,
         };
         let out = self.vtk.as_mut().expect("vtk output");
         out.write_frame(&scene.mesh, &scene.pre.rest_volume, &frame)

@@ -15,6 +15,9 @@ pub struct Frame<'a> {
     pub energy: &'a [f64],
     /// Volume ratio J per element.
     pub j: &'a [f64],
+    /// Contact pressure per node (Pa): the obstacles' force on it over its boundary area;
+    /// empty without contact.
+    pub contact_pressure: &'a [f64],
 }
 
 /// A series of whole states (`output vtk every N steps`): written every `every()` steps and at

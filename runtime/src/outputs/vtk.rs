@@ -3,7 +3,8 @@
 //! velocity in m/s, strain-energy density in J/m³, the time in s; each array's name ends in its
 //! unit (`displacement_m`), as the CSV logs' columns do. A quadratic mesh is written as
 //! quadratic tetrahedra (VTK type 24, its tagged triangles type 22): the mid-edge nodes are
-//! points like the corners, with their own displacement and velocity.
+//! points like the corners, with their own displacement and velocity. A scene with contact adds
+//! each node's contact pressure.
 
 use crate::engine::{Frame, StateSeries};
 use crate::mesh::Mesh;
@@ -21,6 +22,8 @@ pub struct VtkOutput {
 pub const DISPLACEMENT: &str = "displacement_m";
 pub const VELOCITY: &str = "velocity_m_per_s";
 pub const ENERGY_DENSITY: &str = "strain_energy_density_J_per_m3";
+/// The obstacles' force on a contact node over its boundary area (scenes with contact).
+pub const CONTACT_PRESSURE: &str = "contact_pressure_Pa";
 /// The volume ratio (dimensionless).
 pub const VOLUME_RATIO: &str = "J";
 
@@ -41,7 +44,14 @@ impl VtkOutput {
         rest_volume: &[f64],
         frame: &Frame,
     ) -> Result<(), String> {
-        let Frame { t, x, v, energy, j } = *frame;
+        let Frame {
+            t,
+            x,
+            v,
+            energy,
+            j,
+            contact_pressure,
+        } = *frame;
         let pos: Vec<[f64; 3]> = x.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
         let disp: Vec<[f64; 3]> = pos
             .iter()
@@ -59,17 +69,15 @@ impl VtkOutput {
         if !density.is_empty() {
             cell_fields.insert(0, (ENERGY_DENSITY, Field::Scalar(&density)));
         }
+        let mut point_fields = vec![
+            (DISPLACEMENT, Field::Vector(&disp)),
+            (VELOCITY, Field::Vector(&vel)),
+        ];
+        if !contact_pressure.is_empty() {
+            point_fields.push((CONTACT_PRESSURE, Field::Scalar(contact_pressure)));
+        }
         self.series
-            .write_step(
-                mesh,
-                t,
-                &pos,
-                &[
-                    (DISPLACEMENT, Field::Vector(&disp)),
-                    (VELOCITY, Field::Vector(&vel)),
-                ],
-                &cell_fields,
-            )
+            .write_step(mesh, t, &pos, &point_fields, &cell_fields)
             .map(|_| ())
             .map_err(|e| format!("cannot write the VTK output: {e}"))
     }
