@@ -61,6 +61,32 @@ fn node_contacts(scene: &Scene, sim: &Simulation<'_, Cpu>) -> Vec<NodeContact> {
         .collect()
 }
 
+/// Each param's gradient from the adjoint against a central difference of the loss with step
+/// `step` (steps well above the solver's tolerance in the difference), to `tolerance`.
+fn check_gradients(scene: &Scene, steps: &[(&str, f64)], tolerance: f64) -> Vec<f64> {
+    let g = simulation(scene)
+        .gradient(None, None, &GradOptions::default())
+        .unwrap();
+    let mut out = Vec::new();
+    for &(name, step) in steps {
+        let loss_at = |v: f64| {
+            let mut sim = simulation(scene);
+            sim.uniforms.set_named(name, v);
+            sim.run(None, None).unwrap().loss.unwrap()
+        };
+        let p = scene.uniforms[name];
+        let fd = (loss_at(p + step) - loss_at(p - step)) / (2.0 * step);
+        let adj = g.gradients[name];
+        eprintln!("{name}: adjoint {adj:e}, central {fd:e}");
+        assert!(
+            (adj - fd).abs() < tolerance * fd.abs(),
+            "{name}: adjoint {adj:e}, central {fd:e}"
+        );
+        out.push(adj);
+    }
+    out
+}
+
 #[test]
 fn a_cube_pressed_by_a_plane_has_the_uniform_pressure_of_uniaxial_strain() {
     let scene = load(&fixture());
@@ -130,26 +156,9 @@ fn a_cube_pressed_by_a_plane_has_the_uniform_pressure_of_uniaxial_strain() {
 #[test]
 fn gradients_through_contact_match_central_differences() {
     let scene = load(&fixture());
-    let mut sim = simulation(&scene);
-    let g = sim.gradient(None, None, &GradOptions::default()).unwrap();
-    // Steps well above the static solve's tolerance (1e-10 of the loads) in the difference.
-    for (name, step) in [("param.rise", 1e-3 * MM), ("param.mu", 100.0)] {
-        let loss_at = |v: f64| {
-            let mut sim = simulation(&scene);
-            sim.uniforms.set_named(name, v);
-            sim.run(None, None).unwrap().loss.unwrap()
-        };
-        let p = scene.uniforms[name];
-        let fd = (loss_at(p + step) - loss_at(p - step)) / (2.0 * step);
-        let adj = g.gradients[name];
-        eprintln!("{name}: adjoint {adj:e}, central {fd:e}");
-        assert!(
-            (adj - fd).abs() < 1e-6 * fd.abs(),
-            "{name}: adjoint {adj:e}, central {fd:e}"
-        );
-    }
+    let steps = [("param.rise", 1e-3 * MM), ("param.mu", 100.0)];
+    let rise = check_gradients(&scene, &steps, 1e-6)[0];
     // The face follows the plane: d(mean x)/d(rise) is 1 less the barrier's compliance.
-    let rise = g.gradients["param.rise"];
     assert!(rise > 0.9 / MM && rise < 1.0 / MM, "{rise}");
 }
 
@@ -263,25 +272,11 @@ fn an_explicit_drop_on_the_floor_never_enters_it() {
 fn gradients_through_explicit_contact_match_central_differences() {
     // A fixed step (`dt = auto` would follow μ): 0.07 mm of the impact per step.
     let scene = load(&drop_scene("drop_grad.soft", "50 us"));
-    let cpu = Cpu::new(&scene.lowered.adjoint.module, Precision::F64, Some(1)).unwrap();
-    let g = Simulation::new(&scene, cpu)
-        .gradient(None, None, &GradOptions::default())
-        .unwrap();
-    for (name, step) in [("param.rise", 1e-4 * MM), ("param.mu", 10.0)] {
-        let loss_at = |v: f64| {
-            let mut sim = simulation(&scene);
-            sim.uniforms.set_named(name, v);
-            sim.run(None, None).unwrap().loss.unwrap()
-        };
-        let p = scene.uniforms[name];
-        let fd = (loss_at(p + step) - loss_at(p - step)) / (2.0 * step);
-        let adj = g.gradients[name];
-        eprintln!("{name}: adjoint {adj:e}, central {fd:e}");
-        assert!(
-            (adj - fd).abs() < 1e-5 * fd.abs(),
-            "{name}: adjoint {adj:e}, central {fd:e}"
-        );
-    }
+    check_gradients(
+        &scene,
+        &[("param.rise", 1e-4 * MM), ("param.mu", 10.0)],
+        1e-5,
+    );
 }
 
 #[test]
@@ -326,25 +321,11 @@ fn the_contact_force_is_a_loss_term_with_exact_gradients() {
         (loss - total).abs() < 1e-12 * total,
         "{loss} N against {total} N"
     );
-    let g = simulation(&scene)
-        .gradient(None, None, &GradOptions::default())
-        .unwrap();
-    // Steps well above the static solve's tolerance (1e-10 of the loads) in the difference.
-    for (name, step) in [("param.rise", 1e-3 * MM), ("param.mu", 100.0)] {
-        let loss_at = |v: f64| {
-            let mut sim = simulation(&scene);
-            sim.uniforms.set_named(name, v);
-            sim.run(None, None).unwrap().loss.unwrap()
-        };
-        let p = scene.uniforms[name];
-        let fd = (loss_at(p + step) - loss_at(p - step)) / (2.0 * step);
-        let adj = g.gradients[name];
-        eprintln!("{name}: adjoint {adj:e}, central {fd:e}");
-        assert!(
-            (adj - fd).abs() < 1e-6 * fd.abs(),
-            "{name}: adjoint {adj:e}, central {fd:e}"
-        );
-    }
+    check_gradients(
+        &scene,
+        &[("param.rise", 1e-3 * MM), ("param.mu", 100.0)],
+        1e-6,
+    );
 }
 
 #[test]

@@ -242,6 +242,29 @@ fn own_position(k: &mut KernelBuilder, x: BufferId) -> [V; 3] {
     })
 }
 
+/// The barrier's pressure law g(r) = (1 − r)·q, q = 1/r − 1 − 2 ln r (the contact pressure
+/// over k at r = d/ĝ), with q and 1/r, which its derivative reuses.
+struct PressureLaw {
+    g: V,
+    q: V,
+    inv: V,
+}
+
+fn pressure_law(b: &mut crate::ir::Builder, r: V) -> PressureLaw {
+    let one = b.constant(1.0);
+    let inv = b.div(one, r);
+    let ln = b.un(UnOp::Ln, r);
+    let two_ln = b.scale(2.0, ln);
+    let q = b.sub(inv, one);
+    let q = b.sub(q, two_ln);
+    let s = b.sub(one, r);
+    PressureLaw {
+        g: b.mul(s, q),
+        q,
+        inv,
+    }
+}
+
 /// The contact force (and d) of statement `i` on the node at `x`, zero off the contact set
 /// and beyond the gap. A contact node at d ≤ 0 (inside the obstacle) gets a non-finite force.
 fn barrier_force(
@@ -281,13 +304,7 @@ fn barrier(
     // Off the set or beyond the gap r = 1, where g(1) = 0: no ln or 1/r of a distance that
     // may be anything (a node the contact does not concern may be anywhere).
     let r = b.select(active, r, one);
-    let inv = b.div(one, r);
-    let ln = b.un(UnOp::Ln, r);
-    let two_ln = b.scale(2.0, ln);
-    let t = b.sub(inv, one);
-    let t = b.sub(t, two_ln);
-    let s = b.sub(one, r);
-    let g = b.mul(s, t);
+    let g = pressure_law(b, r).g;
     let ka = b.mul(stiffness, area);
     let magnitude = b.mul(ka, g);
     Ok((grad.map(|c| b.mul(magnitude, c)), d))
@@ -399,13 +416,8 @@ pub fn project_step(
         let mut r = b.select(active, start, half);
         let target = b.select(active, r_new, half);
         for _ in 0..PROJECTION_ITERATIONS {
-            let inv = b.div(one, r);
-            let ln = b.un(UnOp::Ln, r);
-            let two_ln = b.scale(2.0, ln);
-            let q = b.sub(inv, one);
-            let q = b.sub(q, two_ln);
+            let PressureLaw { g, q, inv } = pressure_law(b, r);
             let s = b.sub(one, r);
-            let g = b.mul(s, q);
             // g'(r) = −q − (1 − r)(1/r² + 2/r)
             let inv2 = b.mul(inv, inv);
             let two_inv = b.scale(2.0, inv);
