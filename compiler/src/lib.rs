@@ -39,6 +39,8 @@ pub(crate) fn example_scripts() -> Vec<(std::path::PathBuf, String)> {
 
 pub use driver::{CompileFailure, CompileOptions, Compiled, compile};
 pub use front::decode;
+/// A script with some of its values rewritten at their places (`bench --solvers`, `--tradeoff`).
+pub use front::variant::Variant;
 pub use sema::CheckOptions;
 
 use diag::Diagnostic;

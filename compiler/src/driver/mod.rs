@@ -4,8 +4,7 @@
 //! result: the kernels, and a [`Resolved`] program whose settings are SI numbers, whose params
 //! and inputs are a typed table, and whose selections are evaluated against a mesh by
 //! [`Resolved::bind`]. Nothing outside the compiler walks the syntax tree to learn what a
-//! script means (the independent reference oracle reads it through [`Resolved::syntax`], on
-//! purpose).
+//! script means (the independent reference oracle parses the script itself, on purpose).
 
 mod area;
 pub mod bind;
@@ -13,7 +12,7 @@ pub mod loss;
 pub mod plan;
 pub mod settings;
 
-pub use crate::front::variant::Variant;
+use crate::Variant;
 pub use crate::sema::units::parse_quantity;
 pub use bind::{Bound, FieldSlots, MeshView, ParamSlots, SlotKind};
 pub use loss::{LossArg, LossKernels, LossWindow, SensorKernels};

@@ -51,7 +51,6 @@ impl<B: Backend> Simulation<'_, B> {
             return Ok(());
         }
         let scene = self.scene;
-        let mut estimate = None;
         for (i, c) in self.contacts().to_vec().iter().enumerate() {
             let mut area = vec![0.0; scene.mesh.nodes.len()];
             if let Some(set) = scene.contact_nodes.get(i) {
@@ -69,7 +68,7 @@ impl<B: Backend> Simulation<'_, B> {
             self.backend.set(c.area, &area);
             let stiffness = match c.stiffness {
                 Some(k) => k,
-                None => *estimate.get_or_insert_with(|| {
+                None => *scene.default_contact_stiffness.get_or_init(|| {
                     // At the script's params: a constant of the scene, which gradients hold.
                     3.0 * super::incompressibility::shear_modulus_at(scene, None).unwrap_or(0.0)
                 }),

@@ -82,18 +82,8 @@ fn pure_shear() -> [f64; 3] {
 /// the script's); `None` without energy kernels (springs). Linear tetrahedra.
 pub fn shear_modulus_at(scene: &Scene, uniforms: Option<&Uniforms>) -> Option<f64> {
     let [shear] = probe_energies(scene, uniforms, [pure_shear()]);
-    let nodes = &scene.mesh.nodes;
-    // Corners in kernel element order, as the material ranges count them.
-    let conn = scene.elem_conn();
-    let volume = |e: usize| {
-        let t: [[f64; 3]; 4] = std::array::from_fn(|c| nodes[conn[4 * e + c] as usize]);
-        let d = |i: usize| [0, 1, 2].map(|c| t[i][c] - t[0][c]);
-        let (a, b, c) = (d(1), d(2), d(3));
-        (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
-            + a[2] * (b[0] * c[1] - b[1] * c[0]))
-            .abs()
-            / 6.0
-    };
+    // Rest volumes in kernel element order, as the material ranges count them.
+    let volume = |e: usize| scene.pre.rest_volume[e];
     let e2 = PROBE_STRAIN * PROBE_STRAIN;
     let mu = (scene.material_ranges.iter().zip(&shear))
         .flat_map(|(range, energies)| {

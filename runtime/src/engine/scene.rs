@@ -68,6 +68,9 @@ pub struct Scene {
     pub node_sets: Vec<(String, Vec<u32>)>,
     /// Per `contact` statement: its nodes and their lumped boundary areas.
     pub contact_nodes: Vec<softc_compiler::driver::ContactNodes>,
+    /// The contact stiffness where a statement gives none: 3 × the largest shear modulus at
+    /// the script's params (a constant of the scene), probed at the first solve that needs it.
+    pub default_contact_stiffness: std::sync::OnceLock<f64>,
     /// Every declared element set with its elements, as indices of the mesh file's element
     /// order (before the grouping by material), in the set's order.
     pub element_sets: Vec<(String, Vec<u32>)>,
@@ -99,7 +102,7 @@ impl Scene {
     pub fn load_with(
         path: &Path,
         overrides: &[(String, f64)],
-        variant: Option<&softc_compiler::driver::Variant>,
+        variant: Option<&softc_compiler::Variant>,
     ) -> Result<Scene, SceneError> {
         Scene::load_inner(path, overrides, variant).map_err(|e| match e {
             LoadFailure::Compile(f) => SceneError(f.render()),
@@ -116,7 +119,7 @@ impl Scene {
     fn load_inner(
         path: &Path,
         overrides: &[(String, f64)],
-        variant: Option<&softc_compiler::driver::Variant>,
+        variant: Option<&softc_compiler::Variant>,
     ) -> Result<Scene, LoadFailure> {
         let bytes = crate::files::read_regular(path).map_err(|e| {
             LoadFailure::Other(SceneError(format!("cannot read `{}`: {e}", path.display())))
@@ -208,6 +211,7 @@ impl Scene {
             loss: bound.loss,
             sensors: bound.sensors,
             contact_nodes: bound.contacts,
+            default_contact_stiffness: std::sync::OnceLock::new(),
             dt: resolved.sim.dt,
             steps: resolved.sim.steps,
             duration: resolved.sim.duration,

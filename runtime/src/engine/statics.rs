@@ -1305,9 +1305,9 @@ impl<'s, B: Backend> Simulation<'s, B> {
             let t = k as f64 * h;
             // The first state's loads grow from rest; a moving obstacle moves from where it
             // was at t = 0 too (the rest state is clear of it only there).
-            let moving = scene.lowered.contacts.is_some();
+            let contact = scene.lowered.contacts.is_some();
             let from = match k {
-                1 if moving => (0.0, 0.0),
+                1 if contact => (0.0, 0.0),
                 1 => (t, 0.0),
                 _ => (t - h, 1.0),
             };

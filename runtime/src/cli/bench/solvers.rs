@@ -15,8 +15,8 @@ use crate::devices::cpu::Cpu;
 use crate::engine::Simulation;
 use crate::engine::scene::Scene;
 use crate::engine::statics::LinearSolver;
+use softc_compiler::Variant;
 use softc_compiler::back::Precision;
-use softc_compiler::driver::Variant;
 use std::io::Write;
 use std::time::Instant;
 
