@@ -28,6 +28,11 @@ pub const STEP_FRACTION: f64 = 0.8;
 /// The step limit where no obstacle limits a node (finite: WGSL has no infinity literal).
 pub const NO_LIMIT: f64 = 1e30;
 
+/// The uniform holding statement `i`'s contact stiffness k (Pa), which the host sets.
+pub fn stiffness_uniform(i: usize) -> String {
+    format!("contact.{i}.stiffness")
+}
+
 /// One `contact BODY with OBSTACLE` statement, as the host needs it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Contact {
@@ -293,7 +298,7 @@ fn barrier(
     area: V,
 ) -> Result<([V; 3], V), LowerError> {
     let (d, grad) = distance(program, k, st.shape, x)?;
-    let stiffness = k.uniform(&format!("contact.{i}.stiffness"));
+    let stiffness = k.uniform(&stiffness_uniform(i));
     let b = &mut k.b;
     let zero = b.constant(0.0);
     let one = b.constant(1.0);
@@ -393,7 +398,7 @@ pub fn project_step(
             buffer: area_buffer(module, i),
             component: 0,
         });
-        let stiffness = k.uniform(&format!("contact.{i}.stiffness"));
+        let stiffness = k.uniform(&stiffness_uniform(i));
         let b = &mut k.b;
         let (zero, one, tenth) = (b.constant(0.0), b.constant(1.0), b.constant(0.1));
         let r_new = b.scale(1.0 / st.gap, d_new);
@@ -492,7 +497,7 @@ pub fn contact_kernels(
             gap: st.gap,
             stiffness: st.stiffness,
             area: area_buffer(module, i),
-            stiffness_uniform: format!("contact.{i}.stiffness"),
+            stiffness_uniform: stiffness_uniform(i),
             force,
             distance,
             report_kernel,

@@ -82,7 +82,7 @@ impl<B: Backend> Simulation<'_, B> {
                     Sig(c.gap)
                 )));
             }
-            let id = self.uniforms.intern(&format!("contact.{i}.stiffness"));
+            let id = self.uniforms.intern(&c.stiffness_uniform);
             self.uniforms.set(id, stiffness);
         }
         // The rest state must be clear of every obstacle at the start.
@@ -145,7 +145,7 @@ impl<B: Backend> Simulation<'_, B> {
         let saved_t = self.uniforms.value(self.ids.t).unwrap_or(0.0);
         self.uniforms.set(self.ids.t, t);
         let mut out = Vec::new();
-        for (i, c) in self.contacts().to_vec().iter().enumerate() {
+        for c in self.contacts().to_vec().iter() {
             let ran = (self.backend).run(c.report_kernel, nodes.clone(), &self.uniforms);
             if let Err(e) = ran {
                 self.uniforms.set(self.ids.t, saved_t);
@@ -156,7 +156,7 @@ impl<B: Backend> Simulation<'_, B> {
                 self.backend.get(c.force),
                 self.backend.get(c.distance),
             );
-            let id = self.uniforms.intern(&format!("contact.{i}.stiffness"));
+            let id = self.uniforms.intern(&c.stiffness_uniform);
             let stiffness = self.uniforms.value(id).unwrap_or(f64::NAN);
             let mut r = ContactReport {
                 body: c.body.clone(),

@@ -313,8 +313,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         uniforms.set(t, 0.0);
         uniforms.set(dt, 0.0);
         // Contact stiffnesses: set per solve (`prepare_contact`); none before.
-        for i in 0..scene.lowered.contacts.as_ref().map_or(0, |c| c.pairs.len()) {
-            let id = uniforms.intern(&format!("contact.{i}.stiffness"));
+        for c in (scene.lowered.contacts.iter()).flat_map(|c| &c.pairs) {
+            let id = uniforms.intern(&c.stiffness_uniform);
             uniforms.set(id, 0.0);
         }
         // Closed-loop sensors and their tangent directions: set before any kernel reads
