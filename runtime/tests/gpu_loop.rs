@@ -163,19 +163,62 @@ fn a_thousand_steps_take_one_submission_per_state_check() {
          {:.1} µs host per step",
         (after.host_seconds - before.host_seconds) / steps as f64 * 1e6
     );
-    // The state is checked every 50 steps: each stretch, its checked step and the check's
-    // readback copy are one submission; the run's reads of x and v at its start and end and
-    // the loss's add one each (six).
-    assert!(submissions <= steps / 50 + 8, "{submissions} submissions");
-    assert!(readbacks <= steps / 50 + 8, "{readbacks} readbacks");
+    // On a GPU the state is checked every `CHECK_EVERY_RUNNING_AHEAD` steps: each stretch,
+    // its checked step and the check's readback copy are one submission; the run's reads of
+    // x and v at its start and end and the loss's add one each (six).
+    let every = softc::engine::CHECK_EVERY_RUNNING_AHEAD;
+    assert!(
+        submissions <= steps / every + 8,
+        "{submissions} submissions"
+    );
+    assert!(readbacks <= steps / every + 8, "{readbacks} readbacks");
     // Three kernels a step (element, pressure, node) and a diagnostics launch per check;
     // the element and pressure kernels share a dispatch in the time loop.
     let dispatches = after.dispatches - before.dispatches;
     assert!(launches >= 3 * steps, "{launches} launches");
     assert!(
-        dispatches <= 2 * steps + 3 * (steps / 50 + 1),
+        dispatches <= 2 * steps + 3 * (steps / every + 1),
         "{dispatches} dispatches for {launches} launches"
     );
+}
+
+/// The step a run's report names: the number after its first "at step ".
+fn step_named(report: &str) -> u64 {
+    let after = report
+        .split("at step ")
+        .nth(1)
+        .unwrap_or_else(|| panic!("{report}"));
+    after
+        .split(|c: char| !c.is_ascii_digit())
+        .next()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{report}"))
+}
+
+#[test]
+fn a_blow_up_between_rare_gpu_checks_is_reported_at_its_step() {
+    // dt above the stable step: the run inverts an element within the first hundred steps,
+    // long before the GPU's first check after step 0 (step `CHECK_EVERY_RUNNING_AHEAD`). The
+    // stretch since the last good state is run again step by step, so the report names the
+    // same step as a run checked every 50 steps with the same arithmetic.
+    let scene = scene("benchmark-1k.soft");
+    let Some(g) = gpu(&scene.lowered.module, LaunchMode::Uniform) else {
+        return;
+    };
+    let (dt, steps) = (Some(56e-6), Some(1500));
+    let rare = Simulation::new(&scene, g).run(dt, steps).unwrap_err().0;
+    let every_50 = OneByOne(gpu(&scene.lowered.module, LaunchMode::Uniform).unwrap());
+    let often = Simulation::new(&scene, every_50)
+        .run(dt, steps)
+        .unwrap_err()
+        .0;
+    assert!(rare.contains("inverted at step"), "{rare}");
+    let step = step_named(&rare);
+    assert!(
+        step > 1 && step < softc::engine::CHECK_EVERY_RUNNING_AHEAD,
+        "{rare}"
+    );
+    assert_eq!(step, step_named(&often), "{rare}\n{often}");
 }
 
 #[test]
@@ -203,11 +246,12 @@ fn gradients_with_the_states_on_the_gpu_equal_those_kept_on_the_host() {
         "forward+backward of {steps} steps: {submissions} submissions, {} dispatches",
         after.dispatches - before.dispatches
     );
-    // Both passes run as the time loop: a submission per state check or health sample, and
+    // Both passes run as the time loop: a submission per state check (forward) or health
+    // sample (every 50 reversed steps, backward), and
     // about twenty for the reads at the ends (the last state, the loss and its derivative,
     // the accumulated gradients), not one per step.
     assert!(
-        submissions <= 2 * (steps / 50) + 20,
+        submissions <= steps / softc::engine::CHECK_EVERY_RUNNING_AHEAD + steps / 50 + 20,
         "{submissions} submissions"
     );
     assert!(

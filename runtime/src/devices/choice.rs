@@ -257,6 +257,10 @@ impl Backend for Device {
         self.inner().lockstep()
     }
 
+    fn runs_ahead(&self) -> bool {
+        self.inner().runs_ahead()
+    }
+
     fn read_later(&mut self, bufs: &[BufferId]) -> PendingRead {
         self.inner_mut().read_later(bufs)
     }

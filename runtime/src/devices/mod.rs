@@ -67,6 +67,14 @@ pub trait Backend {
     fn lockstep(&self) -> Lockstep {
         Lockstep::default()
     }
+    /// Whether the backend's steps run ahead of the host (a GPU: launches are recorded and
+    /// the device works through them while the host goes on). The time loop then checks
+    /// the state less often ([`crate::engine::CHECK_EVERY_RUNNING_AHEAD`] steps): a check
+    /// reads the whole state back and scans it on the host, which must stay shorter than
+    /// the device's steps between two checks or the device waits for it.
+    fn runs_ahead(&self) -> bool {
+        false
+    }
     /// Start reading buffers back without waiting for them: a GPU copies them at this point
     /// of its recorded work and goes on; [`Backend::collect`] waits for the copy (and only
     /// for it). Backends that hold buffers on the host read them at once.

@@ -598,6 +598,7 @@ impl<B: Backend> Simulation<'_, B> {
         let mut loss_sum = 0.0;
         let mut direct = BTreeMap::new();
         let mut forward_steps = 0u64;
+        let every = self.check_every();
         let mut i = 0;
         while i < prefix {
             let mut action = schedule.actions[i];
@@ -624,7 +625,7 @@ impl<B: Backend> Simulation<'_, B> {
                     while current < to {
                         // Up to the next step after which the host has work, at once.
                         let end = super::stretch_end(current, to, |j| {
-                            j % CHECK_EVERY == 0 || loss.in_window((j + 1) as f64 * dt, dt)
+                            j % every == 0 || loss.in_window((j + 1) as f64 * dt, dt)
                         });
                         if store_each {
                             self.advance_storing(current, end - 1, dt)?;
@@ -639,7 +640,7 @@ impl<B: Backend> Simulation<'_, B> {
                         }
                         forward_steps += end - 1 - current;
                         current = end - 1;
-                        if current.is_multiple_of(CHECK_EVERY) {
+                        if current.is_multiple_of(every) {
                             // The check below reads the J of this step's start state.
                             self.run_diagnostics()?;
                         }
@@ -647,7 +648,7 @@ impl<B: Backend> Simulation<'_, B> {
                         current += 1;
                         forward_steps += 1;
                         loss_sum += self.loss_term(&loss, current, dt);
-                        if current % CHECK_EVERY == 1 {
+                        if current % every == 1 {
                             // Checked when the next check starts: the device runs on.
                             let started = self.start_check(current - 1);
                             if let Some(earlier) = pending_check.replace(started) {

@@ -524,6 +524,10 @@ impl Backend for Gpu {
         self.core.get_mut().record_run(0, &self.slot, k, range, u)
     }
 
+    fn runs_ahead(&self) -> bool {
+        true
+    }
+
     fn read_later(&mut self, bufs: &[BufferId]) -> PendingRead {
         let requests: Vec<(usize, usize)> = bufs
             .iter()
@@ -824,6 +828,10 @@ impl Backend for GpuScene {
 
     /// Joins the batch's lockstep group until the token is dropped: each readback then waits
     /// until every scene of the group asks for one (or leaves), and all are served together.
+    fn runs_ahead(&self) -> bool {
+        true
+    }
+
     fn lockstep(&self) -> Lockstep {
         self.shared.lock().active[self.scene] = true;
         let shared = self.shared.clone();

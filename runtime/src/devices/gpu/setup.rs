@@ -364,8 +364,9 @@ impl Core {
         let counts = [n_elems, n_tris, n_nodes];
         let mut buffers = Vec::new();
         let (mut lens, mut gpu_lens, mut rows) = (Vec::new(), Vec::new(), Vec::new());
-        for b in &self.layout {
-            let row = RowLayout::of(b.1);
+        let batched = self.module.batch.is_some();
+        for (i, b) in self.layout.iter().enumerate() {
+            let row = RowLayout::of_buffer(&self.ir, BufferId(i as u32), batched);
             let n = domain_count(&counts, b.0) * b.1 as usize;
             let gpu_n = domain_count(&counts, b.0) * row.padded() as usize;
             let bytes = (gpu_n * self.scenes) as u64 * size;
@@ -468,9 +469,11 @@ pub(super) fn kernels_module(device: &wgpu::Device, source: &str) -> wgpu::Shade
     if std::env::var("SOFTC_GPU_LOOP_BOUND").as_deref() == Ok("1") {
         return device.create_shader_module(desc);
     }
+    let bounds = std::env::var("SOFTC_GPU_BOUNDS_CHECKS").as_deref() != Ok("0");
     let checks = wgpu::ShaderRuntimeChecks {
         force_loop_bounding: false,
         int_div_checks: false,
+        bounds_checks: bounds,
         ..wgpu::ShaderRuntimeChecks::checked()
     };
     // SAFETY: the module is softc's generated code: every loop runs over a CSR range of
