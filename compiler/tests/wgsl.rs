@@ -374,3 +374,49 @@ fn rows_of_three_vectors_lie_as_vec4s_and_round_trip() {
     assert_eq!(&padded[4..8], &[4.0, 5.0, 6.0, 0.0]);
     assert_eq!(shape.unpad(padded.into_owned()), values);
 }
+
+#[test]
+fn corner_vectors_of_one_scene_lie_corner_major_and_round_trip() {
+    use softc_compiler::back::wgsl::RowLayout;
+    let corners = RowLayout {
+        corner_major: true,
+        ..RowLayout::of(12)
+    };
+    // Three tets' four corner forces: corner 1 of tet 2 (values 27..29) is `vec4` 1·3 + 2.
+    let values: Vec<f64> = (0..36).map(f64::from).collect();
+    let padded = corners.pad(&values);
+    assert_eq!(padded.len(), 48);
+    assert_eq!(&padded[20..24], &[27.0, 28.0, 29.0, 0.0]);
+    assert_eq!(&padded[..8], &[0.0, 1.0, 2.0, 0.0, 12.0, 13.0, 14.0, 0.0]);
+    assert_eq!(corners.unpad(padded.into_owned()), values);
+}
+
+#[test]
+fn only_a_single_scenes_corner_vectors_are_corner_major() {
+    use softc_compiler::back::wgsl::RowLayout;
+    use softc_compiler::ir::BufferId;
+    let module = everything();
+    let named =
+        |name: &str| BufferId(module.buffers.iter().position(|b| b.name == name).unwrap() as u32);
+    let force = named("elem_force");
+    assert!(RowLayout::of_buffer(&module, force, false).corner_major);
+    assert!(!RowLayout::of_buffer(&module, force, true).corner_major);
+    assert!(RowLayout::of_buffer(&module, named("tri_force"), false).corner_major);
+    // Node rows and element rows that are not one vector per corner stay entity-major.
+    assert!(!RowLayout::of_buffer(&module, named("x"), false).corner_major);
+    assert!(!RowLayout::of_buffer(&module, named("weights"), false).corner_major);
+    // Corner c of element e is `vec4` `c · rows + e`, where the element kernel stores it and
+    // the node gather reads it.
+    let one = wgsl::emit(&module, Precision::F32).unwrap();
+    assert!(
+        one.source
+            .contains("let rows_elem_force = arrayLength(&elem_force) / 4u;")
+    );
+    assert!(one.source.contains("elem_force[3u * rows_elem_force + e]"));
+    assert!(
+        one.source
+            .contains("elem_force[(slot % 4u) * rows_elem_force + slot / 4u]")
+    );
+    let batch = wgsl::emit_batched(&module, Precision::F32, 2).unwrap();
+    assert!(!batch.source.contains("rows_elem_force"));
+}

@@ -116,6 +116,7 @@ fn fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         return;
     }
     let e = launch_fem_rubber.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -281,10 +282,10 @@ fn fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let v152: real = v139 + v142;
     let v153: real = v145 + v152;
     let v154: real = -v153;
-    elem_force[4u * e] = vec4<real>(v148, v151, v154, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v121, v130, v139, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v124, v133, v142, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v127, v136, v145, 0.0f);
+    elem_force[e] = vec4<real>(v148, v151, v154, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v121, v130, v139, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v124, v133, v142, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v127, v136, v145, 0.0f);
 }
 
 // ======== kernel pressure_cavity over triangle (from pressure cavity)
@@ -303,6 +304,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_pressure_cavity.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -347,9 +349,9 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel integrate over node (from sim)
@@ -367,6 +369,8 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         return;
     }
     let e = launch_integrate.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = launch_integrate.dt;
     let arg1 = mass[e];
     let arg2 = fixed[e];
@@ -384,7 +388,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg11: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg3 += g0.x;
         arg7 += g0.y;
         arg11 += g0.z;
@@ -395,7 +399,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg12: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg4 += g0.x;
         arg8 += g0.y;
         arg12 += g0.z;
@@ -657,6 +661,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_adj_pressure_cavity.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -756,9 +761,9 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v86: real = v16 * v58;
     let v88: real = v86 + arg20;
     grad_tri_force[e] = v88;
-    adj_x_tri_force[3u * e] = vec4<real>(v85, v84, v83, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v67, v78, v74, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v70, v75, v79, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v85, v84, v83, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v67, v78, v74, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v70, v75, v79, 0.0f);
 }
 
 // ======== kernel adj_fem_rubber over element (from adjoint of material rubber)
@@ -775,6 +780,7 @@ fn adj_fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
         return;
     }
     let e = launch_adj_fem_rubber.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1078,10 +1084,10 @@ fn adj_fem_rubber(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let v286: real = -v251;
     let v287: real = v286 - v247;
     let v288: real = v287 - v242;
-    adj_x_elem_force[4u * e] = vec4<real>(v288, v285, v282, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v242, v265, v270, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v247, v278, v275, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v251, v274, v279, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v288, v285, v282, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v242, v265, v270, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v247, v278, v275, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v251, v274, v279, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1098,6 +1104,8 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let q0 = adj_x_x_next[e];
     let arg0 = q0.x;
     let arg3 = q0.y;
@@ -1108,7 +1116,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg2 += g0.x;
         arg5 += g0.y;
         arg8 += g0.z;
@@ -1119,7 +1127,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg7: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg1 += g0.x;
         arg4 += g0.y;
         arg7 += g0.z;

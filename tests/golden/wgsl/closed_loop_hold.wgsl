@@ -140,6 +140,7 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let e = launch_fem_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -352,10 +353,10 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let v199: real = v186 + v189;
     let v200: real = v192 + v199;
     let v201: real = -v200;
-    elem_force[4u * e] = vec4<real>(v195, v198, v201, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v168, v177, v186, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v171, v180, v189, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v174, v183, v192, 0.0f);
+    elem_force[e] = vec4<real>(v195, v198, v201, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v168, v177, v186, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v171, v180, v189, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v174, v183, v192, 0.0f);
 }
 
 // ======== kernel pressure_c3 over triangle (from pressure c3)
@@ -374,6 +375,7 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c3.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -418,9 +420,9 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel pressure_c1 over triangle (from pressure c1)
@@ -440,6 +442,7 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c1.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -484,9 +487,9 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel pressure_c2 over triangle (from pressure c2)
@@ -506,6 +509,7 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c2.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -550,9 +554,9 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel equilibrium over node (from sim)
@@ -569,6 +573,8 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_equilibrium.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -576,7 +582,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -587,7 +593,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;
@@ -809,6 +815,7 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c2.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -917,9 +924,9 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v96: real = v92 + arg22;
     grad_tri_force[e] = v94;
     grad_sensor_tri_force[e] = v96;
-    adj_x_tri_force[3u * e] = vec4<real>(v85, v84, v83, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v67, v78, v74, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v70, v75, v79, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v85, v84, v83, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v67, v78, v74, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v70, v75, v79, 0.0f);
 }
 
 // ======== kernel adj_pressure_c1 over triangle (from adjoint of pressure c1)
@@ -939,6 +946,7 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c1.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1047,9 +1055,9 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v96: real = v92 + arg22;
     grad_tri_force[e] = v94;
     grad_sensor_tri_force[e] = v96;
-    adj_x_tri_force[3u * e] = vec4<real>(v85, v84, v83, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v67, v78, v74, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v70, v75, v79, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v85, v84, v83, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v67, v78, v74, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v70, v75, v79, 0.0f);
 }
 
 // ======== kernel adj_pressure_c3 over triangle (from adjoint of pressure c3)
@@ -1068,6 +1076,7 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c3.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1148,9 +1157,9 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v68: real = v65 - v59;
     let v69: real = v66 - v63;
     let v70: real = v67 - v52;
-    adj_x_tri_force[3u * e] = vec4<real>(v70, v69, v68, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v52, v63, v59, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v55, v60, v64, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v70, v69, v68, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v52, v63, v59, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v55, v60, v64, 0.0f);
 }
 
 // ======== kernel adj_fem_silicone over element (from adjoint of material silicone)
@@ -1167,6 +1176,7 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_adj_fem_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1651,10 +1661,10 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v467: real = -v432;
     let v468: real = v467 - v428;
     let v469: real = v468 - v423;
-    adj_x_elem_force[4u * e] = vec4<real>(v469, v466, v463, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v423, v446, v451, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v428, v459, v456, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v432, v455, v460, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v469, v466, v463, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v423, v446, v451, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v428, v459, v456, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v432, v455, v460, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1671,13 +1681,15 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -1688,7 +1700,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg4: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg0 += g0.x;
         arg2 += g0.y;
         arg4 += g0.z;
@@ -3485,6 +3497,7 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_dir_fem_silicone.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -3961,10 +3974,10 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v459: real = v438 + v445;
     let v460: real = v452 + v459;
     let v461: real = -v460;
-    elem_force_dir[4u * e] = vec4<real>(v455, v458, v461, 0.0f);
-    elem_force_dir[4u * e + 1u] = vec4<real>(v396, v417, v438, 0.0f);
-    elem_force_dir[4u * e + 2u] = vec4<real>(v403, v424, v445, 0.0f);
-    elem_force_dir[4u * e + 3u] = vec4<real>(v410, v431, v452, 0.0f);
+    elem_force_dir[e] = vec4<real>(v455, v458, v461, 0.0f);
+    elem_force_dir[rows_elem_force_dir + e] = vec4<real>(v396, v417, v438, 0.0f);
+    elem_force_dir[2u * rows_elem_force_dir + e] = vec4<real>(v403, v424, v445, 0.0f);
+    elem_force_dir[3u * rows_elem_force_dir + e] = vec4<real>(v410, v431, v452, 0.0f);
 }
 
 // ======== kernel dir_pressure_c3 over triangle (from Jacobian-vector product of pressure c3)
@@ -3983,6 +3996,7 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c3.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4057,9 +4071,9 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v62: real = v25 * v47;
     let v63: real = v25 * v54;
     let v64: real = v25 * v61;
-    tri_force_dir[3u * e] = vec4<real>(v62, v63, v64, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v62, v63, v64, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v62, v63, v64, 0.0f);
+    tri_force_dir[e] = vec4<real>(v62, v63, v64, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v62, v63, v64, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v62, v63, v64, 0.0f);
 }
 
 // ======== kernel dir_pressure_c1 over triangle (from Jacobian-vector product of pressure c1)
@@ -4080,6 +4094,7 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c1.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4177,9 +4192,9 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v85: real = v34 * v77;
     let v86: real = v32 * v78;
     let v87: real = v85 + v86;
-    tri_force_dir[3u * e] = vec4<real>(v81, v84, v87, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v81, v84, v87, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v81, v84, v87, 0.0f);
+    tri_force_dir[e] = vec4<real>(v81, v84, v87, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v81, v84, v87, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v81, v84, v87, 0.0f);
 }
 
 // ======== kernel dir_pressure_c2 over triangle (from Jacobian-vector product of pressure c2)
@@ -4200,6 +4215,7 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c2.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4297,9 +4313,9 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v85: real = v34 * v77;
     let v86: real = v32 * v78;
     let v87: real = v85 + v86;
-    tri_force_dir[3u * e] = vec4<real>(v81, v84, v87, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v81, v84, v87, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v81, v84, v87, 0.0f);
+    tri_force_dir[e] = vec4<real>(v81, v84, v87, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v81, v84, v87, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v81, v84, v87, 0.0f);
 }
 
 // ======== kernel dir_equilibrium over node (from Jacobian-vector product of sim)
@@ -4316,6 +4332,8 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_equilibrium.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -4323,7 +4341,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force_dir[slot];
+        let g0 = elem_force_dir[(slot % 4u) * rows_elem_force_dir + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -4334,7 +4352,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force_dir[slot];
+        let g0 = tri_force_dir[(slot % 3u) * rows_tri_force_dir + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;

@@ -138,6 +138,7 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let e = launch_fem_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -350,10 +351,10 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let v199: real = v186 + v189;
     let v200: real = v192 + v199;
     let v201: real = -v200;
-    elem_force[4u * e] = vec4<real>(v195, v198, v201, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v168, v177, v186, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v171, v180, v189, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v174, v183, v192, 0.0f);
+    elem_force[e] = vec4<real>(v195, v198, v201, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v168, v177, v186, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v171, v180, v189, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v174, v183, v192, 0.0f);
 }
 
 // ======== kernel pressure_c1 over triangle (from pressure c1)
@@ -378,6 +379,7 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c1.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -446,9 +448,9 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v59: real = v50 * v58;
     let v60: real = v53 * v58;
     let v61: real = v56 * v58;
-    tri_force[3u * e] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
 }
 
 // ======== kernel pressure_c2 over triangle (from pressure c2)
@@ -473,6 +475,7 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c2.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -541,9 +544,9 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v59: real = v50 * v58;
     let v60: real = v53 * v58;
     let v61: real = v56 * v58;
-    tri_force[3u * e] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
 }
 
 // ======== kernel pressure_c3 over triangle (from pressure c3)
@@ -568,6 +571,7 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c3.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -636,9 +640,9 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v59: real = v50 * v58;
     let v60: real = v53 * v58;
     let v61: real = v56 * v58;
-    tri_force[3u * e] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
 }
 
 // ======== kernel equilibrium over node (from sim)
@@ -655,6 +659,8 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_equilibrium.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -662,7 +668,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -673,7 +679,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;
@@ -900,6 +906,7 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c3.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1041,9 +1048,9 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v127: real = v116 + arg29;
     grad_tri_force[4u * e + 2u].z = v121;
     grad_tri_force[4u * e + 3u] = vec4<real>(v123, v125, v127, 0.0f);
-    adj_x_tri_force[3u * e] = vec4<real>(v109, v108, v107, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v91, v102, v98, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v94, v99, v103, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v109, v108, v107, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v91, v102, v98, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v94, v99, v103, 0.0f);
 }
 
 // ======== kernel adj_pressure_c2 over triangle (from adjoint of pressure c2)
@@ -1068,6 +1075,7 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c2.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1211,9 +1219,9 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     grad_tri_force[4u * e + 1u].z = v123;
     grad_tri_force[4u * e + 2u].x = v125;
     grad_tri_force[4u * e + 2u].y = v127;
-    adj_x_tri_force[3u * e] = vec4<real>(v109, v108, v107, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v91, v102, v98, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v94, v99, v103, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v109, v108, v107, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v91, v102, v98, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v94, v99, v103, 0.0f);
 }
 
 // ======== kernel adj_pressure_c1 over triangle (from adjoint of pressure c1)
@@ -1238,6 +1246,7 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c1.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1379,9 +1388,9 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v127: real = v116 + arg29;
     grad_tri_force[4u * e] = vec4<real>(v121, v123, v125, 0.0f);
     grad_tri_force[4u * e + 1u].x = v127;
-    adj_x_tri_force[3u * e] = vec4<real>(v109, v108, v107, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v91, v102, v98, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v94, v99, v103, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v109, v108, v107, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v91, v102, v98, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v94, v99, v103, 0.0f);
 }
 
 // ======== kernel adj_fem_silicone over element (from adjoint of material silicone)
@@ -1398,6 +1407,7 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_adj_fem_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1882,10 +1892,10 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v467: real = -v432;
     let v468: real = v467 - v428;
     let v469: real = v468 - v423;
-    adj_x_elem_force[4u * e] = vec4<real>(v469, v466, v463, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v423, v446, v451, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v428, v459, v456, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v432, v455, v460, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v469, v466, v463, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v423, v446, v451, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v428, v459, v456, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v432, v455, v460, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1902,13 +1912,15 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -1919,7 +1931,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg4: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg0 += g0.x;
         arg2 += g0.y;
         arg4 += g0.z;
@@ -3804,6 +3816,7 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_dir_fem_silicone.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -4280,10 +4293,10 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v459: real = v438 + v445;
     let v460: real = v452 + v459;
     let v461: real = -v460;
-    elem_force_dir[4u * e] = vec4<real>(v455, v458, v461, 0.0f);
-    elem_force_dir[4u * e + 1u] = vec4<real>(v396, v417, v438, 0.0f);
-    elem_force_dir[4u * e + 2u] = vec4<real>(v403, v424, v445, 0.0f);
-    elem_force_dir[4u * e + 3u] = vec4<real>(v410, v431, v452, 0.0f);
+    elem_force_dir[e] = vec4<real>(v455, v458, v461, 0.0f);
+    elem_force_dir[rows_elem_force_dir + e] = vec4<real>(v396, v417, v438, 0.0f);
+    elem_force_dir[2u * rows_elem_force_dir + e] = vec4<real>(v403, v424, v445, 0.0f);
+    elem_force_dir[3u * rows_elem_force_dir + e] = vec4<real>(v410, v431, v452, 0.0f);
 }
 
 // ======== kernel dir_pressure_c1 over triangle (from Jacobian-vector product of pressure c1)
@@ -4308,6 +4321,7 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c1.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4406,9 +4420,9 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v86: real = v49 * v71;
     let v87: real = v49 * v78;
     let v88: real = v49 * v85;
-    tri_force_dir[3u * e] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
 }
 
 // ======== kernel dir_pressure_c2 over triangle (from Jacobian-vector product of pressure c2)
@@ -4433,6 +4447,7 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c2.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4531,9 +4546,9 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v86: real = v49 * v71;
     let v87: real = v49 * v78;
     let v88: real = v49 * v85;
-    tri_force_dir[3u * e] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
 }
 
 // ======== kernel dir_pressure_c3 over triangle (from Jacobian-vector product of pressure c3)
@@ -4558,6 +4573,7 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c3.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4656,9 +4672,9 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v86: real = v49 * v71;
     let v87: real = v49 * v78;
     let v88: real = v49 * v85;
-    tri_force_dir[3u * e] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
 }
 
 // ======== kernel dir_equilibrium over node (from Jacobian-vector product of sim)
@@ -4675,6 +4691,8 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_equilibrium.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -4682,7 +4700,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force_dir[slot];
+        let g0 = elem_force_dir[(slot % 4u) * rows_elem_force_dir + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -4693,7 +4711,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force_dir[slot];
+        let g0 = tri_force_dir[(slot % 3u) * rows_tri_force_dir + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;

@@ -138,6 +138,7 @@ fn fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_fem_ecoflex.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -338,10 +339,10 @@ fn fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v187: real = v174 + v177;
     let v188: real = v180 + v187;
     let v189: real = -v188;
-    elem_force[4u * e] = vec4<real>(v183, v186, v189, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v156, v165, v174, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v159, v168, v177, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v162, v171, v180, 0.0f);
+    elem_force[e] = vec4<real>(v183, v186, v189, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v156, v165, v174, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v159, v168, v177, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v162, v171, v180, 0.0f);
 }
 
 // ======== kernel pressure_c1 over triangle (from pressure c1)
@@ -366,6 +367,7 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c1.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -434,9 +436,9 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v59: real = v50 * v58;
     let v60: real = v53 * v58;
     let v61: real = v56 * v58;
-    tri_force[3u * e] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
 }
 
 // ======== kernel pressure_c2 over triangle (from pressure c2)
@@ -461,6 +463,7 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c2.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -529,9 +532,9 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v59: real = v50 * v58;
     let v60: real = v53 * v58;
     let v61: real = v56 * v58;
-    tri_force[3u * e] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
 }
 
 // ======== kernel pressure_c3 over triangle (from pressure c3)
@@ -556,6 +559,7 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c3.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -624,9 +628,9 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v59: real = v50 * v58;
     let v60: real = v53 * v58;
     let v61: real = v56 * v58;
-    tri_force[3u * e] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v59, v60, v61, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v59, v60, v61, 0.0f);
 }
 
 // ======== kernel equilibrium over node (from sim)
@@ -643,6 +647,8 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_equilibrium.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -650,7 +656,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -661,7 +667,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;
@@ -880,6 +886,7 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c3.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1021,9 +1028,9 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v127: real = v116 + arg29;
     grad_tri_force[4u * e + 2u].z = v121;
     grad_tri_force[4u * e + 3u] = vec4<real>(v123, v125, v127, 0.0f);
-    adj_x_tri_force[3u * e] = vec4<real>(v109, v108, v107, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v91, v102, v98, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v94, v99, v103, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v109, v108, v107, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v91, v102, v98, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v94, v99, v103, 0.0f);
 }
 
 // ======== kernel adj_pressure_c2 over triangle (from adjoint of pressure c2)
@@ -1048,6 +1055,7 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c2.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1191,9 +1199,9 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     grad_tri_force[4u * e + 1u].z = v123;
     grad_tri_force[4u * e + 2u].x = v125;
     grad_tri_force[4u * e + 2u].y = v127;
-    adj_x_tri_force[3u * e] = vec4<real>(v109, v108, v107, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v91, v102, v98, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v94, v99, v103, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v109, v108, v107, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v91, v102, v98, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v94, v99, v103, 0.0f);
 }
 
 // ======== kernel adj_pressure_c1 over triangle (from adjoint of pressure c1)
@@ -1218,6 +1226,7 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c1.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1359,9 +1368,9 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v127: real = v116 + arg29;
     grad_tri_force[4u * e] = vec4<real>(v121, v123, v125, 0.0f);
     grad_tri_force[4u * e + 1u].x = v127;
-    adj_x_tri_force[3u * e] = vec4<real>(v109, v108, v107, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v91, v102, v98, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v94, v99, v103, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v109, v108, v107, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v91, v102, v98, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v94, v99, v103, 0.0f);
 }
 
 // ======== kernel adj_fem_ecoflex over element (from adjoint of material ecoflex)
@@ -1378,6 +1387,7 @@ fn adj_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_fem_ecoflex.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1834,10 +1844,10 @@ fn adj_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v439: real = -v404;
     let v440: real = v439 - v400;
     let v441: real = v440 - v395;
-    adj_x_elem_force[4u * e] = vec4<real>(v441, v438, v435, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v395, v418, v423, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v400, v431, v428, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v404, v427, v432, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v441, v438, v435, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v395, v418, v423, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v400, v431, v428, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v404, v427, v432, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1854,13 +1864,15 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -1871,7 +1883,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg4: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg0 += g0.x;
         arg2 += g0.y;
         arg4 += g0.z;
@@ -3552,6 +3564,7 @@ fn dir_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_fem_ecoflex.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -4000,10 +4013,10 @@ fn dir_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v431: real = v410 + v417;
     let v432: real = v424 + v431;
     let v433: real = -v432;
-    elem_force_dir[4u * e] = vec4<real>(v427, v430, v433, 0.0f);
-    elem_force_dir[4u * e + 1u] = vec4<real>(v368, v389, v410, 0.0f);
-    elem_force_dir[4u * e + 2u] = vec4<real>(v375, v396, v417, 0.0f);
-    elem_force_dir[4u * e + 3u] = vec4<real>(v382, v403, v424, 0.0f);
+    elem_force_dir[e] = vec4<real>(v427, v430, v433, 0.0f);
+    elem_force_dir[rows_elem_force_dir + e] = vec4<real>(v368, v389, v410, 0.0f);
+    elem_force_dir[2u * rows_elem_force_dir + e] = vec4<real>(v375, v396, v417, 0.0f);
+    elem_force_dir[3u * rows_elem_force_dir + e] = vec4<real>(v382, v403, v424, 0.0f);
 }
 
 // ======== kernel dir_pressure_c1 over triangle (from Jacobian-vector product of pressure c1)
@@ -4028,6 +4041,7 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c1.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4126,9 +4140,9 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v86: real = v49 * v71;
     let v87: real = v49 * v78;
     let v88: real = v49 * v85;
-    tri_force_dir[3u * e] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
 }
 
 // ======== kernel dir_pressure_c2 over triangle (from Jacobian-vector product of pressure c2)
@@ -4153,6 +4167,7 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c2.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4251,9 +4266,9 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v86: real = v49 * v71;
     let v87: real = v49 * v78;
     let v88: real = v49 * v85;
-    tri_force_dir[3u * e] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
 }
 
 // ======== kernel dir_pressure_c3 over triangle (from Jacobian-vector product of pressure c3)
@@ -4278,6 +4293,7 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c3.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -4376,9 +4392,9 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v86: real = v49 * v71;
     let v87: real = v49 * v78;
     let v88: real = v49 * v85;
-    tri_force_dir[3u * e] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v86, v87, v88, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v86, v87, v88, 0.0f);
 }
 
 // ======== kernel dir_equilibrium over node (from Jacobian-vector product of sim)
@@ -4395,6 +4411,8 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_equilibrium.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -4402,7 +4420,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force_dir[slot];
+        let g0 = elem_force_dir[(slot % 4u) * rows_elem_force_dir + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -4413,7 +4431,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force_dir[slot];
+        let g0 = tri_force_dir[(slot % 3u) * rows_tri_force_dir + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;

@@ -138,6 +138,7 @@ fn fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_fem_ecoflex.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 10u;
     let n0 = elem_conn[10u * e + 0u];
     let n1 = elem_conn[10u * e + 1u];
     let n2 = elem_conn[10u * e + 2u];
@@ -1435,16 +1436,16 @@ fn fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v1266: real = v1220 + v1265;
     let v1267: real = v1241 + v1266;
     let v1268: real = -v1267;
-    elem_force[10u * e] = vec4<real>(v1250, v1259, v1268, 0.0f);
-    elem_force[10u * e + 1u] = vec4<real>(v1073, v1076, v1079, 0.0f);
-    elem_force[10u * e + 2u] = vec4<real>(v1082, v1085, v1088, 0.0f);
-    elem_force[10u * e + 3u] = vec4<real>(v1091, v1094, v1097, 0.0f);
-    elem_force[10u * e + 4u] = vec4<real>(v1106, v1115, v1124, 0.0f);
-    elem_force[10u * e + 5u] = vec4<real>(v1131, v1138, v1145, 0.0f);
-    elem_force[10u * e + 6u] = vec4<real>(v1154, v1163, v1172, 0.0f);
-    elem_force[10u * e + 7u] = vec4<real>(v1181, v1190, v1199, 0.0f);
-    elem_force[10u * e + 8u] = vec4<real>(v1206, v1213, v1220, 0.0f);
-    elem_force[10u * e + 9u] = vec4<real>(v1227, v1234, v1241, 0.0f);
+    elem_force[e] = vec4<real>(v1250, v1259, v1268, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v1073, v1076, v1079, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v1082, v1085, v1088, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v1091, v1094, v1097, 0.0f);
+    elem_force[4u * rows_elem_force + e] = vec4<real>(v1106, v1115, v1124, 0.0f);
+    elem_force[5u * rows_elem_force + e] = vec4<real>(v1131, v1138, v1145, 0.0f);
+    elem_force[6u * rows_elem_force + e] = vec4<real>(v1154, v1163, v1172, 0.0f);
+    elem_force[7u * rows_elem_force + e] = vec4<real>(v1181, v1190, v1199, 0.0f);
+    elem_force[8u * rows_elem_force + e] = vec4<real>(v1206, v1213, v1220, 0.0f);
+    elem_force[9u * rows_elem_force + e] = vec4<real>(v1227, v1234, v1241, 0.0f);
 }
 
 // ======== kernel pressure_c1 over triangle (from pressure c1)
@@ -1469,6 +1470,7 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c1.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -1985,12 +1987,12 @@ fn pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v501: real = v350 + v500;
     let v502: real = v395 + v501;
     let v503: real = v32 * v502;
-    tri_force[6u * e] = vec4<real>(v401, v407, v413, 0.0f);
-    tri_force[6u * e + 1u] = vec4<real>(v419, v425, v431, 0.0f);
-    tri_force[6u * e + 2u] = vec4<real>(v437, v443, v449, 0.0f);
-    tri_force[6u * e + 3u] = vec4<real>(v455, v461, v467, 0.0f);
-    tri_force[6u * e + 4u] = vec4<real>(v473, v479, v485, 0.0f);
-    tri_force[6u * e + 5u] = vec4<real>(v491, v497, v503, 0.0f);
+    tri_force[e] = vec4<real>(v401, v407, v413, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v419, v425, v431, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v437, v443, v449, 0.0f);
+    tri_force[3u * rows_tri_force + e] = vec4<real>(v455, v461, v467, 0.0f);
+    tri_force[4u * rows_tri_force + e] = vec4<real>(v473, v479, v485, 0.0f);
+    tri_force[5u * rows_tri_force + e] = vec4<real>(v491, v497, v503, 0.0f);
 }
 
 // ======== kernel pressure_c2 over triangle (from pressure c2)
@@ -2015,6 +2017,7 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c2.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -2531,12 +2534,12 @@ fn pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v501: real = v350 + v500;
     let v502: real = v395 + v501;
     let v503: real = v32 * v502;
-    tri_force[6u * e] = vec4<real>(v401, v407, v413, 0.0f);
-    tri_force[6u * e + 1u] = vec4<real>(v419, v425, v431, 0.0f);
-    tri_force[6u * e + 2u] = vec4<real>(v437, v443, v449, 0.0f);
-    tri_force[6u * e + 3u] = vec4<real>(v455, v461, v467, 0.0f);
-    tri_force[6u * e + 4u] = vec4<real>(v473, v479, v485, 0.0f);
-    tri_force[6u * e + 5u] = vec4<real>(v491, v497, v503, 0.0f);
+    tri_force[e] = vec4<real>(v401, v407, v413, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v419, v425, v431, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v437, v443, v449, 0.0f);
+    tri_force[3u * rows_tri_force + e] = vec4<real>(v455, v461, v467, 0.0f);
+    tri_force[4u * rows_tri_force + e] = vec4<real>(v473, v479, v485, 0.0f);
+    tri_force[5u * rows_tri_force + e] = vec4<real>(v491, v497, v503, 0.0f);
 }
 
 // ======== kernel pressure_c3 over triangle (from pressure c3)
@@ -2561,6 +2564,7 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c3.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -3077,12 +3081,12 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v501: real = v350 + v500;
     let v502: real = v395 + v501;
     let v503: real = v32 * v502;
-    tri_force[6u * e] = vec4<real>(v401, v407, v413, 0.0f);
-    tri_force[6u * e + 1u] = vec4<real>(v419, v425, v431, 0.0f);
-    tri_force[6u * e + 2u] = vec4<real>(v437, v443, v449, 0.0f);
-    tri_force[6u * e + 3u] = vec4<real>(v455, v461, v467, 0.0f);
-    tri_force[6u * e + 4u] = vec4<real>(v473, v479, v485, 0.0f);
-    tri_force[6u * e + 5u] = vec4<real>(v491, v497, v503, 0.0f);
+    tri_force[e] = vec4<real>(v401, v407, v413, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v419, v425, v431, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v437, v443, v449, 0.0f);
+    tri_force[3u * rows_tri_force + e] = vec4<real>(v455, v461, v467, 0.0f);
+    tri_force[4u * rows_tri_force + e] = vec4<real>(v473, v479, v485, 0.0f);
+    tri_force[5u * rows_tri_force + e] = vec4<real>(v491, v497, v503, 0.0f);
 }
 
 // ======== kernel equilibrium over node (from sim)
@@ -3099,6 +3103,8 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_equilibrium.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 10u;
+    let rows_tri_force = arrayLength(&tri_force) / 6u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -3106,7 +3112,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 10u) * rows_elem_force + slot / 10u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -3117,7 +3123,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 6u) * rows_tri_force + slot / 6u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;
@@ -3923,6 +3929,7 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c3.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -5006,12 +5013,12 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v1060: real = v1049 + arg47;
     grad_tri_force[4u * e + 2u].z = v1054;
     grad_tri_force[4u * e + 3u] = vec4<real>(v1056, v1058, v1060, 0.0f);
-    adj_x_tri_force[6u * e] = vec4<real>(v1042, v1041, v1040, 0.0f);
-    adj_x_tri_force[6u * e + 1u] = vec4<real>(v1027, v1016, v1005, 0.0f);
-    adj_x_tri_force[6u * e + 2u] = vec4<real>(v994, v985, v976, 0.0f);
-    adj_x_tri_force[6u * e + 3u] = vec4<real>(v1025, v1014, v1003, 0.0f);
-    adj_x_tri_force[6u * e + 4u] = vec4<real>(v1023, v1012, v1001, 0.0f);
-    adj_x_tri_force[6u * e + 5u] = vec4<real>(v1021, v1010, v999, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v1042, v1041, v1040, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v1027, v1016, v1005, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v994, v985, v976, 0.0f);
+    adj_x_tri_force[3u * rows_adj_x_tri_force + e] = vec4<real>(v1025, v1014, v1003, 0.0f);
+    adj_x_tri_force[4u * rows_adj_x_tri_force + e] = vec4<real>(v1023, v1012, v1001, 0.0f);
+    adj_x_tri_force[5u * rows_adj_x_tri_force + e] = vec4<real>(v1021, v1010, v999, 0.0f);
 }
 
 // ======== kernel adj_pressure_c2 over triangle (from adjoint of pressure c2)
@@ -5036,6 +5043,7 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c2.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -6121,12 +6129,12 @@ fn adj_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     grad_tri_force[4u * e + 1u].z = v1056;
     grad_tri_force[4u * e + 2u].x = v1058;
     grad_tri_force[4u * e + 2u].y = v1060;
-    adj_x_tri_force[6u * e] = vec4<real>(v1042, v1041, v1040, 0.0f);
-    adj_x_tri_force[6u * e + 1u] = vec4<real>(v1027, v1016, v1005, 0.0f);
-    adj_x_tri_force[6u * e + 2u] = vec4<real>(v994, v985, v976, 0.0f);
-    adj_x_tri_force[6u * e + 3u] = vec4<real>(v1025, v1014, v1003, 0.0f);
-    adj_x_tri_force[6u * e + 4u] = vec4<real>(v1023, v1012, v1001, 0.0f);
-    adj_x_tri_force[6u * e + 5u] = vec4<real>(v1021, v1010, v999, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v1042, v1041, v1040, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v1027, v1016, v1005, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v994, v985, v976, 0.0f);
+    adj_x_tri_force[3u * rows_adj_x_tri_force + e] = vec4<real>(v1025, v1014, v1003, 0.0f);
+    adj_x_tri_force[4u * rows_adj_x_tri_force + e] = vec4<real>(v1023, v1012, v1001, 0.0f);
+    adj_x_tri_force[5u * rows_adj_x_tri_force + e] = vec4<real>(v1021, v1010, v999, 0.0f);
 }
 
 // ======== kernel adj_pressure_c1 over triangle (from adjoint of pressure c1)
@@ -6151,6 +6159,7 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c1.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -7234,12 +7243,12 @@ fn adj_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v1060: real = v1049 + arg47;
     grad_tri_force[4u * e] = vec4<real>(v1054, v1056, v1058, 0.0f);
     grad_tri_force[4u * e + 1u].x = v1060;
-    adj_x_tri_force[6u * e] = vec4<real>(v1042, v1041, v1040, 0.0f);
-    adj_x_tri_force[6u * e + 1u] = vec4<real>(v1027, v1016, v1005, 0.0f);
-    adj_x_tri_force[6u * e + 2u] = vec4<real>(v994, v985, v976, 0.0f);
-    adj_x_tri_force[6u * e + 3u] = vec4<real>(v1025, v1014, v1003, 0.0f);
-    adj_x_tri_force[6u * e + 4u] = vec4<real>(v1023, v1012, v1001, 0.0f);
-    adj_x_tri_force[6u * e + 5u] = vec4<real>(v1021, v1010, v999, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v1042, v1041, v1040, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v1027, v1016, v1005, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v994, v985, v976, 0.0f);
+    adj_x_tri_force[3u * rows_adj_x_tri_force + e] = vec4<real>(v1025, v1014, v1003, 0.0f);
+    adj_x_tri_force[4u * rows_adj_x_tri_force + e] = vec4<real>(v1023, v1012, v1001, 0.0f);
+    adj_x_tri_force[5u * rows_adj_x_tri_force + e] = vec4<real>(v1021, v1010, v999, 0.0f);
 }
 
 // ======== kernel adj_fem_ecoflex over element (from adjoint of material ecoflex (10-node tets))
@@ -7256,6 +7265,7 @@ fn adj_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_fem_ecoflex.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 10u;
     let n0 = elem_conn[10u * e + 0u];
     let n1 = elem_conn[10u * e + 1u];
     let n2 = elem_conn[10u * e + 2u];
@@ -9670,16 +9680,16 @@ fn adj_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v2373: real = v2370 - v2266;
     let v2374: real = v2371 - v2307;
     let v2375: real = v2372 - v2348;
-    adj_x_elem_force[10u * e] = vec4<real>(v2375, v2374, v2373, 0.0f);
-    adj_x_elem_force[10u * e + 1u] = vec4<real>(v2348, v2307, v2266, 0.0f);
-    adj_x_elem_force[10u * e + 2u] = vec4<real>(v2331, v2290, v2249, 0.0f);
-    adj_x_elem_force[10u * e + 3u] = vec4<real>(v2317, v2276, v2235, 0.0f);
-    adj_x_elem_force[10u * e + 4u] = vec4<real>(v2346, v2305, v2264, 0.0f);
-    adj_x_elem_force[10u * e + 5u] = vec4<real>(v2344, v2303, v2262, 0.0f);
-    adj_x_elem_force[10u * e + 6u] = vec4<real>(v2342, v2301, v2260, 0.0f);
-    adj_x_elem_force[10u * e + 7u] = vec4<real>(v2340, v2299, v2258, 0.0f);
-    adj_x_elem_force[10u * e + 8u] = vec4<real>(v2338, v2297, v2256, 0.0f);
-    adj_x_elem_force[10u * e + 9u] = vec4<real>(v2325, v2284, v2243, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v2375, v2374, v2373, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v2348, v2307, v2266, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v2331, v2290, v2249, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v2317, v2276, v2235, 0.0f);
+    adj_x_elem_force[4u * rows_adj_x_elem_force + e] = vec4<real>(v2346, v2305, v2264, 0.0f);
+    adj_x_elem_force[5u * rows_adj_x_elem_force + e] = vec4<real>(v2344, v2303, v2262, 0.0f);
+    adj_x_elem_force[6u * rows_adj_x_elem_force + e] = vec4<real>(v2342, v2301, v2260, 0.0f);
+    adj_x_elem_force[7u * rows_adj_x_elem_force + e] = vec4<real>(v2340, v2299, v2258, 0.0f);
+    adj_x_elem_force[8u * rows_adj_x_elem_force + e] = vec4<real>(v2338, v2297, v2256, 0.0f);
+    adj_x_elem_force[9u * rows_adj_x_elem_force + e] = vec4<real>(v2325, v2284, v2243, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -9696,13 +9706,15 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 6u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 10u;
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 10u) * rows_adj_x_elem_force + slot / 10u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -9713,7 +9725,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg4: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 6u) * rows_adj_x_tri_force + slot / 6u];
         arg0 += g0.x;
         arg2 += g0.y;
         arg4 += g0.z;
@@ -41001,6 +41013,7 @@ fn dir_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_fem_ecoflex.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 10u;
     let n0 = elem_conn[10u * e + 0u];
     let n1 = elem_conn[10u * e + 1u];
     let n2 = elem_conn[10u * e + 2u];
@@ -43482,16 +43495,16 @@ fn dir_fem_ecoflex(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v2440: real = v2394 + v2439;
     let v2441: real = v2415 + v2440;
     let v2442: real = -v2441;
-    elem_force_dir[10u * e] = vec4<real>(v2424, v2433, v2442, 0.0f);
-    elem_force_dir[10u * e + 1u] = vec4<real>(v2247, v2250, v2253, 0.0f);
-    elem_force_dir[10u * e + 2u] = vec4<real>(v2256, v2259, v2262, 0.0f);
-    elem_force_dir[10u * e + 3u] = vec4<real>(v2265, v2268, v2271, 0.0f);
-    elem_force_dir[10u * e + 4u] = vec4<real>(v2280, v2289, v2298, 0.0f);
-    elem_force_dir[10u * e + 5u] = vec4<real>(v2305, v2312, v2319, 0.0f);
-    elem_force_dir[10u * e + 6u] = vec4<real>(v2328, v2337, v2346, 0.0f);
-    elem_force_dir[10u * e + 7u] = vec4<real>(v2355, v2364, v2373, 0.0f);
-    elem_force_dir[10u * e + 8u] = vec4<real>(v2380, v2387, v2394, 0.0f);
-    elem_force_dir[10u * e + 9u] = vec4<real>(v2401, v2408, v2415, 0.0f);
+    elem_force_dir[e] = vec4<real>(v2424, v2433, v2442, 0.0f);
+    elem_force_dir[rows_elem_force_dir + e] = vec4<real>(v2247, v2250, v2253, 0.0f);
+    elem_force_dir[2u * rows_elem_force_dir + e] = vec4<real>(v2256, v2259, v2262, 0.0f);
+    elem_force_dir[3u * rows_elem_force_dir + e] = vec4<real>(v2265, v2268, v2271, 0.0f);
+    elem_force_dir[4u * rows_elem_force_dir + e] = vec4<real>(v2280, v2289, v2298, 0.0f);
+    elem_force_dir[5u * rows_elem_force_dir + e] = vec4<real>(v2305, v2312, v2319, 0.0f);
+    elem_force_dir[6u * rows_elem_force_dir + e] = vec4<real>(v2328, v2337, v2346, 0.0f);
+    elem_force_dir[7u * rows_elem_force_dir + e] = vec4<real>(v2355, v2364, v2373, 0.0f);
+    elem_force_dir[8u * rows_elem_force_dir + e] = vec4<real>(v2380, v2387, v2394, 0.0f);
+    elem_force_dir[9u * rows_elem_force_dir + e] = vec4<real>(v2401, v2408, v2415, 0.0f);
 }
 
 // ======== kernel dir_pressure_c1 over triangle (from Jacobian-vector product of pressure c1)
@@ -43516,6 +43529,7 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c1.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -44323,12 +44337,12 @@ fn dir_pressure_c1(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v786: real = v623 + v785;
     let v787: real = v680 + v786;
     let v788: real = v50 * v787;
-    tri_force_dir[6u * e] = vec4<real>(v686, v692, v698, 0.0f);
-    tri_force_dir[6u * e + 1u] = vec4<real>(v704, v710, v716, 0.0f);
-    tri_force_dir[6u * e + 2u] = vec4<real>(v722, v728, v734, 0.0f);
-    tri_force_dir[6u * e + 3u] = vec4<real>(v740, v746, v752, 0.0f);
-    tri_force_dir[6u * e + 4u] = vec4<real>(v758, v764, v770, 0.0f);
-    tri_force_dir[6u * e + 5u] = vec4<real>(v776, v782, v788, 0.0f);
+    tri_force_dir[e] = vec4<real>(v686, v692, v698, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v704, v710, v716, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v722, v728, v734, 0.0f);
+    tri_force_dir[3u * rows_tri_force_dir + e] = vec4<real>(v740, v746, v752, 0.0f);
+    tri_force_dir[4u * rows_tri_force_dir + e] = vec4<real>(v758, v764, v770, 0.0f);
+    tri_force_dir[5u * rows_tri_force_dir + e] = vec4<real>(v776, v782, v788, 0.0f);
 }
 
 // ======== kernel dir_pressure_c2 over triangle (from Jacobian-vector product of pressure c2)
@@ -44353,6 +44367,7 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c2.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -45160,12 +45175,12 @@ fn dir_pressure_c2(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v786: real = v623 + v785;
     let v787: real = v680 + v786;
     let v788: real = v50 * v787;
-    tri_force_dir[6u * e] = vec4<real>(v686, v692, v698, 0.0f);
-    tri_force_dir[6u * e + 1u] = vec4<real>(v704, v710, v716, 0.0f);
-    tri_force_dir[6u * e + 2u] = vec4<real>(v722, v728, v734, 0.0f);
-    tri_force_dir[6u * e + 3u] = vec4<real>(v740, v746, v752, 0.0f);
-    tri_force_dir[6u * e + 4u] = vec4<real>(v758, v764, v770, 0.0f);
-    tri_force_dir[6u * e + 5u] = vec4<real>(v776, v782, v788, 0.0f);
+    tri_force_dir[e] = vec4<real>(v686, v692, v698, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v704, v710, v716, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v722, v728, v734, 0.0f);
+    tri_force_dir[3u * rows_tri_force_dir + e] = vec4<real>(v740, v746, v752, 0.0f);
+    tri_force_dir[4u * rows_tri_force_dir + e] = vec4<real>(v758, v764, v770, 0.0f);
+    tri_force_dir[5u * rows_tri_force_dir + e] = vec4<real>(v776, v782, v788, 0.0f);
 }
 
 // ======== kernel dir_pressure_c3 over triangle (from Jacobian-vector product of pressure c3)
@@ -45190,6 +45205,7 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_pressure_c3.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -45997,12 +46013,12 @@ fn dir_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v786: real = v623 + v785;
     let v787: real = v680 + v786;
     let v788: real = v50 * v787;
-    tri_force_dir[6u * e] = vec4<real>(v686, v692, v698, 0.0f);
-    tri_force_dir[6u * e + 1u] = vec4<real>(v704, v710, v716, 0.0f);
-    tri_force_dir[6u * e + 2u] = vec4<real>(v722, v728, v734, 0.0f);
-    tri_force_dir[6u * e + 3u] = vec4<real>(v740, v746, v752, 0.0f);
-    tri_force_dir[6u * e + 4u] = vec4<real>(v758, v764, v770, 0.0f);
-    tri_force_dir[6u * e + 5u] = vec4<real>(v776, v782, v788, 0.0f);
+    tri_force_dir[e] = vec4<real>(v686, v692, v698, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v704, v710, v716, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v722, v728, v734, 0.0f);
+    tri_force_dir[3u * rows_tri_force_dir + e] = vec4<real>(v740, v746, v752, 0.0f);
+    tri_force_dir[4u * rows_tri_force_dir + e] = vec4<real>(v758, v764, v770, 0.0f);
+    tri_force_dir[5u * rows_tri_force_dir + e] = vec4<real>(v776, v782, v788, 0.0f);
 }
 
 // ======== kernel dir_equilibrium over node (from Jacobian-vector product of sim)
@@ -46019,6 +46035,8 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_equilibrium.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 10u;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 6u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -46026,7 +46044,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force_dir[slot];
+        let g0 = elem_force_dir[(slot % 10u) * rows_elem_force_dir + slot / 10u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -46037,7 +46055,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force_dir[slot];
+        let g0 = tri_force_dir[(slot % 6u) * rows_tri_force_dir + slot / 6u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;

@@ -152,6 +152,7 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let e = launch_fem_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -352,10 +353,10 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let v187: real = v174 + v177;
     let v188: real = v180 + v187;
     let v189: real = -v188;
-    elem_force[4u * e] = vec4<real>(v183, v186, v189, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v156, v165, v174, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v159, v168, v177, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v162, v171, v180, 0.0f);
+    elem_force[e] = vec4<real>(v183, v186, v189, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v156, v165, v174, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v159, v168, v177, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v162, v171, v180, 0.0f);
 }
 
 // ======== kernel pressure_cavity over triangle (from pressure cavity)
@@ -375,6 +376,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_pressure_cavity.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -419,9 +421,9 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel equilibrium over node (from sim)
@@ -439,6 +441,8 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_equilibrium.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = fixed[e];
     let q0 = x[e];
     let arg1 = q0.z;
@@ -450,7 +454,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg4 += g0.x;
         arg6 += g0.y;
         arg8 += g0.z;
@@ -461,7 +465,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg9: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg5 += g0.x;
         arg7 += g0.y;
         arg9 += g0.z;
@@ -816,6 +820,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_adj_pressure_cavity.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -916,9 +921,9 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v87: real = v15 * v86;
     let v89: real = v87 + arg21;
     grad_tri_force[e] = v89;
-    adj_x_tri_force[3u * e] = vec4<real>(v85, v84, v83, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v67, v78, v74, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v70, v75, v79, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v85, v84, v83, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v67, v78, v74, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v70, v75, v79, 0.0f);
 }
 
 // ======== kernel adj_fem_silicone over element (from adjoint of material silicone)
@@ -935,6 +940,7 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_adj_fem_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1391,10 +1397,10 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v439: real = -v404;
     let v440: real = v439 - v400;
     let v441: real = v440 - v395;
-    adj_x_elem_force[4u * e] = vec4<real>(v441, v438, v435, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v395, v418, v423, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v400, v431, v428, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v404, v427, v432, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v441, v438, v435, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v395, v418, v423, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v400, v431, v428, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v404, v427, v432, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1411,6 +1417,8 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let q0 = adj_x_residual[e];
     let arg0 = q0.x;
     let arg3 = q0.y;
@@ -1421,7 +1429,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg2 += g0.x;
         arg5 += g0.y;
         arg8 += g0.z;
@@ -1432,7 +1440,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg7: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg1 += g0.x;
         arg4 += g0.y;
         arg7 += g0.z;
@@ -2871,6 +2879,7 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_dir_fem_silicone.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -3319,10 +3328,10 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v431: real = v410 + v417;
     let v432: real = v424 + v431;
     let v433: real = -v432;
-    elem_force_dir[4u * e] = vec4<real>(v427, v430, v433, 0.0f);
-    elem_force_dir[4u * e + 1u] = vec4<real>(v368, v389, v410, 0.0f);
-    elem_force_dir[4u * e + 2u] = vec4<real>(v375, v396, v417, 0.0f);
-    elem_force_dir[4u * e + 3u] = vec4<real>(v382, v403, v424, 0.0f);
+    elem_force_dir[e] = vec4<real>(v427, v430, v433, 0.0f);
+    elem_force_dir[rows_elem_force_dir + e] = vec4<real>(v368, v389, v410, 0.0f);
+    elem_force_dir[2u * rows_elem_force_dir + e] = vec4<real>(v375, v396, v417, 0.0f);
+    elem_force_dir[3u * rows_elem_force_dir + e] = vec4<real>(v382, v403, v424, 0.0f);
 }
 
 // ======== kernel dir_pressure_cavity over triangle (from Jacobian-vector product of pressure cavity)
@@ -3342,6 +3351,7 @@ fn dir_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_dir_pressure_cavity.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -3416,9 +3426,9 @@ fn dir_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v62: real = v25 * v47;
     let v63: real = v25 * v54;
     let v64: real = v25 * v61;
-    tri_force_dir[3u * e] = vec4<real>(v62, v63, v64, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v62, v63, v64, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v62, v63, v64, 0.0f);
+    tri_force_dir[e] = vec4<real>(v62, v63, v64, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v62, v63, v64, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v62, v63, v64, 0.0f);
 }
 
 // ======== kernel dir_equilibrium over node (from Jacobian-vector product of sim)
@@ -3436,6 +3446,8 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_equilibrium.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let arg0 = fixed[e];
     let q0 = x[e];
     let arg1 = q0.z;
@@ -3449,7 +3461,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg9: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force_dir[slot];
+        let g0 = elem_force_dir[(slot % 4u) * rows_elem_force_dir + slot / 4u];
         arg5 += g0.x;
         arg7 += g0.y;
         arg9 += g0.z;
@@ -3460,7 +3472,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg10: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force_dir[slot];
+        let g0 = tri_force_dir[(slot % 3u) * rows_tri_force_dir + slot / 3u];
         arg6 += g0.x;
         arg8 += g0.y;
         arg10 += g0.z;

@@ -87,6 +87,7 @@ fn springs_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_springs_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -603,10 +604,10 @@ fn springs_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v503: real = v406 + v502;
     let v504: real = v492 * v499;
     let v505: real = v409 + v504;
-    elem_force[4u * e] = vec4<real>(v453, v455, v457, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v469, v471, v473, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v485, v487, v489, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v501, v503, v505, 0.0f);
+    elem_force[e] = vec4<real>(v453, v455, v457, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v469, v471, v473, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v485, v487, v489, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v501, v503, v505, 0.0f);
     elem_j[e] = v426;
 }
 
@@ -626,6 +627,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_pressure_cavity.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -670,9 +672,9 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel integrate over node (from sim)
@@ -690,6 +692,8 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         return;
     }
     let e = launch_integrate.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = launch_integrate.dt;
     let arg1 = mass[e];
     let arg2 = fixed[e];
@@ -707,7 +711,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg11: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg3 += g0.x;
         arg7 += g0.y;
         arg11 += g0.z;
@@ -718,7 +722,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg12: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg4 += g0.x;
         arg8 += g0.y;
         arg12 += g0.z;
@@ -833,6 +837,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_adj_pressure_cavity.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -932,9 +937,9 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v86: real = v16 * v58;
     let v88: real = v86 + arg20;
     grad_tri_force[e] = v88;
-    adj_x_tri_force[3u * e] = vec4<real>(v85, v84, v83, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v67, v78, v74, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v70, v75, v79, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v85, v84, v83, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v67, v78, v74, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v70, v75, v79, 0.0f);
 }
 
 // ======== kernel adj_springs_silicone over element (from adjoint of material silicone (spring mesh))
@@ -951,6 +956,7 @@ fn adj_springs_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(
         return;
     }
     let e = launch_adj_springs_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -2214,10 +2220,10 @@ fn adj_springs_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(
     let v1246: real = v1142 - v1239;
     let v1247: real = v927 + v1242;
     let v1248: real = v1144 - v1242;
-    adj_x_elem_force[4u * e] = vec4<real>(v1248, v1246, v1244, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v1247, v1245, v1243, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v1143, v1141, v1139, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v1033, v1031, v1029, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v1248, v1246, v1244, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v1247, v1245, v1243, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v1143, v1141, v1139, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v1033, v1031, v1029, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -2234,6 +2240,8 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let q0 = adj_x_x_next[e];
     let arg0 = q0.x;
     let arg3 = q0.y;
@@ -2244,7 +2252,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg2 += g0.x;
         arg5 += g0.y;
         arg8 += g0.z;
@@ -2255,7 +2263,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg7: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg1 += g0.x;
         arg4 += g0.y;
         arg7 += g0.z;

@@ -126,6 +126,7 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let e = launch_fem_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -338,10 +339,10 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let v199: real = v186 + v189;
     let v200: real = v192 + v199;
     let v201: real = -v200;
-    elem_force[4u * e] = vec4<real>(v195, v198, v201, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v168, v177, v186, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v171, v180, v189, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v174, v183, v192, 0.0f);
+    elem_force[e] = vec4<real>(v195, v198, v201, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v168, v177, v186, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v171, v180, v189, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v174, v183, v192, 0.0f);
 }
 
 // ======== kernel pressure_c3 over triangle (from pressure c3)
@@ -360,6 +361,7 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_pressure_c3.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -404,9 +406,9 @@ fn pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel integrate over node (from sim)
@@ -424,6 +426,8 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         return;
     }
     let e = launch_integrate.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = launch_integrate.dt;
     let arg1 = mass[e];
     let arg2 = fixed[e];
@@ -441,7 +445,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg11: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg3 += g0.x;
         arg7 += g0.y;
         arg11 += g0.z;
@@ -452,7 +456,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg12: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg4 += g0.x;
         arg8 += g0.y;
         arg12 += g0.z;
@@ -728,6 +732,7 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_adj_pressure_c3.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -808,9 +813,9 @@ fn adj_pressure_c3(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v68: real = v65 - v59;
     let v69: real = v66 - v63;
     let v70: real = v67 - v52;
-    adj_x_tri_force[3u * e] = vec4<real>(v70, v69, v68, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v52, v63, v59, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v55, v60, v64, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v70, v69, v68, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v52, v63, v59, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v55, v60, v64, 0.0f);
 }
 
 // ======== kernel adj_fem_silicone over element (from adjoint of material silicone)
@@ -827,6 +832,7 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_adj_fem_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1311,10 +1317,10 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v467: real = -v432;
     let v468: real = v467 - v428;
     let v469: real = v468 - v423;
-    adj_x_elem_force[4u * e] = vec4<real>(v469, v466, v463, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v423, v446, v451, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v428, v459, v456, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v432, v455, v460, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v469, v466, v463, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v423, v446, v451, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v428, v459, v456, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v432, v455, v460, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1331,6 +1337,8 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let q0 = adj_x_x_next[e];
     let arg0 = q0.x;
     let arg3 = q0.y;
@@ -1341,7 +1349,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg2 += g0.x;
         arg5 += g0.y;
         arg8 += g0.z;
@@ -1352,7 +1360,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg7: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg1 += g0.x;
         arg4 += g0.y;
         arg7 += g0.z;

@@ -136,6 +136,7 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let e = launch_fem_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 10u;
     let n0 = elem_conn[10u * e + 0u];
     let n1 = elem_conn[10u * e + 1u];
     let n2 = elem_conn[10u * e + 2u];
@@ -1475,16 +1476,16 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let v1308: real = v1262 + v1307;
     let v1309: real = v1283 + v1308;
     let v1310: real = -v1309;
-    elem_force[10u * e] = vec4<real>(v1292, v1301, v1310, 0.0f);
-    elem_force[10u * e + 1u] = vec4<real>(v1115, v1118, v1121, 0.0f);
-    elem_force[10u * e + 2u] = vec4<real>(v1124, v1127, v1130, 0.0f);
-    elem_force[10u * e + 3u] = vec4<real>(v1133, v1136, v1139, 0.0f);
-    elem_force[10u * e + 4u] = vec4<real>(v1148, v1157, v1166, 0.0f);
-    elem_force[10u * e + 5u] = vec4<real>(v1173, v1180, v1187, 0.0f);
-    elem_force[10u * e + 6u] = vec4<real>(v1196, v1205, v1214, 0.0f);
-    elem_force[10u * e + 7u] = vec4<real>(v1223, v1232, v1241, 0.0f);
-    elem_force[10u * e + 8u] = vec4<real>(v1248, v1255, v1262, 0.0f);
-    elem_force[10u * e + 9u] = vec4<real>(v1269, v1276, v1283, 0.0f);
+    elem_force[e] = vec4<real>(v1292, v1301, v1310, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v1115, v1118, v1121, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v1124, v1127, v1130, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v1133, v1136, v1139, 0.0f);
+    elem_force[4u * rows_elem_force + e] = vec4<real>(v1148, v1157, v1166, 0.0f);
+    elem_force[5u * rows_elem_force + e] = vec4<real>(v1173, v1180, v1187, 0.0f);
+    elem_force[6u * rows_elem_force + e] = vec4<real>(v1196, v1205, v1214, 0.0f);
+    elem_force[7u * rows_elem_force + e] = vec4<real>(v1223, v1232, v1241, 0.0f);
+    elem_force[8u * rows_elem_force + e] = vec4<real>(v1248, v1255, v1262, 0.0f);
+    elem_force[9u * rows_elem_force + e] = vec4<real>(v1269, v1276, v1283, 0.0f);
 }
 
 // ======== kernel pressure_cavity over triangle (from pressure cavity)
@@ -1504,6 +1505,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_pressure_cavity.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -1998,12 +2000,12 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v479: real = v328 + v478;
     let v480: real = v373 + v479;
     let v481: real = v10 * v480;
-    tri_force[6u * e] = vec4<real>(v379, v385, v391, 0.0f);
-    tri_force[6u * e + 1u] = vec4<real>(v397, v403, v409, 0.0f);
-    tri_force[6u * e + 2u] = vec4<real>(v415, v421, v427, 0.0f);
-    tri_force[6u * e + 3u] = vec4<real>(v433, v439, v445, 0.0f);
-    tri_force[6u * e + 4u] = vec4<real>(v451, v457, v463, 0.0f);
-    tri_force[6u * e + 5u] = vec4<real>(v469, v475, v481, 0.0f);
+    tri_force[e] = vec4<real>(v379, v385, v391, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v397, v403, v409, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v415, v421, v427, 0.0f);
+    tri_force[3u * rows_tri_force + e] = vec4<real>(v433, v439, v445, 0.0f);
+    tri_force[4u * rows_tri_force + e] = vec4<real>(v451, v457, v463, 0.0f);
+    tri_force[5u * rows_tri_force + e] = vec4<real>(v469, v475, v481, 0.0f);
 }
 
 // ======== kernel equilibrium over node (from sim)
@@ -2020,6 +2022,8 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_equilibrium.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 10u;
+    let rows_tri_force = arrayLength(&tri_force) / 6u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -2027,7 +2031,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 10u) * rows_elem_force + slot / 10u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -2038,7 +2042,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 6u) * rows_tri_force + slot / 6u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;
@@ -2865,6 +2869,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_adj_pressure_cavity.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -3653,12 +3658,12 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v767: real = v764 - v732;
     let v768: real = v765 - v743;
     let v769: real = v766 - v754;
-    adj_x_tri_force[6u * e] = vec4<real>(v769, v768, v767, 0.0f);
-    adj_x_tri_force[6u * e + 1u] = vec4<real>(v754, v743, v732, 0.0f);
-    adj_x_tri_force[6u * e + 2u] = vec4<real>(v721, v712, v703, 0.0f);
-    adj_x_tri_force[6u * e + 3u] = vec4<real>(v752, v741, v730, 0.0f);
-    adj_x_tri_force[6u * e + 4u] = vec4<real>(v750, v739, v728, 0.0f);
-    adj_x_tri_force[6u * e + 5u] = vec4<real>(v748, v737, v726, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v769, v768, v767, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v754, v743, v732, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v721, v712, v703, 0.0f);
+    adj_x_tri_force[3u * rows_adj_x_tri_force + e] = vec4<real>(v752, v741, v730, 0.0f);
+    adj_x_tri_force[4u * rows_adj_x_tri_force + e] = vec4<real>(v750, v739, v728, 0.0f);
+    adj_x_tri_force[5u * rows_adj_x_tri_force + e] = vec4<real>(v748, v737, v726, 0.0f);
 }
 
 // ======== kernel adj_fem_silicone over element (from adjoint of material silicone (10-node tets))
@@ -3675,6 +3680,7 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_adj_fem_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 10u;
     let n0 = elem_conn[10u * e + 0u];
     let n1 = elem_conn[10u * e + 1u];
     let n2 = elem_conn[10u * e + 2u];
@@ -6198,16 +6204,16 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v2482: real = v2479 - v2375;
     let v2483: real = v2480 - v2416;
     let v2484: real = v2481 - v2457;
-    adj_x_elem_force[10u * e] = vec4<real>(v2484, v2483, v2482, 0.0f);
-    adj_x_elem_force[10u * e + 1u] = vec4<real>(v2457, v2416, v2375, 0.0f);
-    adj_x_elem_force[10u * e + 2u] = vec4<real>(v2440, v2399, v2358, 0.0f);
-    adj_x_elem_force[10u * e + 3u] = vec4<real>(v2426, v2385, v2344, 0.0f);
-    adj_x_elem_force[10u * e + 4u] = vec4<real>(v2455, v2414, v2373, 0.0f);
-    adj_x_elem_force[10u * e + 5u] = vec4<real>(v2453, v2412, v2371, 0.0f);
-    adj_x_elem_force[10u * e + 6u] = vec4<real>(v2451, v2410, v2369, 0.0f);
-    adj_x_elem_force[10u * e + 7u] = vec4<real>(v2449, v2408, v2367, 0.0f);
-    adj_x_elem_force[10u * e + 8u] = vec4<real>(v2447, v2406, v2365, 0.0f);
-    adj_x_elem_force[10u * e + 9u] = vec4<real>(v2434, v2393, v2352, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v2484, v2483, v2482, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v2457, v2416, v2375, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v2440, v2399, v2358, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v2426, v2385, v2344, 0.0f);
+    adj_x_elem_force[4u * rows_adj_x_elem_force + e] = vec4<real>(v2455, v2414, v2373, 0.0f);
+    adj_x_elem_force[5u * rows_adj_x_elem_force + e] = vec4<real>(v2453, v2412, v2371, 0.0f);
+    adj_x_elem_force[6u * rows_adj_x_elem_force + e] = vec4<real>(v2451, v2410, v2369, 0.0f);
+    adj_x_elem_force[7u * rows_adj_x_elem_force + e] = vec4<real>(v2449, v2408, v2367, 0.0f);
+    adj_x_elem_force[8u * rows_adj_x_elem_force + e] = vec4<real>(v2447, v2406, v2365, 0.0f);
+    adj_x_elem_force[9u * rows_adj_x_elem_force + e] = vec4<real>(v2434, v2393, v2352, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -6224,13 +6230,15 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 6u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 10u;
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 10u) * rows_adj_x_elem_force + slot / 10u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -6241,7 +6249,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg4: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 6u) * rows_adj_x_tri_force + slot / 6u];
         arg0 += g0.x;
         arg2 += g0.y;
         arg4 += g0.z;
@@ -33636,6 +33644,7 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_dir_fem_silicone.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 10u;
     let n0 = elem_conn[10u * e + 0u];
     let n1 = elem_conn[10u * e + 1u];
     let n2 = elem_conn[10u * e + 2u];
@@ -36223,16 +36232,16 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v2546: real = v2500 + v2545;
     let v2547: real = v2521 + v2546;
     let v2548: real = -v2547;
-    elem_force_dir[10u * e] = vec4<real>(v2530, v2539, v2548, 0.0f);
-    elem_force_dir[10u * e + 1u] = vec4<real>(v2353, v2356, v2359, 0.0f);
-    elem_force_dir[10u * e + 2u] = vec4<real>(v2362, v2365, v2368, 0.0f);
-    elem_force_dir[10u * e + 3u] = vec4<real>(v2371, v2374, v2377, 0.0f);
-    elem_force_dir[10u * e + 4u] = vec4<real>(v2386, v2395, v2404, 0.0f);
-    elem_force_dir[10u * e + 5u] = vec4<real>(v2411, v2418, v2425, 0.0f);
-    elem_force_dir[10u * e + 6u] = vec4<real>(v2434, v2443, v2452, 0.0f);
-    elem_force_dir[10u * e + 7u] = vec4<real>(v2461, v2470, v2479, 0.0f);
-    elem_force_dir[10u * e + 8u] = vec4<real>(v2486, v2493, v2500, 0.0f);
-    elem_force_dir[10u * e + 9u] = vec4<real>(v2507, v2514, v2521, 0.0f);
+    elem_force_dir[e] = vec4<real>(v2530, v2539, v2548, 0.0f);
+    elem_force_dir[rows_elem_force_dir + e] = vec4<real>(v2353, v2356, v2359, 0.0f);
+    elem_force_dir[2u * rows_elem_force_dir + e] = vec4<real>(v2362, v2365, v2368, 0.0f);
+    elem_force_dir[3u * rows_elem_force_dir + e] = vec4<real>(v2371, v2374, v2377, 0.0f);
+    elem_force_dir[4u * rows_elem_force_dir + e] = vec4<real>(v2386, v2395, v2404, 0.0f);
+    elem_force_dir[5u * rows_elem_force_dir + e] = vec4<real>(v2411, v2418, v2425, 0.0f);
+    elem_force_dir[6u * rows_elem_force_dir + e] = vec4<real>(v2434, v2443, v2452, 0.0f);
+    elem_force_dir[7u * rows_elem_force_dir + e] = vec4<real>(v2461, v2470, v2479, 0.0f);
+    elem_force_dir[8u * rows_elem_force_dir + e] = vec4<real>(v2486, v2493, v2500, 0.0f);
+    elem_force_dir[9u * rows_elem_force_dir + e] = vec4<real>(v2507, v2514, v2521, 0.0f);
 }
 
 // ======== kernel dir_pressure_cavity over triangle (from Jacobian-vector product of pressure cavity)
@@ -36252,6 +36261,7 @@ fn dir_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_dir_pressure_cavity.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 6u;
     let n0 = tri_conn[6u * e + 0u];
     let n1 = tri_conn[6u * e + 1u];
     let n2 = tri_conn[6u * e + 2u];
@@ -37037,12 +37047,12 @@ fn dir_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v764: real = v601 + v763;
     let v765: real = v658 + v764;
     let v766: real = v28 * v765;
-    tri_force_dir[6u * e] = vec4<real>(v664, v670, v676, 0.0f);
-    tri_force_dir[6u * e + 1u] = vec4<real>(v682, v688, v694, 0.0f);
-    tri_force_dir[6u * e + 2u] = vec4<real>(v700, v706, v712, 0.0f);
-    tri_force_dir[6u * e + 3u] = vec4<real>(v718, v724, v730, 0.0f);
-    tri_force_dir[6u * e + 4u] = vec4<real>(v736, v742, v748, 0.0f);
-    tri_force_dir[6u * e + 5u] = vec4<real>(v754, v760, v766, 0.0f);
+    tri_force_dir[e] = vec4<real>(v664, v670, v676, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v682, v688, v694, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v700, v706, v712, 0.0f);
+    tri_force_dir[3u * rows_tri_force_dir + e] = vec4<real>(v718, v724, v730, 0.0f);
+    tri_force_dir[4u * rows_tri_force_dir + e] = vec4<real>(v736, v742, v748, 0.0f);
+    tri_force_dir[5u * rows_tri_force_dir + e] = vec4<real>(v754, v760, v766, 0.0f);
 }
 
 // ======== kernel dir_equilibrium over node (from Jacobian-vector product of sim)
@@ -37059,6 +37069,8 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_equilibrium.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 10u;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 6u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -37066,7 +37078,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force_dir[slot];
+        let g0 = elem_force_dir[(slot % 10u) * rows_elem_force_dir + slot / 10u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -37077,7 +37089,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force_dir[slot];
+        let g0 = tri_force_dir[(slot % 6u) * rows_tri_force_dir + slot / 6u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;

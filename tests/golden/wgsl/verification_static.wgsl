@@ -136,6 +136,7 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let e = launch_fem_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -348,10 +349,10 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let v199: real = v186 + v189;
     let v200: real = v192 + v199;
     let v201: real = -v200;
-    elem_force[4u * e] = vec4<real>(v195, v198, v201, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v168, v177, v186, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v171, v180, v189, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v174, v183, v192, 0.0f);
+    elem_force[e] = vec4<real>(v195, v198, v201, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v168, v177, v186, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v171, v180, v189, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v174, v183, v192, 0.0f);
 }
 
 // ======== kernel pressure_cavity over triangle (from pressure cavity)
@@ -371,6 +372,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_pressure_cavity.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -417,9 +419,9 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v37: real = v28 * v36;
     let v38: real = v31 * v36;
     let v39: real = v34 * v36;
-    tri_force[3u * e] = vec4<real>(v37, v38, v39, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v37, v38, v39, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v37, v38, v39, 0.0f);
+    tri_force[e] = vec4<real>(v37, v38, v39, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v37, v38, v39, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v37, v38, v39, 0.0f);
 }
 
 // ======== kernel equilibrium over node (from sim)
@@ -436,6 +438,8 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_equilibrium.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -443,7 +447,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -454,7 +458,7 @@ fn equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;
@@ -676,6 +680,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_adj_pressure_cavity.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -758,9 +763,9 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v70: real = v67 - v61;
     let v71: real = v68 - v65;
     let v72: real = v69 - v54;
-    adj_x_tri_force[3u * e] = vec4<real>(v72, v71, v70, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v54, v65, v61, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v57, v62, v66, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v72, v71, v70, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v54, v65, v61, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v57, v62, v66, 0.0f);
 }
 
 // ======== kernel adj_fem_silicone over element (from adjoint of material silicone)
@@ -777,6 +782,7 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_adj_fem_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1261,10 +1267,10 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v467: real = -v432;
     let v468: real = v467 - v428;
     let v469: real = v468 - v423;
-    adj_x_elem_force[4u * e] = vec4<real>(v469, v466, v463, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v423, v446, v451, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v428, v459, v456, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v432, v455, v460, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v469, v466, v463, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v423, v446, v451, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v428, v459, v456, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v432, v455, v460, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1281,13 +1287,15 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
     var arg3: real = 0.0f;
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -1298,7 +1306,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg4: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg0 += g0.x;
         arg2 += g0.y;
         arg4 += g0.z;
@@ -2882,6 +2890,7 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_dir_fem_silicone.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -3358,10 +3367,10 @@ fn dir_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v459: real = v438 + v445;
     let v460: real = v452 + v459;
     let v461: real = -v460;
-    elem_force_dir[4u * e] = vec4<real>(v455, v458, v461, 0.0f);
-    elem_force_dir[4u * e + 1u] = vec4<real>(v396, v417, v438, 0.0f);
-    elem_force_dir[4u * e + 2u] = vec4<real>(v403, v424, v445, 0.0f);
-    elem_force_dir[4u * e + 3u] = vec4<real>(v410, v431, v452, 0.0f);
+    elem_force_dir[e] = vec4<real>(v455, v458, v461, 0.0f);
+    elem_force_dir[rows_elem_force_dir + e] = vec4<real>(v396, v417, v438, 0.0f);
+    elem_force_dir[2u * rows_elem_force_dir + e] = vec4<real>(v403, v424, v445, 0.0f);
+    elem_force_dir[3u * rows_elem_force_dir + e] = vec4<real>(v410, v431, v452, 0.0f);
 }
 
 // ======== kernel dir_pressure_cavity over triangle (from Jacobian-vector product of pressure cavity)
@@ -3381,6 +3390,7 @@ fn dir_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_dir_pressure_cavity.begin + i;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -3457,9 +3467,9 @@ fn dir_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v64: real = v27 * v49;
     let v65: real = v27 * v56;
     let v66: real = v27 * v63;
-    tri_force_dir[3u * e] = vec4<real>(v64, v65, v66, 0.0f);
-    tri_force_dir[3u * e + 1u] = vec4<real>(v64, v65, v66, 0.0f);
-    tri_force_dir[3u * e + 2u] = vec4<real>(v64, v65, v66, 0.0f);
+    tri_force_dir[e] = vec4<real>(v64, v65, v66, 0.0f);
+    tri_force_dir[rows_tri_force_dir + e] = vec4<real>(v64, v65, v66, 0.0f);
+    tri_force_dir[2u * rows_tri_force_dir + e] = vec4<real>(v64, v65, v66, 0.0f);
 }
 
 // ======== kernel dir_equilibrium over node (from Jacobian-vector product of sim)
@@ -3476,6 +3486,8 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_dir_equilibrium.begin + i;
+    let rows_elem_force_dir = arrayLength(&elem_force_dir) / 4u;
+    let rows_tri_force_dir = arrayLength(&tri_force_dir) / 3u;
     let arg0 = fixed[e];
     // sum over the node's incident elements, in CSR order
     var arg1: real = 0.0f;
@@ -3483,7 +3495,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg5: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force_dir[slot];
+        let g0 = elem_force_dir[(slot % 4u) * rows_elem_force_dir + slot / 4u];
         arg1 += g0.x;
         arg3 += g0.y;
         arg5 += g0.z;
@@ -3494,7 +3506,7 @@ fn dir_equilibrium(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     var arg6: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force_dir[slot];
+        let g0 = tri_force_dir[(slot % 3u) * rows_tri_force_dir + slot / 3u];
         arg2 += g0.x;
         arg4 += g0.y;
         arg6 += g0.z;

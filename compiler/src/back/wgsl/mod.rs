@@ -57,6 +57,9 @@
 //! ```
 
 mod math;
+mod rows;
+
+pub use rows::RowLayout;
 
 pub use crate::back::Precision;
 use crate::ir::{
@@ -72,93 +75,6 @@ pub const WORKGROUP_SIZE: u32 = 128;
 /// The name of the override (WGSL `override`) that sizes every entry point's workgroup: one
 /// module serves any size, chosen per pipeline.
 pub const WORKGROUP_OVERRIDE: &str = "softc_wg";
-
-/// How a buffer's rows (its `width` values per entity) lie in GPU memory. A row of 3·k values
-/// (a node's position, a corner's force: the vectors gathers sum) is k `vec4`s with the fourth
-/// lane unused, so a vector is one 16-byte load or store and a gather reads one `vec4` per
-/// incidence; other rows of more than 2 values are `vec4`s, the last one partly used; rows
-/// of 1 or 2 values are plain. The runtime pads what it uploads and drops the padding from
-/// what it reads back ([`RowLayout::pad`], [`RowLayout::unpad`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct RowLayout {
-    /// Values per entity.
-    pub width: u32,
-    /// Lanes used of each `vec4` (3 or 4); 0 for a plain row.
-    pub lanes: u32,
-}
-
-impl RowLayout {
-    /// The layout of rows of `width` values.
-    pub const fn of(width: u32) -> Self {
-        let lanes = if width <= 2 {
-            0
-        } else if width.is_multiple_of(3) {
-            3
-        } else {
-            4
-        };
-        RowLayout { width, lanes }
-    }
-
-    /// Whether the rows are `vec4`s.
-    pub const fn is_vector(self) -> bool {
-        self.lanes > 0
-    }
-
-    /// `vec4`s per row (0 for a plain row).
-    pub const fn groups(self) -> u32 {
-        if self.is_vector() {
-            self.width.div_ceil(self.lanes)
-        } else {
-            0
-        }
-    }
-
-    /// Values per entity in GPU memory.
-    pub const fn padded(self) -> u32 {
-        if self.is_vector() {
-            4 * self.groups()
-        } else {
-            self.width
-        }
-    }
-
-    /// The `vec4` of the row and the lane holding value `c` of a vector row.
-    pub fn place(self, c: u32) -> (u32, u32) {
-        (c / self.lanes, c % self.lanes)
-    }
-
-    /// Rows in GPU layout from rows of `width` values (unused lanes 0); plain rows as they
-    /// are.
-    pub fn pad(self, values: &[f64]) -> std::borrow::Cow<'_, [f64]> {
-        if self.padded() == self.width || self.width == 0 {
-            return std::borrow::Cow::Borrowed(values);
-        }
-        let (w, l) = (self.width as usize, self.lanes as usize);
-        let mut out = vec![0.0; values.len() / w * self.padded() as usize];
-        for (row, dst) in values
-            .chunks_exact(w)
-            .zip(out.chunks_exact_mut(self.padded() as usize))
-        {
-            for (c, &v) in row.iter().enumerate() {
-                dst[c / l * 4 + c % l] = v;
-            }
-        }
-        std::borrow::Cow::Owned(out)
-    }
-
-    /// Rows of `width` values from rows in GPU layout; plain rows as they are.
-    pub fn unpad(self, values: Vec<f64>) -> Vec<f64> {
-        if self.padded() == self.width || self.width == 0 {
-            return values;
-        }
-        let (w, l) = (self.width as usize, self.lanes as usize);
-        values
-            .chunks_exact(self.padded() as usize)
-            .flat_map(|row| (0..w).map(move |c| row[c / l * 4 + c % l]))
-            .collect()
-    }
-}
 
 /// The component letter of lane `l` of a `vec4`.
 fn lane_name(l: u32) -> &'static str {
@@ -1113,6 +1029,26 @@ fn emit_body(
     helpers: &mut math::Helpers,
 ) {
     let width = |b: BufferId| module.buffers[b.0 as usize].width;
+    let layout = |b: BufferId| RowLayout::of_buffer(module, b, batched);
+    // The entities of each corner-major buffer the kernel touches (its rows' `vec4`s lie
+    // `rows` apart).
+    let mut touched: BTreeSet<u32> = k.stores.iter().map(|s| s.buffer.0).collect();
+    for a in &k.args {
+        if let ArgSource::Own { buffer, .. } | ArgSource::Gather { buffer, .. } = a {
+            touched.insert(buffer.0);
+        }
+    }
+    for &b in &touched {
+        let l = layout(BufferId(b));
+        if l.corner_major {
+            let name = &buf_names[b as usize];
+            let _ = writeln!(
+                w,
+                "    let rows_{name} = arrayLength(&{name}) / {}u;",
+                l.groups()
+            );
+        }
+    }
     // In a batch, a buffer's entity `e` of this launch's scene is entity `base + e`.
     let base_name = |d: Domain| match d {
         Domain::Element => "base_element",
@@ -1182,10 +1118,19 @@ fn emit_body(
     };
     // The `vec4` `g` of a vector row.
     let vec_at = |b: BufferId, entity: &str, g: u32| {
-        let groups = RowLayout::of(width(b)).groups();
+        let l = layout(b);
+        let groups = l.groups();
         let name = &buf_names[b.0 as usize];
         let entity = entity_of(b, entity);
+        if l.corner_major && g > 0 {
+            let rows = format!("rows_{name}");
+            return match g {
+                1 => format!("{name}[{rows} + {entity}]"),
+                g => format!("{name}[{g}u * {rows} + {entity}]"),
+            };
+        }
         match (groups, g) {
+            (_, 0) if l.corner_major => format!("{name}[{entity}]"),
             (1, _) => format!("{name}[{entity}]"),
             (n, 0) => format!("{name}[{n}u * {entity}]"),
             (n, g) => format!("{name}[{n}u * {entity} + {g}u]"),
@@ -1225,7 +1170,7 @@ fn emit_body(
             }
             ArgSource::Gather { .. } => continue,
         };
-        let layout = RowLayout::of(width(buffer));
+        let layout = layout(buffer);
         if !layout.is_vector() {
             let _ = writeln!(
                 w,
@@ -1281,7 +1226,7 @@ fn emit_body(
         // (one 16-byte load for the three). A per-corner value of a plain row of the corners'
         // values: value `stride · slot + component`. Anything else needs the entity and corner.
         let by_vec4 = |buffer: BufferId, stride: u32| {
-            let l = RowLayout::of(width(buffer));
+            let l = layout(buffer);
             l.lanes == 3 && stride == 3 && width(buffer) == 3 * nc
         };
         let by_slot = |buffer: BufferId, stride: u32| {
@@ -1315,12 +1260,14 @@ fn emit_body(
                 let at = match loaded.iter().position(|&b| b == buffer) {
                     Some(at) => at,
                     None => {
-                        let base = if batched {
-                            format!("{nc}u * {} + ", base_name(domain))
+                        let index = if layout(buffer).corner_major {
+                            format!("(slot % {nc}u) * rows_{name} + slot / {nc}u")
+                        } else if batched {
+                            format!("{nc}u * {} + slot", base_name(domain))
                         } else {
-                            String::new()
+                            "slot".to_string()
                         };
-                        let _ = writeln!(w, "        let g{} = {name}[{base}slot];", loaded.len());
+                        let _ = writeln!(w, "        let g{} = {name}[{index}];", loaded.len());
                         loaded.push(buffer);
                         loaded.len() - 1
                     }
@@ -1343,7 +1290,7 @@ fn emit_body(
                 let _ = writeln!(w, "        arg{i} += {name}[{base}{at}];");
                 continue;
             }
-            let layout = RowLayout::of(width(buffer));
+            let layout = layout(buffer);
             if layout.is_vector() {
                 // The value's place in the row depends on the corner: its `vec4` and lane at
                 // run time.
@@ -1352,11 +1299,15 @@ fn emit_body(
                     0 => format!("{component}u"),
                     s => format!("({s}u * corner + {component}u)"),
                 };
-                let _ = writeln!(
-                    w,
-                    "        arg{i} += {name}[{groups}u * {} + {in_row} / {lanes}u][{in_row} % {lanes}u];",
-                    entity_of(buffer, "ent")
-                );
+                let at = if layout.corner_major {
+                    format!("{in_row} / {lanes}u * rows_{name} + ent")
+                } else {
+                    format!(
+                        "{groups}u * {} + {in_row} / {lanes}u",
+                        entity_of(buffer, "ent")
+                    )
+                };
+                let _ = writeln!(w, "        arg{i} += {name}[{at}][{in_row} % {lanes}u];");
                 continue;
             }
             let comp = match (stride, component) {
@@ -1440,7 +1391,7 @@ fn emit_body(
         if done[j] {
             continue;
         }
-        let layout = RowLayout::of(width(s.buffer));
+        let layout = layout(s.buffer);
         let value = |st: &crate::ir::Store| name(k.body.outputs[st.output], &names);
         if !layout.is_vector() {
             let target = row(s.buffer, "e", format!("{}u", s.component));

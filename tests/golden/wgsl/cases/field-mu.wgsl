@@ -132,6 +132,7 @@ fn fem_gel(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         return;
     }
     let e = launch_fem_gel.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -332,10 +333,10 @@ fn fem_gel(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     let v187: real = v174 + v177;
     let v188: real = v180 + v187;
     let v189: real = -v188;
-    elem_force[4u * e] = vec4<real>(v183, v186, v189, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v156, v165, v174, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v159, v168, v177, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v162, v171, v180, 0.0f);
+    elem_force[e] = vec4<real>(v183, v186, v189, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v156, v165, v174, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v159, v168, v177, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v162, v171, v180, 0.0f);
 }
 
 // ======== kernel fem_graded over element (from material graded)
@@ -352,6 +353,7 @@ fn fem_graded(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         return;
     }
     let e = launch_fem_graded.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -555,10 +557,10 @@ fn fem_graded(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let v190: real = v177 + v180;
     let v191: real = v183 + v190;
     let v192: real = -v191;
-    elem_force[4u * e] = vec4<real>(v186, v189, v192, 0.0f);
-    elem_force[4u * e + 1u] = vec4<real>(v159, v168, v177, 0.0f);
-    elem_force[4u * e + 2u] = vec4<real>(v162, v171, v180, 0.0f);
-    elem_force[4u * e + 3u] = vec4<real>(v165, v174, v183, 0.0f);
+    elem_force[e] = vec4<real>(v186, v189, v192, 0.0f);
+    elem_force[rows_elem_force + e] = vec4<real>(v159, v168, v177, 0.0f);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v162, v171, v180, 0.0f);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v165, v174, v183, 0.0f);
 }
 
 // ======== kernel pressure_cavity over triangle (from pressure cavity)
@@ -577,6 +579,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_pressure_cavity.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -621,9 +624,9 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0f);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0f);
 }
 
 // ======== kernel integrate over node (from sim)
@@ -641,6 +644,8 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         return;
     }
     let e = launch_integrate.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = launch_integrate.dt;
     let arg1 = mass[e];
     let arg2 = fixed[e];
@@ -658,7 +663,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg11: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg3 += g0.x;
         arg7 += g0.y;
         arg11 += g0.z;
@@ -669,7 +674,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg12: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg4 += g0.x;
         arg8 += g0.y;
         arg12 += g0.z;
@@ -1092,6 +1097,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_adj_pressure_cavity.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1191,9 +1197,9 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v86: real = v16 * v58;
     let v88: real = v86 + arg20;
     grad_tri_force[e] = v88;
-    adj_x_tri_force[3u * e] = vec4<real>(v85, v84, v83, 0.0f);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v67, v78, v74, 0.0f);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v70, v75, v79, 0.0f);
+    adj_x_tri_force[e] = vec4<real>(v85, v84, v83, 0.0f);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v67, v78, v74, 0.0f);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v70, v75, v79, 0.0f);
 }
 
 // ======== kernel adj_fem_graded over element (from adjoint of material graded)
@@ -1210,6 +1216,7 @@ fn adj_fem_graded(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
         return;
     }
     let e = launch_adj_fem_graded.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1678,10 +1685,10 @@ fn adj_fem_graded(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let v450: real = v449 - v410;
     let v451: real = v450 - v405;
     let v453: real = v257 + arg33;
-    adj_x_elem_force[4u * e] = vec4<real>(v451, v448, v445, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v405, v428, v433, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v410, v441, v438, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v414, v437, v442, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v451, v448, v445, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v405, v428, v433, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v410, v441, v438, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v414, v437, v442, 0.0f);
     grad_param_mu[e] = v453;
 }
 
@@ -1699,6 +1706,7 @@ fn adj_fem_gel(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_fem_gel.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -2155,10 +2163,10 @@ fn adj_fem_gel(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     let v439: real = -v404;
     let v440: real = v439 - v400;
     let v441: real = v440 - v395;
-    adj_x_elem_force[4u * e] = vec4<real>(v441, v438, v435, 0.0f);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v395, v418, v423, 0.0f);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v400, v431, v428, 0.0f);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v404, v427, v432, 0.0f);
+    adj_x_elem_force[e] = vec4<real>(v441, v438, v435, 0.0f);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v395, v418, v423, 0.0f);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v400, v431, v428, 0.0f);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v404, v427, v432, 0.0f);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -2175,6 +2183,8 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let q0 = adj_x_x_next[e];
     let arg0 = q0.x;
     let arg3 = q0.y;
@@ -2185,7 +2195,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg8: real = 0.0f;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg2 += g0.x;
         arg5 += g0.y;
         arg8 += g0.z;
@@ -2196,7 +2206,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg7: real = 0.0f;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg1 += g0.x;
         arg4 += g0.y;
         arg7 += g0.z;

@@ -132,6 +132,7 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let e = launch_fem_silicone.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -344,10 +345,10 @@ fn fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let v199: real = v186 + v189;
     let v200: real = v192 + v199;
     let v201: real = -v200;
-    elem_force[4u * e] = vec4<real>(v195, v198, v201, 0.0lf);
-    elem_force[4u * e + 1u] = vec4<real>(v168, v177, v186, 0.0lf);
-    elem_force[4u * e + 2u] = vec4<real>(v171, v180, v189, 0.0lf);
-    elem_force[4u * e + 3u] = vec4<real>(v174, v183, v192, 0.0lf);
+    elem_force[e] = vec4<real>(v195, v198, v201, 0.0lf);
+    elem_force[rows_elem_force + e] = vec4<real>(v168, v177, v186, 0.0lf);
+    elem_force[2u * rows_elem_force + e] = vec4<real>(v171, v180, v189, 0.0lf);
+    elem_force[3u * rows_elem_force + e] = vec4<real>(v174, v183, v192, 0.0lf);
 }
 
 // ======== kernel pressure_cavity over triangle (from pressure cavity)
@@ -365,6 +366,7 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         return;
     }
     let e = launch_pressure_cavity.begin + i;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -409,9 +411,9 @@ fn pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
     let v35: real = v26 * v34;
     let v36: real = v29 * v34;
     let v37: real = v32 * v34;
-    tri_force[3u * e] = vec4<real>(v35, v36, v37, 0.0lf);
-    tri_force[3u * e + 1u] = vec4<real>(v35, v36, v37, 0.0lf);
-    tri_force[3u * e + 2u] = vec4<real>(v35, v36, v37, 0.0lf);
+    tri_force[e] = vec4<real>(v35, v36, v37, 0.0lf);
+    tri_force[rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0lf);
+    tri_force[2u * rows_tri_force + e] = vec4<real>(v35, v36, v37, 0.0lf);
 }
 
 // ======== kernel integrate over node (from sim)
@@ -442,6 +444,8 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         return;
     }
     let e = launch_integrate.begin + i;
+    let rows_elem_force = arrayLength(&elem_force) / 4u;
+    let rows_tri_force = arrayLength(&tri_force) / 3u;
     let arg0 = launch_integrate.param_beta_0;
     let arg1 = launch_integrate.param_beta_1;
     let arg2 = launch_integrate.param_beta_2;
@@ -472,7 +476,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg24: real = 0.0lf;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = elem_force[slot];
+        let g0 = elem_force[(slot % 4u) * rows_elem_force + slot / 4u];
         arg16 += g0.x;
         arg20 += g0.y;
         arg24 += g0.z;
@@ -483,7 +487,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     var arg25: real = 0.0lf;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = tri_force[slot];
+        let g0 = tri_force[(slot % 3u) * rows_tri_force + slot / 3u];
         arg17 += g0.x;
         arg21 += g0.y;
         arg25 += g0.z;
@@ -924,6 +928,7 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
         return;
     }
     let e = launch_adj_pressure_cavity.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
     let n0 = tri_conn[3u * e + 0u];
     let n1 = tri_conn[3u * e + 1u];
     let n2 = tri_conn[3u * e + 2u];
@@ -1004,9 +1009,9 @@ fn adj_pressure_cavity(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     let v68: real = v65 - v59;
     let v69: real = v66 - v63;
     let v70: real = v67 - v52;
-    adj_x_tri_force[3u * e] = vec4<real>(v70, v69, v68, 0.0lf);
-    adj_x_tri_force[3u * e + 1u] = vec4<real>(v52, v63, v59, 0.0lf);
-    adj_x_tri_force[3u * e + 2u] = vec4<real>(v55, v60, v64, 0.0lf);
+    adj_x_tri_force[e] = vec4<real>(v70, v69, v68, 0.0lf);
+    adj_x_tri_force[rows_adj_x_tri_force + e] = vec4<real>(v52, v63, v59, 0.0lf);
+    adj_x_tri_force[2u * rows_adj_x_tri_force + e] = vec4<real>(v55, v60, v64, 0.0lf);
 }
 
 // ======== kernel adj_fem_silicone over element (from adjoint of material silicone)
@@ -1023,6 +1028,7 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let e = launch_adj_fem_silicone.begin + i;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let n0 = elem_conn[4u * e + 0u];
     let n1 = elem_conn[4u * e + 1u];
     let n2 = elem_conn[4u * e + 2u];
@@ -1507,10 +1513,10 @@ fn adj_fem_silicone(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let v467: real = -v432;
     let v468: real = v467 - v428;
     let v469: real = v468 - v423;
-    adj_x_elem_force[4u * e] = vec4<real>(v469, v466, v463, 0.0lf);
-    adj_x_elem_force[4u * e + 1u] = vec4<real>(v423, v446, v451, 0.0lf);
-    adj_x_elem_force[4u * e + 2u] = vec4<real>(v428, v459, v456, 0.0lf);
-    adj_x_elem_force[4u * e + 3u] = vec4<real>(v432, v455, v460, 0.0lf);
+    adj_x_elem_force[e] = vec4<real>(v469, v466, v463, 0.0lf);
+    adj_x_elem_force[rows_adj_x_elem_force + e] = vec4<real>(v423, v446, v451, 0.0lf);
+    adj_x_elem_force[2u * rows_adj_x_elem_force + e] = vec4<real>(v428, v459, v456, 0.0lf);
+    adj_x_elem_force[3u * rows_adj_x_elem_force + e] = vec4<real>(v432, v455, v460, 0.0lf);
 }
 
 // ======== kernel adj_state_x over node (from adjoint of the state x)
@@ -1527,6 +1533,8 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
         return;
     }
     let e = launch_adj_state_x.begin + i;
+    let rows_adj_x_tri_force = arrayLength(&adj_x_tri_force) / 3u;
+    let rows_adj_x_elem_force = arrayLength(&adj_x_elem_force) / 4u;
     let q0 = adj_x_x_next[e];
     let arg0 = q0.x;
     let arg3 = q0.y;
@@ -1537,7 +1545,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg8: real = 0.0lf;
     for (var j = node_elem_offsets[e]; j < node_elem_offsets[e + 1u]; j += 1u) {
         let slot = node_elem_slots[j];
-        let g0 = adj_x_elem_force[slot];
+        let g0 = adj_x_elem_force[(slot % 4u) * rows_adj_x_elem_force + slot / 4u];
         arg2 += g0.x;
         arg5 += g0.y;
         arg8 += g0.z;
@@ -1548,7 +1556,7 @@ fn adj_state_x(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     var arg7: real = 0.0lf;
     for (var j = node_tri_offsets[e]; j < node_tri_offsets[e + 1u]; j += 1u) {
         let slot = node_tri_slots[j];
-        let g0 = adj_x_tri_force[slot];
+        let g0 = adj_x_tri_force[(slot % 3u) * rows_adj_x_tri_force + slot / 3u];
         arg1 += g0.x;
         arg4 += g0.y;
         arg7 += g0.z;
