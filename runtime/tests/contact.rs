@@ -279,19 +279,19 @@ fn gradients_through_explicit_contact_match_central_differences() {
     );
 }
 
-#[test]
-fn an_explicit_drop_on_the_gpu_matches_the_cpu() {
+/// The scene run on the GPU in f32 against the CPU in f64 (lavapipe in CI, where CI=true
+/// requires an adapter; any GPU elsewhere): positions within 1 µm, nodes clear of the
+/// obstacle. `None` without an adapter.
+fn gpu_against_cpu(path: &Path) -> Option<softc::engine::RunSummary> {
     use softc::devices::gpu::Gpu;
-    // The projection's 12 Newton iterations as WGSL (f32) against the CPU in f64: lavapipe in
-    // CI (CI=true requires an adapter), any GPU elsewhere.
-    let scene = load(&drop_scene("drop_gpu.soft", "100 us"));
+    let scene = load(path);
     let reference = simulation(&scene).run(None, None).unwrap();
     let gpu = match Gpu::new(&scene.lowered.adjoint.module, Precision::F32, None) {
         Ok(g) => g,
         Err(e) if e.starts_with("no GPU adapter found") => {
             assert!(std::env::var("CI").as_deref() != Ok("true"), "{e}");
             eprintln!("note: GPU test skipped: {e}");
-            return;
+            return None;
         }
         Err(e) => panic!("{e}"),
     };
@@ -301,7 +301,15 @@ fn an_explicit_drop_on_the_gpu_matches_the_cpu() {
         .fold(0.0f64, f64::max);
     assert!(worst < 1e-3 * MM, "positions differ by {worst} m");
     assert!(run.contact[0].min_distance > 0.0, "{:?}", run.contact[0]);
-    assert!(run.x.iter().all(|p| p[0] > -MM));
+    Some(run)
+}
+
+#[test]
+fn an_explicit_drop_on_the_gpu_matches_the_cpu() {
+    // The projection's 12 Newton iterations as WGSL (f32) against the CPU in f64.
+    if let Some(run) = gpu_against_cpu(&drop_scene("drop_gpu.soft", "100 us")) {
+        assert!(run.x.iter().all(|p| p[0] > -MM));
+    }
 }
 
 #[test]
@@ -353,4 +361,180 @@ fn the_vtk_frames_carry_the_contact_pressure() {
             f.display()
         );
     }
+}
+
+/// The press scene with its plane replaced by `obstacle`.
+fn pressed_by(name: &str, obstacle: &str) -> PathBuf {
+    variant(
+        name,
+        &[(
+            "plane(point: [-0.05 mm + rise * ramp(t, 1 s), 0 mm, 0 mm], normal: [1, 0, 0])",
+            obstacle,
+        )],
+    )
+}
+
+#[test]
+fn a_box_presses_with_its_face_as_the_plane_of_that_face_does() {
+    // The box's +x face is the plane's position at every t, and it is wider than the cube:
+    // every node's distance is its distance to that face, so the solve is the plane's.
+    let plane = simulation(&load(&fixture())).run(None, None).unwrap();
+    let path = pressed_by(
+        "box.soft",
+        "box(min: [-20 mm + rise * ramp(t, 1 s), -5 mm, -5 mm], \
+         max: [-0.05 mm + rise * ramp(t, 1 s), 15 mm, 15 mm])",
+    );
+    let scene = load(&path);
+    let run = simulation(&scene).run(None, None).unwrap();
+    let worst = (run.x.iter().zip(&plane.x))
+        .flat_map(|(a, b)| (0..3).map(move |d| (a[d] - b[d]).abs()))
+        .fold(0.0f64, f64::max);
+    assert!(worst < 1e-9 * MM, "positions differ by {worst} m");
+    let (f, g) = (run.contact[0].force, plane.contact[0].force);
+    assert!((f[0] - g[0]).abs() < 1e-9 * g[0], "{f:?} against {g:?}");
+    assert_eq!(run.contact[0].active_nodes, plane.contact[0].active_nodes);
+}
+
+/// Signed distance from `p` to the capped cylinder of radius `r` from `a` to `b`.
+fn cylinder_distance(p: [f64; 3], a: [f64; 3], b: [f64; 3], r: f64) -> f64 {
+    let axis: Vec<f64> = (0..3).map(|d| b[d] - a[d]).collect();
+    let len = axis.iter().map(|c| c * c).sum::<f64>().sqrt();
+    let along: f64 = (0..3).map(|d| (p[d] - a[d]) * axis[d] / len).sum();
+    let radial = (0..3)
+        .map(|d| (p[d] - a[d] - along * axis[d] / len).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    let q = [radial - r, (along - len / 2.0).abs() - len / 2.0];
+    let outside = (q[0].max(0.0).powi(2) + q[1].max(0.0).powi(2)).sqrt();
+    outside + q[0].max(q[1]).min(0.0)
+}
+
+#[test]
+fn a_cylinder_pressed_along_a_face_stays_outside_with_exact_gradients() {
+    // A roller of radius 3 mm lying along y across the face x = 0 (a line contact), its ends
+    // beyond the cube, pushed 0.55 mm in.
+    let path = pressed_by(
+        "cylinder.soft",
+        "cylinder(start: [-3.05 mm + rise * ramp(t, 1 s), -3 mm, 5 mm], \
+         end: [-3.05 mm + rise * ramp(t, 1 s), 13 mm, 5 mm], radius: 3 mm)",
+    );
+    let scene = load(&path);
+    let mut sim = simulation(&scene);
+    let run = sim.run(None, None).unwrap();
+    let report = &run.contact[0];
+    assert!(run.solver.as_ref().unwrap().converged, "{:?}", run.solver);
+    assert!(report.min_distance > 0.0, "{report:?}");
+    // A line of nodes along y at z = 5 mm, and their neighbours within the gap.
+    assert!(report.active_nodes >= 5, "{report:?}");
+    let f = report.force;
+    assert!(f[0] > 0.0, "{f:?}");
+    // None along the axis; across it, what the Kuhn mesh's one-way diagonals leave of the
+    // symmetry (3.6 % on this 4 × 4 face).
+    assert!(
+        f[1].abs() < 1e-9 * f[0] && f[2].abs() < 5e-2 * f[0],
+        "{f:?}"
+    );
+    let x0 = -3.05 * MM + 0.55 * MM;
+    let (a, b) = ([x0, -3.0 * MM, 5.0 * MM], [x0, 13.0 * MM, 5.0 * MM]);
+    // Each node is pushed straight away from the axis (the side's normal).
+    let forces = {
+        use softc::devices::Backend;
+        sim.backend
+            .get(scene.lowered.contacts.as_ref().unwrap().pairs[0].force)
+    };
+    for (n, p) in run.x.iter().enumerate() {
+        let fn_ = [forces[3 * n], forces[3 * n + 1], forces[3 * n + 2]];
+        let size = fn_.iter().map(|c| c * c).sum::<f64>().sqrt();
+        if size == 0.0 {
+            continue;
+        }
+        let radial = [p[0] - x0, 0.0, p[2] - 5.0 * MM];
+        let rho = radial.iter().map(|c| c * c).sum::<f64>().sqrt();
+        for d in 0..3 {
+            assert!(
+                (fn_[d] / size - radial[d] / rho).abs() < 1e-9,
+                "node {n}: force {fn_:?} off the radius {radial:?}"
+            );
+        }
+    }
+    for (n, p) in run.x.iter().enumerate() {
+        let d = cylinder_distance(*p, a, b, 3.0 * MM);
+        assert!(d > 0.0, "node {n} is {d} m inside the cylinder");
+    }
+    // The reported smallest distance is the closed form's at the final positions.
+    let closest = (run.x.iter())
+        .map(|p| cylinder_distance(*p, a, b, 3.0 * MM))
+        .fold(f64::MAX, f64::min);
+    assert!(
+        (closest - report.min_distance).abs() < 1e-12,
+        "{closest} against {}",
+        report.min_distance
+    );
+    check_gradients(
+        &scene,
+        &[("param.rise", 1e-3 * MM), ("param.mu", 100.0)],
+        1e-5,
+    );
+}
+
+/// Signed distance from `p` to the box `[lo, hi]`.
+fn box_distance(p: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> f64 {
+    let q: Vec<f64> = (0..3)
+        .map(|d| (p[d] - (lo[d] + hi[d]) / 2.0).abs() - (hi[d] - lo[d]) / 2.0)
+        .collect();
+    let outside = q.iter().map(|c| c.max(0.0).powi(2)).sum::<f64>().sqrt();
+    outside + q.iter().fold(f64::MIN, |m, &c| m.max(c)).min(0.0)
+}
+
+/// The falling cube landing half over the edge y = 5 mm of a box whose top is at x = -1 mm.
+fn edge_drop_scene(name: &str) -> PathBuf {
+    variant(
+        name,
+        &[
+            (
+                "integrator = quasi_static",
+                "dt = 100 us\n  gravity = [-1000, 0, 0] m/s^2",
+            ),
+            ("duration = 1 s", "duration = 4 ms"),
+            ("  steps = 4\n", ""),
+            ("  fix held\n", ""),
+            (
+                "plane(point: [-0.05 mm + rise * ramp(t, 1 s), 0 mm, 0 mm], normal: [1, 0, 0])",
+                "box(min: [-10 mm, -10 mm, -10 mm], max: [-1 mm + rise - 0.55 mm, 5 mm, 20 mm])",
+            ),
+        ],
+    )
+}
+
+#[test]
+fn an_explicit_drop_on_a_box_edge_never_enters_it() {
+    // The nodes beyond the edge meet its rounded distance, and the cube tips over it.
+    let scene = load(&edge_drop_scene("drop_edge.soft"));
+    let mut sim = simulation(&scene);
+    let (lo, hi) = ([-10.0 * MM; 3], [-MM, 5.0 * MM, 20.0 * MM]);
+    let mut touched = false;
+    for _ in 0..20 {
+        let run = sim.run(None, Some(10)).unwrap();
+        for (n, p) in run.x.iter().enumerate() {
+            let d = box_distance(*p, lo, hi);
+            assert!(d > 0.0, "node {n} is {d} m inside the box");
+        }
+        assert!(run.contact[0].min_distance > 0.0, "{:?}", run.contact[0]);
+        touched |= run.contact[0].active_nodes > 0;
+    }
+    assert!(touched, "the cube never reached the box");
+}
+
+#[test]
+fn box_and_cylinder_contact_on_the_gpu_match_the_cpu() {
+    let (lo, hi) = ([-10.0 * MM; 3], [-MM, 5.0 * MM, 20.0 * MM]);
+    if let Some(run) = gpu_against_cpu(&edge_drop_scene("drop_edge_gpu.soft")) {
+        assert!(run.x.iter().all(|p| box_distance(*p, lo, hi) > 0.0));
+    }
+    let roller = pressed_by(
+        "cylinder_gpu.soft",
+        "cylinder(start: [-3.05 mm + rise * ramp(t, 1 s), -3 mm, 5 mm], \
+         end: [-3.05 mm + rise * ramp(t, 1 s), 13 mm, 5 mm], radius: 3 mm)",
+    );
+    gpu_against_cpu(&roller);
 }

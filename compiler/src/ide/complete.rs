@@ -81,10 +81,11 @@ impl Analysis<'_> {
                 }
             }
             Ctx::ObstacleShape => {
-                for b in OBSTACLE_SHAPE_DOCS
-                    .iter()
-                    .chain(BUILTIN_DOCS.iter().filter(|b| b.name == "sphere"))
-                {
+                for b in OBSTACLE_SHAPE_DOCS.iter().chain(
+                    BUILTIN_DOCS
+                        .iter()
+                        .filter(|b| matches!(b.name, "sphere" | "box" | "cylinder")),
+                ) {
                     push(
                         b.name,
                         CompletionKind::Function,

@@ -266,9 +266,9 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
     ),
     b!(
         "box",
-        "box(min: length[3], max: length[3]) -> region",
+        "box(min: length[3], max: length[3]) -> region | obstacle",
         ["min", "max"],
-        "Axis-aligned box."
+        "Axis-aligned box: a region; in an `obstacle` declaration a rigid box the body stays outside of (its arguments may then follow `t` or params)."
     ),
     b!(
         "sphere",
@@ -278,9 +278,9 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
     ),
     b!(
         "cylinder",
-        "cylinder(start: length[3], end: length[3], radius: length) -> region",
+        "cylinder(start: length[3], end: length[3], radius: length) -> region | obstacle",
         ["start", "end", "radius"],
-        "Capped cylinder between two points."
+        "Capped cylinder between two points: a region; in an `obstacle` declaration a rigid one the body stays outside of (its arguments may then follow `t` or params)."
     ),
     b!(
         "surface",

@@ -235,7 +235,10 @@ fn obstacles_and_contact() {
     let names = |tail: &str| kw(&format!("{decls}{tail}"));
     assert!(kw("obs").contains(&"obstacle".to_string()));
     assert!(names("sim {\n  con").contains(&"contact".to_string()));
-    assert_eq!(names("obstacle ball = "), ["plane", "sphere"]);
+    assert_eq!(
+        names("obstacle ball = "),
+        ["plane", "box", "sphere", "cylinder"]
+    );
     assert_eq!(names("sim {\n  contact "), ["body", "tip"]);
     assert_eq!(names("sim {\n  contact tip with "), ["floor"]);
     // The statement's arguments first (then what a positional argument may be).

@@ -13,9 +13,12 @@
 //! k the contact stiffness (a pressure: the uniform `contact.i.stiffness`). Its force is
 //! −κ_n·b'(d)·∇d = k·A_n·g(d/ĝ)·∇d with g(r) = (1 − r)(1/r − 1 − 2 ln r): the contact pressure
 //! at gap d is k·g(d/ĝ), zero and flat at d = ĝ (b is C² there), unbounded as d → 0.
-//! Obstacles: a plane, d = n̂·(x − p), ∇d = n̂; a sphere, d = ‖x − c‖ − r, ∇d = (x − c)/‖x − c‖.
-//! Both distances are convex in x, so d(x + α·v) ≥ d(x) + α·∇d·v: the step limit
-//! [`step_kernel`] computes from that line is conservative.
+//! Obstacles: a plane, d = n̂·(x − p), ∇d = n̂; a sphere, d = ‖x − c‖ − r, ∇d = (x − c)/‖x − c‖;
+//! an axis-aligned box and a capped cylinder, the signed distance to a convex solid
+//! ([`solid_distance`]: the Euclidean distance outside, minus the depth to the nearest face
+//! inside; outside it is C¹ with rounded edges). Every distance is convex in x, so
+//! d(x + α·v) ≥ d(x) + α·∇d·v: the step limit [`step_kernel`] computes from that line is
+//! conservative.
 
 use super::LowerError;
 use super::expr::{Env, ExprLowerer, Program, flatten};
@@ -190,7 +193,9 @@ fn distance(
         args,
     } = &shape.kind
     else {
-        return Err(LowerError::new("an obstacle is `plane(…)` or `sphere(…)`"));
+        return Err(LowerError::new(
+            "an obstacle is `plane(…)`, `sphere(…)`, `box(…)` or `cylinder(…)`",
+        ));
     };
     let mut lw = ExprLowerer::new(program);
     let mut vector = |k: &mut KernelBuilder, pname: &str, i: usize| -> Result<Vec<V>, LowerError> {
@@ -221,10 +226,105 @@ fn distance(
             let grad = rel.map(|c| k.b.div(c, rho));
             Ok((k.b.sub(rho, r), grad))
         }
+        "box" => {
+            let lo = vector(k, "min", 0)?;
+            let hi = vector(k, "max", 1)?;
+            // Per axis: the offset from the centre and the excess over the half size.
+            let mut excess = [tiny; 3];
+            let mut side = [tiny; 3];
+            for d in 0..3 {
+                let mid = k.b.add(lo[d], hi[d]);
+                let mid = k.b.scale(0.5, mid);
+                let half = k.b.sub(hi[d], lo[d]);
+                let half = k.b.scale(0.5, half);
+                let rel = k.b.sub(x[d], mid);
+                side[d] = sign(k, rel);
+                let a = k.b.un(UnOp::Abs, rel);
+                excess[d] = k.b.sub(a, half);
+            }
+            let (d, g) = solid_distance(k, &excess);
+            let grad = [0, 1, 2].map(|a| k.b.mul(side[a], g[a]));
+            Ok((d, grad))
+        }
+        "cylinder" => {
+            let a = vector(k, "start", 0)?;
+            let b = vector(k, "end", 1)?;
+            let r = vector(k, "radius", 2)?[0];
+            let axis = [0, 1, 2].map(|d| k.b.sub(b[d], a[d]));
+            let sq: Vec<V> = axis.iter().map(|&c| k.b.mul(c, c)).collect();
+            let len2 = k.b.sum(&sq);
+            let len = k.b.un(UnOp::Sqrt, len2);
+            let unit = [0, 1, 2].map(|d| k.b.div(axis[d], len));
+            // Axial position from the middle, radial vector and its length.
+            let rel = [0, 1, 2].map(|d| k.b.sub(x[d], a[d]));
+            let along = dot(k, unit, rel);
+            let half = k.b.scale(0.5, len);
+            let from_mid = k.b.sub(along, half);
+            let radial = [0, 1, 2].map(|d| {
+                let on_axis = k.b.mul(along, unit[d]);
+                k.b.sub(rel[d], on_axis)
+            });
+            let sq: Vec<V> = radial.iter().map(|&c| k.b.mul(c, c)).collect();
+            let rho2 = k.b.sum(&sq);
+            let rho = k.b.un(UnOp::Sqrt, rho2);
+            let rho_safe = k.b.bin(BinOp::Max, rho, tiny);
+            let out_radially = k.b.sub(rho, r);
+            let axial = k.b.un(UnOp::Abs, from_mid);
+            let out_axially = k.b.sub(axial, half);
+            let (d, g) = solid_distance(k, &[out_radially, out_axially]);
+            let end_side = sign(k, from_mid);
+            let g_axis = k.b.mul(g[1], end_side);
+            let grad = [0, 1, 2].map(|d| {
+                let towards = k.b.div(radial[d], rho_safe);
+                let radial_part = k.b.mul(g[0], towards);
+                let axial_part = k.b.mul(g_axis, unit[d]);
+                k.b.add(radial_part, axial_part)
+            });
+            Ok((d, grad))
+        }
         other => Err(LowerError::new(format!(
             "`{other}(…)` is not an obstacle shape"
         ))),
     }
+}
+
+/// +1 where `v ≥ 0`, else −1.
+fn sign(k: &mut KernelBuilder, v: V) -> V {
+    let zero = k.b.constant(0.0);
+    let (plus, minus) = (k.b.constant(1.0), k.b.constant(-1.0));
+    let up = k.b.cmp(CmpOp::Ge, v, zero);
+    k.b.select(up, plus, minus)
+}
+
+/// The signed distance to a convex solid that is the intersection of slabs, from each slab's
+/// `excess` q_i (how far outside it the point is, negative inside): outside,
+/// d = ‖max(q, 0)‖ and ∂d/∂q_i = max(q_i, 0)/d; inside, d = max_i q_i (minus the depth to the
+/// nearest face) and ∂d/∂q is that face's unit vector (the first of equals).
+fn solid_distance<const N: usize>(k: &mut KernelBuilder, excess: &[V; N]) -> (V, [V; N]) {
+    let zero = k.b.constant(0.0);
+    let one = k.b.constant(1.0);
+    let tiny = k.b.constant(1e-30);
+    let pos = excess.map(|q| k.b.bin(BinOp::Max, q, zero));
+    let sq: Vec<V> = pos.iter().map(|&p| k.b.mul(p, p)).collect();
+    let n2 = k.b.sum(&sq);
+    let outside_d = k.b.un(UnOp::Sqrt, n2);
+    let outside_safe = k.b.bin(BinOp::Max, outside_d, tiny);
+    let deepest = excess[1..]
+        .iter()
+        .fold(excess[0], |m, &q| k.b.bin(BinOp::Max, m, q));
+    let outside = k.b.cmp(CmpOp::Gt, deepest, zero);
+    let d = k.b.select(outside, outside_d, deepest);
+    // Inside: the first slab whose excess is the largest.
+    let mut taken = zero;
+    let grad = std::array::from_fn(|i| {
+        let is_max = k.b.cmp(CmpOp::Ge, excess[i], deepest);
+        let free = k.b.sub(one, taken);
+        let face = k.b.mul(is_max, free);
+        taken = k.b.add(taken, face);
+        let out = k.b.div(pos[i], outside_safe);
+        k.b.select(outside, out, face)
+    });
+    (d, grad)
 }
 
 /// a·b, leaving out the products with a constant zero of `a` (a plane's normal along an axis

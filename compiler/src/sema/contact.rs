@@ -1,4 +1,5 @@
-//! Checking of rigid obstacles (`obstacle NAME = plane(…)` / `sphere(…)`) and of the sim
+//! Checking of rigid obstacles (`obstacle NAME = plane(…)`, `sphere(…)`, `box(…)`,
+//! `cylinder(…)`) and of the sim
 //! block's `contact BODY with OBSTACLE (…)` statements (SPEC 5.11, 6.6).
 //!
 //! An obstacle's shape is its own call, not a region: its position may follow the time `t`
@@ -11,9 +12,12 @@ use crate::diag::Diagnostic;
 use crate::front::ast::{Arg, Expr, ExprKind, Ident};
 
 /// The shapes an obstacle can have, with their arguments (all required).
+/// `box` and `cylinder` take a region's arguments (SPEC 5.3).
 const SHAPES: &[(&str, &[&str])] = &[
     ("plane", &["point", "normal"]),
     ("sphere", &["center", "radius"]),
+    ("box", &["min", "max"]),
+    ("cylinder", &["start", "end", "radius"]),
 ];
 
 impl Checker {
@@ -32,18 +36,17 @@ impl Checker {
         });
         let Some((id, params, args)) = shape else {
             let found = match call {
-                Some((id, _)) if matches!(id.name.as_str(), "box" | "cylinder") => {
-                    format!("`{}(…)`, which obstacles do not have yet", id.name)
-                }
-                _ => "something else".to_string(),
+                Some((id, _)) => format!("`{}(…)`", id.name),
+                None => "something else".to_string(),
             };
             self.err(
                 Diagnostic::error(
                     "E0203",
                     value.span,
                     format!(
-                        "an obstacle is declared with `plane(point: …, normal: …)` or \
-                         `sphere(center: …, radius: …)`, found {found}"
+                        "an obstacle is declared with `plane(point: …, normal: …)`, \
+                         `sphere(center: …, radius: …)`, `box(min: …, max: …)` or \
+                         `cylinder(start: …, end: …, radius: …)`, found {found}"
                     ),
                 )
                 .with_hint("e.g. `obstacle floor = plane(point: [0, 0, 0] mm, normal: [0, 0, 1])`"),
@@ -55,6 +58,8 @@ impl Checker {
             return Typed::error();
         };
         let mut ok = true;
+        // Constant corner or end points, for the checks between them.
+        let mut points: Vec<Option<Vec<f64>>> = Vec::new();
         for (pname, slot) in params.iter().zip(bound) {
             let arg = slot.expect("required");
             // An obstacle may move: its geometry may read `t`.
@@ -81,6 +86,13 @@ impl Checker {
                 ));
                 ok = false;
             }
+            if matches!(*pname, "min" | "max" | "start" | "end") {
+                points.push(t.value.as_ref().map(|v| {
+                    let mut xs = Vec::new();
+                    v.flatten(&mut xs);
+                    xs
+                }));
+            }
             match (*pname, &t.value) {
                 ("radius", _) if t.num().is_some_and(|r| r <= 0.0) => {
                     self.err(Diagnostic::error(
@@ -102,6 +114,29 @@ impl Checker {
                     }
                 }
                 _ => {}
+            }
+        }
+        if let [Some(a), Some(b)] = &points[..]
+            && a.len() == 3
+            && b.len() == 3
+        {
+            let problem = match id.name.as_str() {
+                "box" => (0..3).find(|&i| a[i] >= b[i]).map(|i| {
+                    let axis = ["x", "y", "z"][i];
+                    (
+                        format!("the box is empty: min.{axis} is not below max.{axis}"),
+                        "swap min and max, or widen the box",
+                    )
+                }),
+                _ if a == b => Some((
+                    "the cylinder's start and end are the same point".to_string(),
+                    "its axis runs from `start` to `end`: give two different points",
+                )),
+                _ => None,
+            };
+            if let Some((message, hint)) = problem {
+                self.err(Diagnostic::error("E0321", value.span, message).with_hint(hint));
+                ok = false;
             }
         }
         let key = (self.in_prelude, value.span.start, value.span.end);
