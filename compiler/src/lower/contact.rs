@@ -208,9 +208,7 @@ fn distance(
         "plane" => {
             let p = vector(k, "point", 0)?;
             let n = vector(k, "normal", 1)?;
-            let sq: Vec<V> = n.iter().map(|&c| k.b.mul(c, c)).collect();
-            let n2 = k.b.sum(&sq);
-            let len = k.b.un(UnOp::Sqrt, n2);
+            let len = norm(k, &n);
             let unit = [0, 1, 2].map(|d| k.b.div(n[d], len));
             let r = [0, 1, 2].map(|d| k.b.sub(x[d], p[d]));
             Ok((dot(k, unit, r), unit))
@@ -219,9 +217,7 @@ fn distance(
             let c = vector(k, "center", 0)?;
             let r = vector(k, "radius", 1)?[0];
             let rel = [0, 1, 2].map(|d| k.b.sub(x[d], c[d]));
-            let sq: Vec<V> = rel.iter().map(|&c| k.b.mul(c, c)).collect();
-            let rho2 = k.b.sum(&sq);
-            let rho = k.b.un(UnOp::Sqrt, rho2);
+            let rho = norm(k, &rel);
             let rho = k.b.bin(BinOp::Max, rho, tiny);
             let grad = rel.map(|c| k.b.div(c, rho));
             Ok((k.b.sub(rho, r), grad))
@@ -251,9 +247,7 @@ fn distance(
             let b = vector(k, "end", 1)?;
             let r = vector(k, "radius", 2)?[0];
             let axis = [0, 1, 2].map(|d| k.b.sub(b[d], a[d]));
-            let sq: Vec<V> = axis.iter().map(|&c| k.b.mul(c, c)).collect();
-            let len2 = k.b.sum(&sq);
-            let len = k.b.un(UnOp::Sqrt, len2);
+            let len = norm(k, &axis);
             let unit = [0, 1, 2].map(|d| k.b.div(axis[d], len));
             // Axial position from the middle, radial vector and its length.
             let rel = [0, 1, 2].map(|d| k.b.sub(x[d], a[d]));
@@ -264,9 +258,7 @@ fn distance(
                 let on_axis = k.b.mul(along, unit[d]);
                 k.b.sub(rel[d], on_axis)
             });
-            let sq: Vec<V> = radial.iter().map(|&c| k.b.mul(c, c)).collect();
-            let rho2 = k.b.sum(&sq);
-            let rho = k.b.un(UnOp::Sqrt, rho2);
+            let rho = norm(k, &radial);
             let rho_safe = k.b.bin(BinOp::Max, rho, tiny);
             let out_radially = k.b.sub(rho, r);
             let axial = k.b.un(UnOp::Abs, from_mid);
@@ -288,6 +280,13 @@ fn distance(
     }
 }
 
+/// The Euclidean norm of `v`.
+fn norm(k: &mut KernelBuilder, v: &[V]) -> V {
+    let sq: Vec<V> = v.iter().map(|&c| k.b.mul(c, c)).collect();
+    let n2 = k.b.sum(&sq);
+    k.b.un(UnOp::Sqrt, n2)
+}
+
 /// +1 where `v ≥ 0`, else −1.
 fn sign(k: &mut KernelBuilder, v: V) -> V {
     let zero = k.b.constant(0.0);
@@ -305,9 +304,7 @@ fn solid_distance<const N: usize>(k: &mut KernelBuilder, excess: &[V; N]) -> (V,
     let one = k.b.constant(1.0);
     let tiny = k.b.constant(1e-30);
     let pos = excess.map(|q| k.b.bin(BinOp::Max, q, zero));
-    let sq: Vec<V> = pos.iter().map(|&p| k.b.mul(p, p)).collect();
-    let n2 = k.b.sum(&sq);
-    let outside_d = k.b.un(UnOp::Sqrt, n2);
+    let outside_d = norm(k, &pos);
     let outside_safe = k.b.bin(BinOp::Max, outside_d, tiny);
     let deepest = excess[1..]
         .iter()
