@@ -1073,25 +1073,22 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let tolerance = goal.tolerance;
         let at = |s: f64| (from.0 + s * (to.0 - from.0), from.1 + s * (to.1 - from.1));
         let (mut s, mut ds) = (0.0f64, 1.0f64);
-        let (mut good, mut before) = (self.backend.get(self.ids.x), None);
+        let mut path = predict::Path::new(self.backend.get(self.ids.x));
         while s < 1.0 {
             let s_try = (s + ds).min(1.0);
             let (t, load) = at(s_try);
-            self.secant_start(&good, before.as_ref(), (s, s_try), (t, load))?;
+            self.secant_start(&path, (s, s_try), (t, load))?;
             match self.newton(tangent, report, t, load, tolerance, tolerance)? {
                 Newton::Converged { iterations, .. } => {
-                    before = Some((
-                        s,
-                        std::mem::replace(&mut good, self.backend.get(self.ids.x)),
-                    ));
                     s = s_try;
+                    path.reached(s, self.backend.get(self.ids.x));
                     report.load_steps += 1;
                     if iterations <= 4 {
                         ds = (2.0 * ds).min(1.0);
                     }
                 }
                 Newton::Failed { why, .. } => {
-                    self.backend.set(self.ids.x, &good);
+                    self.backend.set(self.ids.x, &path.good);
                     report.rejected_load_steps += 1;
                     ds *= 0.5;
                     if ds < MIN_INCREMENT {

@@ -12,24 +12,47 @@
 use crate::devices::Backend;
 use crate::engine::{RunError, Simulation};
 
-/// An equilibrium of a continuation: its load fraction and positions.
-pub(super) type Equilibrium = (f64, Vec<f64>);
+/// The last two equilibria of a continuation (load fraction, positions).
+pub(super) struct Path {
+    /// The last one's positions.
+    pub(super) good: Vec<f64>,
+    at: f64,
+    before: Option<(f64, Vec<f64>)>,
+}
+
+impl Path {
+    /// A continuation from the equilibrium `x` at load fraction 0.
+    pub(super) fn new(x: Vec<f64>) -> Self {
+        Path {
+            good: x,
+            at: 0.0,
+            before: None,
+        }
+    }
+
+    /// Equilibrium `x` reached at load fraction `s`.
+    pub(super) fn reached(&mut self, s: f64, x: Vec<f64>) {
+        let last = std::mem::replace(&mut self.good, x);
+        self.before = Some((self.at, last));
+        self.at = s;
+    }
+}
 
 impl<B: Backend> Simulation<'_, B> {
     /// Set the positions Newton starts from towards load fraction `s_try` at (`t`, `load`):
-    /// `good` (the equilibrium at fraction `s`) extrapolated along the secant from `before`
-    /// (the one before it, if any), cut short so that no contact node moves more than the
-    /// contact step limit allows (an extrapolation must not jump through an obstacle), or
-    /// `good` itself where the extrapolation's residual is not finite.
+    /// the path's last equilibrium (at fraction `s`) extrapolated along the secant from the
+    /// one before it (if any), cut short so that no contact node moves more than the contact
+    /// step limit allows (an extrapolation must not jump through an obstacle), or the last
+    /// equilibrium itself where the extrapolation's residual is not finite.
     pub(super) fn secant_start(
         &mut self,
-        good: &[f64],
-        before: Option<&Equilibrium>,
+        path: &Path,
         (s, s_try): (f64, f64),
         (t, load): (f64, f64),
     ) -> Result<(), RunError> {
+        let good = &path.good;
         self.backend.set(self.ids.x, good);
-        let Some((s_before, x_before)) = before else {
+        let Some((s_before, x_before)) = &path.before else {
             return Ok(());
         };
         if s <= *s_before {
