@@ -225,21 +225,19 @@ fn distance(
         "box" => {
             let lo = vector(k, "min", 0)?;
             let hi = vector(k, "max", 1)?;
-            // Per axis: the offset from the centre and the excess over the half size.
-            let mut excess = [tiny; 3];
-            let mut side = [tiny; 3];
-            for d in 0..3 {
+            // Per axis: the side of the centre the node is on, and its excess over the half
+            // size.
+            let axes = [0, 1, 2].map(|d| {
                 let mid = k.b.add(lo[d], hi[d]);
                 let mid = k.b.scale(0.5, mid);
                 let half = k.b.sub(hi[d], lo[d]);
                 let half = k.b.scale(0.5, half);
                 let rel = k.b.sub(x[d], mid);
-                side[d] = sign(k, rel);
                 let a = k.b.un(UnOp::Abs, rel);
-                excess[d] = k.b.sub(a, half);
-            }
-            let (d, g) = solid_distance(k, &excess);
-            let grad = [0, 1, 2].map(|a| k.b.mul(side[a], g[a]));
+                (sign(k, rel), k.b.sub(a, half))
+            });
+            let (d, g) = solid_distance(k, &axes.map(|(_, q)| q));
+            let grad = [0, 1, 2].map(|a| k.b.mul(axes[a].0, g[a]));
             Ok((d, grad))
         }
         "cylinder" => {
