@@ -5,4 +5,5 @@
 pub mod amg;
 pub mod dense;
 pub mod krylov;
+pub mod ordering;
 pub mod sparse;

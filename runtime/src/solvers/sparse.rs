@@ -21,11 +21,13 @@
 //! approach, are six dense rows and columns: their fill made a 15.6k-dof sphere unsolvable.)
 
 use faer::Side;
+use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::solvers::Solve;
 use faer::sparse::linalg::cholesky::{
-    IntranodeLbltRef, LdltRef, SymbolicCholesky, SymmetricOrdering, factorize_symbolic_cholesky,
+    IntranodeLbltRef, LdltRef, LltRef, SymbolicCholesky, SymmetricOrdering,
+    factorize_symbolic_cholesky,
 };
-use faer::sparse::linalg::solvers::{Llt, Lu, SymbolicLlt, SymbolicLu};
+use faer::sparse::linalg::solvers::{Lu, SymbolicLu};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 
 /// Marks an entry of a fixed node (not in the matrix).
@@ -57,6 +59,9 @@ pub struct BlockPattern {
     /// Quadratic elements: per node, the ends of the edge a mid-edge node sits on (`None` for
     /// a corner), for the multigrid's first coarsening (quadratic → linear interpolation).
     edge_ends: Option<Vec<Option<[u32; 2]>>>,
+    /// The rest position of each free node, in dof order (the fill-reducing ordering's
+    /// geometry).
+    free_rest: Vec<[f64; 3]>,
 }
 
 impl BlockPattern {
@@ -175,7 +180,32 @@ impl BlockPattern {
             tri_pos,
             node_pos,
             edge_ends: None,
+            free_rest: (0..n_nodes)
+                .filter(|&i| !fixed[i])
+                .map(|i| rest[i])
+                .collect(),
         })
+    }
+
+    /// A fill-reducing elimination order of the free dofs for the symmetric factorizations
+    /// (nested dissection of the free nodes, each node's three dofs together) and its inverse.
+    pub fn fill_reducing_order(&self) -> (Vec<usize>, Vec<usize>) {
+        let adjacency: Vec<Vec<u32>> = (0..self.free_rest.len())
+            .map(|k| {
+                let rows = &self.row_idx[self.col_ptr[3 * k]..self.col_ptr[3 * k + 1]];
+                rows.iter().step_by(3).map(|&r| (r / 3) as u32).collect()
+            })
+            .collect();
+        let nodes = crate::solvers::ordering::nested_dissection(&adjacency, &self.free_rest);
+        let forward: Vec<usize> = nodes
+            .iter()
+            .flat_map(|&k| (0..3).map(move |d| 3 * k as usize + d))
+            .collect();
+        let mut inverse = vec![0; forward.len()];
+        for (new, &old) in forward.iter().enumerate() {
+            inverse[old] = new;
+        }
+        (forward, inverse)
     }
 
     /// Declare the nodes that are mid-edge nodes of quadratic elements (`ends[node]`: the
@@ -893,9 +923,12 @@ pub struct SparseSolver {
     transpose: Vec<usize>,
     /// Relative tolerance of the symmetry test (the entries' round-off).
     symmetry: f64,
-    symbolic_llt: Option<SymbolicLlt<usize>>,
-    /// The symbolic Cholesky factorization LBLᵀ runs on.
-    symbolic_lblt: Option<SymbolicCholesky<usize>>,
+    /// The fill-reducing ordering of the symmetric factorizations (dof `order[k]` is
+    /// eliminated k-th) and its inverse: nested dissection of the mesh
+    /// ([`crate::solvers::ordering`]).
+    order: (Vec<usize>, Vec<usize>),
+    /// The symbolic Cholesky factorization that Cholesky and LBLᵀ share.
+    symbolic_cholesky: Option<SymbolicCholesky<usize>>,
     symbolic_lu: Option<SymbolicLu<usize>>,
     factor: Option<Factor>,
     /// Whether the matrix can be positive definite (always, since a free body's rigid modes
@@ -907,7 +940,8 @@ pub struct SparseSolver {
 }
 
 enum Factor {
-    Llt(Llt<usize, f64>),
+    /// L's values.
+    Llt(Vec<f64>),
     Lblt(Lblt),
     Lu(Box<Lu<usize, f64>>),
 }
@@ -939,8 +973,8 @@ impl SparseSolver {
             symbolic,
             transpose: p.transpose_map()?,
             symmetry,
-            symbolic_llt: None,
-            symbolic_lblt: None,
+            order: p.fill_reducing_order(),
+            symbolic_cholesky: None,
             symbolic_lu: None,
             factor: None,
             may_be_definite: true,
@@ -964,16 +998,24 @@ impl SparseSolver {
             return Ok("lblt");
         }
         if self.may_be_definite && self.symmetric(values) {
-            if self.symbolic_llt.is_none() {
-                self.symbolic_llt = Some(
-                    SymbolicLlt::try_new(self.symbolic.as_ref(), Side::Lower)
-                        .map_err(|e| format!("symbolic Cholesky factorization failed: {e:?}"))?,
-                );
-            }
-            let symbolic = self.symbolic_llt.clone().expect("computed");
+            self.symbolic_cholesky()?;
+            let symbolic = self.symbolic_cholesky.as_ref().expect("computed");
+            let mut l = vec![0.0; symbolic.len_val()];
+            let par = faer::Par::Seq;
+            let scratch = symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default());
+            let mut buffer = MemBuffer::try_new(scratch).map_err(|e| format!("{e:?}"))?;
             let mat = SparseColMatRef::new(self.symbolic.as_ref(), values);
-            if let Ok(llt) = Llt::try_new_with_symbolic(symbolic, mat, Side::Lower) {
-                self.factor = Some(Factor::Llt(llt));
+            let llt = symbolic.factorize_numeric_llt(
+                &mut l,
+                mat,
+                Side::Lower,
+                Default::default(),
+                par,
+                MemStack::new(&mut buffer),
+                Default::default(),
+            );
+            if llt.is_ok() {
+                self.factor = Some(Factor::Llt(l));
                 self.negative_eigenvalues = Some(0);
                 return Ok("cholesky");
             }
@@ -997,19 +1039,8 @@ impl SparseSolver {
     /// Factor a symmetric matrix by LBLᵀ and keep it if a test solve (of K·1) is accurate;
     /// whether it was kept.
     fn factor_lblt(&mut self, values: &[f64]) -> Result<bool, String> {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        if self.symbolic_lblt.is_none() {
-            self.symbolic_lblt = Some(
-                factorize_symbolic_cholesky(
-                    self.symbolic.as_ref(),
-                    Side::Lower,
-                    SymmetricOrdering::Amd,
-                    Default::default(),
-                )
-                .map_err(|e| format!("symbolic LBLᵀ factorization failed: {e:?}"))?,
-            );
-        }
-        let symbolic = self.symbolic_lblt.as_ref().expect("computed");
+        self.symbolic_cholesky()?;
+        let symbolic = self.symbolic_cholesky.as_ref().expect("computed");
         let n = symbolic.nrows();
         let mut f = Lblt {
             values: vec![0.0; symbolic.len_val()],
@@ -1020,15 +1051,15 @@ impl SparseSolver {
         let mat = SparseColMatRef::new(self.symbolic.as_ref(), values);
         // LDLᵀ without pivoting first: the same supernodal kernels as Cholesky. Bunch–Kaufman
         // pivoting (inside supernodes) where it meets a zero pivot or loses accuracy.
-        let scratch =
-            symbolic.factorize_numeric_ldlt_scratch::<f64>(faer::Par::Seq, Default::default());
+        let par = faer::Par::Seq;
+        let scratch = symbolic.factorize_numeric_ldlt_scratch::<f64>(par, Default::default());
         let mut buffer = MemBuffer::try_new(scratch).map_err(|e| format!("{e:?}"))?;
         let ldlt = symbolic.factorize_numeric_ldlt(
             &mut f.values,
             mat,
             Side::Lower,
             Default::default(),
-            faer::Par::Seq,
+            par,
             MemStack::new(&mut buffer),
             Default::default(),
         );
@@ -1073,7 +1104,7 @@ impl SparseSolver {
     fn symbolic_lblt_raw_is_supernodal(&mut self, values: &[f64]) -> Option<bool> {
         use faer::sparse::linalg::cholesky::SymbolicCholeskyRaw;
         self.factor_lblt(values).ok()?;
-        let raw = self.symbolic_lblt.as_ref()?.raw();
+        let raw = self.symbolic_cholesky.as_ref()?.raw();
         Some(matches!(raw, SymbolicCholeskyRaw::Supernodal(_)))
     }
 
@@ -1089,7 +1120,7 @@ impl SparseSolver {
         let n = b.len();
         let rhs = faer::MatMut::from_column_major_slice_mut(b, n, 1);
         match self.factor.as_ref().expect("factored") {
-            Factor::Llt(f) => f.solve_in_place(rhs),
+            Factor::Llt(l) => self.solve_llt(l, rhs),
             Factor::Lblt(f) => self.solve_lblt(f, rhs),
             Factor::Lu(f) => f.solve_in_place(rhs),
         }
@@ -1100,16 +1131,48 @@ impl SparseSolver {
         let n = b.len();
         let rhs = faer::MatMut::from_column_major_slice_mut(b, n, 1);
         match self.factor.as_ref().expect("factored") {
-            Factor::Llt(f) => f.solve_in_place(rhs),
+            Factor::Llt(l) => self.solve_llt(l, rhs),
             // Symmetric: Kᵀ = K.
             Factor::Lblt(f) => self.solve_lblt(f, rhs),
             Factor::Lu(f) => f.solve_transpose_in_place(rhs),
         }
     }
 
+    /// The symbolic Cholesky factorization (computed on first use) in the fill-reducing
+    /// order.
+    fn symbolic_cholesky(&mut self) -> Result<(), String> {
+        if self.symbolic_cholesky.is_none() {
+            let (forward, inverse) = &self.order;
+            let order = faer::perm::PermRef::new_checked(forward, inverse, forward.len());
+            self.symbolic_cholesky = Some(
+                factorize_symbolic_cholesky(
+                    self.symbolic.as_ref(),
+                    Side::Lower,
+                    SymmetricOrdering::Custom(order),
+                    Default::default(),
+                )
+                .map_err(|e| format!("symbolic Cholesky factorization failed: {e:?}"))?,
+            );
+        }
+        Ok(())
+    }
+
+    fn solve_llt(&self, l: &[f64], rhs: faer::MatMut<'_, f64>) {
+        let symbolic = self
+            .symbolic_cholesky
+            .as_ref()
+            .expect("factored by Cholesky");
+        let mut buffer = MemBuffer::new(symbolic.solve_in_place_scratch::<f64>(1, faer::Par::Seq));
+        LltRef::new(symbolic, l).solve_in_place_with_conj(
+            faer::Conj::No,
+            rhs,
+            faer::Par::Seq,
+            MemStack::new(&mut buffer),
+        );
+    }
+
     fn solve_lblt(&self, f: &Lblt, rhs: faer::MatMut<'_, f64>) {
-        use faer::dyn_stack::{MemBuffer, MemStack};
-        let symbolic = self.symbolic_lblt.as_ref().expect("factored by LBLᵀ");
+        let symbolic = self.symbolic_cholesky.as_ref().expect("factored by LBLᵀ");
         let n = symbolic.nrows();
         let mut buffer = MemBuffer::new(symbolic.solve_in_place_scratch::<f64>(1, faer::Par::Seq));
         let stack = MemStack::new(&mut buffer);
