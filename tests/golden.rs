@@ -87,8 +87,22 @@ fn specialization_cases_match_their_golden_wgsl() {
             "param E: pressure = 0.3 MPa in [0.1 MPa, 1 MPa]",
         )],
     );
+    // Explicit contact with Coulomb friction: the projection's friction impulse in the node
+    // kernel.
+    let friction = variant(
+        "finger_on_table.soft",
+        "finger_on_table-explicit-friction",
+        &[
+            (
+                "integrator = quasi_static",
+                "integrator = semi_implicit_euler\n  dt = 20 us",
+            ),
+            ("(gap: 0.2 mm)", "(gap: 0.2 mm, friction: 0.5)"),
+        ],
+    );
     let cases: Vec<(&str, PathBuf, &str)> = vec![
         ("benchmark-1k-f64", ex("benchmark-1k.soft"), "f64"),
+        ("finger_on_table-explicit-friction", friction, "f32"),
         ("meta_optimization-f64", ex("meta_optimization.soft"), "f64"),
         (
             "controller_synthesis-f64",

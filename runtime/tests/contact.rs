@@ -538,3 +538,160 @@ fn box_and_cylinder_contact_on_the_gpu_match_the_cpu() {
     );
     gpu_against_cpu(&roller);
 }
+
+/// The cube resting on a floor tilted by `theta` (gravity of 1,000 m/s² at `theta` from the
+/// floor's normal, no node held) for 4 ms of explicit steps, with Coulomb friction `mu` (none:
+/// `None`).
+fn incline_scene(name: &str, theta: f64, mu: Option<f64>, damping: &str) -> PathBuf {
+    incline_scene_lasting(name, theta, mu, damping, "4 ms")
+}
+
+fn incline_scene_lasting(
+    name: &str,
+    theta: f64,
+    mu: Option<f64>,
+    damping: &str,
+    duration: &str,
+) -> PathBuf {
+    let (sin, cos) = theta.sin_cos();
+    let step = format!(
+        "dt = 50 us\n  gravity = [{}, {}, 0] m/s^2\n  damping = {damping}",
+        -1000.0 * cos,
+        1000.0 * sin
+    );
+    let friction = match mu {
+        Some(mu) => format!("stiffness: 100 kPa, friction: {mu}"),
+        None => "stiffness: 100 kPa".to_string(),
+    };
+    variant(
+        name,
+        &[
+            ("integrator = quasi_static", &step),
+            ("duration = 1 s", &format!("duration = {duration}")),
+            // The loss: how far the bottom face slid down the slope.
+            ("x[n].x / 1 mm", "x[n].y / 1 mm"),
+            ("  steps = 4\n", ""),
+            ("  fix held\n", ""),
+            // Near where the barrier carries the weight (k·g(d/ĝ) = ρ·g·cos 30°·L).
+            ("-0.05 mm + rise * ramp(t, 1 s)", "-0.08 mm + 0 * rise"),
+            ("stiffness: 100 kPa", &friction),
+        ],
+    )
+}
+
+/// The mean displacement along the slope (y) of all nodes and of the contact nodes, sampled
+/// every 0.25 ms over the 4 ms: (t, mean y, mean y of the bottom face).
+fn slide(path: &Path) -> Vec<(f64, f64, f64)> {
+    let scene = load(path);
+    let mut sim = simulation(&scene);
+    let rest = &scene.mesh.nodes;
+    let bottom: Vec<usize> = (0..rest.len()).filter(|&n| rest[n][0] < 0.1 * MM).collect();
+    let mut out = Vec::new();
+    for chunk in 1..=16 {
+        let run = sim.run(None, Some(5)).unwrap();
+        assert!(run.contact[0].min_distance > 0.0, "{:?}", run.contact[0]);
+        let mean = |nodes: &mut dyn Iterator<Item = usize>| {
+            let ys: Vec<f64> = nodes.map(|n| run.x[n][1] - rest[n][1]).collect();
+            ys.iter().sum::<f64>() / ys.len() as f64
+        };
+        let all = mean(&mut (0..rest.len()));
+        let base = mean(&mut bottom.iter().copied());
+        out.push((chunk as f64 * 0.25e-3, all, base));
+    }
+    out
+}
+
+/// The acceleration of a least-squares fit y = y0 + v0·t + a·t²/2 to the samples.
+fn fitted_acceleration(samples: &[(f64, f64)]) -> f64 {
+    // Normal equations of the basis (1, t, t²/2).
+    let mut m = [[0.0; 3]; 3];
+    let mut rhs = [0.0; 3];
+    for &(t, y) in samples {
+        let basis = [1.0, t, 0.5 * t * t];
+        for i in 0..3 {
+            rhs[i] += basis[i] * y;
+            for j in 0..3 {
+                m[i][j] += basis[i] * basis[j];
+            }
+        }
+    }
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let mut m_a = m;
+    for i in 0..3 {
+        m_a[i][2] = rhs[i];
+    }
+    det(&m_a) / det(&m)
+}
+
+/// **Coulomb friction in explicit runs** (issue 32): on a 30° slope a block slides at
+/// g·(sin θ − μ·cos θ) with μ below tan θ = 0.577; on a slope of tan θ = 0.2 it stays put
+/// with μ above it.
+#[test]
+fn a_block_on_a_slope_slides_or_sticks_as_coulomb_says() {
+    let g = 1000.0;
+    let theta = 30f64.to_radians();
+    let (sin, cos) = theta.sin_cos();
+    for (mu, name) in [
+        (None, "incline_free.soft"),
+        (Some(0.2), "incline_slides.soft"),
+    ] {
+        let samples = slide(&incline_scene(name, theta, mu, "0 /s"));
+        let fit: Vec<(f64, f64)> = samples.iter().map(|&(t, y, _)| (t, y)).collect();
+        let a = fitted_acceleration(&fit);
+        let want = g * (sin - mu.unwrap_or(0.0) * cos);
+        eprintln!("μ {mu:?}: a = {a} m/s² against {want}; {samples:?}");
+        assert!(
+            (a - want).abs() < 0.03 * want,
+            "μ {mu:?}: a = {a} m/s² against {want}"
+        );
+    }
+    // Sticking: the bottom face stays where it is (the block above it shears elastically).
+    // Damping settles the block's bounce, which would unload the face in turns and let it
+    // slip (a soft block dropped on a slope does that); without friction the same damping
+    // would let it slide at g·sin θ/β = 0.065 m/s, 0.2 mm in the 4 ms. A gentle slope keeps
+    // the whole face loaded (on the 30° one its uphill edge lifts: the cube is half way to
+    // tipping), so that μ = 0.6 holds every node of it.
+    let gentle = 0.2f64.atan();
+    let samples = slide(&incline_scene(
+        "incline_sticks.soft",
+        gentle,
+        Some(0.6),
+        "3000 /s",
+    ));
+    let free_slide = 0.5 * g * gentle.sin() * 4e-3f64.powi(2);
+    eprintln!("μ 0.6: {samples:?}");
+    for &(t, _, base) in &samples {
+        assert!(
+            base.abs() < 0.01 * free_slide,
+            "the bottom face moved {base} m along the slope by t = {t} s"
+        );
+    }
+}
+
+#[test]
+fn gradients_through_friction_match_central_differences() {
+    // 1 ms of sliding at μ = 0.2: the loss (how far the face slid) through the friction
+    // impulses of every step, with respect to the shear modulus.
+    let path = incline_scene_lasting(
+        "incline_grad.soft",
+        30f64.to_radians(),
+        Some(0.2),
+        "0 /s",
+        "1 ms",
+    );
+    check_gradients(&load(&path), &[("param.mu", 10.0)], 1e-5);
+}
+
+#[test]
+fn friction_on_the_gpu_matches_the_cpu() {
+    let path = incline_scene("incline_gpu.soft", 30f64.to_radians(), Some(0.2), "0 /s");
+    if let Some(run) = gpu_against_cpu(&path) {
+        // It slid: the face's mean moved well beyond the 1 µm the runs may differ by.
+        let moved = run.x.iter().map(|p| p[1]).sum::<f64>() / run.x.len() as f64;
+        assert!(moved > 0.1 * MM, "{moved}");
+    }
+}

@@ -97,8 +97,9 @@ pub const CONTEXTUAL_KEYWORDS: &[(&str, &str)] = &[
     ),
     (
         "contact",
-        "`contact BODY with OBSTACLE (gap: …, stiffness: …)` in `sim`: frictionless barrier \
-         contact of the mesh (or a node set's surface nodes) with an obstacle",
+        "`contact BODY with OBSTACLE (gap: …, stiffness: …, friction: …)` in `sim`: barrier \
+         contact of the mesh (or a node set's surface nodes) with an obstacle, with Coulomb \
+         friction in explicit runs",
     ),
 ];
 
@@ -411,12 +412,13 @@ pub const OBSTACLE_SHAPE_DOCS: &[BuiltinDoc] = &[b!(
 /// The arguments of the sim statement `contact BODY with OBSTACLE (…)`.
 pub const CONTACT_DOC: BuiltinDoc = b!(
     "contact",
-    "contact BODY with OBSTACLE (gap: length, stiffness?: pressure)",
-    ["gap", "stiffness"],
-    "Frictionless barrier contact: each boundary node of BODY within `gap` (a positive \
-     constant) of the obstacle is pushed away by a log barrier that grows without bound at the \
-     obstacle; `stiffness` (a positive constant, default about the body's Young's modulus) \
-     scales it. In every integrator (explicit steps solve it implicitly per node)."
+    "contact BODY with OBSTACLE (gap: length, stiffness?: pressure, friction?: 1)",
+    ["gap", "stiffness", "friction"],
+    "Barrier contact: each boundary node of BODY within `gap` (a positive constant) of the \
+     obstacle is pushed away by a log barrier that grows without bound at the obstacle; \
+     `stiffness` (a positive constant, default about the body's Young's modulus) scales it. In \
+     every integrator (explicit steps solve it implicitly per node). `friction`: Coulomb's \
+     coefficient (a constant ≥ 0; explicit runs only for now), frictionless without it."
 );
 
 /// Built-in constants (SPEC 9.6).

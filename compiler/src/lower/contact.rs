@@ -131,6 +131,8 @@ struct Statement<'p> {
     shape: &'p Expr,
     gap: f64,
     stiffness: Option<f64>,
+    /// Coulomb's coefficient μ (explicit runs; sema refuses it elsewhere).
+    friction: Option<f64>,
     body: String,
     obstacle: String,
 }
@@ -165,6 +167,7 @@ fn statements(program: &Program) -> Result<Vec<Statement<'_>>, LowerError> {
             shape,
             gap,
             stiffness: number("stiffness", 1)?,
+            friction: number("friction", 2)?.filter(|&mu| mu > 0.0),
             body: body.clone(),
             obstacle: obstacle.clone(),
         });
@@ -544,8 +547,53 @@ pub fn project_step(
             let dv = b.div(dx, state.dt);
             v1[d] = b.add(v1[d], dv);
         }
+        if let Some(mu) = st.friction {
+            (x1, v1) = coulomb_friction(b, (x1, v1), normal, (mu, shift), state.dt);
+        }
     }
     Ok(Some((x1, v1)))
+}
+
+/// Coulomb friction on an explicit step's contact projection (SPEC §6.7): the normal impulse
+/// per unit mass of the step's projection is `shift`/dt (zero where the node is not in
+/// contact), and friction changes the node's tangential velocity v_t by at most μ times that,
+/// against it: v_t·max(0, 1 − μ·shift/(dt·‖v_t‖)). A node whose tangential speed friction can
+/// take away sticks (v_t = 0) for the step; else it slides, slowed by μ·N. This is the
+/// impulse of the exact (non-smoothed) Coulomb law over one step, as implicit in the step as
+/// the normal projection is, so it adds no time step limit of its own. The position follows
+/// the velocity change (x_new = x + dt·v_new).
+fn coulomb_friction(
+    b: &mut crate::ir::Builder,
+    (mut x1, mut v1): Projected,
+    normal: [V; 3],
+    (mu, shift): (f64, V),
+    dt: V,
+) -> Projected {
+    let (zero, one, tiny) = (b.constant(0.0), b.constant(1.0), b.constant(1e-30));
+    let along: Vec<V> = (0..3).map(|d| b.mul(v1[d], normal[d])).collect();
+    let v_n = b.sum(&along);
+    let tangential = [0, 1, 2].map(|d| {
+        let n = b.mul(v_n, normal[d]);
+        b.sub(v1[d], n)
+    });
+    let squares: Vec<V> = tangential.iter().map(|&c| b.mul(c, c)).collect();
+    let speed2 = b.sum(&squares);
+    let speed = b.un(UnOp::Sqrt, speed2);
+    let speed = b.bin(BinOp::Max, speed, tiny);
+    let impulse = b.div(shift, dt);
+    let budget = b.scale(mu, impulse);
+    let ratio = b.div(budget, speed);
+    let kept = b.sub(one, ratio);
+    let kept = b.bin(BinOp::Max, kept, zero);
+    // The velocity change −(1 − kept)·v_t.
+    let lost = b.sub(kept, one);
+    for d in 0..3 {
+        let dv = b.mul(lost, tangential[d]);
+        v1[d] = b.add(v1[d], dv);
+        let dx = b.mul(dv, dt);
+        x1[d] = b.add(x1[d], dx);
+    }
+    (x1, v1)
 }
 
 /// The contact kernels that are not part of a step, pushed onto `module` (after its node

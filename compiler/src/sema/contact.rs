@@ -271,15 +271,32 @@ impl Checker {
             }
         }
         if let Some(friction) = bound[2] {
-            self.check_expr(friction);
-            self.err(
-                Diagnostic::error(
-                    "E0326",
-                    friction.span,
-                    "friction in contact is not supported yet: contact is frictionless",
-                )
-                .with_hint("remove `friction`; the obstacle then pushes along its normal only"),
-            );
+            let t = self.check_expr(friction);
+            let what = "the contact's `friction` coefficient";
+            if self.expect_type(&t, &Ty::scalar(Dim::NONE), friction, what)
+                && self.expect_const(&t, friction, what)
+            {
+                if t.num().is_some_and(|v| v < 0.0) {
+                    let msg = format!("{what} must not be negative");
+                    self.err(Diagnostic::error("E0321", friction.span, msg));
+                } else if let Some(integrator) = self.sim.solves_state {
+                    self.err(
+                        Diagnostic::error(
+                            "E0326",
+                            friction.span,
+                            format!(
+                                "friction in contact is supported in explicit runs only \
+                                 (`integrator = semi_implicit_euler`), not with `{integrator}`"
+                            ),
+                        )
+                        .with_hint(
+                            "remove `friction` (the obstacle then pushes along its normal \
+                             only), or simulate the motion with `integrator = \
+                             semi_implicit_euler`",
+                        ),
+                    );
+                }
+            }
         }
     }
 }

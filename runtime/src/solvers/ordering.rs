@@ -67,7 +67,10 @@ impl Dissection<'_> {
                 let half = (part.len() as f64 * f) as usize;
                 let (low, high) = part.split_at(half);
                 let cut = self.separate(low, high);
-                if best.as_ref().is_none_or(|best| cut[0].len() < best[0].len()) {
+                if best
+                    .as_ref()
+                    .is_none_or(|best| cut[0].len() < best[0].len())
+                {
                     best = Some(cut);
                 }
             }
@@ -260,15 +263,19 @@ mod tests {
             col_ptr.push(row_idx.len());
         }
         let pattern = SymbolicSparseColMatRef::new_checked(n, n, &col_ptr, None, &row_idx);
-        let forward: Vec<usize> = ordering.unwrap_or(&[]).iter().map(|&i| i as usize).collect();
+        let forward: Vec<usize> = ordering
+            .unwrap_or(&[])
+            .iter()
+            .map(|&i| i as usize)
+            .collect();
         let mut inverse = vec![0; forward.len()];
         for (k, &i) in forward.iter().enumerate() {
             inverse[i] = k;
         }
         let ordering = match ordering {
-            Some(_) => SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(
-                &forward, &inverse, n,
-            )),
+            Some(_) => {
+                SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(&forward, &inverse, n))
+            }
             None => SymmetricOrdering::Amd,
         };
         factorize_symbolic_cholesky(pattern, Side::Lower, ordering, Default::default())
