@@ -100,9 +100,26 @@ fn specialization_cases_match_their_golden_wgsl() {
             ("(gap: 0.2 mm)", "(gap: 0.2 mm, friction: 0.5)"),
         ],
     );
+    // Backward Euler with friction: the smoothed Coulomb force in the implicit residual.
+    let implicit_friction = variant(
+        "finger_on_table.soft",
+        "finger_on_table-implicit-friction",
+        &[
+            (
+                "integrator = quasi_static",
+                "integrator = implicit_euler\n  dt = 5 ms",
+            ),
+            ("(gap: 0.2 mm)", "(gap: 0.2 mm, friction: 0.5)"),
+        ],
+    );
     let cases: Vec<(&str, PathBuf, &str)> = vec![
         ("benchmark-1k-f64", ex("benchmark-1k.soft"), "f64"),
         ("finger_on_table-explicit-friction", friction, "f32"),
+        (
+            "finger_on_table-implicit-friction",
+            implicit_friction,
+            "f32",
+        ),
         ("meta_optimization-f64", ex("meta_optimization.soft"), "f64"),
         (
             "controller_synthesis-f64",

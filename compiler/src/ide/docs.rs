@@ -99,7 +99,7 @@ pub const CONTEXTUAL_KEYWORDS: &[(&str, &str)] = &[
         "contact",
         "`contact BODY with OBSTACLE (gap: …, stiffness: …, friction: …)` in `sim`: barrier \
          contact of the mesh (or a node set's surface nodes) with an obstacle, with Coulomb \
-         friction in explicit runs",
+         friction in dynamic runs",
     ),
 ];
 
@@ -418,7 +418,7 @@ pub const CONTACT_DOC: BuiltinDoc = b!(
      obstacle is pushed away by a log barrier that grows without bound at the obstacle; \
      `stiffness` (a positive constant, default about the body's Young's modulus) scales it. In \
      every integrator (explicit steps solve it implicitly per node). `friction`: Coulomb's \
-     coefficient (a constant ≥ 0; explicit runs only for now), frictionless without it."
+     coefficient (a constant ≥ 0; dynamic runs only for now), frictionless without it."
 );
 
 /// Built-in constants (SPEC 9.6).

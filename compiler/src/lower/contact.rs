@@ -396,6 +396,13 @@ fn barrier(
     area: V,
 ) -> Result<([V; 3], V), LowerError> {
     let (d, grad) = distance(program, k, st.shape, x)?;
+    let magnitude = barrier_magnitude(k, i, st, d, area);
+    Ok((grad.map(|c| k.b.mul(magnitude, c)), d))
+}
+
+/// The barrier's force k·A·g(d/ĝ) on a node at distance `d` of boundary area `area` (zero off
+/// the contact set and beyond the gap).
+fn barrier_magnitude(k: &mut KernelBuilder, i: usize, st: &Statement, d: V, area: V) -> V {
     let stiffness = k.uniform(&stiffness_uniform(i));
     let b = &mut k.b;
     let zero = b.constant(0.0);
@@ -409,8 +416,7 @@ fn barrier(
     let r = b.select(active, r, one);
     let g = pressure_law(b, r).g;
     let ka = b.mul(stiffness, area);
-    let magnitude = b.mul(ka, g);
-    Ok((grad.map(|c| b.mul(magnitude, c)), d))
+    b.mul(ka, g)
 }
 
 /// The summed contact force on the node at `x` (the static and implicit node kernels add it to
@@ -433,6 +439,72 @@ pub fn node_contact_force(
         total = Some(match total {
             None => f,
             Some(t) => [0, 1, 2].map(|d| k.b.add(t[d], f[d])),
+        });
+    }
+    Ok(total)
+}
+
+/// The fraction of the gap a contact node may slip in one implicit step while friction holds it
+/// (the smoothing length of [`node_friction_force`]).
+pub const STICK_SLIP_FRACTION: f64 = 1e-3;
+
+/// Coulomb friction on the node at `x` in a backward Euler step from `x_prev` (the step's
+/// slip Δx_t: the step's motion less its component along the obstacle's normal ∇d at x), or
+/// `None` without a contact that has friction. With λ the barrier's normal force on the node
+/// at x, the force is −μ·λ·f₁(‖Δx_t‖/ε)·Δx_t/‖Δx_t‖ with IPC's smoothing f₁(y) = 2y − y² for
+/// y < 1, 1 beyond (Li et al. 2020), ε = [`STICK_SLIP_FRACTION`]·ĝ: sliding nodes feel μ·λ
+/// against their slip, sticking ones a stiff spring that lets them creep by less than ε per
+/// step. It is evaluated at the step's end, like every force of the step; not a potential,
+/// so the tangent is not symmetric (LU).
+pub fn node_friction_force(
+    program: &Program,
+    module: &mut Module,
+    k: &mut KernelBuilder,
+    (x, x_prev): (BufferId, BufferId),
+) -> Result<Option<[V; 3]>, LowerError> {
+    let statements = statements(program)?;
+    let pos = own_position(k, x);
+    let start = own_position(k, x_prev);
+    let mut total: Option<[V; 3]> = None;
+    for (i, st) in statements.iter().enumerate() {
+        let Some(mu) = st.friction else { continue };
+        let (d, normal) = distance(program, k, st.shape, pos)?;
+        let area = k.load(ArgSource::Own {
+            buffer: area_buffer(module, i),
+            component: 0,
+        });
+        let lambda = barrier_magnitude(k, i, st, d, area);
+        let b = &mut k.b;
+        let (one, two) = (b.constant(1.0), b.constant(2.0));
+        let moved = [0, 1, 2].map(|c| b.sub(pos[c], start[c]));
+        let along: Vec<V> = (0..3).map(|c| b.mul(moved[c], normal[c])).collect();
+        let along = b.sum(&along);
+        let slip = [0, 1, 2].map(|c| {
+            let n = b.mul(along, normal[c]);
+            b.sub(moved[c], n)
+        });
+        let squares: Vec<V> = slip.iter().map(|&c| b.mul(c, c)).collect();
+        let eps = STICK_SLIP_FRACTION * st.gap;
+        // ‖Δx_t‖, kept off zero (by 10⁻⁶ ε) so that its derivative stays finite at no slip.
+        let s2 = b.sum(&squares);
+        let floor = b.constant((1e-6 * eps).powi(2));
+        let s2 = b.add(s2, floor);
+        let s = b.un(UnOp::Sqrt, s2);
+        // f₁(y)/‖Δx_t‖: (2 − y)/ε below ε, 1/‖Δx_t‖ beyond (finite at zero slip).
+        let y = b.scale(1.0 / eps, s);
+        let sticking = b.cmp(CmpOp::Lt, y, one);
+        let below = b.sub(two, y);
+        let below = b.scale(1.0 / eps, below);
+        let eps_v = b.constant(eps);
+        let s_safe = b.bin(BinOp::Max, s, eps_v);
+        let beyond = b.div(one, s_safe);
+        let per_slip = b.select(sticking, below, beyond);
+        let coefficient = b.mul(lambda, per_slip);
+        let coefficient = b.scale(-mu, coefficient);
+        let f = slip.map(|c| b.mul(coefficient, c));
+        total = Some(match total {
+            None => f,
+            Some(t) => [0, 1, 2].map(|c| k.b.add(t[c], f[c])),
         });
     }
     Ok(total)
@@ -569,7 +641,7 @@ fn coulomb_friction(
     (mu, shift): (f64, V),
     dt: V,
 ) -> Projected {
-    let (zero, one, tiny) = (b.constant(0.0), b.constant(1.0), b.constant(1e-30));
+    let (zero, one, tiny) = (b.constant(0.0), b.constant(1.0), b.constant(1e-24));
     let along: Vec<V> = (0..3).map(|d| b.mul(v1[d], normal[d])).collect();
     let v_n = b.sum(&along);
     let tangential = [0, 1, 2].map(|d| {
@@ -577,9 +649,10 @@ fn coulomb_friction(
         b.sub(v1[d], n)
     });
     let squares: Vec<V> = tangential.iter().map(|&c| b.mul(c, c)).collect();
+    // ‖v_t‖, kept off zero so that its derivative (the adjoint's) stays finite at rest.
     let speed2 = b.sum(&squares);
+    let speed2 = b.add(speed2, tiny);
     let speed = b.un(UnOp::Sqrt, speed2);
-    let speed = b.bin(BinOp::Max, speed, tiny);
     let impulse = b.div(shift, dt);
     let budget = b.scale(mu, impulse);
     let ratio = b.div(budget, speed);

@@ -4,7 +4,7 @@
 //! away when absent, constants folded into the code.
 
 use super::LowerError;
-use super::contact::{contact_kernels, node_contact_force};
+use super::contact::{contact_kernels, node_contact_force, node_friction_force};
 use super::expr::{Env, ExprLowerer, Program};
 use super::fem::{
     FemBuffers, element_diagnostics_kernel, element_force_kernel, material_fields,
@@ -906,6 +906,7 @@ fn implicit_euler_kernel(
     let free = k.b.cmp(CmpOp::Eq, is_fixed, zero);
     let h2 = k.b.mul(h, h);
     let contact = node_contact_force(program, module, &mut k, x)?;
+    let friction = node_friction_force(program, module, &mut k, (x, x_prev))?;
     for d in 0..3u32 {
         let own = |k: &mut KernelBuilder, buffer| {
             k.load(ArgSource::Own {
@@ -916,6 +917,9 @@ fn implicit_euler_kernel(
         let (xd, xp, vp) = (own(&mut k, x), own(&mut k, x_prev), own(&mut k, v_prev));
         let mut f = gathered_force(&mut k, elem_force, tri_force.filter(|_| pressure), d);
         if let Some(c) = &contact {
+            f = k.b.add(f, c[d as usize]);
+        }
+        if let Some(c) = &friction {
             f = k.b.add(f, c[d as usize]);
         }
         if let Some(g) = &g {

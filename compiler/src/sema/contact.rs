@@ -279,20 +279,22 @@ impl Checker {
                 if t.num().is_some_and(|v| v < 0.0) {
                     let msg = format!("{what} must not be negative");
                     self.err(Diagnostic::error("E0321", friction.span, msg));
-                } else if let Some(integrator) = self.sim.solves_state {
+                } else if let Some(integrator) =
+                    self.sim.solves_state.filter(|&i| i == "quasi_static")
+                {
                     self.err(
                         Diagnostic::error(
                             "E0326",
                             friction.span,
                             format!(
-                                "friction in contact is supported in explicit runs only \
-                                 (`integrator = semi_implicit_euler`), not with `{integrator}`"
+                                "friction in contact is supported in dynamic runs only \
+                                 (`semi_implicit_euler`, `implicit_euler`), not with \
+                                 `{integrator}`: a static solve keeps no slip history"
                             ),
                         )
                         .with_hint(
                             "remove `friction` (the obstacle then pushes along its normal \
-                             only), or simulate the motion with `integrator = \
-                             semi_implicit_euler`",
+                             only), or simulate the motion with `integrator = implicit_euler`",
                         ),
                     );
                 }
