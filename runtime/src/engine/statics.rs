@@ -1074,6 +1074,8 @@ impl<'s, B: Backend> Simulation<'s, B> {
         let at = |s: f64| (from.0 + s * (to.0 - from.0), from.1 + s * (to.1 - from.1));
         let (mut s, mut ds) = (0.0f64, 1.0f64);
         let mut path = predict::Path::new(self.backend.get(self.ids.x));
+        // The equilibrium whose tangent was last asked about a limit point.
+        let mut checked: Option<f64> = None;
         while s < 1.0 {
             let s_try = (s + ds).min(1.0);
             let (t, load) = at(s_try);
@@ -1091,22 +1093,18 @@ impl<'s, B: Backend> Simulation<'s, B> {
                     self.backend.set(self.ids.x, &path.good);
                     report.rejected_load_steps += 1;
                     ds *= 0.5;
-                    if ds < MIN_INCREMENT {
-                        let (t_ok, load_ok) = at(s);
-                        let (t_bad, load_bad) = at(s_try);
-                        let stalled = format!(
-                            "no equilibrium found beyond {:.1} % of the loads at t = {} s (the \
-                             last equilibrium; at {:.1} % / t = {} s: {why})",
-                            100.0 * load_ok,
-                            t_ok,
-                            100.0 * load_bad,
-                            t_bad
-                        );
-                        // Leave the last equilibrium's forces in place for outputs.
-                        self.residual(t_ok, load_ok)?;
-                        let stiffness = self.stiffness_lost(tangent, report, (t_ok, load_ok));
-                        self.residual(t_ok, load_ok)?;
-                        return Err(RunError(format!("{stalled}. {}", stiffness?.explain())));
+                    // Near a limit point, ask the tangent before bisecting on (once per
+                    // equilibrium).
+                    let ask = ds < stall::LIMIT_CHECK_INCREMENT && checked != Some(s);
+                    if ask {
+                        checked = Some(s);
+                    }
+                    let exhausted = ds < MIN_INCREMENT;
+                    let steps = (at(s), at(s_try));
+                    if let Some(stalled) =
+                        self.stall_verdict(tangent, report, steps, &why, (ask, exhausted))?
+                    {
+                        return Err(stalled);
                     }
                 }
             }

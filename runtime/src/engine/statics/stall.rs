@@ -25,7 +25,21 @@ pub(super) enum StiffnessLost {
     NotExamined,
 }
 
+/// Below this load increment a failed continuation step asks the tangent at the last
+/// equilibrium whether it is at a limit point before bisecting further: near one every failed
+/// attempt costs Newton's damped iterations (the free sphere past its limit: 12 attempts of 4–7
+/// iterations between 1/64 and 1/4096, two thirds of the solve).
+pub(super) const LIMIT_CHECK_INCREMENT: f64 = 1.0 / 64.0;
+
 impl StiffnessLost {
+    /// Whether the tangent has turned singular (or unstable): the load path cannot go on.
+    pub(super) fn at_limit(&self) -> bool {
+        match *self {
+            StiffnessLost::Indefinite(_) => true,
+            StiffnessLost::Kept(kept) => kept < LIMIT_POINT_STIFFNESS,
+            StiffnessLost::NotExamined => false,
+        }
+    }
     pub(super) fn explain(&self) -> String {
         const DYNAMICS: &str = "Lower the loads, or simulate the dynamics with `integrator = \
                                 semi_implicit_euler`";
@@ -75,6 +89,39 @@ impl StiffnessLost {
 }
 
 impl<'s, B: Backend> Simulation<'s, B> {
+    /// After a failed continuation step from the equilibrium at `ok` (time, load factor; the
+    /// current positions) towards `bad`: the error that ends the continuation, if it ends —
+    /// when asked (`ask`) and the tangent there is at a limit point, or when the increments are
+    /// `exhausted`, with what the tangent says.
+    pub(super) fn stall_verdict(
+        &mut self,
+        tangent: &mut Tangent,
+        report: &mut SolverReport,
+        (ok, bad): ((f64, f64), (f64, f64)),
+        why: &str,
+        (ask, exhausted): (bool, bool),
+    ) -> Result<Option<RunError>, RunError> {
+        if !ask && !exhausted {
+            return Ok(None);
+        }
+        // Leave the last equilibrium's forces in place for outputs.
+        self.residual(ok.0, ok.1)?;
+        let lost = self.stiffness_lost(tangent, report, ok)?;
+        self.residual(ok.0, ok.1)?;
+        if !exhausted && !lost.at_limit() {
+            return Ok(None);
+        }
+        Ok(Some(RunError(format!(
+            "no equilibrium found beyond {:.1} % of the loads at t = {} s (the last \
+             equilibrium; at {:.1} % / t = {} s: {why}). {}",
+            100.0 * ok.1,
+            ok.0,
+            100.0 * bad.1,
+            bad.0,
+            lost.explain()
+        ))))
+    }
+
     /// How the tangent's compliance along the loads at the current positions (the last
     /// equilibrium, at `at`) compares with the rest state's: Bergan's current stiffness
     /// parameter, what tells a limit point (the tangent turns singular along the load path:
