@@ -477,19 +477,9 @@ pub fn node_friction_force(
         let b = &mut k.b;
         let (one, two) = (b.constant(1.0), b.constant(2.0));
         let moved = [0, 1, 2].map(|c| b.sub(pos[c], start[c]));
-        let along: Vec<V> = (0..3).map(|c| b.mul(moved[c], normal[c])).collect();
-        let along = b.sum(&along);
-        let slip = [0, 1, 2].map(|c| {
-            let n = b.mul(along, normal[c]);
-            b.sub(moved[c], n)
-        });
-        let squares: Vec<V> = slip.iter().map(|&c| b.mul(c, c)).collect();
         let eps = STICK_SLIP_FRACTION * st.gap;
-        // ‖Δx_t‖, kept off zero (by 10⁻⁶ ε) so that its derivative stays finite at no slip.
-        let s2 = b.sum(&squares);
-        let floor = b.constant((1e-6 * eps).powi(2));
-        let s2 = b.add(s2, floor);
-        let s = b.un(UnOp::Sqrt, s2);
+        // ‖Δx_t‖ kept off zero by 10⁻⁶ ε.
+        let (slip, s) = tangential_part(b, moved, normal, (1e-6 * eps).powi(2));
         // f₁(y)/‖Δx_t‖: (2 − y)/ε below ε, 1/‖Δx_t‖ beyond (finite at zero slip).
         let y = b.scale(1.0 / eps, s);
         let sticking = b.cmp(CmpOp::Lt, y, one);
@@ -626,6 +616,28 @@ pub fn project_step(
     Ok(Some((x1, v1)))
 }
 
+/// The part of `v` across the unit `normal`, and its length kept off zero
+/// (√(‖v_t‖² + `floor`)) so that its derivative stays finite where v_t vanishes (a node at
+/// rest, no slip).
+fn tangential_part(
+    b: &mut crate::ir::Builder,
+    v: [V; 3],
+    normal: [V; 3],
+    floor: f64,
+) -> ([V; 3], V) {
+    let along: Vec<V> = (0..3).map(|d| b.mul(v[d], normal[d])).collect();
+    let along = b.sum(&along);
+    let across = [0, 1, 2].map(|d| {
+        let n = b.mul(along, normal[d]);
+        b.sub(v[d], n)
+    });
+    let squares: Vec<V> = across.iter().map(|&c| b.mul(c, c)).collect();
+    let length2 = b.sum(&squares);
+    let floor = b.constant(floor);
+    let length2 = b.add(length2, floor);
+    (across, b.un(UnOp::Sqrt, length2))
+}
+
 /// Coulomb friction on an explicit step's contact projection (SPEC §6.7): the normal impulse
 /// per unit mass of the step's projection is `shift`/dt (zero where the node is not in
 /// contact), and friction changes the node's tangential velocity v_t by at most μ times that,
@@ -641,18 +653,8 @@ fn coulomb_friction(
     (mu, shift): (f64, V),
     dt: V,
 ) -> Projected {
-    let (zero, one, tiny) = (b.constant(0.0), b.constant(1.0), b.constant(1e-24));
-    let along: Vec<V> = (0..3).map(|d| b.mul(v1[d], normal[d])).collect();
-    let v_n = b.sum(&along);
-    let tangential = [0, 1, 2].map(|d| {
-        let n = b.mul(v_n, normal[d]);
-        b.sub(v1[d], n)
-    });
-    let squares: Vec<V> = tangential.iter().map(|&c| b.mul(c, c)).collect();
-    // ‖v_t‖, kept off zero so that its derivative (the adjoint's) stays finite at rest.
-    let speed2 = b.sum(&squares);
-    let speed2 = b.add(speed2, tiny);
-    let speed = b.un(UnOp::Sqrt, speed2);
+    let (zero, one) = (b.constant(0.0), b.constant(1.0));
+    let (tangential, speed) = tangential_part(b, v1, normal, 1e-24);
     let impulse = b.div(shift, dt);
     let budget = b.scale(mu, impulse);
     let ratio = b.div(budget, speed);
