@@ -788,3 +788,47 @@ fn implicit_friction_on_the_gpu_matches_the_cpu() {
         assert!(moved > 0.1 * MM, "{moved}");
     }
 }
+
+/// The falling cube (1.4 m/s at impact) onto a plate 20 µm thick, with a 20 µm gap, in steps
+/// of 50 µs: each step moves a node 70 µm, more than the plate and its gap together, so end
+/// positions alone would let every node pass through it.
+fn thin_plate_scene(name: &str) -> PathBuf {
+    variant(
+        name,
+        &[
+            (
+                "integrator = quasi_static",
+                "dt = 50 us\n  gravity = [-1000, 0, 0] m/s^2",
+            ),
+            ("duration = 1 s", "duration = 2 ms"),
+            ("  steps = 4\n", ""),
+            ("  fix held\n", ""),
+            (
+                "plane(point: [-0.05 mm + rise * ramp(t, 1 s), 0 mm, 0 mm], normal: [1, 0, 0])",
+                "box(min: [-1.02 mm + 0 * rise, -5 mm, -5 mm], max: [-1 mm, 15 mm, 15 mm])",
+            ),
+            ("gap: 0.1 mm", "gap: 0.02 mm"),
+        ],
+    )
+}
+
+#[test]
+fn a_fast_body_does_not_pass_through_a_thin_plate() {
+    let scene = load(&thin_plate_scene("thin_plate.soft"));
+    let mut sim = simulation(&scene);
+    let mut lowest = f64::MAX;
+    for _ in 0..40 {
+        let run = sim.run(None, Some(1)).unwrap();
+        let min = run.x.iter().map(|p| p[0]).fold(f64::MAX, f64::min);
+        assert!(
+            min > -MM,
+            "a node at x = {min} m, through the plate's top at -1 mm"
+        );
+        lowest = lowest.min(min);
+    }
+    // It landed on the plate and stays on it.
+    assert!(lowest < -MM + 0.02 * MM, "lowest {lowest} m");
+    if let Some(run) = gpu_against_cpu(&thin_plate_scene("thin_plate_gpu.soft")) {
+        assert!(run.x.iter().all(|p| p[0] > -MM));
+    }
+}
