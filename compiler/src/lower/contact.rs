@@ -552,15 +552,12 @@ pub fn project_step(
     linear_only(module)?;
     let (mut x1, mut v1) = (state.x_new, state.v_new);
     for (i, st) in statements.iter().enumerate() {
+        let (d_new, normal) = distance(program, k, st.shape, x1)?;
+        let (d_now, _) = distance(program, k, st.shape, state.x)?;
         let area = k.load(ArgSource::Own {
             buffer: area_buffer(module, i),
             component: 0,
         });
-        if !is_plane(st.shape) {
-            (x1, v1) = stop_at_entry(program, k, st, (state.x, area, state.dt), (x1, v1))?;
-        }
-        let (d_new, normal) = distance(program, k, st.shape, x1)?;
-        let (d_now, _) = distance(program, k, st.shape, state.x)?;
         let stiffness = k.uniform(&stiffness_uniform(i));
         let b = &mut k.b;
         let (zero, one, tenth) = (b.constant(0.0), b.constant(1.0), b.constant(0.1));
@@ -617,94 +614,6 @@ pub fn project_step(
         }
     }
     Ok(Some((x1, v1)))
-}
-
-/// Iterations of the searches along a step's path in [`stop_at_entry`] (each narrows the
-/// interval to 2/3, resp. 1/2: the closest approach to 0.15 %, the entry to 0.002 % of the step).
-const PATH_SEARCH_ITERATIONS: usize = 16;
-
-/// Whether an obstacle is a plane (a half-space: no path can pass through it).
-fn is_plane(shape: &Expr) -> bool {
-    matches!(&shape.kind, ExprKind::Call { callee: Callee::Builtin(name), .. } if name == "plane")
-}
-
-/// Continuous collision detection for an explicit step against a bounded obstacle (a sphere,
-/// box or cylinder): a node whose predicted path from x₀ to x₁ passes through the obstacle or
-/// within half the gap of it and out again — a fast node and a thin plate or rod, which the
-/// end positions alone would miss — is stopped where the path first comes within
-/// τ = ½·min(d(x₀), ĝ) of it, and moves on from there (its velocity the part of the step it
-/// took over dt, so x_new = x + dt·v_new still holds); the projection then holds it outside.
-/// The distance along a straight path is convex (the obstacles are convex), so its minimum is
-/// found by ternary search and the entry by bisection before it. A path whose closest point is
-/// its end is left to the projection.
-fn stop_at_entry(
-    program: &Program,
-    k: &mut KernelBuilder,
-    st: &Statement,
-    (x0, area, dt): ([V; 3], V, V),
-    (x1, v1): Projected,
-) -> Result<Projected, LowerError> {
-    let along = |k: &mut KernelBuilder, a: V| -> [V; 3] {
-        [0, 1, 2].map(|c| {
-            let step = k.b.sub(x1[c], x0[c]);
-            let part = k.b.mul(a, step);
-            k.b.add(x0[c], part)
-        })
-    };
-    let d_at = |k: &mut KernelBuilder, a: V| -> Result<V, LowerError> {
-        let p = along(k, a);
-        Ok(distance(program, k, st.shape, p)?.0)
-    };
-    let (mut lo, mut hi) = (k.b.constant(0.0), k.b.constant(1.0));
-    for _ in 0..PATH_SEARCH_ITERATIONS {
-        let width = k.b.sub(hi, lo);
-        let third = k.b.scale(1.0 / 3.0, width);
-        let m1 = k.b.add(lo, third);
-        let m2 = k.b.sub(hi, third);
-        let (f1, f2) = (d_at(k, m1)?, d_at(k, m2)?);
-        let left = k.b.cmp(CmpOp::Lt, f1, f2);
-        hi = k.b.select(left, m2, hi);
-        lo = k.b.select(left, lo, m1);
-    }
-    let sum = k.b.add(lo, hi);
-    let closest = k.b.scale(0.5, sum);
-    let d_min = d_at(k, closest)?;
-    let zero = k.b.constant(0.0);
-    let d0 = d_at(k, zero)?;
-    let one = k.b.constant(1.0);
-    let d1 = d_at(k, one)?;
-    let gap = k.b.constant(st.gap);
-    let nearest = k.b.bin(BinOp::Min, d0, gap);
-    let tau = k.b.scale(0.5, nearest);
-    // The entry: where the path first comes within τ, between x₀ and its closest point.
-    let (mut outside, mut inside) = (zero, closest);
-    for _ in 0..PATH_SEARCH_ITERATIONS {
-        let sum = k.b.add(outside, inside);
-        let mid = k.b.scale(0.5, sum);
-        let d = d_at(k, mid)?;
-        let out = k.b.cmp(CmpOp::Ge, d, tau);
-        outside = k.b.select(out, mid, outside);
-        inside = k.b.select(out, inside, mid);
-    }
-    let b = &mut k.b;
-    let member = b.cmp(CmpOp::Gt, area, zero);
-    let comes_near = b.cmp(CmpOp::Lt, d_min, tau);
-    let passes = b.cmp(CmpOp::Gt, d1, d_min);
-    let clear = b.cmp(CmpOp::Gt, d0, zero);
-    let crossed = b.mul(comes_near, passes);
-    let crossed = b.mul(crossed, clear);
-    let crossed = b.select(member, crossed, zero);
-    let mut x_new = x1;
-    let mut v_new = v1;
-    for c in 0..3 {
-        let step = b.sub(x1[c], x0[c]);
-        let part = b.mul(outside, step);
-        let entry = b.add(x0[c], part);
-        let v_entry = b.div(part, dt);
-        x_new[c] = b.select(crossed, entry, x1[c]);
-        v_new[c] = b.select(crossed, v_entry, v1[c]);
-    }
-    Ok((x_new, v_new))
 }
 
 /// The part of `v` across the unit `normal`, and its length kept off zero

@@ -487,12 +487,12 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     let v37: real = select(v3, v36, v4 != 0.0f);
     let v38: real = arg0 * v37;
     let v39: real = arg13 + v38;
-    let v41: real = -0.007f;
-    let v42: real = v39 - v41;
-    let v43: real = arg13 - v41;
+    let v40: real = -0.007f;
+    let v41: real = v39 - v40;
+    let v42: real = arg13 - v40;
     let v45: real = 0.1f;
     let v46: real = 5000.0f;
-    let v47: real = v42 * v46;
+    let v47: real = v41 * v46;
     let v48: real = select(0.0f, 1.0f, arg15 > v3);
     let v49: real = select(0.0f, 1.0f, v47 < v10);
     let v50: real = select(v3, v49, v48 != 0.0f);
@@ -503,7 +503,7 @@ fn integrate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     let v55: real = 0.0002f;
     let v56: real = arg1 * v55;
     let v57: real = v54 / v56;
-    let v58: real = v43 * v46;
+    let v58: real = v42 * v46;
     let v59: real = min(v10, v58);
     let v60: real = 1e-6f;
     let v61: real = max(v59, v60);
