@@ -43,6 +43,31 @@ pub fn nested_dissection(adjacency: &[Vec<u32>], coords: &[[f64; 3]]) -> Vec<u32
     d.order
 }
 
+/// A fill-reducing elimination order of a tangent's dofs, three per node in node order, from
+/// its sparsity pattern (CSC, rows of each node's three columns alike) and the nodes' positions:
+/// the nodes' [`nested_dissection`], each node's three dofs together; and its inverse.
+pub fn dof_order(
+    (col_ptr, row_idx): (&[usize], &[usize]),
+    coords: &[[f64; 3]],
+) -> (Vec<usize>, Vec<usize>) {
+    let adjacency: Vec<Vec<u32>> = (0..coords.len())
+        .map(|k| {
+            let rows = &row_idx[col_ptr[3 * k]..col_ptr[3 * k + 1]];
+            rows.iter().step_by(3).map(|&r| (r / 3) as u32).collect()
+        })
+        .collect();
+    let nodes = nested_dissection(&adjacency, coords);
+    let forward: Vec<usize> = nodes
+        .iter()
+        .flat_map(|&k| (0..3).map(move |d| 3 * k as usize + d))
+        .collect();
+    let mut inverse = vec![0; forward.len()];
+    for (new, &old) in forward.iter().enumerate() {
+        inverse[old] = new;
+    }
+    (forward, inverse)
+}
+
 struct Dissection<'a> {
     adjacency: &'a [Vec<u32>],
     coords: &'a [[f64; 3]],

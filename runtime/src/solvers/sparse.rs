@@ -187,27 +187,6 @@ impl BlockPattern {
         })
     }
 
-    /// A fill-reducing elimination order of the free dofs for the symmetric factorizations
-    /// (nested dissection of the free nodes, each node's three dofs together) and its inverse.
-    pub fn fill_reducing_order(&self) -> (Vec<usize>, Vec<usize>) {
-        let adjacency: Vec<Vec<u32>> = (0..self.free_rest.len())
-            .map(|k| {
-                let rows = &self.row_idx[self.col_ptr[3 * k]..self.col_ptr[3 * k + 1]];
-                rows.iter().step_by(3).map(|&r| (r / 3) as u32).collect()
-            })
-            .collect();
-        let nodes = crate::solvers::ordering::nested_dissection(&adjacency, &self.free_rest);
-        let forward: Vec<usize> = nodes
-            .iter()
-            .flat_map(|&k| (0..3).map(move |d| 3 * k as usize + d))
-            .collect();
-        let mut inverse = vec![0; forward.len()];
-        for (new, &old) in forward.iter().enumerate() {
-            inverse[old] = new;
-        }
-        (forward, inverse)
-    }
-
     /// Declare the nodes that are mid-edge nodes of quadratic elements (`ends[node]`: the
     /// edge's corners), so that [`BlockPattern::linear_coarsening`] can interpolate them.
     pub fn with_edge_ends(mut self, ends: Vec<Option<[u32; 2]>>) -> Self {
@@ -923,10 +902,10 @@ pub struct SparseSolver {
     transpose: Vec<usize>,
     /// Relative tolerance of the symmetry test (the entries' round-off).
     symmetry: f64,
-    /// The fill-reducing ordering of the symmetric factorizations (dof `order[k]` is
-    /// eliminated k-th) and its inverse: nested dissection of the mesh
-    /// ([`crate::solvers::ordering`]).
-    order: (Vec<usize>, Vec<usize>),
+    /// The rest position of each free node, in dof order: the geometry of the symmetric
+    /// factorizations' fill-reducing order ([`crate::solvers::ordering::dof_order`]), computed
+    /// with their symbolic factorization.
+    free_rest: Vec<[f64; 3]>,
     /// The symbolic Cholesky factorization that Cholesky and LBLᵀ share.
     symbolic_cholesky: Option<SymbolicCholesky<usize>>,
     symbolic_lu: Option<SymbolicLu<usize>>,
@@ -973,7 +952,7 @@ impl SparseSolver {
             symbolic,
             transpose: p.transpose_map()?,
             symmetry,
-            order: p.fill_reducing_order(),
+            free_rest: p.free_rest.clone(),
             symbolic_cholesky: None,
             symbolic_lu: None,
             factor: None,
@@ -1142,8 +1121,10 @@ impl SparseSolver {
     /// order.
     fn symbolic_cholesky(&mut self) -> Result<(), String> {
         if self.symbolic_cholesky.is_none() {
-            let (forward, inverse) = &self.order;
-            let order = faer::perm::PermRef::new_checked(forward, inverse, forward.len());
+            let (col_ptr, row_idx) = (self.symbolic.col_ptr(), self.symbolic.row_idx());
+            let (forward, inverse) =
+                crate::solvers::ordering::dof_order((col_ptr, row_idx), &self.free_rest);
+            let order = faer::perm::PermRef::new_checked(&forward, &inverse, forward.len());
             self.symbolic_cholesky = Some(
                 factorize_symbolic_cholesky(
                     self.symbolic.as_ref(),
