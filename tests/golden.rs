@@ -112,8 +112,25 @@ fn specialization_cases_match_their_golden_wgsl() {
             ("(gap: 0.2 mm)", "(gap: 0.2 mm, friction: 0.5)"),
         ],
     );
+    // Explicit contact with a bounded obstacle: each step's path tested for an entry
+    // (collision detection, closed-form per node) before the projection.
+    let bounded = variant(
+        "finger_on_table.soft",
+        "finger_on_table-explicit-box",
+        &[
+            (
+                "integrator = quasi_static",
+                "integrator = semi_implicit_euler\n  dt = 20 us",
+            ),
+            (
+                "plane(point: [0, 0, -7] mm, normal: [0, 0, 1])",
+                "box(min: [-10, -10, -9] mm, max: [80, 20, -7] mm)",
+            ),
+        ],
+    );
     let cases: Vec<(&str, PathBuf, &str)> = vec![
         ("benchmark-1k-f64", ex("benchmark-1k.soft"), "f64"),
+        ("finger_on_table-explicit-box", bounded, "f32"),
         ("finger_on_table-explicit-friction", friction, "f32"),
         (
             "finger_on_table-implicit-friction",

@@ -788,3 +788,109 @@ fn implicit_friction_on_the_gpu_matches_the_cpu() {
         assert!(moved > 0.1 * MM, "{moved}");
     }
 }
+
+/// The falling cube (1.4 m/s at impact) onto a plate 20 µm thick, with a 20 µm gap, in steps
+/// of 50 µs: each step moves a node 70 µm, more than the plate and its gap together, so end
+/// positions alone would let every node pass through it.
+fn thin_plate_scene(name: &str) -> PathBuf {
+    variant(
+        name,
+        &[
+            (
+                "integrator = quasi_static",
+                "dt = 50 us\n  gravity = [-1000, 0, 0] m/s^2",
+            ),
+            ("duration = 1 s", "duration = 2 ms"),
+            ("  steps = 4\n", ""),
+            ("  fix held\n", ""),
+            (
+                "plane(point: [-0.05 mm + rise * ramp(t, 1 s), 0 mm, 0 mm], normal: [1, 0, 0])",
+                "box(min: [-1.02 mm + 0 * rise, -5 mm, -5 mm], max: [-1 mm, 15 mm, 15 mm])",
+            ),
+            ("gap: 0.1 mm", "gap: 0.02 mm"),
+        ],
+    )
+}
+
+#[test]
+fn a_fast_body_does_not_pass_through_a_thin_plate() {
+    let scene = load(&thin_plate_scene("thin_plate.soft"));
+    let mut sim = simulation(&scene);
+    let mut lowest = f64::MAX;
+    for _ in 0..40 {
+        let run = sim.run(None, Some(1)).unwrap();
+        let min = run.x.iter().map(|p| p[0]).fold(f64::MAX, f64::min);
+        assert!(
+            min > -MM,
+            "a node at x = {min} m, through the plate's top at -1 mm"
+        );
+        lowest = lowest.min(min);
+    }
+    // It landed on the plate and stays on it.
+    assert!(lowest < -MM + 0.02 * MM, "lowest {lowest} m");
+    if let Some(run) = gpu_against_cpu(&thin_plate_scene("thin_plate_gpu.soft")) {
+        assert!(run.x.iter().all(|p| p[0] > -MM));
+    }
+}
+
+/// The same fall onto a rod of 10 µm radius across the path of the cube's middle row of face
+/// nodes, and onto a sphere of 10 µm radius under its face's centre node: the paths of those
+/// nodes cross each obstacle and its gap in one step, through the closed-form tests of a
+/// cylinder's side and of a sphere. They may slide off the round top, but no step's path enters
+/// it.
+#[test]
+fn a_fast_body_does_not_pass_through_a_thin_rod_or_a_small_sphere() {
+    let rod = "cylinder(start: [-1.01 mm + 0 * rise, -5 mm, 5 mm], \
+               end: [-1.01 mm, 15 mm, 5 mm], radius: 0.01 mm)";
+    let ball = "sphere(center: [-1.01 mm + 0 * rise, 5 mm, 5 mm], radius: 0.01 mm)";
+    // Each obstacle's distance from a point, and whether a face node's path crosses it.
+    let rod_distance = |p: [f64; 3]| (p[0] + 1.01 * MM).hypot(p[2] - 5.0 * MM) - 0.01 * MM;
+    let ball_distance = |p: [f64; 3]| {
+        ((p[0] + 1.01 * MM).powi(2) + (p[1] - 5.0 * MM).powi(2) + (p[2] - 5.0 * MM).powi(2)).sqrt()
+            - 0.01 * MM
+    };
+    type Distance<'a> = &'a dyn Fn([f64; 3]) -> f64;
+    for (name, shape, distance) in [
+        ("ball.soft", ball, &ball_distance as Distance),
+        ("rod.soft", rod, &rod_distance),
+    ] {
+        let plate = "box(min: [-1.02 mm + 0 * rise, -5 mm, -5 mm], max: [-1 mm, 15 mm, 15 mm])";
+        let path = thin_plate_scene(name);
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace(plate, shape);
+        std::fs::write(&path, text).unwrap();
+        let scene = load(&path);
+        // Face nodes right above the obstacle: their fall goes through its middle.
+        let above: Vec<usize> = (0..scene.mesh.nodes.len())
+            .filter(|&n| {
+                let p = scene.mesh.nodes[n];
+                p[0].abs() < 1e-9 && distance([-MM, p[1], p[2]]) < 1e-9
+            })
+            .collect();
+        assert!(!above.is_empty(), "{name}: no face node above the obstacle");
+        let mut sim = simulation(&scene);
+        let mut closest = f64::MAX;
+        let mut before: Vec<[f64; 3]> = above.iter().map(|&n| scene.mesh.nodes[n]).collect();
+        for _ in 0..40 {
+            let run = sim.run(None, Some(1)).unwrap();
+            for (&n, from) in above.iter().zip(&mut before) {
+                let to = run.x[n];
+                // The straight path of the step stays outside.
+                for i in 0..=64 {
+                    let t = f64::from(i) / 64.0;
+                    let p = [0, 1, 2].map(|d| from[d] + t * (to[d] - from[d]));
+                    let d = distance(p);
+                    assert!(
+                        d > 0.0,
+                        "{name}: node {n} from {from:?} to {to:?}: inside at {p:?}"
+                    );
+                }
+                closest = closest.min(distance(to));
+                *from = to;
+            }
+        }
+        // They landed on it.
+        assert!(closest < 0.02 * MM, "{name}: closest {closest} m");
+    }
+}

@@ -2,7 +2,8 @@
 //! smooth barrier energy in the node kernels, so that static and implicit solves stay energy
 //! minimizations and their tangents, adjoints and Jacobian products come from the same passes;
 //! explicit steps solve the same barrier implicitly for each node's normal motion
-//! ([`project_step`]).
+//! ([`project_step`]), after a closed-form test of each node's path over the step against the
+//! obstacle ([`stop_at_entry`]: no node crosses a thin obstacle in one step).
 //!
 //! Node n of contact i (its lumped boundary area A_n > 0, filled by the host in the buffer
 //! `contact_area.i`) at signed distance d from obstacle i gets the energy κ_n·b(d) of IPC's
@@ -184,6 +185,44 @@ fn area_buffer(module: &mut Module, i: usize) -> BufferId {
     )
 }
 
+/// An obstacle's shape: its name and its arguments, lowered on demand.
+struct Shape<'p> {
+    name: &'p str,
+    args: &'p [crate::sema::hir::Arg],
+    lowerer: ExprLowerer<'p>,
+}
+
+impl<'p> Shape<'p> {
+    fn of(program: &'p Program, shape: &'p Expr) -> Result<Self, LowerError> {
+        let ExprKind::Call {
+            callee: Callee::Builtin(name),
+            args,
+        } = &shape.kind
+        else {
+            return Err(LowerError::new(
+                "an obstacle is `plane(…)`, `sphere(…)`, `box(…)` or `cylinder(…)`",
+            ));
+        };
+        Ok(Shape {
+            name,
+            args,
+            lowerer: ExprLowerer::new(program),
+        })
+    }
+
+    /// The components of argument `pname` (at position `i`).
+    fn vector(
+        &mut self,
+        k: &mut KernelBuilder,
+        pname: &str,
+        i: usize,
+    ) -> Result<Vec<V>, LowerError> {
+        let e = arg(self.args, pname, i)
+            .ok_or_else(|| LowerError::new(format!("the obstacle has no `{pname}`")))?;
+        Ok(flatten(&self.lowerer.lower(k, &Env::new(), e)?))
+    }
+}
+
 /// An obstacle's signed distance d and its gradient ∇d at the node position `x`.
 fn distance(
     program: &Program,
@@ -191,23 +230,11 @@ fn distance(
     shape: &Expr,
     x: [V; 3],
 ) -> Result<(V, [V; 3]), LowerError> {
-    let ExprKind::Call {
-        callee: Callee::Builtin(name),
-        args,
-    } = &shape.kind
-    else {
-        return Err(LowerError::new(
-            "an obstacle is `plane(…)`, `sphere(…)`, `box(…)` or `cylinder(…)`",
-        ));
-    };
-    let mut lw = ExprLowerer::new(program);
-    let mut vector = |k: &mut KernelBuilder, pname: &str, i: usize| -> Result<Vec<V>, LowerError> {
-        let e = arg(args, pname, i)
-            .ok_or_else(|| LowerError::new(format!("the obstacle has no `{pname}`")))?;
-        Ok(flatten(&lw.lower(k, &Env::new(), e)?))
-    };
+    let mut shape = Shape::of(program, shape)?;
+    let name = shape.name;
+    let mut vector = |k: &mut KernelBuilder, pname: &str, i: usize| shape.vector(k, pname, i);
     let tiny = k.b.constant(1e-30);
-    match name.as_str() {
+    match name {
         "plane" => {
             let p = vector(k, "point", 0)?;
             let n = vector(k, "normal", 1)?;
@@ -278,6 +305,223 @@ fn distance(
         other => Err(LowerError::new(format!(
             "`{other}(…)` is not an obstacle shape"
         ))),
+    }
+}
+
+/// Where a node's straight path x₀ + t·v (t ∈ [0, 1], one explicit step) first enters an
+/// obstacle inflated by `rho`, as explicit contact's collision detection needs it: `hit` (1 where
+/// the path enters within the step, else 0), the entry's t and the inflated shape's outward
+/// normal there. `None` for a plane: a half-space cannot be passed through, the projection
+/// brings back a node from any depth. A box inflates to a box, a cylinder to a capped cylinder
+/// of radius and half-length grown by `rho`, a sphere to a sphere; each is the intersection of
+/// convex pieces (slabs, an infinite cylinder, a ball) whose entry and exit parameters along the
+/// line are closed-form (linear or quadratic), so the test is O(1) per node: the path enters at
+/// the last of the pieces' entries if that comes before the first of their exits.
+fn swept_entry(
+    program: &Program,
+    k: &mut KernelBuilder,
+    shape: &Expr,
+    (x0, v): ([V; 3], [V; 3]),
+    rho: V,
+) -> Result<Option<SweptEntry>, LowerError> {
+    let mut shape = Shape::of(program, shape)?;
+    let name = shape.name;
+    let mut vector = |k: &mut KernelBuilder, pname: &str, i: usize| shape.vector(k, pname, i);
+    let pieces = match name {
+        "plane" => return Ok(None),
+        "box" => {
+            let lo = vector(k, "min", 0)?;
+            let hi = vector(k, "max", 1)?;
+            (0..3)
+                .map(|a| {
+                    let lo = k.b.sub(lo[a], rho);
+                    let hi = k.b.add(hi[a], rho);
+                    let axis = std::array::from_fn(|d| if d == a { 1.0 } else { 0.0 });
+                    let axis = axis.map(|c| k.b.constant(c));
+                    slab_crossing(&mut k.b, (x0[a], v[a]), (lo, hi), axis)
+                })
+                .collect::<Vec<_>>()
+        }
+        "sphere" => {
+            let c = vector(k, "center", 0)?;
+            let r = vector(k, "radius", 1)?[0];
+            let radius = k.b.add(r, rho);
+            let rel = [0, 1, 2].map(|d| k.b.sub(x0[d], c[d]));
+            vec![ball_crossing(&mut k.b, rel, v, radius)]
+        }
+        "cylinder" => {
+            let a = vector(k, "start", 0)?;
+            let b = vector(k, "end", 1)?;
+            let r = vector(k, "radius", 2)?[0];
+            let axis = [0, 1, 2].map(|d| k.b.sub(b[d], a[d]));
+            let len = norm(k, &axis);
+            let unit = [0, 1, 2].map(|d| k.b.div(axis[d], len));
+            let half = k.b.scale(0.5, len);
+            let mid = [0, 1, 2].map(|d| {
+                let h = k.b.mul(half, unit[d]);
+                k.b.add(a[d], h)
+            });
+            let rel = [0, 1, 2].map(|d| k.b.sub(x0[d], mid[d]));
+            let along = dot(k, unit, rel);
+            let speed_along = dot(k, unit, v);
+            let across = |k: &mut KernelBuilder, w: [V; 3], s: V| {
+                [0, 1, 2].map(|d| {
+                    let on_axis = k.b.mul(s, unit[d]);
+                    k.b.sub(w[d], on_axis)
+                })
+            };
+            let rel_across = across(k, rel, along);
+            let v_across = across(k, v, speed_along);
+            let radius = k.b.add(r, rho);
+            let reach = k.b.add(half, rho);
+            let low = k.b.neg(reach);
+            vec![
+                ball_crossing(&mut k.b, rel_across, v_across, radius),
+                slab_crossing(&mut k.b, (along, speed_along), (low, reach), unit),
+            ]
+        }
+        other => {
+            return Err(LowerError::new(format!(
+                "`{other}(…)` is not an obstacle shape"
+            )));
+        }
+    };
+    let b = &mut k.b;
+    let mut enter = pieces[0].enter;
+    let mut leave = pieces[0].leave;
+    let mut normal = pieces[0].normal;
+    for p in &pieces[1..] {
+        let later = b.cmp(CmpOp::Gt, p.enter, enter);
+        normal = [0, 1, 2].map(|d| b.select(later, p.normal[d], normal[d]));
+        enter = b.bin(BinOp::Max, enter, p.enter);
+        leave = b.bin(BinOp::Min, leave, p.leave);
+    }
+    let (zero, one) = (b.constant(0.0), b.constant(1.0));
+    let crosses = b.cmp(CmpOp::Le, enter, leave);
+    let after_start = b.cmp(CmpOp::Ge, enter, zero);
+    let within_step = b.cmp(CmpOp::Le, enter, one);
+    let hit = b.mul(crosses, after_start);
+    let hit = b.mul(hit, within_step);
+    Ok(Some(SweptEntry {
+        hit,
+        t: enter,
+        normal,
+    }))
+}
+
+/// [`swept_entry`]'s answer.
+struct SweptEntry {
+    hit: V,
+    t: V,
+    normal: [V; 3],
+}
+
+/// Where a line enters and leaves one convex piece of an inflated obstacle, and the piece's
+/// outward normal at the entry. A line that never meets the piece enters at +[`NO_LIMIT`]; one
+/// that never leaves it (parallel inside) enters at −[`NO_LIMIT`].
+struct Crossing {
+    enter: V,
+    leave: V,
+    normal: [V; 3],
+}
+
+/// Motion below this (m per step) counts as parallel to a slab or an axis.
+const PARALLEL: f64 = 1e-20;
+
+/// The slab lo ≤ s ≤ hi of the coordinate s₀ + t·ṡ along the unit `axis`.
+fn slab_crossing(
+    b: &mut crate::ir::Builder,
+    (s0, rate): (V, V),
+    (lo, hi): (V, V),
+    axis: [V; 3],
+) -> Crossing {
+    let (zero, one, far, near) = (
+        b.constant(0.0),
+        b.constant(1.0),
+        b.constant(NO_LIMIT),
+        b.constant(-NO_LIMIT),
+    );
+    let speed = b.un(UnOp::Abs, rate);
+    let parallel_limit = b.constant(PARALLEL);
+    let moving = b.cmp(CmpOp::Gt, speed, parallel_limit);
+    let safe = b.select(moving, rate, one);
+    let per_rate = b.div(one, safe);
+    let to_lo = b.sub(lo, s0);
+    let to_lo = b.mul(to_lo, per_rate);
+    let to_hi = b.sub(hi, s0);
+    let to_hi = b.mul(to_hi, per_rate);
+    let first = b.bin(BinOp::Min, to_lo, to_hi);
+    let last = b.bin(BinOp::Max, to_lo, to_hi);
+    // Parallel: inside the slab for every t, or never.
+    let above_lo = b.cmp(CmpOp::Ge, s0, lo);
+    let below_hi = b.cmp(CmpOp::Le, s0, hi);
+    let inside = b.mul(above_lo, below_hi);
+    let parallel_enter = b.select(inside, near, far);
+    let enter = b.select(moving, first, parallel_enter);
+    let leave = b.select(moving, last, far);
+    // It enters through the face it moves towards: the normal is against the motion.
+    let up = b.cmp(CmpOp::Gt, rate, zero);
+    let minus = b.constant(-1.0);
+    let side = b.select(up, minus, one);
+    Crossing {
+        enter,
+        leave,
+        normal: axis.map(|c| b.mul(side, c)),
+    }
+}
+
+/// The ball ‖w₀ + t·ẇ‖ ≤ `radius` (a sphere, or a cylinder's cross-section with w its radial
+/// vector).
+fn ball_crossing(b: &mut crate::ir::Builder, w0: [V; 3], rate: [V; 3], radius: V) -> Crossing {
+    let (zero, one, far, near) = (
+        b.constant(0.0),
+        b.constant(1.0),
+        b.constant(NO_LIMIT),
+        b.constant(-NO_LIMIT),
+    );
+    let squares = |b: &mut crate::ir::Builder, p: [V; 3], q: [V; 3]| {
+        let terms: Vec<V> = (0..3).map(|d| b.mul(p[d], q[d])).collect();
+        b.sum(&terms)
+    };
+    // A t² + 2 B t + C = 0.
+    let a = squares(b, rate, rate);
+    let half_b = squares(b, w0, rate);
+    let r2 = b.mul(radius, radius);
+    let c = squares(b, w0, w0);
+    let c = b.sub(c, r2);
+    let parallel_limit = b.constant(PARALLEL * PARALLEL);
+    let moving = b.cmp(CmpOp::Gt, a, parallel_limit);
+    let bb = b.mul(half_b, half_b);
+    let ac = b.mul(a, c);
+    let disc = b.sub(bb, ac);
+    let meets = b.cmp(CmpOp::Ge, disc, zero);
+    let disc = b.bin(BinOp::Max, disc, zero);
+    let root = b.un(UnOp::Sqrt, disc);
+    let safe_a = b.select(moving, a, one);
+    let per_a = b.div(one, safe_a);
+    let minus_b = b.neg(half_b);
+    let first = b.sub(minus_b, root);
+    let first = b.mul(first, per_a);
+    let last = b.add(minus_b, root);
+    let last = b.mul(last, per_a);
+    let first = b.select(meets, first, far);
+    let last = b.select(meets, last, near);
+    let inside = b.cmp(CmpOp::Le, c, zero);
+    let parallel_enter = b.select(inside, near, far);
+    let enter = b.select(moving, first, parallel_enter);
+    let leave = b.select(moving, last, far);
+    // The outward normal where the line enters (finite where it is not taken).
+    let t = b.select(meets, first, zero);
+    let at = [0, 1, 2].map(|d| {
+        let s = b.mul(t, rate[d]);
+        b.add(w0[d], s)
+    });
+    let tiny = b.constant(1e-30);
+    let safe_r = b.bin(BinOp::Max, radius, tiny);
+    Crossing {
+        enter,
+        leave,
+        normal: at.map(|c| b.div(c, safe_r)),
     }
 }
 
@@ -552,12 +796,13 @@ pub fn project_step(
     linear_only(module)?;
     let (mut x1, mut v1) = (state.x_new, state.v_new);
     for (i, st) in statements.iter().enumerate() {
-        let (d_new, normal) = distance(program, k, st.shape, x1)?;
         let (d_now, _) = distance(program, k, st.shape, state.x)?;
         let area = k.load(ArgSource::Own {
             buffer: area_buffer(module, i),
             component: 0,
         });
+        let stopped = stop_at_entry(program, k, st, &state, (d_now, area), (&mut x1, &mut v1))?;
+        let (d_new, normal) = distance(program, k, st.shape, x1)?;
         let stiffness = k.uniform(&stiffness_uniform(i));
         let b = &mut k.b;
         let (zero, one, tenth) = (b.constant(0.0), b.constant(1.0), b.constant(0.1));
@@ -610,10 +855,60 @@ pub fn project_step(
             v1[d] = b.add(v1[d], dv);
         }
         if let Some(mu) = st.friction {
-            (x1, v1) = coulomb_friction(b, (x1, v1), normal, (mu, shift), state.dt);
+            // The normal impulse of the step: the projection's and the stop's.
+            let impulse = match stopped {
+                Some(push) => b.add(shift, push),
+                None => shift,
+            };
+            (x1, v1) = coulomb_friction(b, (x1, v1), normal, (mu, impulse), state.dt);
         }
     }
     Ok(Some((x1, v1)))
+}
+
+/// Explicit contact's collision detection (SPEC §6.7): a contact node whose straight path over
+/// the step enters the obstacle inflated by ρ = min(ĝ, d₀)/2 (d₀ its distance before the step)
+/// has its predicted position moved back along the inflated shape's normal n at the entry onto
+/// the tangent plane there, by (1 − t)·(−n·Δx), and its velocity by that over dt: a node fast
+/// enough to cross a thin obstacle in one step stops on the side it came from, at least ρ
+/// clear of it (the plane supports the convex inflated shape), and the projection then
+/// resolves the gap as for any other node. The part of the motion along the tangent plane is
+/// kept. Returns the push (m, zero where the path does not enter), or `None` for a plane.
+fn stop_at_entry(
+    program: &Program,
+    k: &mut KernelBuilder,
+    st: &Statement,
+    state: &Predicted,
+    (d_now, area): (V, V),
+    (x1, v1): (&mut [V; 3], &mut [V; 3]),
+) -> Result<Option<V>, LowerError> {
+    let motion = [0, 1, 2].map(|d| k.b.sub(x1[d], state.x[d]));
+    let half_gap = k.b.constant(0.5 * st.gap);
+    let half_now = k.b.scale(0.5, d_now);
+    let rho = k.b.bin(BinOp::Min, half_gap, half_now);
+    let Some(entry) = swept_entry(program, k, st.shape, (state.x, motion), rho)? else {
+        return Ok(None);
+    };
+    let approach = dot(k, entry.normal, motion);
+    let b = &mut k.b;
+    let (zero, one) = (b.constant(0.0), b.constant(1.0));
+    let member = b.cmp(CmpOp::Gt, area, zero);
+    let clear = b.cmp(CmpOp::Gt, rho, zero);
+    let takes = b.mul(entry.hit, member);
+    let takes = b.mul(takes, clear);
+    let takes = b.mul(takes, state.free);
+    let rest = b.sub(one, entry.t);
+    let push = b.mul(rest, approach);
+    let push = b.neg(push);
+    let push = b.bin(BinOp::Max, push, zero);
+    let push = b.select(takes, push, zero);
+    for d in 0..3 {
+        let dx = b.mul(push, entry.normal[d]);
+        x1[d] = b.add(x1[d], dx);
+        let dv = b.div(dx, state.dt);
+        v1[d] = b.add(v1[d], dv);
+    }
+    Ok(Some(push))
 }
 
 /// The part of `v` across the unit `normal`, and its length kept off zero
