@@ -267,7 +267,7 @@ fn extrusion_refuses_what_it_cannot_mesh_with_a_clear_message() {
     let sphere =
         "[extrude]\nwall = 1\n[body]\nshape = \"sphere\"\ncenter = [0, 0, 0]\nradius = 10\n";
     let e = generate_text(sphere, None).unwrap_err();
-    assert!(e.contains("cylinders and boxes only"), "{e}");
+    assert!(e.contains("cylinders, boxes and prisms only"), "{e}");
     // A cavity askew to the axis.
     let askew = "[extrude]\nwall = 1\n[body]\nshape = \"cylinder\"\nstart = [0, 0, 0]\n\
                  end = [20, 0, 0]\nradius = 9\n[[cavity]]\nshape = \"cylinder\"\n\
@@ -346,4 +346,109 @@ fn a_box_cavity_is_graded_towards_its_edges() {
         (near - 0.2e-3).abs() < 1e-12,
         "shortest piece at the corner: {near}"
     );
+}
+
+/// `meshes/gripper.toml`: a U-shaped prism body (a palm and two fingers) extruded along y,
+/// seven box chambers per finger sharing one tag, a strain-limiting subregion. The notch between
+/// the fingers (outside the non-convex outline, inside its convex hull) stays empty, the
+/// solid's volume is exact, the chambers' tagged faces enclose their exact volume per finger.
+#[test]
+fn the_gripper_prism_meshes_its_palm_fingers_and_chambers_exactly() {
+    let spec_path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../meshes/gripper.toml");
+    let spec = MeshSpec::from_file(&spec_path).unwrap();
+    let g = generate(&spec, None, spec_path.parent().unwrap()).unwrap();
+    let m = &g.mesh;
+    let issues = m.validate();
+    assert!(!has_errors(&issues), "{issues:?}");
+    let mut volume = 0.0;
+    for e in 0..m.tets.len() {
+        let v = m.tet_volume(e);
+        assert!(v > 0.0, "tet {e} is not positive");
+        volume += v;
+        let c = m.tets[e].iter().fold([0.0; 3], |acc, &n| {
+            let p = m.nodes[n as usize];
+            [0, 1, 2].map(|d| acc[d] + p[d] / 4.0)
+        });
+        let in_notch = c[0] > 10e-3 && c[0] < 34e-3 && c[2] > 6e-3;
+        assert!(
+            !in_notch,
+            "tet {e} at {c:?} fills the gap between the fingers"
+        );
+    }
+    // Palm 44 × 6, fingers 2 × 10 × 54, all 12 wide, less 14 chambers of 6 × 9 × 5 (mm³).
+    let exact = (44.0 * 6.0 + 2.0 * 10.0 * 54.0) * 12.0 - 14.0 * 6.0 * 9.0 * 5.0;
+    assert!(
+        (g.reference_volume / 1e-9 - exact).abs() < 1e-6,
+        "{}",
+        g.reference_volume
+    );
+    assert!((volume / g.reference_volume - 1.0).abs() < 1e-9, "{volume}");
+    // One entry per chamber tag, each finger's seven cavities together.
+    assert_eq!(g.cavity_volumes.len(), 2, "{:?}", g.cavity_volumes);
+    for (tag, v) in &g.cavity_volumes {
+        assert!((v / 1e-9 - 7.0 * 270.0).abs() < 1e-6, "chamber {tag}: {v}");
+        // Its faces, wound into the solid (out of the chamber), enclose the same volume.
+        let enclosed: f64 = (m.tris.iter().zip(&m.tri_tags))
+            .filter(|(_, t)| *t == tag)
+            .map(|(tri, _)| {
+                let [a, b, c] = tri.map(|n| m.nodes[n as usize]);
+                let (u, w) = (
+                    [0, 1, 2].map(|d| b[d] - a[d]),
+                    [0, 1, 2].map(|d| c[d] - a[d]),
+                );
+                let cross = [
+                    u[1] * w[2] - u[2] * w[1],
+                    u[2] * w[0] - u[0] * w[2],
+                    u[0] * w[1] - u[1] * w[0],
+                ];
+                (0..3).map(|d| a[d] * cross[d]).sum::<f64>() / 6.0
+            })
+            .sum();
+        assert!(
+            (enclosed / v - 1.0).abs() < 1e-9,
+            "chamber {tag}: {enclosed} vs {v}"
+        );
+    }
+    // The strain-limiting layers and the palm's underside.
+    let limit = m.tet_tags.iter().filter(|&&t| t == 2).count();
+    assert!(limit > 0 && limit < m.tets.len() / 4, "{limit}");
+    let base = m.node_sets.get("base").expect("base");
+    assert!(!base.is_empty() && base.iter().all(|&n| m.nodes[n as usize][2].abs() < 1e-12));
+}
+
+#[test]
+fn a_prism_outline_must_be_a_simple_polygon() {
+    let prism = |outline: &str| {
+        format!(
+            "[extrude]\nwall = 1\n[body]\nshape = \"prism\"\naxis = \"z\"\nspan = [0, 5]\n\
+             outline = {outline}\n"
+        )
+    };
+    // An L-shaped plate meshes, and the same outline listed clockwise too.
+    for l in [
+        "[[0, 0], [10, 0], [10, 4], [4, 4], [4, 10], [0, 10]]",
+        "[[0, 10], [4, 10], [4, 4], [10, 4], [10, 0], [0, 0]]",
+    ] {
+        let g = generate_text(&prism(l), None).unwrap();
+        assert!((g.reference_volume / 1e-9 - 64.0 * 5.0).abs() < 1e-6);
+        let v: f64 = (0..g.mesh.tets.len()).map(|e| g.mesh.tet_volume(e)).sum();
+        assert!((v / g.reference_volume - 1.0).abs() < 1e-9, "{v}");
+    }
+    // A bow tie crosses itself; two points enclose nothing.
+    for bad in ["[[0, 0], [10, 10], [10, 0], [0, 10]]", "[[0, 0], [10, 0]]"] {
+        let e = generate_text(&prism(bad), None).unwrap_err();
+        assert!(e.contains("outline"), "{e}");
+    }
+    let e = generate_text(
+        &prism("[[0, 0], [1, 0], [0, 1]]").replace("axis = \"z\"\n", ""),
+        None,
+    )
+    .unwrap_err();
+    assert!(e.contains("needs `axis`"), "{e}");
+    // Stuffing meshes a prism too (its signed distance is exact): an L at resolution 0.5.
+    let stuffed = prism("[[0, 0], [10, 0], [10, 4], [4, 4], [4, 10], [0, 10]]")
+        .replace("[extrude]\nwall = 1\n", "resolution = 0.5\n");
+    let g = generate_text(&stuffed, None).unwrap();
+    let v: f64 = (0..g.mesh.tets.len()).map(|e| g.mesh.tet_volume(e)).sum();
+    assert!((v / g.reference_volume - 1.0).abs() < 0.02, "{v}");
 }

@@ -133,27 +133,57 @@ fn outline_of(
                 [max[u], max[v]],
                 [min[u], max[v]],
             ];
-            let mut points = Vec::new();
-            for k in 0..4 {
-                let (p, q) = (corners[k], corners[(k + 1) % 4]);
-                let len = ((q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2)).sqrt();
-                let at = graded(len, corner, wall);
-                for a in &at[..at.len() - 1] {
-                    let s = a / len;
-                    points.push([p[0] + s * (q[0] - p[0]), p[1] + s * (q[1] - p[1])]);
-                }
-            }
             Ok(Outline {
-                points,
+                points: polygon_points(&corners, corner, wall),
                 circle: None,
                 span: [min[axis], max[axis]],
             })
         }
+        Shape::Prism {
+            axis: along,
+            span,
+            outline,
+        } => {
+            if *along != axis {
+                return Err(MeshError::spec(format!(
+                    "{what}: [extrude] needs prisms along the extrusion axis"
+                )));
+            }
+            // The outline's coordinates are in x, y, z order; the section's in (u, v).
+            let mut corners: Vec<[f64; 2]> = outline
+                .iter()
+                .map(|&q| if axis == 1 { [q[1], q[0]] } else { q })
+                .collect();
+            if super::sdf::twice_area(&corners) < 0.0 {
+                corners.reverse();
+            }
+            Ok(Outline {
+                points: polygon_points(&corners, corner, wall),
+                circle: None,
+                span: *span,
+            })
+        }
         _ => Err(MeshError::spec(format!(
-            "{what}: [extrude] meshes cylinders and boxes only (use the stuffing mesher for \
-             spheres and STL surfaces)"
+            "{what}: [extrude] meshes cylinders, boxes and prisms only (use the stuffing mesher \
+             for spheres and STL surfaces)"
         ))),
     }
+}
+
+/// The points of a polygon's outline: its corners and each side divided into pieces of at most
+/// `wall`, graded down to `corner` at both ends.
+fn polygon_points(corners: &[[f64; 2]], corner: f64, wall: f64) -> Vec<[f64; 2]> {
+    let mut points = Vec::new();
+    for k in 0..corners.len() {
+        let (p, q) = (corners[k], corners[(k + 1) % corners.len()]);
+        let len = ((q[0] - p[0]).powi(2) + (q[1] - p[1]).powi(2)).sqrt();
+        let at = graded(len, corner, wall);
+        for a in &at[..at.len() - 1] {
+            let s = a / len;
+            points.push([p[0] + s * (q[0] - p[0]), p[1] + s * (q[1] - p[1])]);
+        }
+    }
+    points
 }
 
 /// Winding-number test of a point against a closed polygon.
@@ -212,6 +242,7 @@ pub fn extrude(
         Shape::Cylinder { a, b, .. } => cylinder_axis(*a, *b).ok_or_else(|| {
             MeshError::spec("[extrude]: the body cylinder must be parallel to x, y or z")
         })?,
+        Shape::Prism { axis, .. } => *axis,
         _ => box_axis,
     };
     // The body's corners are convex (no singularity): only cavities are graded.
@@ -311,16 +342,17 @@ pub fn extrude(
             [p.x, p.y]
         })
         .collect();
-    // Each triangle: which cavity it lies in (None: solid in every layer).
+    // Each triangle of the body's section (a non-convex outline leaves triangles of the
+    // convex hull outside it): which cavity it lies in (None: solid in every layer).
     let triangles: Vec<([u32; 3], Option<usize>)> = cdt
         .inner_faces()
-        .map(|f| {
+        .filter_map(|f| {
             let vs = f.vertices().map(|v| v.fix().index() as u32);
             let c = vs.iter().fold([0.0; 2], |acc, &v| {
                 let p = section_points[v as usize];
                 [acc[0] + p[0] / 3.0, acc[1] + p[1] / 3.0]
             });
-            (vs, holes.iter().position(|h| inside(&h.points, c)))
+            inside(&outer.points, c).then(|| (vs, holes.iter().position(|h| inside(&h.points, c))))
         })
         .collect();
     let mut ends: Vec<f64> = std::iter::once(&outer)

@@ -9,8 +9,10 @@
 //! tag = 1
 //! name = "solid"
 //! [body]
-//! shape = "box"          # or "cylinder" (start, end, radius), "sphere" (center, radius)
-//!                        # or "stl" (path)
+//! shape = "box"          # or "cylinder" (start, end, radius), "sphere" (center, radius),
+//!                        # "prism" (axis, span = [from, to], outline = [[a, b], …]: a
+//!                        # polygon across the axis, its other two coordinates in x, y, z
+//!                        # order, extruded over span) or "stl" (path)
 //! min = [0, 0, 0]
 //! max = [60, 10, 10]
 //! [[cavity]]
@@ -68,6 +70,11 @@ pub struct ShapeSpec {
     pub center: Option<[f64; 3]>,
     pub radius: Option<f64>,
     pub path: Option<PathBuf>,
+    /// Prism only: its axis ("x", "y" or "z"), its extent along it and its cross-section (the
+    /// two other coordinates of each corner, in x, y, z order).
+    pub axis: Option<String>,
+    pub span: Option<[f64; 2]>,
+    pub outline: Option<Vec<[f64; 2]>>,
     /// Cavities only: surface tag and name.
     pub tag: Option<i32>,
     pub name: Option<String>,
@@ -234,10 +241,77 @@ fn shape_of(
             }
             Ok(Shape::Surface(surf))
         }
+        "prism" => prism_of(s, what),
         other => Err(MeshError::spec(format!(
-            "{what}: unknown shape `{other}` (use box, cylinder, sphere or stl)"
+            "{what}: unknown shape `{other}` (use box, cylinder, sphere, prism or stl)"
         ))),
     }
+}
+
+/// A `prism` shape: a simple polygon of at least three corners, extruded over a positive span.
+fn prism_of(s: &ShapeSpec, what: &str) -> Result<Shape, MeshError> {
+    let axis = match s.axis.as_deref() {
+        Some("x") => 0,
+        Some("y") => 1,
+        Some("z") => 2,
+        _ => {
+            return Err(MeshError::spec(format!(
+                "{what}: prism needs `axis` = \"x\", \"y\" or \"z\""
+            )));
+        }
+    };
+    let span = s
+        .span
+        .filter(|[a, b]| a.is_finite() && b.is_finite() && b > a)
+        .ok_or_else(|| {
+            MeshError::spec(format!(
+                "{what}: prism needs `span` = [from, to], from < to"
+            ))
+        })?;
+    let outline = s.outline.clone().unwrap_or_default();
+    if outline.len() < 3 || outline.iter().flatten().any(|x| !x.is_finite()) {
+        return Err(MeshError::spec(format!(
+            "{what}: prism needs an `outline` of at least three finite corners"
+        )));
+    }
+    let n = outline.len();
+    let crosses = |i: usize, j: usize| {
+        let (a, b, c, d) = (
+            outline[i],
+            outline[(i + 1) % n],
+            outline[j],
+            outline[(j + 1) % n],
+        );
+        let side = |p: [f64; 2], q: [f64; 2], r: [f64; 2]| {
+            (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
+        };
+        let (s1, s2, s3, s4) = (side(a, b, c), side(a, b, d), side(c, d, a), side(c, d, b));
+        if s1 == 0.0 && s2 == 0.0 {
+            // Collinear: they cross where their extents along the line overlap.
+            let k = if (b[0] - a[0]).abs() >= (b[1] - a[1]).abs() {
+                0
+            } else {
+                1
+            };
+            let (lo1, hi1) = (a[k].min(b[k]), a[k].max(b[k]));
+            let (lo2, hi2) = (c[k].min(d[k]), c[k].max(d[k]));
+            return lo1 <= hi2 && lo2 <= hi1;
+        }
+        s1 * s2 <= 0.0 && s3 * s4 <= 0.0
+    };
+    let adjacent = |i: usize, j: usize| j == i + 1 || (i == 0 && j == n - 1);
+    let simple = (0..n).all(|i| (i + 1..n).all(|j| adjacent(i, j) || !crosses(i, j)));
+    if !simple || sdf::twice_area(&outline).abs() <= 0.0 {
+        return Err(MeshError::spec(format!(
+            "{what}: the prism's `outline` crosses itself or encloses no area: list its corners \
+             in order around it"
+        )));
+    }
+    Ok(Shape::Prism {
+        axis,
+        span,
+        outline,
+    })
 }
 
 /// Generate the mesh a spec describes. `resolution` overrides the spec's. `base_dir` resolves
@@ -289,10 +363,15 @@ pub fn generate(
     }
     let reference_volume =
         (body.volume() - cavities.iter().map(|c| c.0.volume()).sum::<f64>()) * s * s * s;
-    let cavity_volumes: Vec<(i32, f64)> = cavities
-        .iter()
-        .map(|c| (c.1, c.0.volume() * s * s * s))
-        .collect();
+    // Per tag: cavities that share one (a PneuNet's chambers) are one chamber.
+    let mut cavity_volumes: Vec<(i32, f64)> = Vec::new();
+    for c in &cavities {
+        let v = c.0.volume() * s * s * s;
+        match cavity_volumes.iter_mut().find(|(t, _)| *t == c.1) {
+            Some((_, total)) => *total += v,
+            None => cavity_volumes.push((c.1, v)),
+        }
+    }
     if let Some(k) = &spec.kuhn {
         let (Shape::Box { min, max }, true) = (&body, cavities.len() <= 1) else {
             return Err(MeshError::spec(

@@ -22,6 +22,58 @@ pub enum Shape {
     },
     /// A closed triangle surface (e.g. from STL).
     Surface(TriSurface),
+    /// A prism: the simple polygon `outline` in the plane across `axis` (its points' two other
+    /// coordinates in x, y, z order: (y, z) for x, (x, z) for y, (x, y) for z), extruded from
+    /// `span[0]` to `span[1]` along the axis. Any polygon: a U-shaped gripper's palm and
+    /// fingers, a finger's side profile.
+    Prism {
+        axis: usize,
+        span: [f64; 2],
+        outline: Vec<[f64; 2]>,
+    },
+}
+
+/// The two coordinates of a point across `axis`, in x, y, z order.
+pub fn across(axis: usize, p: [f64; 3]) -> [f64; 2] {
+    let [a, b] = across_axes(axis);
+    [p[a], p[b]]
+}
+
+/// The two axes across `axis`, in x, y, z order.
+pub fn across_axes(axis: usize) -> [usize; 2] {
+    match axis {
+        0 => [1, 2],
+        1 => [0, 2],
+        _ => [0, 1],
+    }
+}
+
+/// Signed distance from `p` to the simple polygon `poly` in the plane (negative inside).
+fn polygon_distance(poly: &[[f64; 2]], p: [f64; 2]) -> f64 {
+    let mut d2 = f64::INFINITY;
+    let mut inside = false;
+    for i in 0..poly.len() {
+        let (a, b) = (poly[i], poly[(i + 1) % poly.len()]);
+        let e = [b[0] - a[0], b[1] - a[1]];
+        let w = [p[0] - a[0], p[1] - a[1]];
+        let t = ((w[0] * e[0] + w[1] * e[1]) / (e[0] * e[0] + e[1] * e[1])).clamp(0.0, 1.0);
+        let r = [w[0] - t * e[0], w[1] - t * e[1]];
+        d2 = d2.min(r[0] * r[0] + r[1] * r[1]);
+        if (a[1] > p[1]) != (b[1] > p[1]) && p[0] < a[0] + (p[1] - a[1]) / (b[1] - a[1]) * e[0] {
+            inside = !inside;
+        }
+    }
+    if inside { -d2.sqrt() } else { d2.sqrt() }
+}
+
+/// Twice the signed area of a polygon (positive counter-clockwise).
+pub fn twice_area(poly: &[[f64; 2]]) -> f64 {
+    (0..poly.len())
+        .map(|i| {
+            let (a, b) = (poly[i], poly[(i + 1) % poly.len()]);
+            a[0] * b[1] - b[0] * a[1]
+        })
+        .sum()
 }
 
 /// A closed, consistently wound triangle surface.
@@ -178,6 +230,16 @@ impl Shape {
             }
             Shape::Sphere { c, r } => norm(sub(p, *c)) - r,
             Shape::Surface(s) => s.dist(p),
+            Shape::Prism {
+                axis,
+                span,
+                outline,
+            } => {
+                let dr = polygon_distance(outline, across(*axis, p));
+                let da = (p[*axis] - span[1]).max(span[0] - p[*axis]);
+                let outside = norm([dr.max(0.0), da.max(0.0), 0.0]);
+                outside + dr.max(da).min(0.0)
+            }
         }
     }
 
@@ -201,6 +263,21 @@ impl Shape {
             }
             Shape::Sphere { c, r } => (c.map(|x| x - r), c.map(|x| x + r)),
             Shape::Surface(s) => (s.lo, s.hi),
+            Shape::Prism {
+                axis,
+                span,
+                outline,
+            } => {
+                let (mut lo, mut hi) = ([span[0]; 3], [span[1]; 3]);
+                for (k, &a) in across_axes(*axis).iter().enumerate() {
+                    lo[a] = outline.iter().map(|q| q[k]).fold(f64::INFINITY, f64::min);
+                    hi[a] = outline
+                        .iter()
+                        .map(|q| q[k])
+                        .fold(f64::NEG_INFINITY, f64::max);
+                }
+                (lo, hi)
+            }
         }
     }
 
@@ -239,7 +316,7 @@ impl Shape {
                     [0, 1, 2].map(|i| a[i] + u[i] * tm + rm[i] * k)
                 })
             }
-            Shape::Box { .. } | Shape::Surface(_) => None,
+            Shape::Box { .. } | Shape::Surface(_) | Shape::Prism { .. } => None,
         }
     }
 
@@ -250,6 +327,9 @@ impl Shape {
             Shape::Cylinder { a, b, r } => std::f64::consts::PI * r * r * norm(sub(*b, *a)),
             Shape::Sphere { r, .. } => 4.0 / 3.0 * std::f64::consts::PI * r * r * r,
             Shape::Surface(s) => s.volume(),
+            Shape::Prism { span, outline, .. } => {
+                0.5 * twice_area(outline).abs() * (span[1] - span[0])
+            }
         }
     }
 }
