@@ -336,6 +336,41 @@ fn the_contact_force_is_a_loss_term_with_exact_gradients() {
     );
 }
 
+/// `force(OBSTACLE, on: SET)`: the force through the contact nodes of one node set only (part
+/// of the pressed face), equal to the per-node report summed over them, with exact gradients.
+#[test]
+fn the_contact_force_on_a_node_set_is_its_share_with_exact_gradients() {
+    let path = variant(
+        "force_on.soft",
+        &[(
+            "loss = mean(n in bottom) x[n].x / 1 mm",
+            "nodes lower = select(body, y < 4 mm)\nloss = force(floor, on: lower).x / 1 N",
+        )],
+    );
+    let scene = load(&path);
+    let mut sim = simulation(&scene);
+    let run = sim.run(None, None).unwrap();
+    let share: f64 = node_contacts(&scene, &sim)
+        .iter()
+        .filter(|(rest, ..)| rest[1] < 4.0 * MM)
+        .map(|(_, f, ..)| f[0])
+        .sum();
+    let (loss, total) = (run.loss.unwrap(), run.contact[0].force[0]);
+    assert!(
+        (loss - share).abs() < 1e-12 * total,
+        "{loss} N against {share} N"
+    );
+    assert!(
+        loss > 0.1 * total && loss < 0.9 * total,
+        "{loss} N of {total} N"
+    );
+    check_gradients(
+        &scene,
+        &[("param.rise", 1e-3 * MM), ("param.mu", 100.0)],
+        1e-6,
+    );
+}
+
 #[test]
 fn the_vtk_frames_carry_the_contact_pressure() {
     let scene = load(&fixture());

@@ -212,10 +212,12 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
     ),
     b!(
         "force",
-        "force(obstacle) -> force[3]",
+        "force(obstacle, on: node set) -> force[3]",
         ["obstacle"],
         "The total force (N) the obstacle exerts on the bodies in contact with it at the state \
-         the loss reads, summed over their contact nodes: a loss term (`force(table).z`)."
+         the loss reads, summed over their contact nodes: a loss term (`force(table).z`). \
+         `on:` (optional) sums over the contact nodes of one node set only (one finger's grip: \
+         `force(object, on: left).x`)."
     ),
     b!(
         "norm",

@@ -95,12 +95,14 @@ pub fn bodies(program: &Program) -> Vec<ContactBody> {
 }
 
 /// The total force (N) obstacle `obstacle` exerts through its statements' contact nodes at the
-/// positions `state.x.N.d` (the loss's reading of the node state): `force(OBSTACLE)`.
+/// positions `state.x.N.d` (the loss's reading of the node state): `force(OBSTACLE)`, or with
+/// `on` only through the contact nodes in that set: `force(OBSTACLE, on: SET)`.
 pub fn total_force(
     program: &Program,
     k: &mut KernelBuilder,
     obstacle: &str,
     nodes: &[ContactNodes],
+    on: Option<&std::collections::HashSet<u32>>,
 ) -> Result<[V; 3], LowerError> {
     let zero = k.b.constant(0.0);
     let mut total = [zero; 3];
@@ -118,6 +120,9 @@ pub fn total_force(
             .get(i)
             .ok_or_else(|| LowerError::new("a contact without its nodes"))?;
         for (&n, &a) in set.nodes.iter().zip(&set.areas) {
+            if on.is_some_and(|members| !members.contains(&n)) {
+                continue;
+            }
             let pos = [0, 1, 2].map(|d| k.uniform(&format!("state.x.{n}.{d}")));
             let area = k.b.constant(a);
             let (f, _) = barrier(program, k, i, st, pos, area)?;

@@ -636,7 +636,25 @@ impl<'p> ExprLowerer<'p> {
         let nodes = self.contact_nodes.as_ref().ok_or_else(|| {
             LowerError::new("`force(…)` reads the contact at a state: the loss may read it")
         })?;
-        let f = super::contact::total_force(self.program, k, &obstacle, nodes)?;
+        let on = match crate::sema::hir::arg(args, "on", 1).map(|e| &e.kind) {
+            None => None,
+            Some(ExprKind::Name(Name::Global(id))) => {
+                let set = &self.program.decl(*id).name;
+                let members = self.node_sets.get(set).ok_or_else(|| {
+                    LowerError::new(format!(
+                        "`force(…, on: {set})` is evaluated only in the loss"
+                    ))
+                })?;
+                Some(
+                    members
+                        .iter()
+                        .copied()
+                        .collect::<std::collections::HashSet<u32>>(),
+                )
+            }
+            Some(_) => return Err(LowerError::new("`on:` takes a node set")),
+        };
+        let f = super::contact::total_force(self.program, k, &obstacle, nodes, on.as_ref())?;
         Ok(LVal::A(f.iter().map(|&v| LVal::S(v)).collect()))
     }
 

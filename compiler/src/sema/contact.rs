@@ -154,11 +154,33 @@ impl Checker {
     }
 
     /// `force(OBSTACLE)`: the total force (N, force[3]) the obstacle exerts on the bodies in
-    /// contact with it, at the state the loss reads.
+    /// contact with it, at the state the loss reads; `force(OBSTACLE, on: SET)` on the nodes of
+    /// a node set only (one finger of a gripper).
     pub(super) fn check_contact_force(&mut self, e: &Expr, args: &[Arg]) -> Typed {
-        let Some(s) = self.bind("force", e.span, &[("obstacle", true)], args) else {
+        let Some(s) = self.bind("force", e.span, &[("obstacle", true), ("on", false)], args) else {
             return Typed::error();
         };
+        if let Some(on) = s[1] {
+            let ExprKind::Name(id) = &on.kind else {
+                self.err(Diagnostic::error(
+                    "E0203",
+                    on.span,
+                    "`on:` takes the name of a node set, e.g. `force(table, on: left_finger)`",
+                ));
+                return Typed::error();
+            };
+            match self.global_kind(id) {
+                Some(SymKind::Nodes) => self.check_expr(on),
+                Some(k) => {
+                    self.wrong_kind(id, k, "`force(…, on: …)` takes a node set", None);
+                    return Typed::error();
+                }
+                None => {
+                    self.check_expr(on);
+                    return Typed::error();
+                }
+            };
+        }
         let arg = s[0].expect("required");
         let ExprKind::Name(id) = &arg.kind else {
             self.err(Diagnostic::error(
