@@ -180,7 +180,14 @@ impl Resolved {
         };
         let contacts =
             super::area::contact_nodes(mesh, &crate::lower::contact::bodies(program), &node_sets);
-        let loss = lower_loss(program, &node_sets, &element_sets, &node_weights, &contacts)?;
+        let loss = lower_loss(
+            program,
+            &node_sets,
+            &element_sets,
+            &node_weights,
+            &contacts,
+            mesh,
+        )?;
         let sensors = lower_sensors(
             program,
             &kernels.sensors,

@@ -227,12 +227,14 @@ pub(super) fn lower_loss(
     element_sets: &[(String, Vec<u32>)],
     node_weights: &HashMap<String, Vec<f64>>,
     contacts: &[crate::lower::contact::ContactNodes],
+    mesh: &dyn super::bind::MeshView,
 ) -> Result<Option<LossKernels>, String> {
     let Some(decl) = &program.loss else {
         return Ok(None);
     };
     let mut lw = ExprLowerer::new(program);
     lw.contact_nodes = Some(contacts.to_vec());
+    lw.elements = Some((mesh.tets().to_vec(), mesh.nodes().to_vec()));
     lw.runtime_names = vec!["t_end", "dt"];
     lw.node_sets = node_sets.iter().cloned().collect::<HashMap<_, _>>();
     lw.node_weights = node_weights.clone();

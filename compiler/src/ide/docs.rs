@@ -211,9 +211,17 @@ pub const BUILTIN_DOCS: &[BuiltinDoc] = &[
         "`x` limited to [lo, hi]; all of one dimension."
     ),
     b!(
+        "stretch",
+        "stretch(element) -> dimensionless",
+        ["element"],
+        "The largest principal stretch of an element bound by a reduction over an element set, \
+         at the state the loss reads (√ of the largest eigenvalue of FᵀF): a strain limit as a \
+         loss term, `sum(e in walls) max(stretch(e) - 1.3, 0)^2`."
+    ),
+    b!(
         "force",
         "force(obstacle, on: node set) -> force[3]",
-        ["obstacle"],
+        ["obstacle", "on"],
         "The total force (N) the obstacle exerts on the bodies in contact with it at the state \
          the loss reads, summed over their contact nodes: a loss term (`force(table).z`). \
          `on:` (optional) sums over the contact nodes of one node set only (one finger's grip: \

@@ -130,6 +130,9 @@ pub struct ExprLowerer<'p> {
     pub sensors: Option<Vec<Expr>>,
     /// The loss: each `contact` statement's nodes, over which `force(OBSTACLE)` sums.
     pub contact_nodes: Option<Vec<super::contact::ContactNodes>>,
+    /// The loss: each element's corners and the rest positions of the nodes, from which
+    /// `stretch(e)` computes the element's deformation.
+    pub elements: Option<(Vec<[u32; 4]>, Vec<[f64; 3]>)>,
 }
 
 impl<'p> ExprLowerer<'p> {
@@ -151,6 +154,7 @@ impl<'p> ExprLowerer<'p> {
             in_sim_scope: true,
             sensors: None,
             contact_nodes: None,
+            elements: None,
         }
     }
 
@@ -658,6 +662,23 @@ impl<'p> ExprLowerer<'p> {
         Ok(LVal::A(f.iter().map(|&v| LVal::S(v)).collect()))
     }
 
+    /// `stretch(e)` in the loss: the largest principal stretch of the element bound to `e`.
+    fn stretch(&mut self, k: &mut KernelBuilder, args: &[Arg]) -> Result<LVal, LowerError> {
+        let element = match args.first().map(|a| &a.value.kind) {
+            Some(ExprKind::Name(Name::Local(var))) => self.element_binders.get(var).copied(),
+            _ => None,
+        }
+        .ok_or_else(|| LowerError::new("`stretch` takes an element bound by `sum(e in SET)`"))?;
+        let (tets, rest) = self.elements.as_ref().ok_or_else(|| {
+            LowerError::new("`stretch(…)` reads the deformation at a state: the loss may read it")
+        })?;
+        let corners = tets[element as usize];
+        let at_rest = corners.map(|n| rest[n as usize]);
+        Ok(LVal::S(super::stretch::largest_stretch(
+            k, corners, at_rest,
+        )?))
+    }
+
     fn call(
         &mut self,
         k: &mut KernelBuilder,
@@ -688,6 +709,9 @@ impl<'p> ExprLowerer<'p> {
         };
         if name == "force" {
             return self.contact_force(k, args);
+        }
+        if name == "stretch" {
+            return self.stretch(k, args);
         }
         let vals: Vec<LVal> = args
             .iter()

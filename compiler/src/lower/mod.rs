@@ -7,6 +7,7 @@ pub mod fem;
 pub mod quadratic;
 pub mod scene;
 pub mod springs;
+pub mod stretch;
 
 use std::fmt;
 

@@ -58,6 +58,7 @@ pub const FUNCTIONS: &[&str] = &[
     "inside",
     // simulation
     "force",
+    "stretch",
     "auto",
     "springs",
     "csv",
@@ -252,6 +253,7 @@ impl Checker {
                 }
             }
             "force" => self.check_contact_force(e, args),
+            "stretch" => self.check_stretch(e, args),
             "dot" | "cross" => {
                 let Some(s) = self.bind(name, sp, &[("a", true), ("b", true)], args) else {
                     return Typed::error();

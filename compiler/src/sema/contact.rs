@@ -219,6 +219,41 @@ impl Checker {
         Typed::of(Ty::vec3(force), Var::State)
     }
 
+    /// `stretch(e)`: the largest principal stretch (dimensionless) of the element `e` of a
+    /// reduction, at the state the loss reads.
+    pub(super) fn check_stretch(&mut self, e: &Expr, args: &[Arg]) -> Typed {
+        let Some(s) = self.bind("stretch", e.span, &[("element", true)], args) else {
+            return Typed::error();
+        };
+        let arg = s[0].expect("required");
+        let t = self.check_expr(arg);
+        if t.ty.is_error() {
+            return Typed::error();
+        }
+        if t.ty != Ty::Obj(Obj::Element) {
+            let msg = format!(
+                "`stretch` takes an element bound by a reduction, e.g. \
+                 `max(e in walls) stretch(e)`, found {}",
+                t.ty
+            );
+            self.err(Diagnostic::error("E0204", arg.span, msg));
+            return Typed::error();
+        }
+        if !self.ctx.contact_force {
+            self.err(
+                Diagnostic::error(
+                    "E0320",
+                    e.span,
+                    "`stretch(…)` cannot be used here: it is the deformation at a state the \
+                     loss reads",
+                )
+                .with_hint("read it in the loss (or a top-level `let` the loss uses)"),
+            );
+            return Typed::error();
+        }
+        Typed::of(Ty::scalar(Dim::NONE), Var::State)
+    }
+
     /// `contact BODY with OBSTACLE (gap: …, stiffness: …)`; `seen` the pairs already declared.
     pub(super) fn check_contact(
         &mut self,
