@@ -125,7 +125,8 @@ fn inverse(m: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
     };
     let det = m[0][0] * cof(0, 0) + m[0][1] * cof(0, 1) + m[0][2] * cof(0, 2);
     let scale = m.iter().flatten().fold(0.0f64, |a, x| a.max(x.abs()));
-    if !(det.abs() > 1e-12 * scale.powi(3)) {
+    // Also refuses a NaN determinant.
+    if det.abs().partial_cmp(&(1e-12 * scale.powi(3))) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     Some(std::array::from_fn(|r| {
@@ -141,9 +142,9 @@ mod tests {
     fn inverse_of_a_rest_shape() {
         let m = [[2.0, 0.5, 0.0], [0.0, 1.0, 0.3], [0.1, 0.0, 3.0]];
         let inv = inverse(m).unwrap();
-        for r in 0..3 {
+        for (r, row) in m.iter().enumerate() {
             for c in 0..3 {
-                let e: f64 = (0..3).map(|k| m[r][k] * inv[k][c]).sum();
+                let e: f64 = (0..3).map(|k| row[k] * inv[k][c]).sum();
                 assert!((e - if r == c { 1.0 } else { 0.0 }).abs() < 1e-14);
             }
         }
