@@ -144,7 +144,7 @@ mod tests {
         let inv = inverse(m).unwrap();
         for (r, row) in m.iter().enumerate() {
             for c in 0..3 {
-                let e: f64 = (0..3).map(|k| row[k] * inv[k][c]).sum();
+                let e: f64 = row.iter().zip(&inv).map(|(a, i)| a * i[c]).sum();
                 assert!((e - if r == c { 1.0 } else { 0.0 }).abs() < 1e-14);
             }
         }
