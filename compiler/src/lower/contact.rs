@@ -276,12 +276,7 @@ fn distance(
             Ok((d, grad))
         }
         "cylinder" => {
-            let a = vector(k, "start", 0)?;
-            let b = vector(k, "end", 1)?;
-            let r = vector(k, "radius", 2)?[0];
-            let axis = [0, 1, 2].map(|d| k.b.sub(b[d], a[d]));
-            let len = norm(k, &axis);
-            let unit = [0, 1, 2].map(|d| k.b.div(axis[d], len));
+            let (a, unit, len, r) = cylinder_frame(k, &mut vector)?;
             // Axial position from the middle, radial vector and its length.
             let rel = [0, 1, 2].map(|d| k.b.sub(x[d], a[d]));
             let along = dot(k, unit, rel);
@@ -355,12 +350,7 @@ fn swept_entry(
             vec![ball_crossing(&mut k.b, rel, v, radius)]
         }
         "cylinder" => {
-            let a = vector(k, "start", 0)?;
-            let b = vector(k, "end", 1)?;
-            let r = vector(k, "radius", 2)?[0];
-            let axis = [0, 1, 2].map(|d| k.b.sub(b[d], a[d]));
-            let len = norm(k, &axis);
-            let unit = [0, 1, 2].map(|d| k.b.div(axis[d], len));
+            let (a, unit, len, r) = cylinder_frame(k, &mut vector)?;
             let half = k.b.scale(0.5, len);
             let mid = [0, 1, 2].map(|d| {
                 let h = k.b.mul(half, unit[d]);
@@ -528,6 +518,20 @@ fn ball_crossing(b: &mut crate::ir::Builder, w0: [V; 3], rate: [V; 3], radius: V
         leave,
         normal: at.map(|c| b.div(c, safe_r)),
     }
+}
+
+/// A cylinder obstacle's start, unit axis, length and radius.
+fn cylinder_frame(
+    k: &mut KernelBuilder,
+    vector: &mut impl FnMut(&mut KernelBuilder, &str, usize) -> Result<Vec<V>, LowerError>,
+) -> Result<(Vec<V>, [V; 3], V, V), LowerError> {
+    let a = vector(k, "start", 0)?;
+    let b = vector(k, "end", 1)?;
+    let r = vector(k, "radius", 2)?[0];
+    let axis = [0, 1, 2].map(|d| k.b.sub(b[d], a[d]));
+    let len = norm(k, &axis);
+    let unit = [0, 1, 2].map(|d| k.b.div(axis[d], len));
+    Ok((a, unit, len, r))
 }
 
 /// The Euclidean norm of `v`.

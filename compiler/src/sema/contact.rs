@@ -160,48 +160,24 @@ impl Checker {
         let Some(s) = self.bind("force", e.span, &[("obstacle", true), ("on", false)], args) else {
             return Typed::error();
         };
-        if let Some(on) = s[1] {
-            let ExprKind::Name(id) = &on.kind else {
-                self.err(Diagnostic::error(
-                    "E0203",
-                    on.span,
-                    "`on:` takes the name of a node set, e.g. `force(table, on: left_finger)`",
-                ));
-                return Typed::error();
-            };
-            match self.global_kind(id) {
-                Some(SymKind::Nodes) => self.check_expr(on),
-                Some(k) => {
-                    self.wrong_kind(id, k, "`force(…, on: …)` takes a node set", None);
-                    return Typed::error();
-                }
-                None => {
-                    self.check_expr(on);
-                    return Typed::error();
-                }
-            };
+        if let Some(on) = s[1]
+            && !self.names_a(
+                on,
+                SymKind::Nodes,
+                "`on:` takes the name of a node set, e.g. `force(table, on: left_finger)`",
+                "`force(…, on: …)` takes a node set",
+            )
+        {
+            return Typed::error();
         }
         let arg = s[0].expect("required");
-        let ExprKind::Name(id) = &arg.kind else {
-            self.err(Diagnostic::error(
-                "E0203",
-                arg.span,
-                "`force` takes the name of an obstacle, e.g. `force(table)`",
-            ));
+        if !self.names_a(
+            arg,
+            SymKind::Obstacle,
+            "`force` takes the name of an obstacle, e.g. `force(table)`",
+            "`force` takes an obstacle",
+        ) {
             return Typed::error();
-        };
-        match self.global_kind(id) {
-            Some(SymKind::Obstacle) => {
-                self.check_expr(arg);
-            }
-            Some(k) => {
-                self.wrong_kind(id, k, "`force` takes an obstacle", None);
-                return Typed::error();
-            }
-            None => {
-                self.check_expr(arg);
-                return Typed::error();
-            }
         }
         if !self.ctx.contact_force {
             self.err(
@@ -217,6 +193,29 @@ impl Checker {
         }
         let force = super::units::named_dim("force").expect("a dimension");
         Typed::of(Ty::vec3(force), Var::State)
+    }
+
+    /// Whether `arg` names a declaration of kind `kind` (reporting `not_a_name` or
+    /// `wrong_kind` otherwise, or nothing for an unknown name, which the name check reports).
+    fn names_a(&mut self, arg: &Expr, kind: SymKind, not_a_name: &str, wrong_kind: &str) -> bool {
+        let ExprKind::Name(id) = &arg.kind else {
+            self.err(Diagnostic::error("E0203", arg.span, not_a_name));
+            return false;
+        };
+        match self.global_kind(id) {
+            Some(k) if k == kind => {
+                self.check_expr(arg);
+                true
+            }
+            Some(k) => {
+                self.wrong_kind(id, k, wrong_kind, None);
+                false
+            }
+            None => {
+                self.check_expr(arg);
+                false
+            }
+        }
     }
 
     /// `stretch(e)`: the largest principal stretch (dimensionless) of the element `e` of a
