@@ -138,6 +138,7 @@ def compile(
     threads: Optional[int] = None,
     adapter: Optional[str] = None,
     linear_solver: str = "auto",
+    warm_start: bool = False,
 ) -> "Scene":
     """Compile a ``.soft`` script for a device.
 
@@ -146,7 +147,11 @@ def compile(
     ``precision``, else f64 on the cpu and f32 on the gpu). ``threads``: worker threads of the
     cpu backend. ``adapter``: part of a GPU adapter's name. ``linear_solver``: ``"auto"``
     (default: ``"direct"`` up to 100,000 free dofs, ``"amg"`` beyond), ``"direct"``, ``"amg"``
-    or ``"krylov"`` for static and implicit solves. Raises :class:`CompileError` with
+    or ``"krylov"`` for static and implicit solves. ``warm_start``: each static solve starts
+    from the previous run's equilibrium instead of from rest, as an optimization in ``softc
+    run`` does: in an optimization loop a solve then costs a few Newton iterations instead of a
+    load continuation, but a run's result depends on the run before it to the solver's
+    tolerance (not bit for bit ``softc run``'s). Raises :class:`CompileError` with
     ``.diagnostics`` when the script has errors.
     """
     path = os.fspath(path)
@@ -164,6 +169,7 @@ def compile(
         threads=threads,
         adapter=adapter,
         linear_solver=linear_solver,
+        warm_start=warm_start,
     )
     return Scene(native, path)
 

@@ -325,9 +325,11 @@ impl NativeScene {
 }
 
 /// Compile a script: `backend` cpu, interp or gpu; `precision` f32/f64 (None: the script's,
-/// else the backend's default); `linear_solver` auto, direct, amg or krylov.
+/// else the backend's default); `linear_solver` auto, direct, amg or krylov; `warm_start`:
+/// static solves start from the previous run's equilibrium.
 #[pyfunction]
-#[pyo3(signature = (path, backend="cpu", precision=None, threads=None, adapter=None, linear_solver="auto"))]
+#[pyo3(signature = (path, backend="cpu", precision=None, threads=None, adapter=None, linear_solver="auto", warm_start=false))]
+#[allow(clippy::too_many_arguments)]
 fn compile(
     py: Python<'_>,
     path: PathBuf,
@@ -336,6 +338,7 @@ fn compile(
     threads: Option<usize>,
     adapter: Option<String>,
     linear_solver: &str,
+    warm_start: bool,
 ) -> PyResult<NativeScene> {
     let backend: BackendChoice = parse_choice("backend", backend)?;
     let precision = precision
@@ -349,6 +352,7 @@ fn compile(
         adapter,
         threads,
         linear_solver,
+        warm_start,
     };
     let model = py
         .detach(|| Model::compile(&path, settings))

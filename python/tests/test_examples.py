@@ -76,3 +76,8 @@ def test_the_torch_controller_is_the_scripts_controller(endoscope):
     np.testing.assert_allclose(losses.detach().numpy(), expected_losses, rtol=1e-9)
     np.testing.assert_allclose(net.layer.weight.grad.numpy(), expected_grad, rtol=1e-7,
                                atol=1e-9 * np.abs(expected_grad).max())
+
+
+def test_gripper_example():
+    out = run_example("gripper_torch.py", "--iterations", "3")
+    assert "iteration  2" in out and "grip left" in out

@@ -356,3 +356,17 @@ def test_a_doubtful_answer_warns_and_is_listed_in_the_summary(static_pressure, t
     assert without_timing(summary) == without_timing(cli_json(tmp_path, script))
     # A settled static answer of an everyday material warns nothing.
     assert static_pressure.run({"p_max": 12e3})["warnings"] == []
+
+
+def test_warm_start_reaches_the_same_equilibrium_in_fewer_iterations():
+    """`warm_start=True`: a static solve starts from the last run's equilibrium. The answer is
+    the same equilibrium to the solver's tolerance, reached with fewer Newton iterations; without
+    it every run is the cold one, bit for bit."""
+    cold = softc.compile(EXAMPLES / "pressure_optimization.soft")
+    warm = softc.compile(EXAMPLES / "pressure_optimization.soft", warm_start=True)
+    reference = cold.run({"p_max": 101e3})
+    warm.run({"p_max": 100e3})
+    again = warm.run({"p_max": 101e3})
+    assert again["loss"] == pytest.approx(reference["loss"], rel=1e-8)
+    assert again["solver"]["newton_iterations"] < reference["solver"]["newton_iterations"]
+    assert cold.run({"p_max": 101e3})["loss"] == reference["loss"]

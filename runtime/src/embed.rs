@@ -25,6 +25,11 @@ pub struct Settings {
     pub adapter: Option<String>,
     pub threads: Option<usize>,
     pub linear_solver: LinearSolver,
+    /// Static solves start from the previous run's equilibrium (as an optimization in
+    /// `softc run` does) instead of from rest: an optimization loop's solves then cost a few
+    /// Newton iterations, but a run's result depends on the one before it to the solver's
+    /// tolerance (not bit for bit `softc run`'s).
+    pub warm_start: bool,
 }
 
 impl Default for Settings {
@@ -35,6 +40,7 @@ impl Default for Settings {
             adapter: None,
             threads: None,
             linear_solver: LinearSolver::Auto,
+            warm_start: false,
         }
     }
 }
@@ -117,6 +123,8 @@ pub struct Model {
     /// which also runs forward passes of static solves and of runs with gradients).
     forward: Option<Device>,
     adjoint: Option<Device>,
+    /// The last static solve's equilibrium, where [`Settings::warm_start`] asks for it.
+    equilibrium: Option<Vec<f64>>,
 }
 
 impl std::fmt::Debug for Model {
@@ -154,6 +162,7 @@ impl Model {
             settings,
             forward: None,
             adjoint: None,
+            equilibrium: None,
         })
     }
 
@@ -353,6 +362,9 @@ impl Model {
         let mut sim = Simulation::new(&self.scene, device);
         sim.linear_solver = self.settings.linear_solver;
         sim.interrupt = request.interrupt.clone();
+        if self.settings.warm_start {
+            sim.warm_start = self.equilibrium.clone();
+        }
         let result = (|| {
             if self.scene.lowered.statics.is_none() {
                 sim.stable_dt_estimate().map_err(|e| e.0)?;
@@ -371,6 +383,11 @@ impl Model {
                     .map_err(|e| e.0),
             }
         })();
+        if self.settings.warm_start
+            && let Some(x) = sim.warm_start.take()
+        {
+            self.equilibrium = Some(x);
+        }
         // The device is kept for the next run, also after a failed one (`Simulation::new`
         // prepares its buffers afresh).
         let device = sim.backend;
