@@ -435,7 +435,11 @@ fn a_prism_outline_must_be_a_simple_polygon() {
         assert!((v / g.reference_volume - 1.0).abs() < 1e-9, "{v}");
     }
     // A bow tie crosses itself; two points enclose nothing.
-    for bad in ["[[0, 0], [10, 10], [10, 0], [0, 10]]", "[[0, 0], [10, 0]]"] {
+    for bad in [
+        "[[0, 0], [10, 10], [10, 0], [0, 10]]",
+        "[[0, 0], [10, 0]]",
+        "[[0, 0], [10, 0], [10, 0], [0, 10]]",
+    ] {
         let e = generate_text(&prism(bad), None).unwrap_err();
         assert!(e.contains("outline"), "{e}");
     }

@@ -275,6 +275,11 @@ fn prism_of(s: &ShapeSpec, what: &str) -> Result<Shape, MeshError> {
         )));
     }
     let n = outline.len();
+    if (0..n).any(|i| outline[i] == outline[(i + 1) % n]) {
+        return Err(MeshError::spec(format!(
+            "{what}: the prism's `outline` repeats a corner: list each corner once"
+        )));
+    }
     let crosses = |i: usize, j: usize| {
         let (a, b, c, d) = (
             outline[i],
