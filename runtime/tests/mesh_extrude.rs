@@ -409,6 +409,15 @@ fn the_gripper_prism_meshes_its_palm_fingers_and_chambers_exactly() {
             "chamber {tag}: {enclosed} vs {v}"
         );
     }
+    // The shipped mesh is this spec's (regenerate it with `softc mesh generate`).
+    let shipped = std::fs::read_to_string(spec_path.with_extension("msh")).unwrap();
+    let unit = spec.unit().unwrap();
+    let written = softc::mesh::readers::gmsh::to_string(m, unit).unwrap();
+    assert!(
+        shipped == written,
+        "meshes/gripper.msh differs from meshes/gripper.toml's mesh: regenerate it with \
+         `softc mesh generate meshes/gripper.toml -o meshes/gripper.msh`"
+    );
     // The strain-limiting layers and the palm's underside.
     let limit = m.tet_tags.iter().filter(|&&t| t == 2).count();
     assert!(limit > 0 && limit < m.tets.len() / 4, "{limit}");
