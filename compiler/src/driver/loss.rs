@@ -234,7 +234,7 @@ pub(super) fn lower_loss(
     };
     let mut lw = ExprLowerer::new(program);
     lw.contact_nodes = Some(contacts.to_vec());
-    lw.elements = Some((mesh.tets().to_vec(), mesh.nodes().to_vec()));
+    lw.elements = Some((mesh.tets(), mesh.nodes()));
     lw.runtime_names = vec!["t_end", "dt"];
     lw.node_sets = node_sets.iter().cloned().collect::<HashMap<_, _>>();
     lw.node_weights = node_weights.clone();

@@ -132,11 +132,11 @@ pub struct ExprLowerer<'p> {
     pub contact_nodes: Option<Vec<super::contact::ContactNodes>>,
     /// The loss: each element's corners and the rest positions of the nodes, from which
     /// `stretch(e)` computes the element's deformation.
-    pub elements: Option<ElementShapes>,
+    pub elements: Option<ElementShapes<'p>>,
 }
 
-/// Each element's corners and every node's rest position.
-pub type ElementShapes = (Vec<[u32; 4]>, Vec<[f64; 3]>);
+/// Each element's corners and every node's rest position (the mesh's, borrowed).
+pub type ElementShapes<'m> = (&'m [[u32; 4]], &'m [[f64; 3]]);
 
 impl<'p> ExprLowerer<'p> {
     pub fn new(program: &'p Program) -> Self {

@@ -179,20 +179,29 @@ impl Checker {
         ) {
             return Typed::error();
         }
-        if !self.ctx.contact_force {
-            self.err(
-                Diagnostic::error(
-                    "E0320",
-                    e.span,
-                    "`force(…)` cannot be used here: it is the contact force at a state the \
-                     loss reads",
-                )
-                .with_hint("read it in the loss (or a top-level `let` the loss uses)"),
-            );
+        if !self.in_loss_state(e, "`force(…)`", "the contact force") {
             return Typed::error();
         }
         let force = super::units::named_dim("force").expect("a dimension");
         Typed::of(Ty::vec3(force), Var::State)
+    }
+
+    /// Whether `call` stands where the loss's state is read (the loss, a top-level `let`);
+    /// else E0320 for `what`, which is `quantity` at that state.
+    fn in_loss_state(&mut self, call: &Expr, what: &str, quantity: &str) -> bool {
+        if !self.ctx.loss_state {
+            self.err(
+                Diagnostic::error(
+                    "E0320",
+                    call.span,
+                    format!(
+                        "{what} cannot be used here: it is {quantity} at a state the loss reads"
+                    ),
+                )
+                .with_hint("read it in the loss (or a top-level `let` the loss uses)"),
+            );
+        }
+        self.ctx.loss_state
     }
 
     /// Whether `arg` names a declaration of kind `kind` (reporting `not_a_name` or
@@ -238,16 +247,7 @@ impl Checker {
             self.err(Diagnostic::error("E0204", arg.span, msg));
             return Typed::error();
         }
-        if !self.ctx.contact_force {
-            self.err(
-                Diagnostic::error(
-                    "E0320",
-                    e.span,
-                    "`stretch(…)` cannot be used here: it is the deformation at a state the \
-                     loss reads",
-                )
-                .with_hint("read it in the loss (or a top-level `let` the loss uses)"),
-            );
+        if !self.in_loss_state(e, "`stretch(…)`", "the deformation") {
             return Typed::error();
         }
         Typed::of(Ty::scalar(Dim::NONE), Var::State)

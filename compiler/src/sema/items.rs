@@ -271,7 +271,7 @@ impl Checker {
                 // variability says where it may be used.
                 self.ctx.time = true;
                 self.ctx.state = true;
-                self.ctx.contact_force = true;
+                self.ctx.loss_state = true;
                 let t = self.check_expr(&l.value);
                 self.ctx = Default::default();
                 if matches!(t.ty, Ty::Obj(Obj::StateField | Obj::Node | Obj::Element)) {

@@ -284,8 +284,9 @@ struct Ctx {
     coords: bool,
     /// The expression must not depend on params/inputs (geometry), reported by the caller.
     in_controller: bool,
-    /// `force(OBSTACLE)` (the loss and top-level lets, which the loss may read).
-    contact_force: bool,
+    /// `force(OBSTACLE)` and `stretch(e)`: the loss and top-level lets, which the loss may
+    /// read.
+    loss_state: bool,
 }
 
 struct Checker {

@@ -13,7 +13,7 @@ impl Checker {
     pub(super) fn check_loss(&mut self, loss: &LossDecl) {
         self.ctx.time = true;
         self.ctx.state = true;
-        self.ctx.contact_force = true;
+        self.ctx.loss_state = true;
         let t = self.check_expr(&loss.value);
         self.ctx = Default::default();
         match &t.ty {
